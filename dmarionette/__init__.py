@@ -1,0 +1,1 @@
+"""dmarionette: a differentiable simulator of a string marionette."""
