@@ -1,0 +1,84 @@
+"""Time integration of string particles, and the per-string outputs of a step.
+
+``integrate_string_particles`` applies the velocity change solved for the free
+particles (backward Euler: ``v1 = v0 + dv``, ``x1 = x0 + h v1``) and moves the top
+particle to its attach point on the bar. ``eval_string_tie_force`` evaluates, on the
+new state, the force the string's tie puts on its body point (paper eq. 2) and whether
+the string is taut (paper §3.2).
+"""
+
+
+import functools
+
+import warp as wp
+
+
+@functools.cache
+def integrate_string_kernels(scalar):
+    """Builds ``(integrate_string_particles, eval_string_tie_force)`` for a float type."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.kernel(module="unique")
+    def integrate_string_particles(
+        # Model:
+        particle_string: wp.array(dtype=wp.int32),
+        string_start: wp.array(dtype=wp.int32),
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        particle_dv: wp.array(dtype=vec3),
+        # Control:
+        top_q: wp.array(dtype=vec3),
+        dt: scalar,
+        # State out:
+        particle_q_out: wp.array(dtype=vec3),
+        particle_qd_out: wp.array(dtype=vec3),
+    ):
+        p = wp.tid()
+        s = particle_string[p]
+        if p == string_start[s]:
+            # The top particle follows its attach point; its velocity is the one that
+            # moves it there in one backward-Euler step.
+            target = top_q[s]
+            particle_qd_out[p] = (target - particle_q[p]) / dt
+            particle_q_out[p] = target
+        else:
+            v = particle_qd[p] + particle_dv[p]
+            particle_qd_out[p] = v
+            particle_q_out[p] = particle_q[p] + dt * v
+
+    @wp.kernel(module="unique")
+    def eval_string_tie_force(
+        # Model:
+        string_start: wp.array(dtype=wp.int32),
+        string_tie_stiffness: wp.array(dtype=scalar),
+        string_tie_damping: wp.array(dtype=scalar),
+        string_tied: wp.array(dtype=scalar),
+        string_taut_distance: wp.array(dtype=scalar),
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        # Control:
+        tie_q: wp.array(dtype=vec3),
+        tie_qd: wp.array(dtype=vec3),
+        # State out:
+        tie_force: wp.array(dtype=vec3),
+        string_taut: wp.array(dtype=wp.int32),
+    ):
+        s = wp.tid()
+        first = string_start[s]
+        last = string_start[s + 1] - 1
+        x = particle_q[last]
+        v = particle_qd[last]
+        tied = string_tied[s]
+        # Paper eq. 2: f_body = -k (x_body - x_string) - k_d (v_body - v_string).
+        tie_force[s] = -tied * (
+            string_tie_stiffness[s] * (tie_q[s] - x) + string_tie_damping[s] * (tie_qd[s] - v)
+        )
+        # Paper §3.2: taut when the first-to-last distance exceeds a threshold.
+        taut = int(0)
+        if wp.length(x - particle_q[first]) > string_taut_distance[s]:
+            taut = 1
+        string_taut[s] = taut
+
+    return integrate_string_particles, eval_string_tie_force

@@ -1,0 +1,194 @@
+"""Assembly of one backward-Euler step of a set of strings as block-tridiagonal systems.
+
+For the free particles ``j = 1 .. n-1`` of a chain (particle 0 follows the bar and is
+kinematic), linearised backward Euler (Baraff & Witkin 1998) reads
+
+    (M - h D - h^2 K) dv = h f0 + h^2 K v0 + h (K_j0 dx_0 + D_j0 dv_0)
+
+where ``K = df/dx``, ``D = df/dv`` at the start of the step, and ``dx_0``, ``dv_0`` are the
+known motion of the kinematic top particle over the step. Neighbours only interact
+through their segment, so ``A`` is block-tridiagonal with 3x3 blocks: this kernel
+writes, per particle, the diagonal block, the block coupling it to the next particle
+(``A_{j,j+1}``; ``A_{j+1,j}`` is its transpose) and the right-hand side.
+
+The spring (the costliest term) has its own kernel, ``eval_string_spring``, evaluated
+once per segment; every other term of a particle is evaluated in ``eval_string_system``,
+one ``@wp.func`` per physical term (see :mod:`string_terms`), rather than one kernel per
+term: on the CPU a launch costs more than the arithmetic of a cheap term for 300
+particles, and the step must run at 1 kHz with room to spare. Effects a scene turns off
+are removed at code generation with ``wp.static``: the kernel built for that scene does
+not contain them.
+"""
+
+
+import functools
+
+import warp as wp
+
+from .string_terms import string_terms
+
+
+@functools.cache
+def eval_string_spring_kernel(scalar):
+    """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the force on ``p`` and ``K_pp``."""
+    t = string_terms(scalar)
+    vec3, mat33 = t.vec3, t.mat33
+
+    @wp.kernel(module="unique")
+    def eval_string_spring(
+        # Model:
+        particle_string: wp.array(dtype=wp.int32),
+        string_start: wp.array(dtype=wp.int32),
+        string_stiffness: wp.array(dtype=scalar),
+        string_rest_length: wp.array(dtype=scalar),
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        # State out:
+        segment_force: wp.array(dtype=vec3),
+        segment_jacobian: wp.array(dtype=mat33),
+    ):
+        p = wp.tid()
+        s = particle_string[p]
+        if p == string_start[s + 1] - 1:
+            # The last particle starts no segment.
+            segment_force[p] = vec3(scalar(0.0))
+            segment_jacobian[p] = mat33(scalar(0.0))
+            return
+        f, k = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s], string_rest_length[s])
+        segment_force[p] = f
+        segment_jacobian[p] = k
+
+    return eval_string_spring
+
+
+@functools.cache
+def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool]):
+    """Builds ``eval_string_system`` for a float type and an effect set.
+
+    Args:
+        scalar: ``wp.float64`` or ``wp.float32``.
+        effects: ``(gravity, internal_friction, air_drag, ground_contact, ground_friction)``
+            as compile-time switches.
+    """
+    GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
+    t = string_terms(scalar)
+    vec3, mat33 = t.vec3, t.mat33
+
+    @wp.kernel(module="unique")
+    def eval_string_system(
+        # Model:
+        particle_string: wp.array(dtype=wp.int32),
+        string_start: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
+        string_internal_friction: wp.array(dtype=scalar),
+        string_air_drag: wp.array(dtype=scalar),
+        string_ground_stiffness: wp.array(dtype=scalar),
+        string_ground_absorption: wp.array(dtype=scalar),
+        string_ground_friction: wp.array(dtype=scalar),
+        string_tie_stiffness: wp.array(dtype=scalar),
+        string_tie_damping: wp.array(dtype=scalar),
+        string_tied: wp.array(dtype=scalar),
+        gravity: vec3,
+        ground_height: scalar,
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        segment_force: wp.array(dtype=vec3),
+        segment_jacobian: wp.array(dtype=mat33),
+        # Control:
+        top_q: wp.array(dtype=vec3),
+        tie_q: wp.array(dtype=vec3),
+        tie_qd: wp.array(dtype=vec3),
+        dt: scalar,
+        # State out:
+        system_diag: wp.array(dtype=mat33),
+        system_upper: wp.array(dtype=mat33),
+        system_rhs: wp.array(dtype=vec3),
+    ):
+        p = wp.tid()
+        s = particle_string[p]
+        start = string_start[s]
+        last = string_start[s + 1] - 1
+        j = p - start
+        zero = scalar(0.0)
+        eye = wp.identity(n=3, dtype=scalar)
+        if j == 0:
+            # Kinematic top particle: not an unknown; an identity row keeps the array tidy.
+            system_diag[p] = eye
+            system_upper[p] = mat33(zero)
+            system_rhs[p] = vec3(zero)
+            return
+
+        x = particle_q[p]
+        v = particle_qd[p]
+        mass = particle_mass[p]
+        force = vec3(zero)
+        stiff = mat33(zero)  # K_jj
+        damp = mat33(zero)  # D_jj
+        rhs_extra = vec3(zero)  # h^2 K_jk v0_k for free neighbours, h (K dx + D dv) for the top
+
+        # Segment to the previous particle (paper term 1), and its internal friction (term 2).
+        # (segment p-1 -> p was evaluated from p-1's side: the force on p is its opposite).
+        k_prev = segment_jacobian[p - 1]
+        force -= segment_force[p - 1]
+        stiff += k_prev
+        # Motion of the kinematic top particle over the step (used when j == 1).
+        top_dx = top_q[s] - particle_q[start]
+        top_dv = top_dx / dt - particle_qd[start]
+        if j == 1:
+            rhs_extra += -dt * (k_prev * top_dx)
+        else:
+            rhs_extra += -(dt * dt) * (k_prev * particle_qd[p - 1])
+        if wp.static(FRICTION):
+            f_f, d_f = t.compute_internal_friction(v, particle_qd[p - 1], string_internal_friction[s])
+            force += f_f
+            damp += d_f
+            if j == 1:
+                rhs_extra += -dt * (d_f * top_dv)
+
+        # Segment to the next particle.
+        upper = mat33(zero)
+        if p < last:
+            k_next = segment_jacobian[p]
+            force += segment_force[p]
+            stiff += k_next
+            rhs_extra += -(dt * dt) * (k_next * particle_qd[p + 1])
+            upper = (dt * dt) * k_next
+            if wp.static(FRICTION):
+                f_f, d_f = t.compute_internal_friction(v, particle_qd[p + 1], string_internal_friction[s])
+                force += f_f
+                damp += d_f
+                upper += dt * d_f
+
+        if wp.static(GRAVITY):
+            force += mass * gravity  # paper term 3
+        if wp.static(AIR):
+            f_a, d_a = t.compute_air_drag(v, string_air_drag[s])
+            force += f_a
+            damp += d_a
+        if wp.static(GROUND):
+            if x[1] < ground_height:
+                f_g, k_g, d_g = t.compute_ground_contact(
+                    x, v, ground_height, string_ground_stiffness[s], string_ground_absorption[s]
+                )
+                force += f_g
+                stiff += k_g
+                damp += d_g
+                if wp.static(GROUND_FRICTION):
+                    f_gf, d_gf = t.compute_ground_friction(v, string_ground_friction[s])
+                    force += f_gf
+                    damp += d_gf
+        if p == last:
+            tied = string_tied[s]
+            f_t, k_t, d_t = t.compute_string_tie(
+                x, v, tie_q[s], tie_qd[s], tied * string_tie_stiffness[s], tied * string_tie_damping[s]
+            )
+            force += f_t
+            stiff += k_t
+            damp += d_t
+
+        system_diag[p] = mass * eye - dt * damp - (dt * dt) * stiff
+        system_upper[p] = upper
+        system_rhs[p] = dt * force + (dt * dt) * (stiff * v) + rhs_extra
+
+    return eval_string_system

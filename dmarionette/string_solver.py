@@ -1,0 +1,177 @@
+"""The implicit (backward Euler) string stepper, paper §2.2.
+
+One step is five named passes::
+
+    eval_string_spring     each segment's spring force and stiffness, once per segment
+    eval_string_system     forces and Jacobians of every term -> block-tridiagonal A dv = b
+    solve_string_system    exact O(n) block Thomas solve, one chain per thread
+    integrate_string       v1 = v0 + dv, x1 = x0 + h v1; the top particle follows its bar
+    eval_string_tie_force  eq. 2 force on each body point, taut flags (paper §3.2)
+
+Under a ``wp.Tape`` each step allocates its own intermediates (one array per step, as
+Warp's reverse pass needs) and the solve records its hand-written adjoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import warp as wp
+
+from .kernels.string_integrate import integrate_string_kernels
+from .kernels.string_solve import solve_string_system_kernels
+from .kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
+from .string_model import StringControl, StringModel, StringState
+
+__all__ = ["SolverStringImplicit", "StringWorkspace"]
+
+
+@dataclasses.dataclass
+class StringWorkspace:
+    """Intermediate arrays of one step (segment springs, block rows of ``A``, ``b``, ``dv``, scratch)."""
+
+    segment_force: wp.array
+    segment_jacobian: wp.array
+    system_diag: wp.array
+    system_upper: wp.array
+    system_rhs: wp.array
+    particle_dv: wp.array
+    scratch_c: wp.array
+    scratch_d: wp.array
+    scratch_rhs_bar: wp.array
+
+    @classmethod
+    def allocate(cls, model: StringModel, requires_grad: bool) -> StringWorkspace:
+        n = model.particle_count
+        with wp.ScopedDevice(model.device):
+            def zeros(dtype, grad):
+                return wp.zeros(n, dtype=dtype, requires_grad=grad)
+
+            return cls(
+                segment_force=zeros(model.vec3, requires_grad),
+                segment_jacobian=zeros(model.mat33, requires_grad),
+                system_diag=zeros(model.mat33, requires_grad),
+                system_upper=zeros(model.mat33, requires_grad),
+                system_rhs=zeros(model.vec3, requires_grad),
+                particle_dv=zeros(model.vec3, requires_grad),
+                scratch_c=zeros(model.mat33, False),
+                scratch_d=zeros(model.vec3, False),
+                scratch_rhs_bar=zeros(model.vec3, False),
+            )
+
+
+def _active_tape():
+    return wp._src.context.runtime.tape
+
+
+class SolverStringImplicit:
+    """Backward-Euler stepper for a :class:`StringModel`.
+
+    Args:
+        model: the strings to simulate; its ``effects`` choose the kernels compiled.
+    """
+
+    def __init__(self, model: StringModel):
+        self.model = model
+        self._eval_spring = eval_string_spring_kernel(model.scalar)
+        self._eval_system = eval_string_system_kernel(model.scalar, model.effects.as_tuple())
+        self._solve, self._solve_adjoint = solve_string_system_kernels(model.scalar)
+        self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
+        self._workspace = StringWorkspace.allocate(model, requires_grad=False)
+
+    def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float) -> None:
+        """Advances the strings by ``dt`` seconds from ``state_in`` into ``state_out``.
+
+        ``state_out`` must be a different object from ``state_in``.
+        """
+        m = self.model
+        tape = _active_tape()
+        ws = StringWorkspace.allocate(m, requires_grad=True) if tape is not None else self._workspace
+        h = m.scalar(dt)
+        self.eval_string_spring(state_in, ws)  # spring force and stiffness per segment
+        self.eval_string_system(state_in, control, h, ws)  # all force terms -> A dv = b
+        self.solve_string_system(ws, tape)  # block Thomas, one chain per thread
+        self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
+        self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
+
+    def eval_string_spring(self, state_in, ws: StringWorkspace) -> None:
+        m = self.model
+        wp.launch(
+            self._eval_spring,
+            dim=m.particle_count,
+            inputs=[m.particle_string, m.string_start, m.string_stiffness, m.string_rest_length, state_in.particle_q],
+            outputs=[ws.segment_force, ws.segment_jacobian],
+            device=m.device,
+        )
+
+    def eval_string_system(self, state_in, control, h, ws: StringWorkspace) -> None:
+        m = self.model
+        wp.launch(
+            self._eval_system,
+            dim=m.particle_count,
+            inputs=[
+                m.particle_string, m.string_start, m.particle_mass,
+                m.string_internal_friction, m.string_air_drag,
+                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
+                m.string_tie_stiffness, m.string_tie_damping, m.string_tied,
+                m.gravity, m.ground_height,
+                state_in.particle_q, state_in.particle_qd, ws.segment_force, ws.segment_jacobian,
+                control.top_q, control.tie_q, control.tie_qd, h,
+            ],
+            outputs=[ws.system_diag, ws.system_upper, ws.system_rhs],
+            device=m.device,
+        )
+
+    def solve_string_system(self, ws: StringWorkspace, tape) -> None:
+        m = self.model
+        wp.launch(
+            self._solve,
+            dim=m.string_count,
+            inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
+            outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv],
+            device=m.device,
+            record_tape=False,
+        )
+        if tape is None:
+            return
+
+        def backward():
+            wp.launch(
+                self._solve_adjoint,
+                dim=m.string_count,
+                inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.particle_dv, ws.particle_dv.grad],
+                outputs=[
+                    ws.scratch_c, ws.scratch_d, ws.scratch_rhs_bar,
+                    ws.system_diag.grad, ws.system_upper.grad, ws.system_rhs.grad,
+                ],
+                device=m.device,
+            )
+
+        tape.record_func(backward, arrays=[ws.system_diag, ws.system_upper, ws.system_rhs, ws.particle_dv])
+
+    def integrate_string(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
+        m = self.model
+        wp.launch(
+            self._integrate,
+            dim=m.particle_count,
+            inputs=[
+                m.particle_string, m.string_start,
+                state_in.particle_q, state_in.particle_qd, ws.particle_dv, control.top_q, h,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=m.device,
+        )
+
+    def eval_string_tie_force(self, state_out, control) -> None:
+        m = self.model
+        wp.launch(
+            self._eval_tie,
+            dim=m.string_count,
+            inputs=[
+                m.string_start, m.string_tie_stiffness, m.string_tie_damping, m.string_tied,
+                m.string_taut_distance, state_out.particle_q, state_out.particle_qd,
+                control.tie_q, control.tie_qd,
+            ],
+            outputs=[state_out.tie_force, state_out.string_taut],
+            device=m.device,
+        )
