@@ -38,6 +38,7 @@ __all__ = [
     "StringSpec",
     "StringState",
     "build_string_model",
+    "string_energy",
 ]
 
 _FLOAT_TYPES = {"float64": wp.float64, "float32": wp.float32}
@@ -260,3 +261,41 @@ class StringControl:
 def build_string_model(specs: Sequence[StringSpec], **kwargs) -> StringModel:
     """Builds a :class:`StringModel`; keyword arguments as for its constructor."""
     return StringModel(specs, **kwargs)
+
+
+def string_energy(model: StringModel, q: np.ndarray, qd: np.ndarray, tie_q: np.ndarray | None = None
+                  ) -> dict[str, float]:
+    """Mechanical energy of the strings [J], from host arrays ``q``, ``qd`` of shape ``(P, 3)``.
+
+    Kinetic energy excludes the kinematic top particles (their motion is imposed). Returns
+    ``kinetic``, ``gravity`` (relative to ``y = 0``), ``spring``, ``ground`` (penalty spring
+    energy of particles below the ground, when ground contact is on), ``tie`` (the eq. 2
+    springs of tied strings, to ``tie_q`` or the model's tie points) and ``total``.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    qd = np.asarray(qd, dtype=np.float64)
+    mass = model.particle_mass.numpy().astype(np.float64)
+    free = np.ones(model.particle_count, dtype=bool)
+    free[model.string_start_np[:-1]] = False
+    kinetic = 0.5 * float(np.sum(mass[free] * np.sum(qd[free] ** 2, axis=1)))
+    g = np.array(model.gravity, dtype=np.float64)
+    gravity = -float(np.sum(mass[free] * (q[free] @ g))) if model.effects.gravity else 0.0
+    k_s = model.string_stiffness.numpy()
+    rest = model.string_rest_length.numpy()
+    spring = 0.0
+    ground = 0.0
+    k_ground = model.string_ground_stiffness.numpy()
+    for s in range(model.string_count):
+        a, b = model.string_start_np[s], model.string_start_np[s + 1]
+        lengths = np.linalg.norm(np.diff(q[a:b], axis=0), axis=1)
+        spring += 0.5 * float(k_s[s]) * float(np.sum((lengths - rest[s]) ** 2))
+        if model.effects.ground_contact:
+            depth = np.maximum(float(model.ground_height) - q[a + 1:b, 1], 0.0)
+            ground += 0.5 * float(k_ground[s]) * float(np.sum(depth**2))
+    points = model.tie_points() if tie_q is None else np.asarray(tie_q, dtype=np.float64)
+    last = model.string_start_np[1:] - 1
+    stretch = np.sum((points - q[last]) ** 2, axis=1)
+    tie = 0.5 * float(np.sum(model.string_tied.numpy() * model.string_tie_stiffness.numpy() * stretch))
+    total = kinetic + gravity + spring + ground + tie
+    return {"kinetic": kinetic, "gravity": gravity, "spring": spring, "ground": ground, "tie": tie,
+            "total": total}

@@ -30,13 +30,15 @@ class StringRolloutResult:
     Attributes:
         tie_force: force of each tie on its body point after every step [N], ``(T, S, 3)``.
         string_taut: taut flag of each string after every step, ``(T, S)``.
-        frames: particle positions every ``frame_steps`` steps [m], ``(F, P, 3)``;
-            frame ``i`` is the state after ``(i + 1) * frame_steps`` steps.
+        frames: particle positions once per chunk [m], ``(F, P, 3)``; frame ``i`` is the
+            state after ``(i + 1) * chunk_steps`` steps.
+        frame_velocities: particle velocities at the same frames [m/s], ``(F, P, 3)``.
     """
 
     tie_force: np.ndarray
     string_taut: np.ndarray
     frames: np.ndarray
+    frame_velocities: np.ndarray
 
 
 def _upload(dst: wp.array, values: np.ndarray) -> None:
@@ -136,6 +138,7 @@ class StringRollout:
         tie_force = np.zeros(expected)
         taut = np.zeros(expected[:2], dtype=np.int32)
         frames = np.zeros((chunks, m.particle_count, 3))
+        frame_velocities = np.zeros_like(frames)
         self._state.assign(state)
         for c in range(chunks):
             rows = slice(c * self.chunk_steps, (c + 1) * self.chunk_steps)
@@ -146,7 +149,9 @@ class StringRollout:
             tie_force[rows] = self._tie_force.numpy()
             taut[rows] = self._taut.numpy()
             frames[c] = self._state.particle_q.numpy()
+            frame_velocities[c] = self._state.particle_qd.numpy()
             if on_chunk is not None:
                 on_chunk((c + 1) * self.chunk_steps)
         state.assign(self._state)
-        return StringRolloutResult(tie_force=tie_force, string_taut=taut, frames=frames)
+        return StringRolloutResult(tie_force=tie_force, string_taut=taut, frames=frames,
+                                   frame_velocities=frame_velocities)

@@ -1,0 +1,87 @@
+"""The trajectory file (NumPy ``.npz``, documented in docs/trajectory.md) and its summary."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .scene import Scene
+from .simulate import StringTrajectory
+
+__all__ = ["FORMAT_VERSION", "read_trajectory", "summarize", "write_trajectory"]
+
+FORMAT_VERSION = 1
+
+
+def write_trajectory(path: str | Path, trajectory: StringTrajectory, scene: Scene) -> Path:
+    """Writes ``trajectory`` to ``path`` (``.npz``); every array is named as in docs/trajectory.md."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    metadata = {
+        "format": "dmarionette-trajectory",
+        "format_version": FORMAT_VERSION,
+        "scene": scene.name,
+        "scene_source": scene.source,
+        "string_dt": trajectory.string_dt,
+        "frame_steps": trajectory.frame_steps,
+        "precision": scene.precision,
+        "effects": {k: bool(v) for k, v in vars(scene.effects).items()},
+    }
+    np.savez_compressed(
+        path,
+        metadata=np.array(json.dumps(metadata)),
+        frame_time=trajectory.frame_time,
+        particle_q=trajectory.particle_q,
+        top_q=trajectory.top_q,
+        step_time=trajectory.step_time,
+        tie_force=trajectory.tie_force,
+        string_taut=trajectory.string_taut.astype(np.int8),
+        string_names=np.array(trajectory.string_names),
+        string_start=trajectory.string_start,
+        string_rest_length=trajectory.string_rest_length,
+        energy=trajectory.energy,
+    )
+    return path
+
+
+def read_trajectory(path: str | Path) -> dict:
+    """Reads a trajectory file into a dict of arrays plus ``metadata`` (a dict)."""
+    with np.load(Path(path), allow_pickle=False) as data:
+        out = {key: data[key] for key in data.files}
+    out["metadata"] = json.loads(str(out["metadata"]))
+    if out["metadata"].get("format") != "dmarionette-trajectory":
+        raise ValueError(f"{path}: not a dmarionette trajectory file (metadata format is "
+                         f"{out['metadata'].get('format')!r})")
+    return out
+
+
+def summarize(trajectory: StringTrajectory, scene: Scene) -> dict:
+    """A short summary: timing, and per string its stretch, taut fraction and tie force."""
+    simulated = float(trajectory.step_time[-1])
+    q = trajectory.particle_q
+    strings = {}
+    for s, name in enumerate(trajectory.string_names):
+        a, b = trajectory.string_start[s], trajectory.string_start[s + 1]
+        segments = np.linalg.norm(np.diff(q[:, a:b], axis=1), axis=2).sum(axis=1)
+        length = trajectory.string_rest_length[s] * (b - a - 1)
+        strings[name] = {
+            "max_stretch_percent": round(float(100.0 * (segments.max() / length - 1.0)), 4),
+            "taut_fraction": round(float(trajectory.string_taut[:, s].mean()), 4),
+            "max_tie_force_N": round(float(np.linalg.norm(trajectory.tie_force[:, s], axis=1).max()), 6),
+        }
+    finite = bool(np.all(np.isfinite(q)) and np.all(np.isfinite(trajectory.tie_force)))
+    return {
+        "scene": scene.name,
+        "simulated_seconds": round(simulated, 6),
+        "string_steps": int(len(trajectory.step_time)),
+        "string_dt": trajectory.string_dt,
+        "wall_seconds": round(trajectory.wall_seconds, 4),
+        "real_time_factor": round(simulated / trajectory.wall_seconds, 2) if trajectory.wall_seconds > 0 else None,
+        "steps_per_second": round(len(trajectory.step_time) / trajectory.wall_seconds, 1)
+        if trajectory.wall_seconds > 0 else None,
+        "all_finite": finite,
+        "energy_J": {"initial": float(trajectory.energy[0]), "final": float(trajectory.energy[-1])},
+        "strings": strings,
+    }
