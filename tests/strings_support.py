@@ -1,0 +1,44 @@
+"""Helpers shared by the string tests: small models and rollouts."""
+
+import numpy as np
+import warp as wp
+
+from dmarionette.string_model import StringEffects, StringModel, StringSpec
+from dmarionette.string_rollout import StringRollout
+from dmarionette.string_solver import SolverStringImplicit
+
+wp.config.quiet = True
+
+ONLY_GRAVITY = StringEffects(gravity=True, internal_friction=False, air_drag=False,
+                             ground_contact=False, ground_friction=False)
+NOTHING = StringEffects(gravity=False, internal_friction=False, air_drag=False,
+                        ground_contact=False, ground_friction=False)
+G = 9.81
+
+
+def make_model(specs, effects=ONLY_GRAVITY, **kwargs) -> StringModel:
+    return StringModel(specs, effects=effects, gravity=(0.0, -G, 0.0), ground_height=0.0, **kwargs)
+
+
+def roll(model, dt, steps, state=None, top_q=None, chunk=None, tie_q=None):
+    """Runs ``steps`` steps with fixed tops (or ``top_q`` of shape (T, S, 3)); returns (state, result)."""
+    chunk = chunk or steps
+    state = model.state() if state is None else state
+    if top_q is None:
+        top_q = np.broadcast_to(np.array([s.top for s in model.specs]), (steps, model.string_count, 3)).copy()
+    rollout = StringRollout(SolverStringImplicit(model), dt, chunk_steps=chunk)
+    result = rollout.run(state, top_q, tie_q=tie_q)
+    return state, result
+
+
+def zero_crossing_times(t, x):
+    """Times where x changes sign, by linear interpolation between samples."""
+    i = np.nonzero(np.signbit(x[:-1]) != np.signbit(x[1:]))[0]
+    return t[i] - x[i] * (t[i + 1] - t[i]) / (x[i + 1] - x[i])
+
+
+def spec(**kwargs) -> StringSpec:
+    base = dict(name="s", top=(0.0, 1.0, 0.0), bottom=(0.0, 0.5, 0.0), length=0.5, particle_count=20,
+                mass=0.002, load_mass=0.0, stiffness=500.0, internal_friction=0.0, air_drag=0.0)
+    base.update(kwargs)
+    return StringSpec(**base)
