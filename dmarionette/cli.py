@@ -49,13 +49,10 @@ def _parser() -> argparse.ArgumentParser:
 def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     import dataclasses
 
-    import warp as wp
-
     from .scene import load_scene
     from .simulate import simulate_strings
     from .trajectory_file import summarize, write_trajectory
 
-    wp.config.quiet = True
     scene = load_scene(scene_name)
     if args.precision is not None:
         scene = dataclasses.replace(scene, precision=args.precision)
@@ -80,6 +77,9 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``dmarionette`` command."""
     args = _parser().parse_args(argv)
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
     from .scene_fields import SceneError
 
     try:

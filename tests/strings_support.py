@@ -7,7 +7,7 @@ from dmarionette.string_model import StringEffects, StringModel, StringSpec
 from dmarionette.string_rollout import StringRollout
 from dmarionette.string_solver import SolverStringImplicit
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 
 ONLY_GRAVITY = StringEffects(gravity=True, internal_friction=False, air_drag=False,
                              ground_contact=False, ground_friction=False)
