@@ -220,6 +220,7 @@ def build_articulation_model(
     limit_damping: float = 0.05,
     gravity: tuple[float, float, float] = GRAVITY,
     device: str = "cpu",
+    requires_grad: bool = False,
 ) -> ArticulationModel:
     """Builds the model of a puppet (and optional ball).
 
@@ -233,6 +234,8 @@ def build_articulation_model(
         limit_stiffness, limit_damping: joint-limit penalty [N m/rad], [N m s/rad].
         gravity: [m/s^2].
         device: Warp device.
+        requires_grad: give the fittable arrays (masses, inertias, damping, gravity,
+            spring constants and points) gradients.
     """
     contacts = contacts or ContactSettings()
     names = [b.name for b in puppet.bodies]
@@ -289,7 +292,7 @@ def build_articulation_model(
         s_k.append(k)
         s_kd.append(kd)
     dev = device
-    return ArticulationModel(
+    model = ArticulationModel(
         topology=topo,
         body_names=names,
         body_shape=shapes,
@@ -317,6 +320,11 @@ def build_articulation_model(
         ball=ball,
         device=device,
     )
+    if requires_grad:
+        for name in ("body_mass", "body_inertia", "dof_damping", "gravity", "spring_point",
+                     "spring_stiffness", "spring_damping"):
+            getattr(model, name).requires_grad = True
+    return model
 
 
 class SolverArticulation:
