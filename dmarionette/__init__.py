@@ -1,1 +1,48 @@
-"""dmarionette: a differentiable simulator of a string marionette."""
+"""dmarionette: a differentiable simulator of a string marionette (NVIDIA Warp).
+
+The public API; everything else is implementation::
+
+    import dmarionette as dm
+
+    scene = dm.load_scene("hanging")
+    model = scene.build_string_model()
+    solver = dm.SolverStringImplicit(model)
+    a, b, control = model.state(), model.state(), model.control()
+    solver.step(a, b, control, scene.string_dt)
+"""
+
+from .scene import Scene as Scene
+from .scene import builtin_scenes as builtin_scenes
+from .scene import load_scene as load_scene
+from .scene_fields import SceneError as SceneError
+from .simulate import StringTrajectory as StringTrajectory
+from .simulate import simulate_strings as simulate_strings
+from .string_model import StringControl as StringControl
+from .string_model import StringEffects as StringEffects
+from .string_model import StringModel as StringModel
+from .string_model import StringSpec as StringSpec
+from .string_model import StringState as StringState
+from .string_model import string_energy as string_energy
+from .string_rollout import StringRollout as StringRollout
+from .string_solver import SolverStringImplicit as SolverStringImplicit
+from .trajectory_file import read_trajectory as read_trajectory
+from .trajectory_file import write_trajectory as write_trajectory
+
+__all__ = [
+    "Scene",
+    "SceneError",
+    "SolverStringImplicit",
+    "StringControl",
+    "StringEffects",
+    "StringModel",
+    "StringRollout",
+    "StringSpec",
+    "StringState",
+    "StringTrajectory",
+    "builtin_scenes",
+    "load_scene",
+    "read_trajectory",
+    "simulate_strings",
+    "string_energy",
+    "write_trajectory",
+]

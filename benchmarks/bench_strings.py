@@ -1,0 +1,97 @@
+"""String simulator speed on one core: steps per second, scaling, and the cost of each effect.
+
+Run:  python benchmarks/bench_strings.py [--repeats 7] [--steps 3000]
+
+Every number is the median of ``--repeats`` timed runs of ``--steps`` steps (after one
+untimed warm-up run that also compiles the kernels), replayed as a captured CPU graph
+in chunks of 100 steps, on the default scene's six strings with their top attach points
+swaying. The spread (min-max over repeats, relative to the median) is printed so the
+machine's noise can be judged. Warp's CPU backend runs each launch on one thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import platform
+import statistics
+import time
+
+import numpy as np
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING
+
+from dmarionette.scene import load_scene  # noqa: E402
+from dmarionette.string_model import StringEffects, StringModel  # noqa: E402
+from dmarionette.string_rollout import StringRollout  # noqa: E402
+from dmarionette.string_solver import SolverStringImplicit  # noqa: E402
+
+DT = 1e-3
+CHUNK = 100
+
+
+def _model(particle_count=50, effects=None, precision="float64") -> StringModel:
+    scene = load_scene("hanging")
+    specs = [dataclasses.replace(s, particle_count=particle_count) for s in scene.strings]
+    return StringModel(specs, effects=effects or scene.effects, gravity=scene.gravity,
+                       ground_height=scene.ground_height, precision=precision)
+
+
+def measure(model: StringModel, steps: int, repeats: int) -> tuple[float, float]:
+    """Median steps per second and relative spread (max-min)/median of the run times."""
+    rollout = StringRollout(SolverStringImplicit(model), DT, chunk_steps=CHUNK)
+    steps = CHUNK * max(1, steps // CHUNK)
+    t = DT * np.arange(1, steps + 1)
+    tops = np.array([s.top for s in model.specs])
+    top_q = tops[None] + (0.05 * np.sin(2 * np.pi * 0.5 * t))[:, None, None] * np.array([1.0, 0.0, 0.0])
+    state = model.state()
+    rollout.run(state, top_q)  # warm-up
+    times = []
+    for _ in range(repeats):
+        state = model.state()
+        start = time.perf_counter()
+        rollout.run(state, top_q)
+        times.append(time.perf_counter() - start)
+    median = statistics.median(times)
+    return steps / median, (max(times) - min(times)) / median
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--steps", type=int, default=3000)
+    args = parser.parse_args()
+    print(f"# String benchmark — {platform.processor() or platform.machine()}, Python {platform.python_version()}, "
+          f"Warp {wp.config.version}; dt = {DT * 1e3:g} ms; median of {args.repeats} runs of {args.steps} steps\n")
+
+    print("## 6 strings x 50 particles\n")
+    print("| precision | steps/s | real-time factor | spread |")
+    print("|---|---:|---:|---:|")
+    for precision in ("float64", "float32"):
+        rate, spread = measure(_model(precision=precision), args.steps, args.repeats)
+        print(f"| {precision} | {rate:,.0f} | {rate * DT:.1f}x | {spread:.0%} |")
+
+    print("\n## Scaling with particles per string (6 strings, float64)\n")
+    print("| particles/string | steps/s | µs/step | ns per particle-step | spread |")
+    print("|---:|---:|---:|---:|---:|")
+    for n in (10, 25, 50, 100, 200):
+        rate, spread = measure(_model(particle_count=n), args.steps, args.repeats)
+        print(f"| {n} | {rate:,.0f} | {1e6 / rate:.1f} | {1e9 / rate / (6 * n):.1f} | {spread:.0%} |")
+
+    print("\n## Cost of each effect (6 x 50, float64): all on vs. that one compiled out\n")
+    print("| effect | steps/s with it | steps/s without | µs/step it costs | spread |")
+    print("|---|---:|---:|---:|---:|")
+    all_on, spread_on = measure(_model(effects=StringEffects()), args.steps, args.repeats)
+    for name in ("gravity", "internal_friction", "air_drag", "ground_contact", "ground_friction"):
+        effects = dataclasses.replace(StringEffects(), **{name: False})
+        rate, spread = measure(_model(effects=effects), args.steps, args.repeats)
+        cost = 1e6 / all_on - 1e6 / rate
+        print(f"| {name} | {all_on:,.0f} | {rate:,.0f} | {cost:+.2f} | {max(spread, spread_on):.0%} |")
+    none, spread = measure(_model(effects=StringEffects(False, False, False, False, False)), args.steps, args.repeats)
+    print(f"| (all five off: springs only) | {all_on:,.0f} | {none:,.0f} | {1e6 / all_on - 1e6 / none:+.2f} | "
+          f"{max(spread, spread_on):.0%} |")
+
+
+if __name__ == "__main__":
+    main()
