@@ -1,15 +1,342 @@
-"""placeholder"""
+"""Penalty contacts of the puppet's shapes: ground plane, a static box (chair), a free ball.
+
+Every contact is a point force between two bodies (or a body and the static world):
+
+- normal: ``f_n = max(k d - c v_n, 0)`` for penetration ``d > 0`` ("hard"), or the smooth
+  option ``f_n = k s + c sigma v_eps softplus(-v_n / v_eps)`` with
+  ``s = delta softplus(d / delta)``, ``sigma = sigmoid(d / delta)`` (smooth gradients
+  everywhere; a force ``k delta log 2`` acts at zero gap and it decays as
+  ``exp(-gap / delta)``; the damping resists approach only, so the force is never
+  attractive);
+- friction: regularised Coulomb, ``f_t = -mu f_n v_t / sqrt(|v_t|^2 + v_eps^2)``.
+
+The step treats the stiff parts implicitly like the string springs: the normal stiffness
+and damping (``h c + h^2 k`` along ``n n^T``) and the friction's viscous slope
+(``h mu f_n / sqrt(|v_t|^2 + v_eps^2)`` in the tangent plane) enter ``body_stiffness``, and
+the force gets the matching ``- h k v_n n`` term. Between the puppet and the ball only the
+two diagonal body blocks are added (the coupling block is left explicit).
+
+Effects not asked for are neither compiled nor launched: each contact kind is its own
+kernel, and the hard/smooth choice is a compile-time closure.
+"""
+
+from __future__ import annotations
+
+import functools
 from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from dmarionette.kernels.articulation_math import (
+    compute_point_inertia,
+    compute_point_wrench,
+    compute_smooth_norm,
+    spatial6,
+    spatial66,
+)
+
+__all__ = ["ContactSet", "ContactSettings"]
 
 
 @dataclass(frozen=True)
 class ContactSettings:
+    """Which contacts exist (compile-time) and their constants.
+
+    Attributes:
+        ground: contact with the plane ``y = ground_height``.
+        ground_height: [m].
+        chair: a static axis-aligned box ``(centre, half_extents)`` [m], or None.
+        ball: contact between the puppet and the model's free ball (if it has one).
+        smooth: softplus normal force (smooth gradients) instead of ``max(., 0)``.
+        stiffness: normal stiffness per contact point [N/m].
+        damping: normal damping per contact point [N s/m].
+        friction: Coulomb coefficient.
+        friction_velocity: regularisation velocity ``v_eps`` of the friction [m/s].
+        smooth_distance: softplus width ``delta`` [m] (smooth option).
+    """
+
     ground: bool = False
+    ground_height: float = 0.0
+    chair: tuple | None = None
+    ball: bool = False
+    smooth: bool = False
+    stiffness: float = 2000.0
+    damping: float = 5.0
+    friction: float = 0.6
+    friction_velocity: float = 0.01
+    smooth_distance: float = 0.5e-3
+
+
+@wp.func
+def compute_softplus(x: wp.float64) -> wp.float64:
+    """``log(1 + exp(x))`` without overflow."""
+    return wp.max(x, wp.float64(0.0)) + wp.log(wp.float64(1.0) + wp.exp(-wp.abs(x)))
+
+
+@wp.func
+def compute_sigmoid(x: wp.float64) -> wp.float64:
+    return wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-x))
+
+
+@wp.func
+def compute_normal_hard(d: wp.float64, vn: wp.float64, k: wp.float64, c: wp.float64, delta: wp.float64,
+                        v_eps: wp.float64):
+    """Normal force and its stiffness and damping slopes, ``max(k d - c v_n, 0)`` when d > 0."""
+    zero = wp.float64(0.0)
+    fn = wp.where(d > zero, wp.max(k * d - c * vn, zero), zero)
+    on = wp.where(fn > zero, wp.float64(1.0), zero)
+    return fn, on * k, on * c
+
+
+@wp.func
+def compute_normal_smooth(d: wp.float64, vn: wp.float64, k: wp.float64, c: wp.float64, delta: wp.float64,
+                          v_eps: wp.float64):
+    """Smooth normal force ``k s + c sigma v_eps softplus(-v_n / v_eps)`` and its slopes:
+    softplus penetration, damping that only resists approach; every term >= 0 and
+    vanishing away from contact."""
+    s = delta * compute_softplus(d / delta)
+    sig = compute_sigmoid(d / delta)
+    fn = k * s + c * sig * v_eps * compute_softplus(-vn / v_eps)
+    return fn, k * sig, c * sig * compute_sigmoid(-vn / v_eps)
+
+
+def _contact_response(normal_fn):
+    @wp.func
+    def compute_contact_response(
+        p: wp.vec3d, n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64,
+        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+    ):
+        """Force on the body the normal points into, and its implicit 3x3 block."""
+        vn = wp.dot(v_rel, n)
+        fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
+        vt = v_rel - vn * n
+        ct = mu * fn / wp.sqrt(wp.dot(vt, vt) + v_eps * v_eps)
+        f = (fn - h * kn * vn) * n - ct * vt
+        nn = wp.outer(n, n)
+        A = (h * cn + h * h * kn) * nn + (h * ct) * (wp.identity(3, dtype=wp.float64) - nn)
+        return f, A
+
+    return compute_contact_response
+
+
+@wp.func
+def compute_box_closest(u: wp.vec3d, half: wp.vec3d):
+    """Signed distance of a point ``u`` (box frame) to a centred box, outward normal, and
+    the closest surface point."""
+    q = wp.vec3d(wp.clamp(u[0], -half[0], half[0]), wp.clamp(u[1], -half[1], half[1]), wp.clamp(u[2], -half[2], half[2]))
+    dv = u - q
+    outside = wp.dot(dv, dv) > wp.float64(0.0)
+    dist = compute_smooth_norm(dv)
+    n = dv / dist
+    if not outside:
+        # inside: the nearest face
+        gap = half - wp.vec3d(wp.abs(u[0]), wp.abs(u[1]), wp.abs(u[2]))
+        axis = int(0)
+        if gap[1] < gap[axis]:
+            axis = 1
+        if gap[2] < gap[axis]:
+            axis = 2
+        sgn = wp.where(u[axis] < wp.float64(0.0), wp.float64(-1.0), wp.float64(1.0))
+        n = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        n[axis] = sgn
+        dist = -gap[axis]
+        q = u
+        q[axis] = sgn * half[axis]
+    return dist, n, q
+
+
+@functools.cache
+def _kernels(smooth: bool):
+    response = _contact_response(compute_normal_smooth if smooth else compute_normal_hard)
+
+    @wp.kernel(module="unique")
+    def eval_body_ground_contact(
+        # Model:
+        point_body: wp.array(dtype=wp.int32),
+        point_local: wp.array(dtype=wp.vec3d),
+        point_radius: wp.array(dtype=wp.float64),
+        params: wp.array(dtype=wp.float64),
+        # State in:
+        body_pos: wp.array2d(dtype=wp.vec3d),
+        body_rot: wp.array2d(dtype=wp.quatd),
+        body_w: wp.array2d(dtype=wp.vec3d),
+        body_v: wp.array2d(dtype=wp.vec3d),
+        # Control:
+        h: wp.float64,
+        # State out:
+        body_wrench: wp.array2d(dtype=spatial6),
+        body_stiffness: wp.array2d(dtype=spatial66),
+    ):
+        """Box corners and spheres against the plane y = params[5]."""
+        w, i = wp.tid()
+        b = point_body[i]
+        x = body_pos[w, b]
+        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
+        n = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+        d = point_radius[i] - (centre[1] - params[5])
+        p = centre - point_radius[i] * n
+        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
+        f, A = response(p, n, d, v, h, params[0], params[1], params[2], params[3], params[4])
+        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
+        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
+
+    @wp.kernel(module="unique")
+    def eval_body_box_contact(
+        # Model:
+        point_body: wp.array(dtype=wp.int32),
+        point_local: wp.array(dtype=wp.vec3d),
+        point_radius: wp.array(dtype=wp.float64),
+        params: wp.array(dtype=wp.float64),
+        box_centre: wp.vec3d,
+        box_half: wp.vec3d,
+        # State in:
+        body_pos: wp.array2d(dtype=wp.vec3d),
+        body_rot: wp.array2d(dtype=wp.quatd),
+        body_w: wp.array2d(dtype=wp.vec3d),
+        body_v: wp.array2d(dtype=wp.vec3d),
+        # Control:
+        h: wp.float64,
+        # State out:
+        body_wrench: wp.array2d(dtype=spatial6),
+        body_stiffness: wp.array2d(dtype=spatial66),
+    ):
+        """Box corners and spheres against a static axis-aligned box (the chair)."""
+        w, i = wp.tid()
+        b = point_body[i]
+        x = body_pos[w, b]
+        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
+        dist, n, q = compute_box_closest(centre - box_centre, box_half)
+        d = point_radius[i] - dist
+        p = centre - point_radius[i] * n
+        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
+        f, A = response(p, n, d, v, h, params[0], params[1], params[2], params[3], params[4])
+        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
+        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
+
+    @wp.kernel(module="unique")
+    def eval_body_ball_contact(
+        # Model:
+        pair_body: wp.array(dtype=wp.int32),
+        pair_is_sphere: wp.array(dtype=wp.int32),
+        pair_half: wp.array(dtype=wp.vec3d),
+        ball_body: int,
+        ball_radius: wp.float64,
+        params: wp.array(dtype=wp.float64),
+        # State in:
+        body_pos: wp.array2d(dtype=wp.vec3d),
+        body_rot: wp.array2d(dtype=wp.quatd),
+        body_w: wp.array2d(dtype=wp.vec3d),
+        body_v: wp.array2d(dtype=wp.vec3d),
+        # Control:
+        h: wp.float64,
+        # State out:
+        body_wrench: wp.array2d(dtype=spatial6),
+        body_stiffness: wp.array2d(dtype=spatial66),
+    ):
+        """Puppet boxes and sphere against the free ball; equal and opposite forces."""
+        w, i = wp.tid()
+        b = pair_body[i]
+        x = body_pos[w, b]
+        rot = body_rot[w, b]
+        c = body_pos[w, ball_body]
+        u = wp.quat_rotate_inv(rot, c - x)
+        half = pair_half[i]
+        dist = wp.float64(0.0)
+        n_local = wp.vec3d()
+        q = wp.vec3d()
+        if pair_is_sphere[i] != 0:
+            dist = compute_smooth_norm(u)
+            n_local = u / dist
+            q = n_local * half[0]
+            dist = dist - half[0]
+        else:
+            dist, n_local, q = compute_box_closest(u, half)
+        n = wp.quat_rotate(rot, n_local)  # from the puppet body towards the ball
+        p = x + wp.quat_rotate(rot, q)
+        d = ball_radius - dist
+        v_body = body_v[w, b] + wp.cross(body_w[w, b], p - x)
+        v_ball = body_v[w, ball_body] + wp.cross(body_w[w, ball_body], p - c)
+        f, A = response(p, n, d, v_ball - v_body, h, params[0], params[1], params[2], params[3], params[4])
+        wp.atomic_add(body_wrench, w, ball_body, compute_point_wrench(p, f))
+        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, -f))
+        K = compute_point_inertia(p, A)
+        wp.atomic_add(body_stiffness, w, ball_body, K)
+        wp.atomic_add(body_stiffness, w, b, K)
+
+    return eval_body_ground_contact, eval_body_box_contact, eval_body_ball_contact
+
+
+_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 
 
 class ContactSet:
+    """Contact candidates of a model and the launchers of the contact kernels it asks for.
+
+    Args:
+        model: an :class:`~dmarionette.articulation.ArticulationModel`; its ``contacts``
+            settings say which kernels exist.
+    """
+
     def __init__(self, model):
         self.model = model
+        s: ContactSettings = model.contacts
+        self.settings = s
+        dev = model.device
+        self.params = wp.array(np.array([s.stiffness, s.damping, s.friction, s.friction_velocity,
+                                         s.smooth_distance, s.ground_height]), dtype=wp.float64, device=dev)
+        body, local, radius = [], [], []
+        for b, (shape, size) in enumerate(model.body_shape):
+            if not model.body_contact[b]:
+                continue
+            if shape == "sphere":
+                body.append(b)
+                local.append((0.0, 0.0, 0.0))
+                radius.append(size[0])
+            else:
+                for corner in _CORNERS * (np.asarray(size) / 2):
+                    body.append(b)
+                    local.append(corner)
+                    radius.append(0.0)
+        self.point_count = len(body)
+        self.point_body = wp.array(np.array(body, dtype=np.int32), dtype=wp.int32, device=dev)
+        self.point_local = wp.array(np.array(local), dtype=wp.vec3d, device=dev)
+        self.point_radius = wp.array(np.array(radius), dtype=wp.float64, device=dev)
+        self.ball_body = model.body_names.index("ball") if model.ball is not None else -1
+        pb, ps, ph = [], [], []
+        for b, (shape, size) in enumerate(model.body_shape):
+            if b == self.ball_body or not model.body_contact[b]:
+                continue
+            pb.append(b)
+            ps.append(1 if shape == "sphere" else 0)
+            ph.append((size[0], 0.0, 0.0) if shape == "sphere" else tuple(np.asarray(size) / 2))
+        self.pair_count = len(pb)
+        self.pair_body = wp.array(np.array(pb, dtype=np.int32), dtype=wp.int32, device=dev)
+        self.pair_is_sphere = wp.array(np.array(ps, dtype=np.int32), dtype=wp.int32, device=dev)
+        self.pair_half = wp.array(np.array(ph).reshape(-1, 3), dtype=wp.vec3d, device=dev)
+        self.any = s.ground or s.chair is not None or (s.ball and self.ball_body >= 0)
+        if self.any:
+            self.kernels = _kernels(bool(s.smooth))
 
-    def eval(self, state, h):
-        return
+    def eval(self, state, h) -> None:
+        """Adds the contact forces and implicit blocks of ``state`` (kinematics filled)."""
+        if not self.any:
+            return
+        s = self.settings
+        ground, box, ball = self.kernels
+        bodies = [state.body_pos, state.body_rot, state.body_w, state.body_v]
+        out = [state.body_wrench, state.body_stiffness]
+        dev = self.model.device
+        pts = [self.point_body, self.point_local, self.point_radius, self.params]
+        if s.ground:
+            wp.launch(ground, dim=(state.world_count, self.point_count), inputs=[*pts, *bodies, h],
+                      outputs=out, device=dev)
+        if s.chair is not None:
+            centre, half = s.chair
+            wp.launch(box, dim=(state.world_count, self.point_count),
+                      inputs=[*pts, wp.vec3d(*centre), wp.vec3d(*half), *bodies, h], outputs=out, device=dev)
+        if s.ball and self.ball_body >= 0:
+            wp.launch(ball, dim=(state.world_count, self.pair_count),
+                      inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.ball_body,
+                              wp.float64(self.model.ball.radius), self.params, *bodies, h],
+                      outputs=out, device=dev)
