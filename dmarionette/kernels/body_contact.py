@@ -13,8 +13,10 @@ Every contact is a point force between two bodies (or a body and the static worl
 The step treats the stiff parts implicitly like the string springs: the normal stiffness
 and damping (``h c + h^2 k`` along ``n n^T``) and the friction's viscous slope
 (``h mu f_n / sqrt(|v_t|^2 + v_eps^2)`` in the tangent plane) enter ``body_stiffness``, and
-the force gets the matching ``- h k v_n n`` term. Between the puppet and the ball only the
-two diagonal body blocks are added (the coupling block is left explicit).
+the force gets the matching ``- h k v_n n`` term. Between the puppet and the ball (two
+moving bodies, whose coupling block would break the tree sparsity of the system matrix)
+the force is instead made implicit through a conservative effective mass, with exactly
+opposite forces on the two bodies, so momentum is conserved.
 
 Effects not asked for are neither compiled nor launched: each contact kind is its own
 kernel, and the hard/smooth choice is a compile-time closure.
@@ -120,6 +122,26 @@ def _contact_response(normal_fn):
     return compute_contact_response
 
 
+def _pair_response(normal_fn):
+    @wp.func
+    def compute_pair_response(
+        n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64, m_eff: wp.float64,
+        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+    ) -> wp.vec3d:
+        """Force between two moving bodies, implicit through an effective mass ``m_eff``:
+        the force that the 1-D implicit step of a point of mass ``m_eff`` would feel, so
+        that both bodies get exactly opposite impulses (momentum is conserved)."""
+        vn = wp.dot(v_rel, n)
+        fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
+        vt = v_rel - vn * n
+        ct = mu * fn / wp.sqrt(wp.dot(vt, vt) + v_eps * v_eps)
+        f_n = (fn - h * kn * vn) * m_eff / (m_eff + h * cn + h * h * kn)
+        f_t = -ct * m_eff / (m_eff + h * ct)
+        return f_n * n + f_t * vt
+
+    return compute_pair_response
+
+
 @wp.func
 def compute_box_closest(u: wp.vec3d, half: wp.vec3d):
     """Signed distance of a point ``u`` (box frame) to a centred box, outward normal, and
@@ -148,7 +170,9 @@ def compute_box_closest(u: wp.vec3d, half: wp.vec3d):
 
 @functools.cache
 def _kernels(smooth: bool):
-    response = _contact_response(compute_normal_smooth if smooth else compute_normal_hard)
+    normal_fn = compute_normal_smooth if smooth else compute_normal_hard
+    response = _contact_response(normal_fn)
+    pair_response = _pair_response(normal_fn)
 
     @wp.kernel(module="unique")
     def eval_body_ground_contact(
@@ -220,6 +244,7 @@ def _kernels(smooth: bool):
         pair_body: wp.array(dtype=wp.int32),
         pair_is_sphere: wp.array(dtype=wp.int32),
         pair_half: wp.array(dtype=wp.vec3d),
+        pair_mass: wp.array(dtype=wp.float64),
         ball_body: int,
         ball_radius: wp.float64,
         params: wp.array(dtype=wp.float64),
@@ -257,12 +282,9 @@ def _kernels(smooth: bool):
         d = ball_radius - dist
         v_body = body_v[w, b] + wp.cross(body_w[w, b], p - x)
         v_ball = body_v[w, ball_body] + wp.cross(body_w[w, ball_body], p - c)
-        f, A = response(p, n, d, v_ball - v_body, h, params[0], params[1], params[2], params[3], params[4])
+        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], params[0], params[1], params[2], params[3], params[4])
         wp.atomic_add(body_wrench, w, ball_body, compute_point_wrench(p, f))
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, -f))
-        K = compute_point_inertia(p, A)
-        wp.atomic_add(body_stiffness, w, ball_body, K)
-        wp.atomic_add(body_stiffness, w, b, K)
 
     return eval_body_ground_contact, eval_body_box_contact, eval_body_ball_contact
 
@@ -303,17 +325,24 @@ class ContactSet:
         self.point_local = wp.array(np.array(local), dtype=wp.vec3d, device=dev)
         self.point_radius = wp.array(np.array(radius), dtype=wp.float64, device=dev)
         self.ball_body = model.body_names.index("ball") if model.ball is not None else -1
-        pb, ps, ph = [], [], []
+        pb, ps, ph, pm = [], [], [], []
+        masses = model.body_mass.numpy()
         for b, (shape, size) in enumerate(model.body_shape):
             if b == self.ball_body or not model.body_contact[b]:
                 continue
             pb.append(b)
             ps.append(1 if shape == "sphere" else 0)
             ph.append((size[0], 0.0, 0.0) if shape == "sphere" else tuple(np.asarray(size) / 2))
+            if self.ball_body >= 0:
+                # a quarter of the reduced mass: a lower bound on the effective mass at
+                # the contact point (rotation lowers it), which keeps the step stable
+                ma = masses[self.ball_body]
+                pm.append(0.25 * ma * masses[b] / (ma + masses[b]))
         self.pair_count = len(pb)
         self.pair_body = wp.array(np.array(pb, dtype=np.int32), dtype=wp.int32, device=dev)
         self.pair_is_sphere = wp.array(np.array(ps, dtype=np.int32), dtype=wp.int32, device=dev)
         self.pair_half = wp.array(np.array(ph).reshape(-1, 3), dtype=wp.vec3d, device=dev)
+        self.pair_mass = wp.array(np.array(pm or [0.0]), dtype=wp.float64, device=dev)
         self.any = s.ground or s.chair is not None or (s.ball and self.ball_body >= 0)
         if self.any:
             self.kernels = _kernels(bool(s.smooth))
@@ -337,6 +366,6 @@ class ContactSet:
                       inputs=[*pts, wp.vec3d(*centre), wp.vec3d(*half), *bodies, h], outputs=out, device=dev)
         if s.ball and self.ball_body >= 0:
             wp.launch(ball, dim=(state.world_count, self.pair_count),
-                      inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.ball_body,
+                      inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.pair_mass, self.ball_body,
                               wp.float64(self.model.ball.radius), self.params, *bodies, h],
                       outputs=out, device=dev)
