@@ -166,6 +166,9 @@ class ArticulationState:
         body_wrench: total applied spatial force about the world origin of the step
             that took this state as input, shape (world_count, body_count).
         body_stiffness: ``h D + h^2 K`` body blocks of that step, (world_count, body_count).
+        spring_force: force of each point spring on its body in that step [N], world,
+            shape (world_count, spring_count); the string end feels the opposite. It is
+            paper eq. 2 plus the implicit step's ``-h k (v - v_anchor)``.
     """
 
     def __init__(self, model: ArticulationModel, world_count: int, requires_grad: bool):
@@ -182,6 +185,8 @@ class ArticulationState:
         self.body_v = wp.zeros((n, nb), dtype=wp.vec3d, device=dev, requires_grad=rg)
         self.body_wrench = wp.zeros((n, nb), dtype=spatial6, device=dev, requires_grad=rg)
         self.body_stiffness = wp.zeros((n, nb), dtype=spatial66, device=dev, requires_grad=rg)
+        ns = max(model.spring_count, 1)
+        self.spring_force = wp.zeros((n, ns), dtype=wp.vec3d, device=dev, requires_grad=rg)
 
 
 class ArticulationControl:
@@ -334,12 +339,16 @@ class SolverArticulation:
         model: the model; its topology's kernels are generated and compiled on first use
             (cached on disk per topology).
         optimization_level: C++ optimisation of the generated kernels: 2 (default) runs
-            about 8x faster than 0 but compiles in about a minute instead of 9 s (once
+            about 25x faster than 0 but compiles in about a minute instead of 9 s (once
             per topology; the binary is cached). Tests use 0.
+        implicit: treat damping, limits, point springs and contacts implicitly (the
+            default); False gives the explicit (semi-implicit Euler) step, for
+            comparison only.
     """
 
-    def __init__(self, model: ArticulationModel, optimization_level: int = 2):
+    def __init__(self, model: ArticulationModel, optimization_level: int = 2, implicit: bool = True):
         self.model = model
+        self.implicit = implicit
         self.kernels = build_articulation_kernels(model.topology, optimization_level)
         self.contacts = ContactSet(model)
 
@@ -348,12 +357,13 @@ class SolverArticulation:
         """Advances ``state_in`` by ``dt`` [s] into ``state_out`` (fills ``state_in``'s
         derived body fields on the way; use one state per step when recording a tape)."""
         h = wp.float64(dt)
-        self.eval_kinematics(state_in)                          # body poses and velocities
-        self._eval_external_forces(state_in, control)           # applied wrenches; resets h D + h^2 K
-        self._eval_point_springs(state_in, control, h)          # strings pull on bodies (eq. 2)
-        self.contacts.eval(state_in, h)                         # ground / chair / ball penalties
-        self._solve_dynamics(state_in, state_out, control, h)   # (M + h D + h^2 K) qdd = tau
-        self._integrate(state_in, state_out, h)                 # q' = q (+) h qd'
+        hi = h if self.implicit else wp.float64(0.0)
+        self.eval_kinematics(state_in)                             # body poses and velocities
+        self._eval_external_forces(state_in, control)              # applied wrenches; resets h D + h^2 K
+        self._eval_point_springs(state_in, control, hi)            # strings pull on bodies (eq. 2)
+        self.contacts.eval(state_in, hi)                           # ground / chair / ball penalties
+        self._solve_dynamics(state_in, state_out, control, h, hi)  # (M + h D + h^2 K) qdd = tau
+        self._integrate(state_in, state_out, h)                    # q' = q (+) h qd'
 
     # ------------------------------------------------------------------ passes
     def eval_kinematics(self, state: ArticulationState) -> None:
@@ -376,9 +386,9 @@ class SolverArticulation:
                   inputs=[m.spring_body, m.spring_point, m.spring_stiffness, m.spring_damping,
                           state.body_pos, state.body_rot, state.body_w, state.body_v,
                           control.spring_anchor_pos, control.spring_anchor_vel, h],
-                  outputs=[state.body_wrench, state.body_stiffness], device=m.device)
+                  outputs=[state.spring_force, state.body_wrench, state.body_stiffness], device=m.device)
 
-    def _solve_dynamics(self, state_in, state_out, control, h) -> None:
+    def _solve_dynamics(self, state_in, state_out, control, h, h_implicit) -> None:
         m = self.model
         limits = []
         if m.topology.joint_limits:
@@ -388,7 +398,7 @@ class SolverArticulation:
                   inputs=[m.body_mass, m.body_inertia, m.dof_damping, m.gravity, *limits,
                           state_in.joint_q, state_in.joint_qd, state_in.body_pos, state_in.body_rot,
                           state_in.body_w, state_in.body_v, state_in.body_wrench, state_in.body_stiffness,
-                          control.joint_f, h],
+                          control.joint_f, h, h_implicit],
                   outputs=[state_out.joint_qdd, state_out.joint_qd], device=m.device)
 
     def _integrate(self, state_in, state_out, h) -> None:

@@ -10,7 +10,8 @@ hash) and imported, so Warp compiles it once per topology and caches the binary.
 Generated kernels (one thread per world):
 
 - ``eval_body_kinematics``: joint coordinates -> body poses and velocities.
-- ``solve_body_dynamics``: ``(M + h D + h^2 K) qdd = tau`` and ``qd_out = qd + h qdd``.
+- ``solve_body_dynamics``: ``(M + h D + h^2 K) qdd = tau`` and ``qd_out = qd + h qdd``
+  (``h_implicit`` = h, or 0 for the explicit comparison step).
 - ``integrate_joint_coordinates``: ``q_out = q (+) h qd_out`` (quaternions on the sphere).
 - ``eval_mass_matrix``: the joint-space mass matrix (tests and inspection).
 
@@ -309,7 +310,7 @@ def eval_mass_matrix(
             e(f"F{b} = " + " + ".join([f"f{b}"] + [f"F{c}" for c in children[b]]))
         for d, b in enumerate(t.dof_body()):
             e(f"tau{d} = joint_f[w, {d}] - dof_damping[{d}] * qd{d} - wp.dot(S{d}, F{b})")
-            e(f"hd{d} = h * dof_damping[{d}]")
+            e(f"hd{d} = h_implicit * dof_damping[{d}]")
         H = self._crba(True)
         diag_extra = {d: [f"hd{d}"] for d in range(t.qd_count)}
         tau = {d: f"tau{d}" for d in range(t.qd_count)}
@@ -348,6 +349,7 @@ def solve_body_dynamics(
     # Control:
     joint_f: wp.array2d(dtype=wp.float64),
     h: wp.float64,
+    h_implicit: wp.float64,
     # State out:
     joint_qdd: wp.array2d(dtype=wp.float64),
     joint_qd_out: wp.array2d(dtype=wp.float64),
@@ -360,8 +362,8 @@ def solve_body_dynamics(
         """Penalty joint limits, implicit in stiffness and damping (active side only)."""
         e = self
         e("kl = limit_stiffness")
-        e("dl = limit_damping + h * limit_stiffness")
-        e("hl = h * limit_damping + h * h * limit_stiffness")
+        e("dl = limit_damping + h_implicit * limit_stiffness")
+        e("hl = h_implicit * limit_damping + h_implicit * h_implicit * limit_stiffness")
         for b, j in enumerate(self.t.joints):
             d = j.qd_start
             if j.type in ("hinge", "universal"):

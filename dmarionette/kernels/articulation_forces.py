@@ -61,6 +61,7 @@ def eval_body_point_springs(
     spring_anchor_vel: wp.array2d(dtype=wp.vec3d),
     h: wp.float64,
     # State out:
+    spring_force: wp.array2d(dtype=wp.vec3d),
     body_wrench: wp.array2d(dtype=spatial6),
     body_stiffness: wp.array2d(dtype=spatial66),
 ):
@@ -68,7 +69,9 @@ def eval_body_point_springs(
 
     The force added is the linearised backward-Euler one,
     ``-k (x - x_a) - (k_d + h k) (v - v_a)``, and ``(h k_d + h^2 k) J^T J`` enters the
-    system matrix through ``body_stiffness``.
+    system matrix through ``body_stiffness``. ``h`` here is the implicit step (0 for an
+    explicit force). ``spring_force`` receives the force on the body (the string feels
+    its opposite).
     """
     w, s = wp.tid()
     b = spring_body[s]
@@ -76,6 +79,7 @@ def eval_body_point_springs(
     kd = spring_damping[s]
     x, v = compute_point_state(body_pos[w, b], body_rot[w, b], body_w[w, b], body_v[w, b], spring_point[s])
     f = -k * (x - spring_anchor_pos[w, s]) - (kd + h * k) * (v - spring_anchor_vel[w, s])
+    spring_force[w, s] = f
     wp.atomic_add(body_wrench, w, b, compute_point_wrench(x, f))
     c = h * kd + h * h * k
     eye = wp.identity(3, dtype=wp.float64)
