@@ -66,10 +66,11 @@ def _simulate(model, solver, q0, qd0, dt, duration, probe=None):
 @pytest.mark.parametrize("smooth", [False, True])
 def test_puppet_dropped_on_ground_comes_to_rest(smooth):
     """Dropped from 5 cm with bent joints, the limp puppet falls, collapses and lies still
-    after 5 s at 30 Hz. Penetration tolerances: at rest, at most M g / k (the whole
+    after 10 s at 30 Hz. Penetration tolerances: at rest, at most M g / k (the whole
     weight on one contact point, the worst case; 3.7 mm); while falling, at most the
     distance the fastest shape point moves in one step plus that (a penalty contact only
     reacts after a point is below the surface), and never more than 6 cm."""
+    # (kinetic-energy bound at rest: see below)
     s = ContactSettings(ground=True, smooth=smooth)
     model = build_articulation_model(load_puppet(), contacts=s)
     solver = SolverArticulation(model, optimization_level=0)
@@ -85,7 +86,7 @@ def test_puppet_dropped_on_ground_comes_to_rest(smooth):
         worst["pen"] = max(worst["pen"], -low.min())
         worst["allowed"] = max(worst["allowed"], speed * H30 + static)
 
-    end = _simulate(model, solver, q0, np.zeros(model.qd_count), H30, 5.0, probe)
+    end = _simulate(model, solver, q0, np.zeros(model.qd_count), H30, 10.0, probe)
     low, _ = lowest_points(model, solver, end)
     qd = end.joint_qd.numpy()[0]
     print(f"smooth={smooth}: max transient penetration {worst['pen'] * 1e3:.1f} mm "
@@ -93,8 +94,12 @@ def test_puppet_dropped_on_ground_comes_to_rest(smooth):
           f"(allowed {static * 1e3:.2f}), final max |qd| {np.abs(qd).max():.3g}")
     assert -low.min() <= static
     assert worst["pen"] <= min(worst["allowed"], 0.06)
-    assert np.abs(qd[:3]).max() < 0.01  # the root no longer moves (m/s)
-    assert np.abs(qd).max() < 0.05
+    # at rest: regularised friction lets resting contacts creep at up to v_eps, so the
+    # kinetic energy left is at most that of the whole puppet moving at v_eps
+    kinetic = 0.5 * qd @ solver.eval_mass_matrix(end)[0] @ qd
+    bound = 0.5 * model.body_mass.numpy().sum() * s.friction_velocity**2
+    print(f"kinetic energy at 10 s {kinetic:.2e} J (bound {bound:.2e} J)")
+    assert kinetic <= bound
 
 
 def test_ball_pushed_along_ground_rolls_and_slows():
