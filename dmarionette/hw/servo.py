@@ -1,0 +1,333 @@
+"""The 1 kHz servo loop: read the device, ask the physics for a force, filter it, write it.
+
+Threads (all in this process):
+
+* the **servo thread** owns the clock and the device. Each tick it waits for its deadline
+  (``time.sleep`` until ``spin_margin`` before it, then a busy-wait), reads a sample,
+  hands it to the physics thread, waits for the answer at most ``compute_budget`` of a
+  period, passes the force through :class:`~dmarionette.hw.safety.ForceSafetyFilter`
+  and writes it. No answer in time: the last force is held; no fresh finite answer for
+  ``watchdog_timeout``: zero is written (a watchdog trip) until the physics recovers,
+  and then forces ramp in again.
+* the **physics thread** calls the user's ``step(sample, t) -> force``. It is separate so
+  that a physics callback that blocks or loops cannot hold the motors at a stale force.
+* the **caller's thread** waits in :meth:`ServoLoop.run`, where Ctrl-C arrives.
+
+Motors off (zero force, then ``close``) on every way out: end of ``duration``,
+:meth:`ServoLoop.request_stop`, an exception in the physics (re-raised from ``run``),
+KeyboardInterrupt (re-raised after the motors are off) and a device disconnect
+(:class:`~dmarionette.hw.device.DeviceDisconnectedError` re-raised).
+
+The GIL: a CPU-bound Python thread keeps the GIL for up to ``sys.getswitchinterval()``
+(5 ms by default) before the servo thread can run, which alone would break the 5 ms
+stall guarantee. ``run`` therefore lowers the switch interval (``switch_interval``,
+0.2 ms by default) for its duration and restores it after. ``benchmarks/bench_servo_ticks.py``
+measures what a busy thread does to the ticks, and what a separate process buys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError, HapticSample
+from .safety import ForceSafetyFilter, SafetyConfig
+
+__all__ = ["PhysicsStep", "ServoLoop", "ServoStatistics", "run_servo_loop"]
+
+PhysicsStep = Callable[[HapticSample, float], Any]
+"""``step(sample, t) -> force``: ``sample`` the latest device reading (device frame, SI),
+``t`` the loop time [s] since start; returns the force to render [N], shape (3,), device
+frame (use :class:`~dmarionette.hw.mapping.DeviceMapping` to come from the world)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ServoStatistics:
+    """How well the loop kept time.
+
+    Attributes:
+        rate_hz: Target tick rate [Hz].
+        tick_count: Ticks run.
+        duration: Wall time from first to last tick [s].
+        lateness: Per tick, start of tick minus its deadline [s], shape (tick_count,).
+        lateness_p50: Median lateness [s].
+        lateness_p99: 99th percentile lateness [s].
+        lateness_max: Largest lateness [s].
+        missed_ticks: Deadlines skipped entirely because the loop was more than a period behind.
+        stale_ticks: Ticks that wrote a held (not fresh) force because the physics had not
+            answered within the compute budget.
+        watchdog_trips: Times the watchdog switched to zero force (physics stalled or
+            produced a non-finite value).
+        nonfinite_forces: Non-finite forces the safety filter replaced by zero.
+        clamped_forces: Forces the peak or continuous limit cut.
+        stop_reason: "duration", "stopped", "physics error", "keyboard interrupt",
+            "disconnected" or "error".
+    """
+
+    rate_hz: float
+    tick_count: int
+    duration: float
+    lateness: np.ndarray
+    lateness_p50: float
+    lateness_p99: float
+    lateness_max: float
+    missed_ticks: int
+    stale_ticks: int
+    watchdog_trips: int
+    nonfinite_forces: int
+    clamped_forces: int
+    stop_reason: str
+
+    def summary(self) -> str:
+        """One line of the figures that matter, lateness in microseconds."""
+        return (f"{self.tick_count} ticks in {self.duration:.3f} s at {self.rate_hz:g} Hz target: lateness "
+                f"p50 {self.lateness_p50 * 1e6:.0f} us, p99 {self.lateness_p99 * 1e6:.0f} us, "
+                f"max {self.lateness_max * 1e6:.0f} us; missed {self.missed_ticks}, stale {self.stale_ticks}, "
+                f"watchdog trips {self.watchdog_trips}; stop: {self.stop_reason}")
+
+
+class _PhysicsWorker:
+    """Runs ``step`` on its own daemon thread, one request at a time."""
+
+    def __init__(self, step: PhysicsStep) -> None:
+        self._step = step
+        self._cv = threading.Condition()
+        self._request: tuple[HapticSample, float] | None = None
+        self._stop = False
+        self.busy = False
+        self.submitted_at = 0.0
+        self.done = threading.Event()
+        self.result: np.ndarray | None = None
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="dmarionette-physics", daemon=True)
+        self._thread.start()
+
+    def submit(self, sample: HapticSample, t: float) -> None:
+        with self._cv:
+            self.busy = True
+            self.submitted_at = time.perf_counter()
+            self.done.clear()
+            self._request = (sample, t)
+            self._cv.notify()
+
+    def take(self) -> np.ndarray | None:
+        """The answer, once; None when there is none."""
+        if not self.done.is_set():
+            return None
+        self.done.clear()
+        r, self.result = self.result, None
+        return r
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        self._thread.join(timeout=0.05)  # a stuck step is left behind (daemon thread)
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while self._request is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                sample, t = self._request
+                self._request = None
+            try:
+                force = np.asarray(self._step(sample, t), dtype=float).reshape(3)
+            except BaseException as e:  # noqa: BLE001 - KeyboardInterrupt included, re-raised by run()
+                self.error = e
+                self.busy = False
+                self.done.set()
+                return
+            self.result = force
+            self.busy = False
+            self.done.set()
+
+
+class ServoLoop:
+    """The haptic servo loop around one device and one physics callback.
+
+    Args:
+        device: The device; opened by ``run`` if it is not open, always closed at the end.
+        step: ``step(sample, t) -> force [N] (3,)``, see :data:`PhysicsStep`.
+        rate_hz: Tick rate [Hz].
+        safety: Ramp-in, limits and watchdog timeout.
+        spin_margin: Sleep until this long before a deadline, then busy-wait [s].
+        compute_budget: Fraction of a period the loop waits for the physics' answer.
+        switch_interval: GIL switch interval during ``run`` [s]; None leaves it alone.
+    """
+
+    def __init__(self, device: AbstractHapticDevice, step: PhysicsStep, *, rate_hz: float = 1000.0,
+                 safety: SafetyConfig = SafetyConfig(), spin_margin: float = 0.0005,
+                 compute_budget: float = 0.6, switch_interval: float | None = 0.0002) -> None:
+        if not rate_hz > 0.0:
+            raise ValueError(f"ServoLoop: rate_hz must be > 0, got {rate_hz}")
+        if not 0.0 < compute_budget < 1.0:
+            raise ValueError(f"ServoLoop: compute_budget must be in (0, 1) of a period, got {compute_budget}")
+        self.device = device
+        self.step = step
+        self.rate_hz = float(rate_hz)
+        self.period = 1.0 / self.rate_hz
+        self.safety = safety
+        self.spin_margin = float(spin_margin)
+        self.compute_budget = float(compute_budget)
+        self.switch_interval = switch_interval
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self._finished = threading.Event()
+        self.statistics: ServoStatistics | None = None
+        """Statistics of the last run, set when it ends (also when it raised)."""
+
+    def request_stop(self) -> None:
+        """Asks the loop to end after the current tick (thread-safe)."""
+        self._stop.set()
+
+    def run(self, duration: float | None = None) -> ServoStatistics:
+        """Runs the loop until ``duration`` [s] passed or :meth:`request_stop`.
+
+        Returns:
+            The tick statistics (also kept on ``self.statistics``).
+
+        Raises:
+            KeyboardInterrupt: Ctrl-C, after the motors are off.
+            DeviceDisconnectedError: The device went away (motors off as far as possible).
+            BaseException: Whatever ``step`` raised, after the motors are off.
+        """
+        self._stop.clear()
+        self._error = None
+        if not self.device.is_open:
+            self.device.open()
+        old_interval = sys.getswitchinterval()
+        if self.switch_interval is not None:
+            sys.setswitchinterval(self.switch_interval)
+        self._finished.clear()
+        thread = threading.Thread(target=self._servo, args=(duration,), name="dmarionette-servo", daemon=True)
+        try:
+            thread.start()
+            # Short waits on an Event (not Thread.join, whose state an interrupt can upset),
+            # so Ctrl-C reaches this thread.
+            while not self._finished.wait(0.02):
+                pass
+        except KeyboardInterrupt:
+            self._stop.set()
+            while not self._finished.wait(0.02):
+                pass
+            self._set_reason("keyboard interrupt")
+            raise
+        finally:
+            sys.setswitchinterval(old_interval)
+        if self._error is not None:
+            raise self._error
+        assert self.statistics is not None
+        return self.statistics
+
+    def _set_reason(self, reason: str) -> None:
+        if self.statistics is not None:
+            self.statistics = dataclasses.replace(self.statistics, stop_reason=reason)
+
+    @staticmethod
+    def _wait_until(deadline: float, spin_margin: float) -> None:
+        remaining = deadline - time.perf_counter()
+        if remaining > spin_margin:
+            time.sleep(remaining - spin_margin)
+        while time.perf_counter() < deadline:
+            pass
+
+    def _servo(self, duration: float | None) -> None:
+        device, period = self.device, self.period
+        filt = ForceSafetyFilter(device.spec, self.safety)
+        worker = _PhysicsWorker(self.step)
+        lateness: list[float] = []
+        missed = stale = trips = 0
+        reason = "stopped"
+        held = np.zeros(3)
+        tripped = False
+        t0 = time.perf_counter()
+        k = 0
+        try:
+            while not self._stop.is_set():
+                deadline = t0 + k * period
+                self._wait_until(deadline, self.spin_margin)
+                now = time.perf_counter()
+                t = now - t0
+                if duration is not None and t >= duration:
+                    reason = "duration"
+                    break
+                lateness.append(now - deadline)
+                sample = device.read()
+                if not worker.busy:
+                    worker.submit(sample, t)
+                wait_end = deadline + self.compute_budget * period
+                if worker.busy:  # do not wait past the moment the watchdog must act
+                    wait_end = min(wait_end, worker.submitted_at + self.safety.watchdog_timeout + 1e-5)
+                worker.done.wait(max(wait_end - time.perf_counter(), 0.0))
+                if worker.error is not None:
+                    reason = "physics error"
+                    self._error = worker.error
+                    break
+                fresh = worker.take()
+                now = time.perf_counter()
+                if fresh is not None:
+                    held = fresh
+                else:
+                    stale += 1
+                # Stalled: a request has waited too long (the servo's own lateness does not count).
+                stalled = worker.busy and now - worker.submitted_at > self.safety.watchdog_timeout
+                finite = bool(np.all(np.isfinite(held)))
+                if stalled or not finite:
+                    if not tripped:
+                        trips += 1
+                        tripped = True
+                    if not finite:
+                        filt.nonfinite_count += 1
+                    force = filt(np.zeros(3), now - t0)
+                else:
+                    if tripped:  # recovered after a trip: ramp in again
+                        tripped = False
+                        filt.rearm(now - t0)
+                    force = filt(held, now - t0)
+                device.write_force(force)
+                k += 1
+                behind = int((time.perf_counter() - t0) / period) - k
+                if behind > 0:  # a whole period or more late: skip those deadlines
+                    missed += behind
+                    k += behind
+        except DeviceDisconnectedError as e:
+            reason, self._error = "disconnected", e
+        except BaseException as e:  # noqa: BLE001 - motors off below, then re-raised by run()
+            reason, self._error = "error", e
+        finally:
+            self._motors_off()
+            worker.stop()
+            lat = np.asarray(lateness, dtype=float)
+            pct = (lambda q: float(np.percentile(lat, q))) if lat.size else (lambda q: 0.0)
+            self.statistics = ServoStatistics(
+                rate_hz=self.rate_hz, tick_count=int(lat.size), duration=time.perf_counter() - t0,
+                lateness=lat, lateness_p50=pct(50), lateness_p99=pct(99),
+                lateness_max=float(lat.max()) if lat.size else 0.0, missed_ticks=missed, stale_ticks=stale,
+                watchdog_trips=trips, nonfinite_forces=filt.nonfinite_count, clamped_forces=filt.clamp_count,
+                stop_reason=reason)
+            self._finished.set()
+
+    def _motors_off(self) -> None:
+        """Zero force, then close; a lost device may refuse the zero, close still runs."""
+        try:
+            if self.device.is_open:
+                self.device.write_force(np.zeros(3))
+        except HapticDeviceError:
+            pass
+        finally:
+            self.device.close()
+
+
+def run_servo_loop(device: AbstractHapticDevice, step: PhysicsStep, duration: float | None = None,
+                   **kwargs: Any) -> ServoStatistics:
+    """Runs a :class:`ServoLoop` (``kwargs`` go to its constructor) for ``duration`` [s]."""
+    return ServoLoop(device, step, **kwargs).run(duration)
