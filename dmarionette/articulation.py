@@ -28,7 +28,7 @@ damping this is exactly MuJoCo's ``Euler`` integrator.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -355,7 +355,13 @@ class SolverArticulation:
     def step(self, state_in: ArticulationState, state_out: ArticulationState,
              control: ArticulationControl, dt: float) -> None:
         """Advances ``state_in`` by ``dt`` [s] into ``state_out`` (fills ``state_in``'s
-        derived body fields on the way; use one state per step when recording a tape)."""
+        derived body fields on the way; use one state per step when recording a tape).
+
+        Raises:
+            ValueError: ``dt`` negative or not finite, ``state_in is state_out``, or
+                states/control of another model or world count.
+        """
+        self._check(state_in, state_out, control, dt)
         h = wp.float64(dt)
         hi = h if self.implicit else wp.float64(0.0)
         self.eval_kinematics(state_in)                             # body poses and velocities
@@ -364,6 +370,22 @@ class SolverArticulation:
         self.contacts.eval(state_in, hi)                           # ground / chair / ball penalties
         self._solve_dynamics(state_in, state_out, control, h, hi)  # (M + h D + h^2 K) qdd = tau
         self._integrate(state_in, state_out, h)                    # q' = q (+) h qd'
+
+    def _check(self, state_in, state_out, control, dt) -> None:
+        m = self.model
+        if not (np.isfinite(dt) and dt >= 0.0):
+            raise ValueError(f"SolverArticulation.step: dt = {dt!r}; expected a finite step >= 0 [s]")
+        if state_in is state_out:
+            raise ValueError("SolverArticulation.step: state_in is state_out; expected two states "
+                             "(the step reads one and writes the other)")
+        n = state_in.world_count
+        for name, arr, cols in (("state_in.joint_q", state_in.joint_q, m.q_count),
+                                ("state_out.joint_q", state_out.joint_q, m.q_count),
+                                ("control.joint_f", control.joint_f, m.qd_count),
+                                ("control.body_force", control.body_force, m.body_count)):
+            if arr.shape != (n, cols):
+                raise ValueError(f"SolverArticulation.step: {name} has shape {arr.shape}; expected "
+                                 f"({n}, {cols}) (world_count, ...) from this model")
 
     # ------------------------------------------------------------------ passes
     def eval_kinematics(self, state: ArticulationState) -> None:

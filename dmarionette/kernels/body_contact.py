@@ -78,7 +78,9 @@ def compute_softplus(x: wp.float64) -> wp.float64:
 
 @wp.func
 def compute_sigmoid(x: wp.float64) -> wp.float64:
-    return wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-x))
+    """``1 / (1 + exp(-x))`` with exponentials of ``-|x|`` only (finite gradient for any x)."""
+    e = wp.exp(-wp.abs(x))
+    return wp.where(x >= wp.float64(0.0), wp.float64(1.0) / (wp.float64(1.0) + e), e / (wp.float64(1.0) + e))
 
 
 @wp.func
