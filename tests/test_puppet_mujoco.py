@@ -12,7 +12,7 @@ from dmarionette.articulation import BallDescription, SolverArticulation, build_
 from dmarionette.mjcf import puppet_to_mjcf
 from dmarionette.puppet import load_puppet
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 
 
 def _random_unit_quat(rng):
@@ -127,3 +127,23 @@ def test_trajectory_matches_mujoco_euler(setup):
     print(f"trajectory rel err q {err_q:.2e} qd {err_qd:.2e}")
     assert err_q <= 1e-8
     assert err_qd <= 1e-8
+
+
+def test_export_with_limits_ground_and_ball_loads():
+    """The full export (joint ranges, ground plane, ball) loads; ranges and damping match."""
+    puppet = load_puppet()
+    ball = BallDescription()
+    model = build_articulation_model(puppet, ball=ball)
+    mj = mujoco.MjModel.from_xml_string(puppet_to_mjcf(puppet, ball=ball))
+    assert mj.nbody == 1 + 13 and mj.njnt == 1 + 1 + 4 * 2 + 6 + 1  # root, neck, universals as 2 hinges, hinges, ball
+    assert np.allclose(mj.opt.gravity, [0.0, -9.81, 0.0])
+    lower = model.dof_limit_lower.numpy()
+    upper = model.dof_limit_upper.numpy()
+    for j in range(mj.njnt):
+        if mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+            d = mj.jnt_dofadr[j]
+            assert mj.jnt_limited[j]
+            assert mj.jnt_range[j, 0] == pytest.approx(lower[d]) and mj.jnt_range[j, 1] == pytest.approx(upper[d])
+        if mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
+            assert mj.jnt_range[j, 1] == pytest.approx(upper[mj.jnt_dofadr[j]])
+    np.testing.assert_allclose(mj.body_mass[1:], model.body_mass.numpy())
