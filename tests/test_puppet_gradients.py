@@ -58,6 +58,8 @@ class Rollout:
         self.wqd = wp.array(rng.normal(size=m.qd_count) * 0.1, dtype=wp.float64)
         self.anchor = np.array([[0.0, 0.62, 0.02], [0.12, 0.3, 0.05]])
         self.anchor_v = np.array([[0.1, 0.0, 0.0], [0.0, -0.2, 0.1]])
+        self.body_force = rng.normal(size=(m.body_count, 3)) * 0.05
+        self.mass = m.body_mass.numpy().copy()
 
     def run(self, q0, qd0, f, damping, k, tape=None):
         m = self.model
@@ -68,6 +70,8 @@ class Rollout:
         c.joint_f.assign(f[None])
         c.spring_anchor_pos.assign(self.anchor[None])
         c.spring_anchor_vel.assign(self.anchor_v[None])
+        c.body_force.assign(self.body_force[None])
+        m.body_mass.assign(self.mass)
         m.dof_damping.assign(damping)
         m.spring_stiffness.assign(k)
         loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
@@ -126,6 +130,8 @@ def test_gradients_match_finite_differences(rollout):
     g_d = m.dof_damping.grad.numpy().copy()
     g_k = m.spring_stiffness.grad.numpy().copy()
     g_a = c.spring_anchor_pos.grad.numpy()[0].copy()
+    g_b = c.body_force.grad.numpy()[0].copy()
+    g_m = m.body_mass.grad.numpy().copy()
     tape.zero()
     assert np.all(np.isfinite(g_q)) and np.any(g_q != 0)
 
@@ -147,6 +153,21 @@ def test_gradients_match_finite_differences(rollout):
             r.anchor = saved
 
     _check("spring anchor", g_a.ravel(), with_anchor, r.anchor.ravel().copy(), range(6))
+
+    def with_attr(name, shape):
+        def fn(x):
+            saved = getattr(r, name)
+            setattr(r, name, x.reshape(shape))
+            try:
+                return r.loss(r.q0, r.qd0, r.f, damping0, k0)
+            finally:
+                setattr(r, name, saved)
+        return fn
+
+    _check("body forces", g_b.ravel(), with_attr("body_force", (-1, 3)), r.body_force.ravel().copy(),
+           range(g_b.size))
+    _check("body masses", g_m, with_attr("mass", (-1,)), r.mass.copy(), range(m.body_count),
+           eps=1e-6)  # masses are 0.02..0.3 kg: a step small relative to them
 
 
 def test_smooth_ground_contact_gradients():
