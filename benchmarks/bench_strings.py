@@ -32,7 +32,7 @@ CHUNK = 100
 
 
 def _model(particle_count=50, effects=None, precision="float64") -> StringModel:
-    scene = load_scene("hanging")
+    scene = load_scene("strings")
     specs = [dataclasses.replace(s, particle_count=particle_count) for s in scene.strings]
     return StringModel(specs, effects=effects or scene.effects, gravity=scene.gravity,
                        ground_height=scene.ground_height, precision=precision)

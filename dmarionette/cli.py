@@ -22,7 +22,13 @@ def _add_simulate_options(parser: argparse.ArgumentParser) -> None:
                         help="output folder (default: out/<scene name>)")
     parser.add_argument("--precision", choices=["float64", "float32"], default=None,
                         help="float type of the kernels (default: the scene's [solver] precision)")
-    parser.add_argument("--no-picture", action="store_true", help="skip the PNG picture")
+    parser.add_argument("--no-picture", action="store_true", help="skip the picture / animation")
+    parser.add_argument("--animation", choices=["gif", "mp4"], default="gif",
+                        help="animation format for scenes with a puppet (default: gif)")
+    parser.add_argument("--fps", type=float, default=15.0, help="animation frames per second (default: 15)")
+    parser.add_argument("--fast-compile", action="store_true",
+                        help="compile the puppet kernels without optimisation: ~10 s instead of ~1 min on "
+                             "the first run, slower to run")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -35,11 +41,12 @@ def _parser() -> argparse.ArgumentParser:
     simulate = sub.add_parser(
         "simulate", help="run a scene headless and write its trajectory, summary and picture",
         description="Run a scene headless. Writes OUT/trajectory.npz (docs/trajectory.md), "
-                    "OUT/summary.json and OUT/strings.png, and prints the summary.",
+                    "OUT/summary.json and, for a marionette, OUT/animation.gif (or .mp4); for strings "
+                    "alone, OUT/strings.png. Prints the summary.",
     )
     simulate.add_argument("scene", help="a built-in scene name (see 'dmarionette scenes') or a TOML file")
     _add_simulate_options(simulate)
-    demo = sub.add_parser("demo", help="simulate the built-in default scene ('hanging')",
+    demo = sub.add_parser("demo", help="simulate the built-in default scene ('hanging': the marionette)",
                           description="Same as 'dmarionette simulate hanging'.")
     _add_simulate_options(demo)
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
@@ -57,6 +64,8 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     if args.precision is not None:
         scene = dataclasses.replace(scene, precision=args.precision)
     out = args.out if args.out is not None else Path("out") / scene.name
+    if scene.puppet is not None:
+        return _run_marionette(scene, out, args)
     trajectory = simulate_strings(scene, args.duration, progress=not args.quiet)
     files = {"trajectory": str(write_trajectory(out / "trajectory.npz", trajectory, scene))}
     if not args.no_picture:
@@ -65,6 +74,39 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
         files["picture"] = str(render_string_picture(out / "strings.png", trajectory, title=scene.description,
                                                      ground_height=scene.ground_height))
     summary = summarize(trajectory, scene)
+    summary["files"] = files
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(json.dumps(summary, indent=2))
+    if not summary["all_finite"]:
+        print("error: the simulation produced a non-finite value", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
+    from .marionette import MarionetteModel
+    from .marionette_rollout import simulate_marionette
+    from .trajectory_file import summarize_marionette, write_marionette_trajectory
+
+    if args.precision == "float32":
+        raise ValueError(f"{scene.source}: a marionette runs in float64 (the puppet solver is float64 only)")
+    if not args.quiet:
+        print("building the marionette (the first run compiles the puppet kernels)", file=sys.stderr)
+    model = MarionetteModel(scene, optimization_level=0 if args.fast_compile else 2)
+    duration = scene.duration if args.duration is None else args.duration
+    trajectory = simulate_marionette(model, duration, progress=not args.quiet)
+    files = {"trajectory": str(write_marionette_trajectory(out / "trajectory.npz", trajectory, scene))}
+    if not args.no_picture:
+        from .render_marionette import render_marionette_animation
+
+        every = max(1, round(1.0 / (args.fps * (trajectory.frame_time[1] - trajectory.frame_time[0]))))
+        path, frames = render_marionette_animation(
+            out / f"animation.{args.animation}", trajectory, title=scene.description,
+            ground_height=scene.ground_height, chair=scene.chair,
+            ball_radius=scene.ball.radius if scene.ball is not None else None, every=every)
+        files["animation"] = str(path)
+        files["animation_frames"] = frames
+    summary = summarize_marionette(trajectory, scene)
     summary["files"] = files
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(json.dumps(summary, indent=2))

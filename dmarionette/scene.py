@@ -6,13 +6,16 @@ is documented in ``docs/scenes.md``:
 - ``[scene]`` name, description, default ``duration`` [s];
 - ``[rates]`` ``string_hz`` (default 1000) and ``puppet_hz`` (default 30);
 - ``[solver]`` ``precision`` (``"float64"`` default, or ``"float32"``);
-- ``[effects]`` which effects are compiled in (``gravity``, ``internal_friction``,
-  ``air_drag``, ``ground_contact``, ``ground_friction``; all on by default);
+- ``[effects]`` which effects are compiled in: string effects (``gravity``,
+  ``internal_friction``, ``air_drag``, ``ground_contact``, ``ground_friction``) and, with a
+  puppet, ``body_ground``, ``chair``, ``ball``, ``joint_limits``, ``feedback``;
 - ``[world]`` ``gravity`` [m/s^2] and ``ground_height`` [m];
 - ``[string_defaults]`` constants shared by every string (see :mod:`string_model`);
-- ``[[strings]]`` one table per string: ``name``, ``top``, ``bottom`` and any default;
-- ``[motion]`` scripted motion of the string tops (``kind = "still"`` or ``"sway"``);
-- ``[puppet]`` the puppet description (see :mod:`puppet`).
+- ``[[strings]]`` one table per string: ``name``, ``top``, ``bottom`` (or, with a puppet, the
+  ``body_point`` it is tied to) and any default;
+- ``[motion]`` scripted motion of the string tops when there are no bars;
+- ``[puppet]`` the puppet description (see :mod:`puppet`), ``[bars.NAME]`` the control bars
+  (see :mod:`control_bar`), ``[feedback]``, ``[contact]``, ``[chair]``, ``[ball]``.
 
 Loading validates everything and raises :class:`SceneError` naming the file, the key,
 the value received and what was expected.
@@ -40,6 +43,7 @@ from .scene_fields import (
     read_table,
     read_vec3,
 )
+from .control_bar import ControlBar, bar_from_table
 from .string_model import StringEffects, StringModel, StringSpec
 
 __all__ = ["Scene", "StringMotion", "builtin_scenes", "load_scene", "scene_from_table"]
@@ -62,8 +66,26 @@ _STRING_CONSTANTS = {
     "tie_damping": (3.0, {"minimum": 0.0}),
     "taut_fraction": (0.98, {"positive": True, "maximum": 2.0}),
 }
-_STRING_KEYS = {"name", "top", "bottom", "length", "bottom_end", "tie_point", *_STRING_CONSTANTS}
+_STRING_KEYS = {"name", "top", "bottom", "length", "bottom_end", "tie_point", "body_point", *_STRING_CONSTANTS}
 _EFFECTS = [f.name for f in dataclasses.fields(StringEffects)]
+_BODY_EFFECTS = {"body_ground": True, "chair": False, "ball": False, "joint_limits": True, "feedback": True}
+_CONTACT = {
+    # key: (default, reader options); see dmarionette.kernels.body_contact.ContactSettings
+    "stiffness": (2000.0, {"positive": True}),
+    "damping": (5.0, {"minimum": 0.0}),
+    "friction": (0.6, {"minimum": 0.0}),
+    "friction_velocity": (0.01, {"positive": True}),
+    "smooth_distance": (0.5e-3, {"positive": True}),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class BallSpec:
+    """A free ball in the scene: centre [m], radius [m], mass [kg]."""
+
+    position: tuple[float, float, float]
+    radius: float
+    mass: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,6 +126,14 @@ class Scene:
     strings: tuple[StringSpec, ...]
     motion: StringMotion
     puppet: Any = None
+    string_body_points: tuple[str | None, ...] = ()
+    bars: tuple[ControlBar, ...] = ()
+    body_effects: Mapping[str, bool] = dataclasses.field(default_factory=lambda: dict(_BODY_EFFECTS))
+    feedback_stiffness: float = 5.0
+    feedback_damping: float = 0.5
+    contact: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    chair: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    ball: BallSpec | None = None
 
     @property
     def string_dt(self) -> float:
@@ -155,7 +185,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
 def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     """Validates a parsed scene table; ``source`` names it in errors (a file path)."""
     check_keys(table, ["scene", "rates", "solver", "effects", "world", "string_defaults", "strings",
-                       "motion", "puppet"], f"{source}: top level")
+                       "motion", "puppet", "bars", "feedback", "contact", "chair", "ball"], f"{source}: top level")
     head = read_table(table, "scene", f"{source}: top level")
     where = f"{source}: [scene]"
     check_keys(head, ["name", "description", "duration"], where)
@@ -175,8 +205,9 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
 
     effects_table = read_table(table, "effects", source, {})
     where = f"{source}: [effects]"
-    check_keys(effects_table, _EFFECTS, where)
+    check_keys(effects_table, [*_EFFECTS, *_BODY_EFFECTS], where)
     effects = StringEffects(**{k: read_bool(effects_table, k, where, True) for k in _EFFECTS})
+    body_effects = {k: read_bool(effects_table, k, where, v) for k, v in _BODY_EFFECTS.items()}
 
     world = read_table(table, "world", source, {})
     where = f"{source}: [world]"
@@ -185,19 +216,75 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     ground_height = read_float(world, "ground_height", where, 0.0)
 
     defaults = _read_string_defaults(read_table(table, "string_defaults", source, {}), f"{source}: [string_defaults]")
-    strings = _read_strings(table, source, defaults)
-    motion = _read_motion(read_table(table, "motion", source, {}), f"{source}: [motion]")
-
     puppet = None
     if "puppet" in table:
         from .puppet import puppet_from_table
 
-        puppet = puppet_from_table(read_table(table, "puppet", source), f"{source}: [puppet]")
+        puppet = puppet_from_table(_puppet_table(read_table(table, "puppet", source), source), f"{source}: [puppet]")
+    bars_table = read_table(table, "bars", source, {})
+    bars = tuple(bar_from_table(n, read_table(bars_table, n, f"{source}: [bars]"), f"{source}: [bars.{n}]",
+                                Path(source).parent) for n in bars_table)
+    strings, body_points = _read_strings(table, source, defaults, puppet, bars)
+    motion = _read_motion(read_table(table, "motion", source, {}), f"{source}: [motion]")
+
+    feedback = read_table(table, "feedback", source, {})
+    where = f"{source}: [feedback]"
+    check_keys(feedback, ["stiffness", "damping"], where)
+    contact_table = read_table(table, "contact", source, {})
+    where_c = f"{source}: [contact]"
+    check_keys(contact_table, [*_CONTACT, "smooth"], where_c)
+    contact = {k: read_float(contact_table, k, where_c, d, **o) for k, (d, o) in _CONTACT.items()}
+    contact["smooth"] = read_bool(contact_table, "smooth", where_c, False)
+    chair = _read_chair(table, source) if body_effects["chair"] else None
+    ball = _read_ball(table, source) if body_effects["ball"] else None
 
     return Scene(name=name, description=description, source=source, duration=duration,
                  string_hz=string_hz, puppet_hz=puppet_hz, precision=precision, effects=effects,
                  gravity=gravity, ground_height=ground_height, strings=strings, motion=motion,
-                 puppet=puppet)
+                 puppet=puppet, string_body_points=body_points, bars=bars, body_effects=body_effects,
+                 feedback_stiffness=read_float(feedback, "stiffness", where, 5.0, minimum=0.0),
+                 feedback_damping=read_float(feedback, "damping", where, 0.5, minimum=0.0),
+                 contact=contact, chair=chair, ball=ball)
+
+
+def _puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, Any]:
+    """``include = "puppet.toml"`` loads that file's ``[puppet]`` table (next to the scene or
+    built in); the other keys of the scene's ``[puppet]`` table override its top-level keys."""
+    if "include" not in table:
+        return table
+    where = f"{source}: [puppet]"
+    name = read_str(table, "include", where)
+    path = Path(source).parent / name
+    if not path.is_file():
+        path = SCENE_DIR / name
+    if not path.is_file():
+        raise SceneError(where, "include", name, f"a puppet file next to the scene or built in ({SCENE_DIR})")
+    with path.open("rb") as f:
+        base = tomllib.load(f).get("puppet")
+    if not isinstance(base, Mapping):
+        raise SceneError(str(path), "puppet", None, "a [puppet] table")
+    merged = dict(base)
+    merged.update({k: v for k, v in table.items() if k != "include"})
+    return merged
+
+
+def _read_chair(table: Mapping[str, Any], source: str):
+    where = f"{source}: [chair]"
+    chair = read_table(table, "chair", f"{source}: top level (effects.chair = true)")
+    check_keys(chair, ["centre", "half_extents"], where)
+    half = read_vec3(chair, "half_extents", where)
+    if min(half) <= 0.0:
+        raise SceneError(where, "half_extents", list(half), "three positive half sizes [m]")
+    return read_vec3(chair, "centre", where), half
+
+
+def _read_ball(table: Mapping[str, Any], source: str) -> BallSpec:
+    where = f"{source}: [ball]"
+    ball = read_table(table, "ball", f"{source}: top level (effects.ball = true)")
+    check_keys(ball, ["position", "radius", "mass"], where)
+    return BallSpec(position=read_vec3(ball, "position", where),
+                    radius=read_float(ball, "radius", where, positive=True),
+                    mass=read_float(ball, "mass", where, positive=True))
 
 
 def _read_constant(table: Mapping[str, Any], key: str, where: str, default: Any):
@@ -212,12 +299,22 @@ def _read_string_defaults(table: Mapping[str, Any], where: str) -> dict[str, Any
     return {key: _read_constant(table, key, where, default) for key, (default, _) in _STRING_CONSTANTS.items()}
 
 
-def _read_strings(table: Mapping[str, Any], source: str, defaults: dict[str, Any]) -> tuple[StringSpec, ...]:
+def _read_strings(table: Mapping[str, Any], source: str, defaults: dict[str, Any], puppet=None,
+                  bars: tuple[ControlBar, ...] = ()) -> tuple[tuple[StringSpec, ...], tuple[str | None, ...]]:
+    """The strings, and for each the puppet point it is tied to (or None).
+
+    With a puppet, ``body_point`` names the point a string is tied to and its bottom starts
+    there (filled in when the marionette is built: the placeholder is the top); with bars,
+    a string whose name a bar's ``attach`` lists hangs from that bar (its ``top`` is filled
+    in from the bar at t = 0).
+    """
     entries = table.get("strings")
     if not isinstance(entries, list) or not entries or not all(isinstance(e, Mapping) for e in entries):
         raise SceneError(f"{source}: top level", "strings", entries if entries is not None else None,
                          "one or more [[strings]] tables")
-    specs, names = [], set()
+    on_bar = {name: bar for bar in bars for name in bar.attach}
+    point_names = [p.name for p in puppet.points] if puppet is not None else []
+    specs, body_points, names = [], [], set()
     for i, entry in enumerate(entries):
         where = f"{source}: [[strings]] #{i + 1}"
         check_keys(entry, _STRING_KEYS, where)
@@ -226,19 +323,40 @@ def _read_strings(table: Mapping[str, Any], source: str, defaults: dict[str, Any
         if name in names:
             raise SceneError(where, "name", name, "a name no other string has")
         names.add(name)
-        top = read_vec3(entry, "top", where)
-        bottom = read_vec3(entry, "bottom", where)
+        body_point = None
+        if "body_point" in entry:
+            if puppet is None:
+                raise SceneError(where, "body_point", entry["body_point"], "no body_point unless the scene has a [puppet]")
+            body_point = read_choice(entry, "body_point", where, point_names)
+        if name in on_bar:
+            if "top" in entry:
+                raise SceneError(where, "top", entry["top"], f"no top: bar '{on_bar[name].name}' carries this string")
+            top = tuple(float(v) for v in on_bar[name].attach_points(np.zeros(1), [name])[0, 0])
+        else:
+            top = read_vec3(entry, "top", where)
+        bottom = top if body_point is not None else read_vec3(entry, "bottom", where)
+        if body_point is not None and "bottom" in entry:
+            raise SceneError(where, "bottom", entry["bottom"], "no bottom: the string starts at its body_point")
         span = float(np.linalg.norm(np.subtract(top, bottom)))
         # Unstretched length: by default the top-to-bottom distance (the string starts unstretched).
-        length = read_float(entry, "length", where, **({"default": span} if span > 0.0 else {}), positive=True)
-        end = read_choice(entry, "bottom_end", where, ["free", "tied"], "free")
+        if body_point is not None:
+            length = read_float(entry, "length", where, 0.0, minimum=0.0)  # 0: set from the puppet's pose
+        else:
+            length = read_float(entry, "length", where, **({"default": span} if span > 0.0 else {}), positive=True)
+        end = "tied" if body_point is not None else read_choice(entry, "bottom_end", where, ["free", "tied"], "free")
         tie_point = read_vec3(entry, "tie_point", where, bottom) if end == "tied" else None
         if end == "free" and "tie_point" in entry:
             raise SceneError(where, "tie_point", entry["tie_point"], "no tie_point unless bottom_end = \"tied\"")
         constants = {key: _read_constant(entry, key, where, defaults[key]) for key in _STRING_CONSTANTS}
         specs.append(StringSpec(name=name, top=top, bottom=bottom, length=length, tied=end == "tied",
                                 tie_point=tie_point, **constants))
-    return tuple(specs)
+        body_points.append(body_point)
+    for bar in bars:
+        for name in bar.attach:
+            if name not in names:
+                raise SceneError(f"{source}: [bars.{bar.name}.attach]", name, list(bar.attach[name]),
+                                 f"the name of a string, one of {sorted(names)}")
+    return tuple(specs), tuple(body_points)
 
 
 def _read_motion(table: Mapping[str, Any], where: str) -> StringMotion:

@@ -85,3 +85,56 @@ def summarize(trajectory: StringTrajectory, scene: Scene) -> dict:
         "energy_J": {"initial": float(trajectory.energy[0]), "final": float(trajectory.energy[-1])},
         "strings": strings,
     }
+
+
+def write_marionette_trajectory(path: str | Path, trajectory, scene: Scene) -> Path:
+    """Writes a :class:`~dmarionette.marionette_rollout.MarionetteTrajectory` (docs/trajectory.md)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    metadata = {
+        "format": "dmarionette-trajectory",
+        "format_version": FORMAT_VERSION,
+        "kind": "marionette",
+        "scene": scene.name,
+        "scene_source": scene.source,
+        "string_dt": trajectory.string_dt,
+        "puppet_dt": trajectory.puppet_dt,
+        "frame_steps": trajectory.frame_steps,
+        "effects": {**{k: bool(v) for k, v in vars(scene.effects).items()}, **scene.body_effects},
+        "body_shape": [[shape, list(size)] for shape, size in trajectory.body_shape],
+    }
+    arrays = {name: getattr(trajectory, name) for name in (
+        "frame_time", "particle_q", "joint_q", "body_pos", "body_rot", "bar_pos", "bar_rot", "top_q",
+        "step_time", "tie_force", "bar_feedback", "bar_reaction", "string_start", "string_rest_length")}
+    np.savez_compressed(path, metadata=np.array(json.dumps(metadata)),
+                        string_taut=trajectory.string_taut.astype(np.int8),
+                        string_names=np.array(trajectory.string_names), body_names=np.array(trajectory.body_names),
+                        bar_names=np.array(trajectory.bar_names), **arrays)
+    return path
+
+
+def summarize_marionette(trajectory, scene: Scene) -> dict:
+    """Timing, finiteness, and per string its taut fraction and largest tie force; per bar its feedback."""
+    simulated = float(trajectory.step_time[-1])
+    finite = all(bool(np.all(np.isfinite(getattr(trajectory, name))))
+                 for name in ("particle_q", "body_pos", "tie_force", "bar_feedback", "bar_reaction"))
+    pelvis = trajectory.body_pos[:, 0, 1]
+    return {
+        "scene": scene.name,
+        "simulated_seconds": round(simulated, 6),
+        "string_steps": int(len(trajectory.step_time)),
+        "puppet_steps": int(round(simulated / trajectory.puppet_dt)),
+        "string_dt": trajectory.string_dt,
+        "puppet_dt": trajectory.puppet_dt,
+        "wall_seconds": round(trajectory.wall_seconds, 4),
+        "real_time_factor": round(simulated / trajectory.wall_seconds, 2) if trajectory.wall_seconds > 0 else None,
+        "all_finite": finite,
+        "torso_height_m": {"initial": round(float(pelvis[0]), 4), "final": round(float(pelvis[-1]), 4),
+                           "max": round(float(pelvis.max()), 4)},
+        "strings": {name: {"taut_fraction": round(float(trajectory.string_taut[:, s].mean()), 4),
+                           "max_tie_force_N": round(float(np.linalg.norm(trajectory.tie_force[:, s], axis=1).max()), 4)}
+                    for s, name in enumerate(trajectory.string_names)},
+        "bars": {name: {"max_feedback_N": round(float(np.linalg.norm(trajectory.bar_feedback[:, b], axis=1).max()), 4),
+                        "max_reaction_N": round(float(np.linalg.norm(trajectory.bar_reaction[:, b], axis=1).max()), 4)}
+                 for b, name in enumerate(trajectory.bar_names)},
+    }

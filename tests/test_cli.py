@@ -21,7 +21,7 @@ def test_help_on_every_command(command, capsys):
 
 def test_simulate_writes_trajectory_summary_and_picture(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["simulate", "hanging", "--duration", "0.3", "--out", str(out), "--quiet"]) == 0
+    assert main(["simulate", "strings", "--duration", "0.3", "--out", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["all_finite"] and summary["string_steps"] == 330  # 10 frames of 33 steps
     data = read_trajectory(out / "trajectory.npz")
@@ -32,7 +32,7 @@ def test_simulate_writes_trajectory_summary_and_picture(tmp_path, capsys):
     assert data["metadata"]["frame_steps"] == 33
     png = (out / "strings.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 20_000
-    assert json.loads(capsys.readouterr().out)["scene"] == "hanging"
+    assert json.loads(capsys.readouterr().out)["scene"] == "strings"
 
 
 def test_bad_scene_gives_a_clear_error_and_no_traceback(tmp_path):

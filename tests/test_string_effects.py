@@ -97,7 +97,7 @@ def test_float32_runs_the_hanging_strings_close_to_float64():
     from dmarionette.scene import load_scene
     from dmarionette.simulate import simulate_strings
 
-    scene = load_scene("hanging")
+    scene = load_scene("strings")
     runs = {p: simulate_strings(scene, 1.0, progress=False, model=scene.build_string_model(precision=p))
             for p in ("float64", "float32")}
     assert np.all(np.isfinite(runs["float32"].particle_q))

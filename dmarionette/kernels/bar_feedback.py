@@ -1,0 +1,77 @@
+"""Force feedback to the bars (paper §3.2), two modes, evaluated every string step.
+
+``eval_bar_feedback`` accumulates, per bar, over the strings it carries:
+
+- **eq. 4** (the paper's model), for taut strings only:
+  ``F_i = -k (x_proxy - x_string) - m g - k_d (v_proxy - v_string)``, with ``x_string`` the
+  string's *last* particle (as the paper defines it), ``x_proxy``/``v_proxy`` the bar centre
+  (the device tip sits at the bar's centre of mass, §3.1), ``k``/``k_d`` the device's
+  stiffness and damping, ``m`` the puppet's total mass. The paper's ``g`` is read as the
+  magnitude of gravity along the *up* axis, so ``-m g`` is the puppet's weight pulling the
+  hand down: in vectors, ``+m g_vec`` with ``g_vec = (0, -9.81, 0)``.
+- **exact reaction**: the force the string exerts on its top particle, i.e. on the bar's
+  attach point: the first segment's spring force plus its internal friction.
+
+One thread per string, atomically summed per bar, so the kernel is differentiable.
+"""
+
+import functools
+
+import warp as wp
+
+from .string_terms import string_terms
+
+
+@functools.cache
+def eval_bar_feedback_kernel(scalar, internal_friction: bool):
+    """Builds ``eval_bar_feedback`` for a float type (internal friction in the reaction or not)."""
+    t = string_terms(scalar)
+    vec3 = t.vec3
+    FRICTION = internal_friction
+
+    @wp.kernel(module="unique")
+    def eval_bar_feedback(
+        # Model:
+        string_start: wp.array(dtype=wp.int32),
+        string_bar: wp.array(dtype=wp.int32),
+        string_stiffness: wp.array(dtype=scalar),
+        string_rest_length: wp.array(dtype=scalar),
+        string_internal_friction: wp.array(dtype=scalar),
+        feedback_stiffness: scalar,
+        feedback_damping: scalar,
+        puppet_weight: vec3,
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        string_taut: wp.array(dtype=wp.int32),
+        # Control:
+        bar_q: wp.array(dtype=vec3),
+        bar_qd: wp.array(dtype=vec3),
+        # State out:
+        bar_feedback: wp.array(dtype=vec3),
+        bar_reaction: wp.array(dtype=vec3),
+    ):
+        s = wp.tid()
+        bar = string_bar[s]
+        if bar < 0:
+            return
+        first = string_start[s]
+        last = string_start[s + 1] - 1
+        if string_taut[s] == 1:
+            f = (
+                -feedback_stiffness * (bar_q[bar] - particle_q[last])
+                + puppet_weight
+                - feedback_damping * (bar_qd[bar] - particle_qd[last])
+            )
+            wp.atomic_add(bar_feedback, bar, f)
+        reaction, _k = t.compute_string_spring(
+            particle_q[first], particle_q[first + 1], string_stiffness[s], string_rest_length[s]
+        )
+        if wp.static(FRICTION):
+            f_f, _d = t.compute_internal_friction(
+                particle_qd[first], particle_qd[first + 1], string_internal_friction[s]
+            )
+            reaction += f_f
+        wp.atomic_add(bar_reaction, bar, reaction)
+
+    return eval_bar_feedback

@@ -1,0 +1,306 @@
+"""The marionette: strings, puppet and control bars together (paper §2-4).
+
+One puppet step of ``H = n h`` (``n = round(string_hz / puppet_hz)`` string steps of ``h``;
+``n = 1`` runs the puppet at the string rate) is a short list of named passes::
+
+    eval_body_points            tied body points: positions and velocities at t0
+    eval_tie_path               the strings' tie targets over the n string steps (body -> strings)
+    n x  step strings           backward Euler, bottoms tied by eq. 2 to the path
+         eval_bar_feedback      eq. 4 and the exact reaction, per bar, every string step
+    apply_string_forces_to_anchors  mean tie force + the stiff tie around the path (strings -> body)
+    step puppet                 implicit puppet step with the eq. 2 springs
+
+See :mod:`dmarionette.kernels.string_body_coupling` for how forces and positions cross
+between the two rates. Strings and puppet are both float64 here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import warp as wp
+
+from .articulation import (
+    ArticulationState,
+    BallDescription,
+    ContactSettings,
+    SolverArticulation,
+    build_articulation_model,
+)
+from .kernels.bar_feedback import eval_bar_feedback_kernel
+from .kernels.string_body_coupling import apply_string_forces_to_anchors, eval_tie_path
+from .scene import Scene
+from .string_model import StringControl, StringModel, StringState
+from .string_solver import SolverStringImplicit
+
+__all__ = ["MarionetteControl", "MarionetteModel", "MarionetteState", "SolverMarionette"]
+
+
+class MarionetteModel:
+    """Strings + puppet + bars built from a scene.
+
+    Attributes:
+        scene: the scene it was built from.
+        strings: the :class:`StringModel` (float64).
+        puppet: the :class:`ArticulationModel` (springs: one per tied string, in string order).
+        substeps: string steps per puppet step ``n``; ``puppet_dt = n * string_dt``.
+        string_dt, puppet_dt: [s].
+        bar_names: ``(B,)``; string_bar: bar index of each string (-1: none), ``(S,)``.
+        string_point: puppet point index each string is tied to (-1: none), ``(S,)``.
+        spring_string: string index of each body spring, ``(N,)``.
+        puppet_mass: total puppet mass [kg] (eq. 4's ``m``).
+    """
+
+    def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None):
+        if scene.puppet is None:
+            raise ValueError(f"{scene.source}: a marionette needs a [puppet] table")
+        self.scene = scene
+        self.device = wp.get_device(device)
+        self.string_dt = scene.string_dt
+        self.substeps = max(1, round(scene.string_hz / scene.puppet_hz))
+        self.puppet_dt = self.substeps * self.string_dt
+        names = [s.name for s in scene.strings]
+        tied = [(i, p) for i, p in enumerate(scene.string_body_points) if p is not None]
+        e = scene.body_effects
+        ball = BallDescription(position=scene.ball.position, radius=scene.ball.radius, mass=scene.ball.mass) \
+            if scene.ball is not None else None
+        c = scene.contact
+        contacts = ContactSettings(ground=e["body_ground"], ground_height=scene.ground_height, chair=scene.chair,
+                                   ball=ball is not None, smooth=c["smooth"], stiffness=c["stiffness"],
+                                   damping=c["damping"], friction=c["friction"],
+                                   friction_velocity=c["friction_velocity"], smooth_distance=c["smooth_distance"])
+        self.puppet = build_articulation_model(
+            scene.puppet, ball=ball, contacts=contacts, joint_limits=e["joint_limits"], gravity=scene.gravity,
+            springs=tuple((p, scene.strings[i].tie_stiffness, scene.strings[i].tie_damping) for i, p in tied),
+            device=str(self.device))
+        self.puppet_solver = SolverArticulation(self.puppet, optimization_level=optimization_level)
+        # Where the tied points are in the rest pose: the strings start straight from bar to point.
+        rest = self.puppet.state()
+        point_q, point_qd = self.eval_points(rest)
+        point_names = self.puppet.point_names
+        specs = []
+        for spec, body_point in zip(scene.strings, scene.string_body_points):
+            if body_point is not None:
+                bottom = tuple(float(v) for v in point_q[point_names.index(body_point)])
+                length = spec.length or float(np.linalg.norm(np.subtract(spec.top, bottom)))
+                spec = dataclasses.replace(spec, bottom=bottom, tie_point=bottom, length=length)
+            specs.append(spec)
+        self.strings = StringModel(specs, effects=scene.effects, gravity=scene.gravity,
+                                   ground_height=scene.ground_height, precision="float64", device=self.device)
+        self.string_solver = SolverStringImplicit(self.strings)
+        self.bar_names = [b.name for b in scene.bars]
+        bar_of = {s: i for i, b in enumerate(scene.bars) for s in b.attach}
+        self.string_bar = np.array([bar_of.get(n, -1) for n in names], dtype=np.int32)
+        self.string_point = np.array([point_names.index(p) if p else -1 for p in scene.string_body_points],
+                                     dtype=np.int32)
+        self.spring_string = np.array([i for i, _ in tied], dtype=np.int32)
+        self.puppet_mass = float(sum(b.mass for b in scene.puppet.bodies))
+        with wp.ScopedDevice(self.device):
+            self.string_bar_wp = wp.array(self.string_bar, dtype=wp.int32)
+            self.string_point_wp = wp.array(self.string_point, dtype=wp.int32)
+            self.spring_string_wp = wp.array(self.spring_string, dtype=wp.int32)
+
+    @property
+    def bar_count(self) -> int:
+        return len(self.bar_names)
+
+    def eval_points(self, state: ArticulationState) -> tuple[np.ndarray, np.ndarray]:
+        """World positions [m] and velocities [m/s] of the puppet's named points, ``(points, 3)`` each."""
+        n = len(self.puppet.point_names)
+        q = wp.zeros((1, n), dtype=wp.vec3d, device=self.device)
+        qd = wp.zeros((1, n), dtype=wp.vec3d, device=self.device)
+        self.puppet_solver.eval_kinematics(state)
+        self.puppet_solver.eval_points(state, q, qd)
+        return q.numpy()[0], qd.numpy()[0]
+
+    def state(self) -> MarionetteState:
+        """The start state: puppet at its rest pose, strings straight from bar to body point, at rest."""
+        return MarionetteState(self)
+
+    def control(self) -> MarionetteControl:
+        """Control buffers for one puppet step, holding the bars at their t = 0 pose."""
+        control = MarionetteControl(self)
+        control.set_bars(self, 0.0)
+        return control
+
+
+class MarionetteState:
+    """What evolves, and what one puppet step reports.
+
+    Attributes:
+        strings: the string state at the end of the step.
+        puppet: the puppet state (one world).
+        tie_force: eq. 2 force of each tie on its body point after each string step [N],
+            ``(n, S)`` of vec3d.
+        string_taut: taut flags after each string step, ``(n, S)``.
+        bar_feedback: eq. 4 feedback per bar after each string step [N], ``(n, B)``.
+        bar_reaction: exact reaction of the strings on each bar after each string step [N], ``(n, B)``.
+        tie_target: where each string's tie target is at the end of the step [m], ``(S,)``
+            (the start of the next step's path; see ``string_body_coupling``).
+    """
+
+    def __init__(self, model: MarionetteModel):
+        self.strings: StringState = model.strings.state()
+        self.puppet: ArticulationState = model.puppet.state()
+        n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
+        with wp.ScopedDevice(model.device):
+            self.tie_force = wp.zeros((n, s), dtype=wp.vec3d)
+            self.string_taut = wp.zeros((n, s), dtype=wp.int32)
+            self.bar_feedback = wp.zeros((n, b), dtype=wp.vec3d)
+            self.bar_reaction = wp.zeros((n, b), dtype=wp.vec3d)
+            self.tie_target = wp.array(model.strings.tie_points(), dtype=wp.vec3d)
+
+    def assign(self, other: MarionetteState) -> None:
+        """Copies ``other`` (same model) into this state."""
+        self.strings.assign(other.strings)
+        for name in ("joint_q", "joint_qd", "joint_qdd"):
+            getattr(self.puppet, name).assign(getattr(other.puppet, name))
+        for name in ("tie_force", "string_taut", "bar_feedback", "bar_reaction", "tie_target"):
+            getattr(self, name).assign(getattr(other, name))
+
+
+class MarionetteControl:
+    """Inputs of one puppet step: the bars over its ``n`` string steps.
+
+    Attributes:
+        top_q: attach point of each string's top at the end of each string step [m], ``(n, S)``.
+        bar_q, bar_qd: bar centre position [m] and velocity [m/s] (the device proxy of eq. 4),
+            ``(n, B)``.
+        t0: time at the start of the step [s] (host side, used by :meth:`set_bars`).
+    """
+
+    def __init__(self, model: MarionetteModel):
+        n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
+        with wp.ScopedDevice(model.device):
+            self.top_q = wp.zeros((n, s), dtype=wp.vec3d)
+            self.bar_q = wp.zeros((n, b), dtype=wp.vec3d)
+            self.bar_qd = wp.zeros((n, b), dtype=wp.vec3d)
+        self.t0 = 0.0
+
+    def set_bars(self, model: MarionetteModel, t0: float) -> None:
+        """Fills the buffers from the scene's bar trajectories for the step starting at ``t0``."""
+        self.t0 = float(t0)
+        times = t0 + model.string_dt * np.arange(1, model.substeps + 1)
+        tops, bar_q, bar_qd = bar_inputs(model, times)
+        _upload(self.top_q, tops)
+        if model.bar_count:
+            _upload(self.bar_q, bar_q)
+            _upload(self.bar_qd, bar_qd)
+
+
+def bar_inputs(model: MarionetteModel, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """String tops ``(T, S, 3)``, bar centres ``(T, B, 3)`` and their velocities at ``times``."""
+    scene = model.scene
+    names = [s.name for s in scene.strings]
+    rest_tops = np.array([s.top for s in model.strings.specs])
+    tops = scene.motion.top_positions(rest_tops, times)
+    bar_q = np.zeros((len(times), max(model.bar_count, 1), 3))
+    bar_qd = np.zeros_like(bar_q)
+    for b, bar in enumerate(scene.bars):
+        carried = [i for i, n in enumerate(names) if n in bar.attach]
+        tops[:, carried] = bar.attach_points(times, [names[i] for i in carried])
+        bar_q[:, b], bar_qd[:, b], _ = bar.trajectory.pose(times)
+    return tops, bar_q, bar_qd
+
+
+def _upload(dst: wp.array, values: np.ndarray) -> None:
+    if dst.device.is_cpu:
+        dst.numpy()[...] = values
+    else:
+        dst.assign(wp.array(np.ascontiguousarray(values), dtype=dst.dtype, device=dst.device))
+
+
+class SolverMarionette:
+    """Steps a :class:`MarionetteModel` by one puppet step (``n`` string steps).
+
+    Args:
+        model: the marionette.
+    """
+
+    def __init__(self, model: MarionetteModel):
+        self.model = model
+        m = model
+        self._feedback = eval_bar_feedback_kernel(wp.float64, m.scene.effects.internal_friction) \
+            if m.scene.body_effects["feedback"] and m.bar_count else None
+        self._spare = (m.strings.state(), m.strings.state())
+        n_points = len(m.puppet.point_names)
+        with wp.ScopedDevice(m.device):
+            self._point_q = wp.zeros((1, n_points), dtype=wp.vec3d)
+            self._point_qd = wp.zeros((1, n_points), dtype=wp.vec3d)
+            self._tie_q = wp.zeros((m.substeps, m.strings.string_count), dtype=wp.vec3d)
+            self._tie_qd = wp.zeros((m.substeps, m.strings.string_count), dtype=wp.vec3d)
+        self._puppet_control = m.puppet.control()
+        self._make_string_controls = lambda control: [
+            StringControl(control.top_q[j], self._tie_q[j], self._tie_qd[j]) for j in range(m.substeps)]
+        self._controls_for = {}
+
+    def step(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl,
+             dt: float | None = None) -> None:
+        """Advances ``state_in`` by one puppet step into ``state_out`` (``dt`` must equal ``puppet_dt``)."""
+        m = self.model
+        if dt is not None and abs(dt - m.puppet_dt) > 1e-12 * m.puppet_dt:
+            raise ValueError(f"dt: got {dt}; this marionette steps by puppet_dt = {m.puppet_dt} "
+                             f"({m.substeps} string steps of {m.string_dt})")
+        self.eval_body_points(state_in)                 # tied body points at t0
+        self.eval_tie_path(state_in, state_out)         # the strings' tie targets over the step
+        self.step_strings(state_in, state_out, control) # n string steps + feedback (eq. 2, eq. 4)
+        self.apply_string_forces_to_anchors(state_out)  # mean tie force -> body springs' anchors
+        self.step_puppet(state_in, state_out)           # implicit puppet step
+
+    def eval_body_points(self, state_in: MarionetteState) -> None:
+        self.model.puppet_solver.eval_kinematics(state_in.puppet)
+        self.model.puppet_solver.eval_points(state_in.puppet, self._point_q, self._point_qd)
+
+    def eval_tie_path(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+        m = self.model
+        wp.launch(eval_tie_path, dim=(m.substeps, m.strings.string_count),
+                  inputs=[m.string_point_wp, self._point_q, self._point_qd, state_in.tie_target,
+                          wp.float64(m.string_dt)],
+                  outputs=[self._tie_q, self._tie_qd, state_out.tie_target], device=m.device)
+
+    def step_strings(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl) -> None:
+        m = self.model
+        key = id(control)
+        if key not in self._controls_for:
+            self._controls_for[key] = (control, self._make_string_controls(control))
+        string_controls = self._controls_for[key][1]
+        if self._feedback is not None:
+            state_out.bar_feedback.zero_()
+            state_out.bar_reaction.zero_()
+        previous = state_in.strings
+        for j in range(m.substeps):
+            nxt = state_out.strings if j == m.substeps - 1 else self._spare[j % 2]
+            m.string_solver.step(previous, nxt, string_controls[j], m.string_dt)
+            wp.copy(state_out.tie_force[j], nxt.tie_force)
+            wp.copy(state_out.string_taut[j], nxt.string_taut)
+            if self._feedback is not None:
+                self.eval_bar_feedback(nxt, control, state_out, j)
+            previous = nxt
+
+    def eval_bar_feedback(self, strings: StringState, control: MarionetteControl, state_out: MarionetteState,
+                          j: int) -> None:
+        m = self.model
+        s = m.strings
+        weight = wp.vec3d(*(m.puppet_mass * np.asarray(m.scene.gravity)))
+        wp.launch(self._feedback, dim=s.string_count,
+                  inputs=[s.string_start, m.string_bar_wp, s.string_stiffness, s.string_rest_length,
+                          s.string_internal_friction, wp.float64(m.scene.feedback_stiffness),
+                          wp.float64(m.scene.feedback_damping), weight,
+                          strings.particle_q, strings.particle_qd, strings.string_taut,
+                          control.bar_q[j], control.bar_qd[j]],
+                  outputs=[state_out.bar_feedback[j], state_out.bar_reaction[j]], device=m.device)
+
+    def apply_string_forces_to_anchors(self, state_out: MarionetteState) -> None:
+        m = self.model
+        if len(m.spring_string) == 0:
+            return
+        wp.launch(apply_string_forces_to_anchors, dim=len(m.spring_string),
+                  inputs=[m.spring_string_wp, m.strings.string_tie_stiffness, state_out.tie_force,
+                          self._tie_q, self._tie_qd, wp.float64(m.string_dt)],
+                  outputs=[self._puppet_control.spring_anchor_pos, self._puppet_control.spring_anchor_vel],
+                  device=m.device)
+
+    def step_puppet(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+        m = self.model
+        m.puppet_solver.step(state_in.puppet, state_out.puppet, self._puppet_control, m.puppet_dt)
