@@ -34,7 +34,6 @@ POINTS = ("head", "back", "hand_left", "hand_right", "knee_left", "knee_right")
 
 
 def _configurations():
-    puppet = load_puppet()
     springs = tuple((p, 500.0, 1.0) for p in POINTS)
     yield "no contact", dict(springs=())
     yield "6 string springs", dict(springs=springs)
@@ -43,7 +42,6 @@ def _configurations():
     yield "6 springs + ground + chair + ball", dict(
         springs=springs, ball=BallDescription(position=(0.3, 0.05, 0.2)),
         contacts=ContactSettings(ground=True, chair=((0.0, 0.1, -0.4), (0.2, 0.1, 0.2)), ball=True))
-    del puppet
 
 
 def bench(kwargs, steps, repeats, opt, dt=1.0 / 30.0):

@@ -44,7 +44,12 @@ def puppet_to_mjcf(
 
     Returns:
         The XML string (``mujoco.MjModel.from_xml_string`` loads it).
+
+    Raises:
+        ValueError: ``timestep`` not a finite positive number.
     """
+    if not (math.isfinite(timestep) and timestep > 0.0):
+        raise ValueError(f"puppet_to_mjcf: timestep = {timestep!r}; expected a finite step > 0 [s]")
     lines = [
         f"<mujoco model={quoteattr(puppet.name)}>",
         '  <compiler angle="radian" autolimits="false"/>',
@@ -105,5 +110,4 @@ def puppet_to_mjcf(
             "    </body>",
         ]
     lines += ["  </worldbody>", "</mujoco>", ""]
-    assert math.isfinite(timestep)
     return "\n".join(lines)
