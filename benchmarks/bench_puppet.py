@@ -78,7 +78,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--opt", type=int, default=2, help="C++ optimisation level of the generated kernels")
     args = parser.parse_args()
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # no banner
     wp.init()
     print(f"warp {wp.config.version}, CPU, {os.cpu_count()} cores visible (Warp CPU kernels run on one), "
           f"float64, -O{args.opt}, median of {args.repeats} x {args.steps} steps")

@@ -41,7 +41,7 @@ def run(model, solver, control, dt, k, duration=3.0):
 
 
 def main() -> None:
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # no banner
     model = build_articulation_model(load_puppet(), springs=tuple((p, 1.0, 1.0) for p in POINTS))
     rows = []
     for implicit in (True, False):

@@ -14,7 +14,6 @@ from dmarionette.articulation import (
 )
 from dmarionette.puppet import load_puppet
 
-wp.config.quiet = True
 
 H30 = 1.0 / 30.0
 _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)

@@ -9,7 +9,6 @@ import warp as wp
 from dmarionette.articulation import SolverArticulation, build_articulation_model
 from dmarionette.puppet import load_puppet
 
-wp.config.quiet = True
 
 H30 = 1.0 / 30.0
 POINTS = ("head", "back", "hand_left", "hand_right", "knee_left", "knee_right")
