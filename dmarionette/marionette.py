@@ -75,9 +75,9 @@ class MarionetteModel:
             springs=tuple((p, scene.strings[i].tie_stiffness, scene.strings[i].tie_damping) for i, p in tied),
             device=str(self.device))
         self.puppet_solver = SolverArticulation(self.puppet, optimization_level=optimization_level)
-        # Where the tied points are in the rest pose: the strings start straight from bar to point.
-        rest = self.puppet.state()
-        point_q, point_qd = self.eval_points(rest)
+        # Where the tied points are in the initial pose: the strings start straight from bar to point.
+        self.q_initial = initial_joint_q(self.puppet, scene)
+        point_q, point_qd = self.eval_points(self._initial_puppet_state())
         point_names = self.puppet.point_names
         specs = []
         for spec, body_point in zip(scene.strings, scene.string_body_points):
@@ -100,6 +100,11 @@ class MarionetteModel:
             self.string_bar_wp = wp.array(self.string_bar, dtype=wp.int32)
             self.string_point_wp = wp.array(self.string_point, dtype=wp.int32)
             self.spring_string_wp = wp.array(self.spring_string, dtype=wp.int32)
+
+    def _initial_puppet_state(self) -> ArticulationState:
+        state = self.puppet.state()
+        state.joint_q.assign(wp.array(self.q_initial[None], dtype=wp.float64, device=self.device))
+        return state
 
     @property
     def bar_count(self) -> int:
@@ -142,7 +147,7 @@ class MarionetteState:
 
     def __init__(self, model: MarionetteModel):
         self.strings: StringState = model.strings.state()
-        self.puppet: ArticulationState = model.puppet.state()
+        self.puppet: ArticulationState = model._initial_puppet_state()
         n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
         with wp.ScopedDevice(model.device):
             self.tie_force = wp.zeros((n, s), dtype=wp.vec3d)
@@ -187,6 +192,18 @@ class MarionetteControl:
         if model.bar_count:
             _upload(self.bar_q, bar_q)
             _upload(self.bar_qd, bar_qd)
+
+
+def initial_joint_q(puppet_model, scene: Scene) -> np.ndarray:
+    """The puppet's start coordinates: its rest pose with the scene's ``[initial_pose]`` angles."""
+    q = puppet_model.q_rest.copy()
+    offset = 7  # the free root: position, quaternion
+    for joint in scene.puppet.joints:
+        count = 4 if joint.type == "ball" else len(joint.axes)
+        if joint.name in scene.initial_pose:
+            q[offset:offset + count] = np.radians(scene.initial_pose[joint.name])
+        offset += count
+    return q
 
 
 def bar_inputs(model: MarionetteModel, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

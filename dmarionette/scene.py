@@ -134,6 +134,7 @@ class Scene:
     contact: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     chair: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     ball: BallSpec | None = None
+    initial_pose: Mapping[str, tuple[float, ...]] = dataclasses.field(default_factory=dict)
 
     @property
     def string_dt(self) -> float:
@@ -185,7 +186,8 @@ def load_scene(name_or_path: str | Path) -> Scene:
 def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     """Validates a parsed scene table; ``source`` names it in errors (a file path)."""
     check_keys(table, ["scene", "rates", "solver", "effects", "world", "string_defaults", "strings",
-                       "motion", "puppet", "bars", "feedback", "contact", "chair", "ball"], f"{source}: top level")
+                       "motion", "puppet", "bars", "feedback", "contact", "chair", "ball", "initial_pose"],
+               f"{source}: top level")
     head = read_table(table, "scene", f"{source}: top level")
     where = f"{source}: [scene]"
     check_keys(head, ["name", "description", "duration"], where)
@@ -235,6 +237,8 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     check_keys(contact_table, [*_CONTACT, "smooth"], where_c)
     contact = {k: read_float(contact_table, k, where_c, d, **o) for k, (d, o) in _CONTACT.items()}
     contact["smooth"] = read_bool(contact_table, "smooth", where_c, False)
+    initial_pose = _read_initial_pose(read_table(table, "initial_pose", source, {}), f"{source}: [initial_pose]",
+                                      puppet)
     chair = _read_chair(table, source) if body_effects["chair"] else None
     ball = _read_ball(table, source) if body_effects["ball"] else None
 
@@ -244,7 +248,7 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
                  puppet=puppet, string_body_points=body_points, bars=bars, body_effects=body_effects,
                  feedback_stiffness=read_float(feedback, "stiffness", where, 5.0, minimum=0.0),
                  feedback_damping=read_float(feedback, "damping", where, 0.5, minimum=0.0),
-                 contact=contact, chair=chair, ball=ball)
+                 contact=contact, chair=chair, ball=ball, initial_pose=initial_pose)
 
 
 def _puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, Any]:
@@ -266,6 +270,27 @@ def _puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, Any]:
     merged = dict(base)
     merged.update({k: v for k, v in table.items() if k != "include"})
     return merged
+
+
+def _read_initial_pose(table: Mapping[str, Any], where: str, puppet) -> dict[str, tuple[float, ...]]:
+    """``joint_name = [angles in degrees]``, one per axis of a hinge or universal joint."""
+    if not table:
+        return {}
+    if puppet is None:
+        raise SceneError(where, next(iter(table)), table[next(iter(table))], "no initial_pose without a [puppet]")
+    joints = {j.name: j for j in puppet.joints}
+    pose = {}
+    for name, angles in table.items():
+        joint = joints.get(name)
+        if joint is None or joint.type not in ("hinge", "universal"):
+            choices = sorted(n for n, j in joints.items() if j.type in ("hinge", "universal"))
+            raise SceneError(where, name, angles, f"the name of a hinge or universal joint, one of {choices}")
+        ok = isinstance(angles, list) and len(angles) == len(joint.axes) and all(
+            isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a) for a in angles)
+        if not ok:
+            raise SceneError(where, name, angles, f"a list of {len(joint.axes)} finite angles in degrees")
+        pose[name] = tuple(float(a) for a in angles)
+    return pose
 
 
 def _read_chair(table: Mapping[str, Any], source: str):
