@@ -18,6 +18,7 @@ from dmarionette.hw.falcon import (
 from dmarionette.hw.falcon_kinematics import FalconKinematics, FalconKinematicsError
 from dmarionette.hw.safety import SafetyConfig
 from dmarionette.hw.servo import run_servo_loop
+usb = pytest.importorskip("usb", reason="pyusb is needed for the virtual Falcon backend")
 from hw_fakes.virtual_falcon import VirtualFalcon, VirtualFalconBackend, reference_leg_angles, reference_ticks
 
 FIRMWARE = bytes(range(256)) * 3 + b"\x01\x02\x03"  # a made-up "firmware" (the real one is never bundled)
