@@ -126,10 +126,11 @@ class MarionetteRollout:
                 control.bar_q.numpy()[...] = bar_q[rows]
                 control.bar_qd.numpy()[...] = bar_qd[rows]
             wp.capture_launch(self._graph)
-            outputs["tie_force"].append(self._tie_force.numpy().reshape(per_chunk, -1, 3))
-            outputs["string_taut"].append(self._taut.numpy().reshape(per_chunk, -1))
-            outputs["bar_feedback"].append(self._feedback.numpy().reshape(per_chunk, -1, 3))
-            outputs["bar_reaction"].append(self._reaction.numpy().reshape(per_chunk, -1, 3))
+            # .numpy() is a view of the buffers on the CPU: copy before the next replay overwrites them.
+            outputs["tie_force"].append(self._tie_force.numpy().reshape(per_chunk, -1, 3).copy())
+            outputs["string_taut"].append(self._taut.numpy().reshape(per_chunk, -1).copy())
+            outputs["bar_feedback"].append(self._feedback.numpy().reshape(per_chunk, -1, 3).copy())
+            outputs["bar_reaction"].append(self._reaction.numpy().reshape(per_chunk, -1, 3).copy())
             if on_chunk is not None:
                 on_chunk(c, self._state)
         state.assign(self._state)
