@@ -116,15 +116,14 @@ class MarionetteRollout:
         per_chunk = k * n
         outputs = {name: [] for name in ("tie_force", "string_taut", "bar_feedback", "bar_reaction")}
         self._state.assign(state)
+        # The bars' inputs for the whole rollout, evaluated at once (vectorised spline evaluation).
+        all_tops, all_bar_q, all_bar_qd = bar_inputs(m, t0 + m.string_dt * np.arange(1, chunks * per_chunk + 1))
         for c in range(chunks):
-            start = t0 + c * per_chunk * m.string_dt
-            times = start + m.string_dt * np.arange(1, per_chunk + 1)
-            tops, bar_q, bar_qd = bar_inputs(m, times)
             for i, control in enumerate(self._controls):
-                rows = slice(i * n, (i + 1) * n)
-                control.top_q.numpy()[...] = tops[rows]
-                control.bar_q.numpy()[...] = bar_q[rows]
-                control.bar_qd.numpy()[...] = bar_qd[rows]
+                rows = slice(c * per_chunk + i * n, c * per_chunk + (i + 1) * n)
+                control.top_q.numpy()[...] = all_tops[rows]
+                control.bar_q.numpy()[...] = all_bar_q[rows]
+                control.bar_qd.numpy()[...] = all_bar_qd[rows]
             wp.capture_launch(self._graph)
             # .numpy() is a view of the buffers on the CPU: copy before the next replay overwrites them.
             outputs["tie_force"].append(self._tie_force.numpy().reshape(per_chunk, -1, 3).copy())
