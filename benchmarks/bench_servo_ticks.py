@@ -7,7 +7,8 @@ the tick statistics:
 1. idle: the loop alone in this process;
 2. busy thread, GIL switch interval left at Python's default (5 ms);
 3. busy thread, the loop's lowered switch interval (0.2 ms, the default of ServoLoop);
-4. busy thread in this process, the loop in a separate process (multiprocessing, spawn).
+4. busy thread in this process, the loop in a separate process (multiprocessing, spawn);
+5. busy thread, 0.2 ms switch interval, servo thread under SCHED_FIFO (when allowed).
 
 The busy thread is a pure-Python loop (it holds the GIL between forced switches), the
 kind of work a viewer, a recorder or a 30 Hz puppet step in Python would be.
@@ -36,9 +37,9 @@ def circle(t):
     return np.array([0.03 * np.cos(2.0 * t), 0.02 * np.sin(2.0 * t), 0.0])
 
 
-def run_loop(duration: float, switch_interval: float | None) -> ServoStatistics:
+def run_loop(duration: float, switch_interval: float | None, realtime: int | None = None) -> ServoStatistics:
     loop = ServoLoop(HapticDeviceSimulated(circle), spring, safety=SafetyConfig(ramp_time=0.2),
-                     switch_interval=switch_interval)
+                     switch_interval=switch_interval, realtime_priority=realtime)
     return loop.run(duration)
 
 
@@ -98,6 +99,10 @@ def main(argv: list[str] | None = None) -> None:
         s = queue.get()
         child.join()
     report("4. busy thread here, loop in another process", s, f"  (busy iterations {busy.iterations})")
+    with BusyThread() as busy:
+        s = run_loop(d, 0.0002, realtime=10)
+    report("5. busy thread, 0.2 ms, SCHED_FIFO" + ("" if s.realtime else " (refused)"), s,
+           f"  (busy iterations {busy.iterations})")
 
 
 if __name__ == "__main__":

@@ -212,3 +212,16 @@ def test_request_stop_from_another_thread():
     stats = loop.run()
     assert stats.stop_reason == "stopped" and stats.tick_count > 0
     assert_motors_off(dev)
+
+
+def test_realtime_priority_is_optional():
+    """SCHED_FIFO when the OS allows it, else a warning and normal scheduling; the loop runs either way."""
+    import warnings
+
+    dev = HapticDeviceSimulated()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stats = ServoLoop(dev, lambda s, t: [0.0, 0.0, 0.0], realtime_priority=1).run(duration=0.05)
+    assert stats.stop_reason == "duration"
+    assert stats.realtime or any("SCHED_FIFO" in str(w.message) for w in caught)
+    assert_motors_off(dev)

@@ -28,9 +28,11 @@ measures what a busy thread does to the ticks, and what a separate process buys.
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -68,6 +70,7 @@ class ServoStatistics:
         clamped_forces: Forces the peak or continuous limit cut.
         stop_reason: "duration", "stopped", "physics error", "keyboard interrupt",
             "disconnected" or "error".
+        realtime: True when the servo thread ran with the requested real-time priority.
     """
 
     rate_hz: float
@@ -83,6 +86,7 @@ class ServoStatistics:
     nonfinite_forces: int
     clamped_forces: int
     stop_reason: str
+    realtime: bool = False
 
     def summary(self) -> str:
         """One line of the figures that matter, lateness in microseconds."""
@@ -162,11 +166,15 @@ class ServoLoop:
         spin_margin: Sleep until this long before a deadline, then busy-wait [s].
         compute_budget: Fraction of a period the loop waits for the physics' answer.
         switch_interval: GIL switch interval during ``run`` [s]; None leaves it alone.
+        realtime_priority: Run the servo thread under ``SCHED_FIFO`` with this priority
+            (1-99, Linux; needs CAP_SYS_NICE or an ``rtprio`` limit); None (default) leaves
+            the scheduling alone. When refused, a warning says so and the loop runs anyway.
     """
 
     def __init__(self, device: AbstractHapticDevice, step: PhysicsStep, *, rate_hz: float = 1000.0,
                  safety: SafetyConfig = SafetyConfig(), spin_margin: float = 0.0005,
-                 compute_budget: float = 0.6, switch_interval: float | None = 0.0002) -> None:
+                 compute_budget: float = 0.6, switch_interval: float | None = 0.0002,
+                 realtime_priority: int | None = None) -> None:
         if not rate_hz > 0.0:
             raise ValueError(f"ServoLoop: rate_hz must be > 0, got {rate_hz}")
         if not 0.0 < compute_budget < 1.0:
@@ -179,6 +187,7 @@ class ServoLoop:
         self.spin_margin = float(spin_margin)
         self.compute_budget = float(compute_budget)
         self.switch_interval = switch_interval
+        self.realtime_priority = realtime_priority
         self._stop = threading.Event()
         self._error: BaseException | None = None
         self._finished = threading.Event()
@@ -240,7 +249,21 @@ class ServoLoop:
         while time.perf_counter() < deadline:
             pass
 
+    def _make_realtime(self) -> bool:
+        """SCHED_FIFO for the calling (servo) thread, if asked for and allowed."""
+        if self.realtime_priority is None:
+            return False
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))  # 0: this thread
+            return True
+        except (AttributeError, OSError) as e:
+            warnings.warn(f"ServoLoop: could not get SCHED_FIFO priority {self.realtime_priority} ({e}); running "
+                          "with normal scheduling. Grant it with an rtprio limit in /etc/security/limits.conf or "
+                          "CAP_SYS_NICE.", RuntimeWarning, stacklevel=1)
+            return False
+
     def _servo(self, duration: float | None) -> None:
+        realtime = self._make_realtime()
         device, period = self.device, self.period
         filt = ForceSafetyFilter(device.spec, self.safety)
         worker = _PhysicsWorker(self.step)
@@ -313,7 +336,7 @@ class ServoLoop:
                 lateness=lat, lateness_p50=pct(50), lateness_p99=pct(99),
                 lateness_max=float(lat.max()) if lat.size else 0.0, missed_ticks=missed, stale_ticks=stale,
                 watchdog_trips=trips, nonfinite_forces=filt.nonfinite_count, clamped_forces=filt.clamp_count,
-                stop_reason=reason)
+                stop_reason=reason, realtime=realtime)
             self._finished.set()
 
     def _motors_off(self) -> None:
