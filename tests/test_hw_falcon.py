@@ -197,3 +197,9 @@ def test_unplug_is_a_disconnect_and_the_servo_loop_stops(tmp_path):
     with pytest.raises(DeviceDisconnectedError, match="unplugged"):
         run_servo_loop(dev, step, duration=2.0, safety=SafetyConfig(ramp_time=0.0))
     assert not dev.is_open
+
+
+def test_real_pyusb_without_a_falcon_says_so():
+    # The real libusb backend (or its absence): either way a clear error, never a crash.
+    with pytest.raises(HapticDeviceError, match="no Novint Falcon found|no USB backend"):
+        HapticDeviceFalcon().open()

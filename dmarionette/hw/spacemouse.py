@@ -118,7 +118,12 @@ def _hid_module() -> Any:
 def _open_hid(hid_api: Any, ids: Iterable[tuple[int, int]]) -> tuple[HidTransport, str]:
     """Finds and opens the first matching HID device; errors say what was looked for."""
     ids = list(ids)
-    found = [d for d in hid_api.enumerate() if (d.get("vendor_id"), d.get("product_id")) in ids]
+    try:
+        devices = hid_api.enumerate()
+    except Exception as e:  # noqa: BLE001 - hidapi raises plain OSError/IOError or its own types
+        raise HapticDeviceError(f"SpaceMouse: HID enumeration failed ({e}); is the hidapi library usable here "
+                                "(hidraw or libusb backend)?") from e
+    found = [d for d in devices if (d.get("vendor_id"), d.get("product_id")) in ids]
     if not found:
         wanted = ", ".join(f"{v:04x}:{p:04x}" for v, p in ids)
         raise HapticDeviceError(f"SpaceMouse: no 3Dconnexion device among the HID devices (looked for vendor:product "
