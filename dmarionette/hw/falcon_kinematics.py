@@ -6,8 +6,9 @@ z axis (which points out of the device towards the user). Each leg has a motor-d
 thigh of length ``a`` turning by ``theta_i`` in the leg's (u, w) plane, and a parallelogram
 shin of length ``b`` joined to the thigh and to the end effector by offsets ``e`` and ``d``;
 the parallelogram keeps the end effector's orientation fixed, so the end effector only
-translates. In leg ``i``'s frame, ``(u, v, w) = Rz(phi_i)^T-like rotation of P + (-r, -s, 0)``,
-the end-effector centre satisfies
+translates. In leg ``i``'s frame, ``(u, v, w) = R_i P + (-r, -s, 0)`` with
+``R_i = [[cos phi_i, sin phi_i, 0], [-sin phi_i, cos phi_i, 0], [0, 0, 1]]``, the
+end-effector centre satisfies
 
     u = a cos(theta) - c + K cos(theta_2),   w = a sin(theta) + K sin(theta_2),
     v = b cos(theta_3) - f,                  K = d + e + b sin(theta_3),
