@@ -156,7 +156,8 @@ class FakeHid:
 
 def test_open_errors_say_what_was_looked_for_and_how_to_fix():
     with pytest.raises(HapticDeviceError) as e:
-        HapticDeviceSpaceMouse(hid_api=FakeHid([{"vendor_id": 0x1234, "product_id": 1, "path": b"/dev/hidraw0"}])).open()
+        other = {"vendor_id": 0x1234, "product_id": 1, "path": b"/dev/hidraw0"}
+        HapticDeviceSpaceMouse(hid_api=FakeHid([other])).open()
     assert "no 3Dconnexion device" in str(e.value) and "256f:c635" in str(e.value) and "046d:c626" in str(e.value)
     info = {"vendor_id": 0x256F, "product_id": 0xC635, "path": b"/dev/hidraw3"}
     with pytest.raises(HapticDeviceError) as e:

@@ -181,14 +181,17 @@ class HapticDeviceSpaceMouse(AbstractHapticDevice):
         self.max_speed, self.max_angular_speed = float(max_speed), float(max_angular_speed)
         self.full_scale, self.deadzone = float(full_scale), float(deadzone)
         self._axes = np.asarray(axes, dtype=float)
-        if self._axes.shape != (3, 3) or not np.allclose(self._axes @ self._axes.T, np.eye(3)) \
-                or np.linalg.det(self._axes) < 0:
-            raise ValueError(f"HapticDeviceSpaceMouse: axes must be a proper rotation (3, 3), got {self._axes.tolist()}")
+        proper = (self._axes.shape == (3, 3) and np.allclose(self._axes @ self._axes.T, np.eye(3))
+                  and np.linalg.det(self._axes) > 0)
+        if not proper:
+            raise ValueError("HapticDeviceSpaceMouse: axes must be a proper rotation matrix (3, 3), got "
+                             f"{self._axes.tolist()}")
         self._refuse_force = refuse_force
         self._clock = clock
         self._spec = HapticDeviceSpec(
             name="3Dconnexion SpaceMouse", max_force=0.0, max_continuous_force=0.0,
-            workspace_min=tuple(np.asarray(workspace_min, float)), workspace_max=tuple(np.asarray(workspace_max, float)),
+            workspace_min=tuple(np.asarray(workspace_min, float)),
+            workspace_max=tuple(np.asarray(workspace_max, float)),
             native_length_unit="HID counts (about +-350 full scale), read as velocity",
             native_axes="HID x right, y towards the user, z down; axes= maps them to x right, y up, z to the user",
             output_dof=0)
