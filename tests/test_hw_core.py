@@ -213,3 +213,19 @@ def test_safety_filter_continuous_limit():
     assert mags[1] == pytest.approx(3.0)  # a short peak is allowed
     assert mags[-1] == pytest.approx(spec.max_continuous_force, rel=1e-6)  # held: continuous rating
     assert max(mags) <= spec.max_force
+
+
+def test_mapping_wraps_a_world_step_for_the_device():
+    m = DeviceMapping.make(scale=10.0, rotation=rot_z(np.pi / 2), translation=[0.0, 1.0, 0.0])
+    seen = []
+
+    def world_step(sample, t):
+        seen.append(sample)
+        return np.array([0.0, 3.0, 0.0])  # world +y
+
+    f = m.wrap(world_step)(HapticSample.make(0.5, [0.1, 0.0, 0.0], rot_z(0.2), buttons=4), 0.5)
+    np.testing.assert_allclose(f, [3.0, 0.0, 0.0], atol=1e-12)  # world +y is device +x
+    s = seen[0]
+    np.testing.assert_allclose(s.position, [0.0, 11.0, 0.0], atol=1e-12)  # S (W p) = 10 * (0, 1.1, 0)
+    np.testing.assert_allclose(s.rotation, rot_z(np.pi / 2 + 0.2), atol=1e-12)
+    assert s.time == 0.5 and s.buttons == 4

@@ -14,7 +14,7 @@ import pytest
 from dmarionette.hw.device import DeviceDisconnectedError
 from dmarionette.hw.safety import SafetyConfig
 from dmarionette.hw.servo import ServoLoop, run_servo_loop
-from dmarionette.hw.simulated import DEFAULT_SIMULATED_SPEC, HapticDeviceSimulated
+from dmarionette.hw.simulated import DEFAULT_SIMULATED_SPEC, HapticDeviceReplay, HapticDeviceSimulated
 
 NO_RAMP = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.0)
 REARM = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.2)
@@ -224,4 +224,18 @@ def test_realtime_priority_is_optional():
         stats = ServoLoop(dev, lambda s, t: [0.0, 0.0, 0.0], realtime_priority=1).run(duration=0.05)
     assert stats.stop_reason == "duration"
     assert stats.realtime or any("SCHED_FIFO" in str(w.message) for w in caught)
+    assert_motors_off(dev)
+
+
+def test_replay_device_through_the_loop():
+    times = np.arange(0.0, 0.2, 0.01)
+    positions = np.stack([times, -times, 0.0 * times], axis=1) * 0.1
+    dev = HapticDeviceReplay(times, positions, buttons=(times > 0.1).astype(int))
+    seen = []
+    run_servo_loop(dev, lambda s, t: seen.append((t, s)) or [0.0, 0.0, 0.0], duration=0.25)
+    for t, s in seen:  # each sample is the recorded one due at or before its read
+        i = int(round(s.time / 0.01))
+        assert s.time <= t + 1e-3
+        np.testing.assert_allclose(s.position, positions[i])
+    assert seen[-1][1].buttons == 1 and dev.finished
     assert_motors_off(dev)

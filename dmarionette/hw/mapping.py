@@ -12,6 +12,7 @@ scale ``s`` and scalar ``k``, simply ``k_dev = s k``. The same holds for damping
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,9 @@ import numpy as np
 from .device import HapticSample, matrix_from_quat, quat_from_matrix
 
 __all__ = ["DeviceMapping", "rigid_transform", "scale_transform"]
+
+WorldStep = Callable[[HapticSample, float], Any]
+"""``step(sample_world, t) -> force_world``: a physics callback that lives in the world frame."""
 
 
 def scale_transform(scale: Any) -> np.ndarray:
@@ -140,6 +144,27 @@ class DeviceMapping:
         """
         return (self.position_to_world(sample.position),
                 quat_from_matrix(self.rotation_to_world(sample.rotation)))
+
+    def sample_in_world(self, sample: HapticSample) -> HapticSample:
+        """The same sample with position and orientation in the world (time and buttons kept)."""
+        position, orientation = self.sample_to_world(sample)
+        return HapticSample(sample.time, position, orientation, sample.buttons)
+
+    def wrap(self, world_step: WorldStep) -> Callable[[HapticSample, float], np.ndarray]:
+        """A device-frame physics callback for the servo loop from a world-frame one.
+
+        Args:
+            world_step: ``step(sample_world, t) -> force_world [N] (3,)``.
+
+        Returns:
+            ``step(sample_device, t) -> force_device [N] (3,)``: the sample goes to the world
+            by ``S W``, the force comes back by ``R_W^T``.
+        """
+
+        def step(sample: HapticSample, t: float) -> np.ndarray:
+            return self.force_to_device(world_step(self.sample_in_world(sample), t))
+
+        return step
 
     def force_to_device(self, force: Any) -> np.ndarray:
         """World force [N] to the device frame through W's rotation only: ``R_W^T F``.
