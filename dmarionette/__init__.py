@@ -4,13 +4,23 @@ The public API; everything else is implementation::
 
     import dmarionette as dm
 
-    scene = dm.load_scene("hanging")
-    model = scene.build_string_model()
-    solver = dm.SolverStringImplicit(model)
+    scene = dm.load_scene("hanging")                 # strings + puppet + bars
+    model = dm.MarionetteModel(scene)
+    solver = dm.SolverMarionette(model)
     a, b, control = model.state(), model.state(), model.control()
-    solver.step(a, b, control, scene.string_dt)
+    solver.step(a, b, control)                       # one puppet step (n string steps)
+    trajectory = dm.simulate_marionette(model, 2.0)  # many, without Python overhead
 """
 
+from .control_bar import BarTrajectory as BarTrajectory
+from .control_bar import ControlBar as ControlBar
+from .marionette import MarionetteControl as MarionetteControl
+from .marionette import MarionetteModel as MarionetteModel
+from .marionette import MarionetteState as MarionetteState
+from .marionette import SolverMarionette as SolverMarionette
+from .marionette_rollout import MarionetteRollout as MarionetteRollout
+from .marionette_rollout import MarionetteTrajectory as MarionetteTrajectory
+from .marionette_rollout import simulate_marionette as simulate_marionette
 from .scene import Scene as Scene
 from .scene import builtin_scenes as builtin_scenes
 from .scene import load_scene as load_scene
@@ -29,8 +39,16 @@ from .trajectory_file import read_trajectory as read_trajectory
 from .trajectory_file import write_trajectory as write_trajectory
 
 __all__ = [
+    "BarTrajectory",
+    "ControlBar",
+    "MarionetteControl",
+    "MarionetteModel",
+    "MarionetteRollout",
+    "MarionetteState",
+    "MarionetteTrajectory",
     "Scene",
     "SceneError",
+    "SolverMarionette",
     "SolverStringImplicit",
     "StringControl",
     "StringEffects",
@@ -42,6 +60,7 @@ __all__ = [
     "builtin_scenes",
     "load_scene",
     "read_trajectory",
+    "simulate_marionette",
     "simulate_strings",
     "string_energy",
     "write_trajectory",

@@ -209,14 +209,10 @@ def initial_joint_q(puppet_model, scene: Scene) -> np.ndarray:
 def bar_inputs(model: MarionetteModel, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """String tops ``(T, S, 3)``, bar centres ``(T, B, 3)`` and their velocities at ``times``."""
     scene = model.scene
-    names = [s.name for s in scene.strings]
-    rest_tops = np.array([s.top for s in model.strings.specs])
-    tops = scene.motion.top_positions(rest_tops, times)
+    tops = scene.top_positions(np.array([s.top for s in model.strings.specs]), times)
     bar_q = np.zeros((len(times), max(model.bar_count, 1), 3))
     bar_qd = np.zeros_like(bar_q)
     for b, bar in enumerate(scene.bars):
-        carried = [i for i, n in enumerate(names) if n in bar.attach]
-        tops[:, carried] = bar.attach_points(times, [names[i] for i in carried])
         bar_q[:, b], bar_qd[:, b], _ = bar.trajectory.pose(times)
     return tops, bar_q, bar_qd
 

@@ -136,6 +136,16 @@ class Scene:
     ball: BallSpec | None = None
     initial_pose: Mapping[str, tuple[float, ...]] = dataclasses.field(default_factory=dict)
 
+    def top_positions(self, rest_tops: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Where each string's top is at ``times`` [m], ``(T, S, 3)``: strings on a bar follow
+        it; the others follow ``[motion]`` from their rest tops ``(S, 3)``."""
+        tops = self.motion.top_positions(rest_tops, times)
+        names = [s.name for s in self.strings]
+        for bar in self.bars:
+            carried = [i for i, n in enumerate(names) if n in bar.attach]
+            tops[:, carried] = bar.attach_points(times, [names[i] for i in carried])
+        return tops
+
     @property
     def string_dt(self) -> float:
         """String (and feedback) step [s]."""

@@ -1,7 +1,7 @@
 """Running a scene headless: its strings for a given duration, with progress.
 
-Until the puppet is coupled (the marionette issue), a scene's simulation is its strings
-driven by the scene's scripted top motion.
+A scene without a puppet is its strings alone, their tops moved by the scene's bars (or
+``[motion]``); scenes with a puppet run as a marionette (:mod:`marionette_rollout`).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def simulate_strings(scene: Scene, duration: float | None = None, *, progress: b
     steps = frames * frame_steps
     step_time = dt * np.arange(1, steps + 1)
     rest_tops = np.array([s.top for s in model.specs])
-    top_q = scene.motion.top_positions(rest_tops, step_time)
+    top_q = scene.top_positions(rest_tops, step_time)
 
     solver = SolverStringImplicit(model)
     rollout = StringRollout(solver, dt, chunk_steps=frame_steps)
@@ -82,7 +82,7 @@ def simulate_strings(scene: Scene, duration: float | None = None, *, progress: b
 
     particle_q = np.concatenate([q0[None], result.frames])
     frame_time = dt * frame_steps * np.arange(frames + 1)
-    frame_tops = np.concatenate([rest_tops[None], top_q[frame_steps - 1 :: frame_steps]])
+    frame_tops = np.concatenate([scene.top_positions(rest_tops, np.zeros(1)), top_q[frame_steps - 1 :: frame_steps]])
     velocities = np.concatenate([qd0[None], result.frame_velocities])
     energy = np.array([string_energy(model, q, v)["total"] for q, v in zip(particle_q, velocities)])
     return StringTrajectory(
