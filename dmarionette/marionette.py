@@ -244,9 +244,17 @@ class SolverMarionette:
             self._tie_q = wp.zeros((m.substeps, m.strings.string_count), dtype=wp.vec3d)
             self._tie_qd = wp.zeros((m.substeps, m.strings.string_count), dtype=wp.vec3d)
         self._puppet_control = m.puppet.control()
-        self._make_string_controls = lambda control: [
-            StringControl(control.top_q[j], self._tie_q[j], self._tie_qd[j]) for j in range(m.substeps)]
-        self._controls_for = {}
+        self._string_control_cache = {}
+
+    def _string_controls(self, control: MarionetteControl) -> list[StringControl]:
+        """The controls of the n string steps: views of ``control``'s buffers and the tie path,
+        made once per control (the cache holds the control, so its id stays unique)."""
+        key = id(control)
+        if key not in self._string_control_cache:
+            views = [StringControl(control.top_q[j], self._tie_q[j], self._tie_qd[j])
+                     for j in range(self.model.substeps)]
+            self._string_control_cache[key] = (control, views)
+        return self._string_control_cache[key][1]
 
     def step(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl,
              dt: float | None = None) -> None:
@@ -274,10 +282,7 @@ class SolverMarionette:
 
     def step_strings(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl) -> None:
         m = self.model
-        key = id(control)
-        if key not in self._controls_for:
-            self._controls_for[key] = (control, self._make_string_controls(control))
-        string_controls = self._controls_for[key][1]
+        string_controls = self._string_controls(control)
         if self._feedback is not None:
             state_out.bar_feedback.zero_()
             state_out.bar_reaction.zero_()
