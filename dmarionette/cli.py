@@ -50,6 +50,18 @@ def _parser() -> argparse.ArgumentParser:
                           description="Same as 'dmarionette simulate hanging'.")
     _add_simulate_options(demo)
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
+    bench = sub.add_parser("bench", help="measure what accuracy costs in time",
+                           description="Benchmarks. 'accuracy': sweep particles per string, string step, "
+                                       "puppet rate and contact model against a refined reference; writes "
+                                       "OUT/accuracy.csv, accuracy.png (Pareto plot) and accuracy.md.")
+    bench.add_argument("what", choices=["accuracy"], help="the benchmark to run")
+    bench.add_argument("--grid", choices=["full", "reduced"], default="full",
+                       help="full sweep (about 10 minutes) or the reduced grid CI runs")
+    bench.add_argument("--seconds", type=float, default=3.0, help="length of the scripted motion [s]")
+    bench.add_argument("--repeats", type=int, default=3, help="timed runs per setting (median)")
+    bench.add_argument("--out", type=Path, default=Path("out") / "bench", help="output folder")
+    bench.add_argument("--fast-compile", action="store_true",
+                       help="puppet kernels without optimisation (timings then mean less)")
     return parser
 
 
@@ -130,6 +142,15 @@ def main(argv: list[str] | None = None) -> int:
 
             for name in builtin_scenes():
                 print(f"{name:12s} {load_scene(name).description}")
+            return 0
+        if args.command == "bench":
+            from .accuracy import run_sweep, write_outputs
+
+            rows, summary = run_sweep(args.seconds, args.grid, 0 if args.fast_compile else 2, args.repeats,
+                                      progress=lambda line: print(line, file=sys.stderr))
+            files = write_outputs(rows, summary, args.out)
+            print(files["table"].read_text())
+            print(json.dumps({k: str(v) for k, v in files.items()}))
             return 0
         if args.command == "demo":
             from .scene import DEFAULT_SCENE

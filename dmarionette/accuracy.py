@@ -1,0 +1,212 @@
+"""What accuracy costs in time: a sweep of the settings that trade one for the other.
+
+One fixed scripted motion (the ``hanging`` marionette, its main bar swaying 6 cm and
+tilting 10° within 3 s) is simulated under each setting and compared with a reference:
+
+- error: RMS over a 20 Hz time grid of the 12 body centres' distance to the reference [m],
+  and RMS of the main bar's eq. 4 feedback force difference [N];
+- cost: wall-clock seconds of stepping per simulated second, one core (captured graphs,
+  compiled kernels).
+
+The reference is refined until it stops changing: ``R1`` (100 particles per string,
+strings and puppet at 4 kHz) is compared with ``R2`` (200 particles, 8 kHz); their gap is
+reported as the reference's own error and must be well below the errors of the sweep.
+
+Knobs, one at a time around the paper's settings (50 particles, strings 1 kHz, puppet 30 Hz,
+float64, hard contact): particles per string, string step, puppet rate, the contact model.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .control_bar import BarTrajectory
+from .marionette import MarionetteModel
+from .marionette_rollout import MarionetteTrajectory, simulate_marionette
+from .scene import Scene, load_scene
+
+__all__ = ["Setting", "accuracy_scene", "run_sweep", "sweep_settings", "write_outputs"]
+
+PAPER = {"particles": 50, "string_hz": 1000.0, "puppet_hz": 30.0, "contact": "hard"}
+GRID_HZ = 20.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """One point of the sweep."""
+
+    knob: str
+    particles: int = PAPER["particles"]
+    string_hz: float = PAPER["string_hz"]
+    puppet_hz: float = PAPER["puppet_hz"]
+    contact: str = PAPER["contact"]
+
+    @property
+    def is_paper(self) -> bool:
+        return (self.particles, self.string_hz, self.puppet_hz, self.contact) == tuple(PAPER.values())
+
+    def label(self) -> str:
+        return f"{self.particles} p, strings {self.string_hz:g} Hz, puppet {self.puppet_hz:g} Hz, {self.contact}"
+
+
+def accuracy_scene(seconds: float) -> Scene:
+    """The ``hanging`` marionette with a livelier scripted main bar (see the module doc)."""
+    scene = load_scene("hanging")
+    main, hand = scene.bars
+    p0 = np.array(main.trajectory.positions[0])
+    t = np.array([0.0, 0.4, 1.0, 1.6, 2.2, 3.0]) * seconds / 3.0
+    offsets = np.array([[0, 0, 0], [0, 0, 0], [0.06, -0.02, 0.02], [-0.04, 0.0, -0.02], [0.0, 0.01, 0.0], [0, 0, 0]])
+    rotations = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 10.0], [5.0, 0, -8.0], [0, 0, 0], [0, 0, 0]])
+    bar = dataclasses.replace(main, trajectory=BarTrajectory(t, p0 + offsets, rotations))
+    return dataclasses.replace(scene, bars=(bar, hand))
+
+
+def sweep_settings(grid: str = "full") -> list[Setting]:
+    """The settings of the ``full`` or ``reduced`` (CI) grid."""
+    if grid == "reduced":
+        return [Setting("particles", particles=50), Setting("puppet_hz", puppet_hz=62.5),
+                Setting("puppet_hz", puppet_hz=250.0)] + [
+            Setting("particles @ 1 kHz puppet", particles=n, puppet_hz=1000.0) for n in (5, 20)]
+    settings = [Setting("particles", particles=n) for n in (5, 10, 25, 50, 100, 200)]
+    # At 30 Hz the puppet step dominates the error; with the puppet at the string rate the
+    # strings' own resolution shows.
+    settings += [Setting("particles @ 1 kHz puppet", particles=n, puppet_hz=1000.0) for n in (5, 10, 25, 50, 100)]
+    settings += [Setting("string_step", string_hz=hz, puppet_hz=min(30.0, hz)) for hz in (500.0, 2000.0, 4000.0)]
+    settings += [Setting("puppet_hz", puppet_hz=hz) for hz in (62.5, 125.0, 250.0, 500.0, 1000.0)]
+    settings += [Setting("contact", contact="smooth")]
+    return settings
+
+
+def _scene_for(base: Scene, setting: Setting) -> Scene:
+    strings = tuple(dataclasses.replace(s, particle_count=setting.particles) for s in base.strings)
+    contact = dict(base.contact, smooth=setting.contact == "smooth")
+    return dataclasses.replace(base, strings=strings, string_hz=setting.string_hz, puppet_hz=setting.puppet_hz,
+                               contact=contact)
+
+
+def _on_grid(trajectory: MarionetteTrajectory, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Body centres ``(G, 12, 3)`` and main-bar feedback ``(G, 3)`` interpolated on ``grid``."""
+    body = trajectory.body_pos[:, :12]
+    bodies = np.stack([[np.interp(grid, trajectory.frame_time, body[:, b, i]) for i in range(3)]
+                       for b in range(body.shape[1])]).transpose(2, 0, 1)
+    feedback = np.stack([np.interp(grid, trajectory.step_time, trajectory.bar_feedback[:, 0, i]) for i in range(3)], 1)
+    return bodies, feedback
+
+
+def _errors(run: tuple[np.ndarray, np.ndarray], reference: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+    body = float(np.sqrt(np.mean(np.sum((run[0] - reference[0]) ** 2, axis=2))))
+    feedback = float(np.sqrt(np.mean(np.sum((run[1] - reference[1]) ** 2, axis=1))))
+    return body, feedback
+
+
+def run_sweep(seconds: float = 3.0, grid: str = "full", optimization_level: int = 2, repeats: int = 3,
+              progress: Callable[[str], None] = print) -> tuple[list[dict], dict]:
+    """Runs the references and the sweep; returns (rows, reference summary)."""
+    base = accuracy_scene(seconds)
+    times = np.arange(0.0, seconds + 1e-9, 1.0 / GRID_HZ)
+
+    def simulate(setting: Setting, timed: bool) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+        model = MarionetteModel(_scene_for(base, setting), optimization_level=optimization_level)
+        trajectory = simulate_marionette(model, seconds, progress=False)
+        walls = [trajectory.wall_seconds]
+        if timed:
+            walls += [simulate_marionette(model, seconds, progress=False).wall_seconds for _ in range(repeats - 1)]
+        simulated = float(trajectory.step_time[-1])
+        return _on_grid(trajectory, times[times <= trajectory.frame_time[-1]]), float(np.median(walls)) / simulated
+
+    coarse = grid == "reduced"
+    r1 = Setting("reference", particles=50 if coarse else 100, string_hz=2000.0 if coarse else 4000.0,
+                 puppet_hz=2000.0 if coarse else 4000.0)
+    r2 = Setting("reference", particles=100 if coarse else 200, string_hz=4000.0 if coarse else 8000.0,
+                 puppet_hz=4000.0 if coarse else 8000.0)
+    progress(f"reference R1: {r1.label()}")
+    reference, _ = simulate(r1, timed=False)
+    progress(f"reference R2: {r2.label()}")
+    finer, _ = simulate(r2, timed=False)
+    gap = _errors(finer, reference)
+    summary = {"R1": r1.label(), "R2": r2.label(), "R1_vs_R2_body_rms_m": gap[0], "R1_vs_R2_feedback_rms_N": gap[1]}
+    rows = []
+    for setting in sweep_settings(grid):
+        progress(f"{setting.knob}: {setting.label()}")
+        run, cost = simulate(setting, timed=True)
+        body, feedback = _errors(run, reference)
+        rows.append({"knob": setting.knob, "particles": setting.particles, "string_hz": setting.string_hz,
+                     "puppet_hz": setting.puppet_hz, "precision": "float64", "contact": setting.contact,
+                     "paper": setting.is_paper, "body_rms_m": body, "feedback_rms_N": feedback,
+                     "wall_s_per_sim_s": cost})
+    return rows, summary
+
+
+def _pareto(rows: Sequence[dict]) -> list[dict]:
+    front, best = [], np.inf
+    for row in sorted(rows, key=lambda r: r["wall_s_per_sim_s"]):
+        if row["body_rms_m"] < best:
+            front.append(row)
+            best = row["body_rms_m"]
+    return front
+
+
+def write_outputs(rows: Sequence[dict], summary: dict, out: Path) -> dict[str, Path]:
+    """Writes ``accuracy.csv``, ``accuracy.png`` (Pareto plot) and ``accuracy.md`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"csv": out / "accuracy.csv", "plot": out / "accuracy.png", "table": out / "accuracy.md"}
+    with files["csv"].open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    lines = [
+        f"Reference R1 ({summary['R1']}) vs. R2 ({summary['R2']}): body RMS "
+        f"{summary['R1_vs_R2_body_rms_m'] * 1e3:.3f} mm, feedback RMS {summary['R1_vs_R2_feedback_rms_N']:.4f} N.",
+        "",
+        "| knob | particles | strings Hz | puppet Hz | contact | body RMS [mm] | feedback RMS [N] | wall s / sim s |",
+        "|---|---:|---:|---:|---|---:|---:|---:|",
+    ]
+    for r in rows:
+        mark = " **(paper)**" if r["paper"] else ""
+        lines.append(f"| {r['knob']}{mark} | {r['particles']} | {r['string_hz']:g} | {r['puppet_hz']:g} | {r['contact']} "
+                     f"| {r['body_rms_m'] * 1e3:.3f} | {r['feedback_rms_N']:.3f} | {r['wall_s_per_sim_s']:.4f} |")
+    files["table"].write_text("\n".join(lines) + "\n")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    markers = {"particles": "o", "particles @ 1 kHz puppet": "v", "string_step": "s", "puppet_hz": "^",
+               "contact": "D"}
+    for knob, marker in markers.items():
+        chosen = [r for r in rows if r["knob"] == knob]
+        if chosen:
+            ax.scatter([r["wall_s_per_sim_s"] for r in chosen], [r["body_rms_m"] * 1e3 for r in chosen],
+                       marker=marker, s=45, label=knob.replace("_", " "))
+            for r in chosen:
+                value = {"particles": f"{r['particles']} p", "particles @ 1 kHz puppet": f"{r['particles']} p",
+                         "string_step": f"{1e3 / r['string_hz']:g} ms",
+                         "puppet_hz": f"{r['puppet_hz']:g} Hz", "contact": r["contact"]}[knob]
+                ax.annotate(value, (r["wall_s_per_sim_s"], r["body_rms_m"] * 1e3), fontsize=7,
+                            xytext=(4, 3), textcoords="offset points")
+    front = _pareto(rows)
+    ax.plot([r["wall_s_per_sim_s"] for r in front], [r["body_rms_m"] * 1e3 for r in front], "k--", lw=0.8,
+            label="Pareto front")
+    paper = [r for r in rows if r["paper"]]
+    if paper:
+        ax.scatter([paper[0]["wall_s_per_sim_s"]], [paper[0]["body_rms_m"] * 1e3], marker="*", s=300,
+                   facecolor="none", edgecolor="red", lw=1.5, label="paper's settings", zorder=5)
+    ax.axvline(1.0, color="0.6", lw=0.8, ls=":", label="real time")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("cost: wall seconds per simulated second (one core)")
+    ax.set_ylabel("error: RMS body position vs. reference [mm]")
+    ax.set_title(f"What accuracy costs (reference gap {summary['R1_vs_R2_body_rms_m'] * 1e3:.3f} mm)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(files["plot"], dpi=120)
+    plt.close(fig)
+    return files
