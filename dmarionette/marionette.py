@@ -55,6 +55,9 @@ class MarionetteModel:
     def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None):
         if scene.puppet is None:
             raise ValueError(f"{scene.source}: a marionette needs a [puppet] table")
+        if scene.precision != "float64":
+            raise ValueError(f"{scene.source}: [solver] precision = {scene.precision!r}: a marionette runs in "
+                             "float64 only (the puppet solver is float64; float32 is available for strings alone)")
         self.scene = scene
         self.device = wp.get_device(device)
         self.string_dt = scene.string_dt
