@@ -50,6 +50,25 @@ def _parser() -> argparse.ArgumentParser:
                           description="Same as 'dmarionette simulate hanging'.")
     _add_simulate_options(demo)
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
+    live = sub.add_parser(
+        "live", help="live puppetry: a haptic device drives a bar at 1 kHz and feels the strings",
+        description="Live puppetry (paper §3): the device tip drives a control bar through P' = S W P, "
+                    "the strings and feedback run at the scene's string rate in the servo loop, the puppet "
+                    "at its own rate; forces are clamped, ramped in, and cut by a watchdog. Prints the "
+                    "servo tick statistics at the end.")
+    live.add_argument("scene", nargs="?", default="hanging", help="scene name or TOML file (default: hanging)")
+    live.add_argument("--device", choices=["simulated", "openhaptics", "falcon", "spacemouse"],
+                      default="simulated", help="the haptic device (simulated: follows the scene's bar motion)")
+    live.add_argument("--bar", default="main", help="the bar the device drives (default: main)")
+    live.add_argument("--duration", type=float, default=10.0, help="seconds to run (default: 10)")
+    live.add_argument("--record", type=Path, default=None, help="write the session to this MCAP file")
+    live.add_argument("--feedback", choices=["reaction", "eq4"], default="reaction",
+                      help="force sent: the strings' pull on the bar (default) or the paper's eq. 4 as printed")
+    live.add_argument("--force-scale", type=float, default=0.3,
+                      help="multiplies the feedback before the safety filter (default 0.3: the puppet's "
+                           "~7 N weight becomes ~2 N, inside a PHANToM Omni's 3.3 N)")
+    live.add_argument("--workspace-scale", type=float, default=1.0, help="S of P' = S W P (default 1)")
+    live.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     bench = sub.add_parser("bench", help="measure what accuracy costs in time",
                            description="Benchmarks. 'accuracy': sweep particles per string, string step, "
                                        "puppet rate and contact model against a refined reference; writes "
@@ -128,6 +147,37 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_live(args: argparse.Namespace) -> int:
+    from .live import run_live
+    from .marionette import MarionetteModel
+    from .scene import load_scene
+
+    scene = load_scene(args.scene)
+    if scene.puppet is None or not scene.bars:
+        raise ValueError(f"{scene.source}: live puppetry needs a scene with a [puppet] and [bars]")
+    if not args.force_scale >= 0.0 or not args.workspace_scale > 0.0:
+        raise ValueError(f"--force-scale must be >= 0 and --workspace-scale > 0; got {args.force_scale}, "
+                         f"{args.workspace_scale}")
+    model = MarionetteModel(scene, optimization_level=0 if args.fast_compile else 2)
+    writer = None
+    if args.record is not None:
+        from .session import SessionWriter
+
+        writer = SessionWriter(args.record, scene, Path(scene.source).read_text())
+    try:
+        stats, _, summary = run_live(model, device=args.device, bar=args.bar, duration=args.duration, record=writer,
+                                     feedback=args.feedback, force_scale=args.force_scale,
+                                     workspace_scale=args.workspace_scale)
+    finally:
+        if writer is not None:
+            writer.close()
+    print(stats.summary())
+    if args.record is not None:
+        summary["record"] = str(args.record)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``dmarionette`` command."""
     args = _parser().parse_args(argv)
@@ -143,6 +193,8 @@ def main(argv: list[str] | None = None) -> int:
             for name in builtin_scenes():
                 print(f"{name:12s} {load_scene(name).description}")
             return 0
+        if args.command == "live":
+            return _run_live(args)
         if args.command == "bench":
             from .accuracy import run_sweep, write_outputs
 

@@ -266,9 +266,34 @@ class SolverMarionette:
         if dt is not None and abs(dt - m.puppet_dt) > 1e-12 * m.puppet_dt:
             raise ValueError(f"dt: got {dt}; this marionette steps by puppet_dt = {m.puppet_dt} "
                              f"({m.substeps} string steps of {m.string_dt})")
+        self.begin_step(state_in, state_out)            # body points, tie path (body -> strings)
+        for j in range(m.substeps):
+            self.step_string(state_in, state_out, control, j)  # string step j + feedback (eq. 2, eq. 4)
+        self.end_step(state_in, state_out)              # mean tie force -> anchors, puppet step
+
+    def begin_step(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+        """Passes before the string steps (a live loop runs them at the first tick of a puppet step)."""
         self.eval_body_points(state_in)                 # tied body points at t0
         self.eval_tie_path(state_in, state_out)         # the strings' tie targets over the step
-        self.step_strings(state_in, state_out, control) # n string steps + feedback (eq. 2, eq. 4)
+        if self._feedback is not None:
+            state_out.bar_feedback.zero_()
+            state_out.bar_reaction.zero_()
+
+    def step_string(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl,
+                    j: int) -> None:
+        """String step ``j`` of the puppet step: from ``state_in`` (j = 0) through two spare string
+        states to ``state_out`` (j = n - 1); records the tie force, taut flags and feedback."""
+        m = self.model
+        previous = state_in.strings if j == 0 else self._spare[(j - 1) % 2]
+        nxt = state_out.strings if j == m.substeps - 1 else self._spare[j % 2]
+        m.string_solver.step(previous, nxt, self._string_controls(control)[j], m.string_dt)
+        wp.copy(state_out.tie_force[j], nxt.tie_force)
+        wp.copy(state_out.string_taut[j], nxt.string_taut)
+        if self._feedback is not None:
+            self.eval_bar_feedback(nxt, control, state_out, j)
+
+    def end_step(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+        """Passes after the string steps (strings -> body)."""
         self.apply_string_forces_to_anchors(state_out)  # mean tie force -> body springs' anchors
         self.step_puppet(state_in, state_out)           # implicit puppet step
 
@@ -282,22 +307,6 @@ class SolverMarionette:
                   inputs=[m.string_point_wp, self._point_q, self._point_qd, state_in.tie_target,
                           wp.float64(m.string_dt)],
                   outputs=[self._tie_q, self._tie_qd, state_out.tie_target], device=m.device)
-
-    def step_strings(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl) -> None:
-        m = self.model
-        string_controls = self._string_controls(control)
-        if self._feedback is not None:
-            state_out.bar_feedback.zero_()
-            state_out.bar_reaction.zero_()
-        previous = state_in.strings
-        for j in range(m.substeps):
-            nxt = state_out.strings if j == m.substeps - 1 else self._spare[j % 2]
-            m.string_solver.step(previous, nxt, string_controls[j], m.string_dt)
-            wp.copy(state_out.tie_force[j], nxt.tie_force)
-            wp.copy(state_out.string_taut[j], nxt.string_taut)
-            if self._feedback is not None:
-                self.eval_bar_feedback(nxt, control, state_out, j)
-            previous = nxt
 
     def eval_bar_feedback(self, strings: StringState, control: MarionetteControl, state_out: MarionetteState,
                           j: int) -> None:

@@ -1,0 +1,262 @@
+"""Live puppetry: the marionette stepped one string step per servo tick (paper §3-4).
+
+:class:`LiveMarionette` advances the marionette by one string step per call, running the
+puppet every ``n`` calls: the passes of one puppet step are captured as ``n`` Warp graphs,
+one per string-step index, so a tick costs one graph replay and a little host work.
+
+:func:`bar_driver` turns a haptic device's samples into a bar's pose: the device tip sits
+at the bar's centre (paper §3.1) and is mapped to the world by ``P' = S W P`` (eq. 3,
+:class:`dmarionette.hw.mapping.DeviceMapping`); the force sent back is the driven bar's
+feedback, through ``W``'s rotation only, then the servo loop's safety filter.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Callable
+
+import numpy as np
+import warp as wp
+
+from .hw.device import AbstractHapticDevice, HapticDeviceSpec, HapticSample
+from .marionette import MarionetteModel, SolverMarionette, bar_inputs
+
+__all__ = ["LiveMarionette", "LiveTick", "make_device", "make_physics_step", "run_live"]
+
+
+@dataclasses.dataclass
+class LiveTick:
+    """What one tick produced (world frame)."""
+
+    t: float
+    bar_feedback: np.ndarray  # eq. 4 per bar [N], (B, 3)
+    bar_reaction: np.ndarray  # exact reaction per bar [N], (B, 3)
+    string_taut: np.ndarray  # (S,)
+    puppet_stepped: bool  # True on the tick that completed a puppet step
+
+
+class LiveMarionette:
+    """Steps a marionette one string step at a time.
+
+    Args:
+        model: the marionette (its scene's bars give the poses of bars no device drives).
+    """
+
+    def __init__(self, model: MarionetteModel):
+        self.model = model
+        self.solver = SolverMarionette(model)
+        self.state = model.state()
+        self._next = model.state()
+        self.control = model.control()
+        self.tick = 0
+        # One eager puppet step loads every module; then start again from rest.
+        self.solver.step(self.state, self._next, self.control)
+        self.state = model.state()
+        self._next.assign(self.state)
+        self._graphs = [self._capture(j) for j in range(model.substeps)]
+        n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
+        self._top_q = self.control.top_q.numpy()  # host views of the control buffers (CPU)
+        self._bar_q = self.control.bar_q.numpy()
+        self._bar_qd = self.control.bar_qd.numpy()
+        self._feedback = self._next.bar_feedback.numpy()
+        self._reaction = self._next.bar_reaction.numpy()
+        self._taut = self._next.string_taut.numpy()
+        assert self._top_q.shape == (n, s, 3) and self._bar_q.shape == (n, b, 3)
+
+    def _capture(self, j: int):
+        n = self.model.substeps
+        with wp.ScopedCapture(device=self.model.device) as capture:
+            if j == 0:
+                self.solver.begin_step(self.state, self._next)
+            self.solver.step_string(self.state, self._next, self.control, j)
+            if j == n - 1:
+                self.solver.end_step(self.state, self._next)
+                self.state.assign(self._next)
+        return capture.graph
+
+    @property
+    def time(self) -> float:
+        """Simulated time [s] after the ticks run so far."""
+        return self.tick * self.model.string_dt
+
+    def advance(self, tops: np.ndarray, bar_q: np.ndarray, bar_qd: np.ndarray) -> LiveTick:
+        """One string step with the string tops ``(S, 3)`` and bar centres/velocities ``(B, 3)`` at its end."""
+        j = self.tick % self.model.substeps
+        self._top_q[j] = tops
+        if self.model.bar_count:
+            self._bar_q[j] = bar_q
+            self._bar_qd[j] = bar_qd
+        wp.capture_launch(self._graphs[j])
+        self.tick += 1
+        return LiveTick(t=self.time, bar_feedback=self._feedback[j].copy(), bar_reaction=self._reaction[j].copy(),
+                        string_taut=self._taut[j].copy(), puppet_stepped=j == self.model.substeps - 1)
+
+
+def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *, feedback: str = "reaction",
+                      force_scale: float = 1.0,
+                      on_tick: Callable[[LiveTick, np.ndarray, np.ndarray], None] | None = None):
+    """A world-frame physics callback for the servo loop: the device drives ``driven_bar``.
+
+    Args:
+        live: the marionette stepped per tick.
+        driven_bar: the bar whose centre follows the (mapped) device tip; other bars follow the
+            scene's trajectories.
+        duration: how long the session may run [s]; the scripted bars' inputs are evaluated
+            for it beforehand (a spline evaluation per tick would cost a large part of a tick).
+        feedback: ``"reaction"`` (the strings' pull on the bar) or ``"eq4"`` (the paper's eq. 4 as
+            printed, which spans the whole string length and is large).
+        force_scale: multiplies the force before it leaves (the safety filter clamps after).
+        on_tick: called with the tick, the driven bar's pose (position, rotation deg) each tick.
+
+    Returns:
+        ``step(sample_world, t) -> force_world (3,)`` (wrap with ``DeviceMapping.wrap``).
+    """
+    model = live.model
+    names = [s.name for s in model.scene.strings]
+    bars = model.scene.bars
+    if driven_bar not in model.bar_names:
+        raise ValueError(f"driven bar: got {driven_bar!r}; expected one of {model.bar_names}")
+    if feedback not in ("reaction", "eq4"):
+        raise ValueError(f"feedback: got {feedback!r}; expected 'reaction' or 'eq4'")
+    driven = model.bar_names.index(driven_bar)
+    carried = [[i for i, n in enumerate(names) if n in bar.attach] for bar in bars]
+    local = [np.array([bar.attach[names[i]] for i in idx]) for bar, idx in zip(bars, carried)]
+    previous = {"position": None}
+    ticks = int(np.ceil(duration / model.string_dt)) + 2
+    scripted = bar_inputs(model, model.string_dt * np.arange(1, ticks + 1))  # at the end of each string step
+
+    def step(sample, _t: float) -> np.ndarray:
+        k = min(live.tick, ticks - 1)  # past the planned duration the scripted bars hold still
+        tops, bar_q, bar_qd = scripted[0][k].copy(), scripted[1][k].copy(), scripted[2][k].copy()
+        position = np.asarray(sample.position, dtype=np.float64)
+        velocity = np.zeros(3) if previous["position"] is None else (position - previous["position"]) / model.string_dt
+        previous["position"] = position
+        rotation = sample.rotation
+        bar_q[driven], bar_qd[driven] = position, velocity
+        tops[carried[driven]] = position + local[driven] @ rotation.T
+        tick = live.advance(tops, bar_q, bar_qd)
+        if on_tick is not None:
+            on_tick(tick, position, _matrix_to_euler_deg(rotation))
+        force = tick.bar_reaction[driven] if feedback == "reaction" else tick.bar_feedback[driven]
+        return force_scale * force
+
+    return step
+
+
+def _matrix_to_euler_deg(r: np.ndarray) -> np.ndarray:
+    """XYZ Euler angles [deg] of ``R = Rz Ry Rx`` (inverse of :func:`euler_to_matrix`)."""
+    ry = np.arcsin(np.clip(-r[2, 0], -1.0, 1.0))
+    rx = np.arctan2(r[2, 1], r[2, 2])
+    rz = np.arctan2(r[1, 0], r[0, 0])
+    return np.degrees([rx, ry, rz])
+
+
+class _RecordingDevice(AbstractHapticDevice):
+    """A device that records what it reads and the forces actually sent (after the safety filter)."""
+
+    def __init__(self, device: AbstractHapticDevice, record: Callable[[str, object], None]):
+        self._device = device
+        self._record = record
+
+    @property
+    def spec(self) -> HapticDeviceSpec:
+        return self._device.spec
+
+    @property
+    def is_open(self) -> bool:
+        return self._device.is_open
+
+    def open(self) -> None:
+        self._device.open()
+
+    def close(self) -> None:
+        self._device.close()
+
+    def read(self) -> HapticSample:
+        sample = self._device.read()
+        self._record("sample", sample)
+        return sample
+
+    def write_force(self, force) -> None:
+        self._device.write_force(force)
+        self._record("force", np.asarray(force, dtype=np.float64))
+
+
+def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray) -> AbstractHapticDevice:
+    """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
+    world frame shifted by ``trajectory_offset``); the others open real hardware."""
+    from . import hw
+
+    if name == "simulated":
+        trajectory = scene.bars[[b.name for b in scene.bars].index(bar)].trajectory
+
+        def pose(t: float):
+            position, _, rotation = trajectory.pose(np.array([t]))
+            return position[0] - trajectory_offset, rotation[0]
+
+        return hw.HapticDeviceSimulated(trajectory=pose)
+    if name == "openhaptics":
+        return hw.HapticDeviceOpenHaptics()
+    if name == "falcon":
+        return hw.HapticDeviceFalcon()
+    if name == "spacemouse":
+        return hw.HapticDeviceSpaceMouse()
+    raise ValueError(f"device: got {name!r}; expected one of simulated, openhaptics, falcon, spacemouse")
+
+
+def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "main", duration: float = 10.0,
+             record=None, feedback: str = "reaction", force_scale: float = 1.0, workspace_scale: float = 1.0,
+             **servo_options):
+    """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
+
+    The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
+    ``workspace_scale``, ``W`` a translation putting the device origin at the bar's start.
+    ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`. Returns ``(servo statistics,
+    live marionette, summary dict)``.
+    """
+    from .hw import DeviceMapping, ServoLoop
+
+    scene = model.scene
+    start = np.array(scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
+    mapping = DeviceMapping.make(workspace_scale, translation=start)
+    haptic = make_device(device, scene, bar, trajectory_offset=start)
+    live = LiveMarionette(model)
+    lock = threading.Lock()
+    writer = record
+    peak = {"force": 0.0}
+
+    def on_tick(tick: LiveTick, position, rotation_deg) -> None:
+        if writer is None:
+            return
+        with lock:
+            for b, name in enumerate(model.bar_names):
+                writer.write_feedback(name, tick.t, tick.bar_feedback[b], tick.bar_reaction[b])
+            writer.write_bar_pose(bar, tick.t, position, rotation_deg)
+            writer.write_taut(tick.t, tick.string_taut)
+            if tick.puppet_stepped:
+                model.puppet_solver.eval_kinematics(live.state.puppet)
+                writer.write_puppet_state(tick.t, live.state.puppet.joint_q.numpy()[0].copy(),
+                                          live.state.puppet.body_pos.numpy()[0].copy(),
+                                          live.state.puppet.body_rot.numpy()[0].copy())
+
+    def on_device(kind: str, value) -> None:
+        if kind == "force":
+            peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
+        if writer is None:
+            return
+        with lock:
+            if kind == "sample":
+                writer.write_device_sample(bar, value)
+            else:
+                writer.write_force(bar, live.time, value)
+
+    world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
+                                   on_tick=on_tick)
+    loop = ServoLoop(_RecordingDevice(haptic, on_device), mapping.wrap(world_step), rate_hz=scene.string_hz,
+                     **servo_options)
+    stats = loop.run(duration)
+    summary = {"device": device, "bar": bar, "simulated_seconds": round(live.time, 4),
+               "string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
+               "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
+    return stats, live, summary

@@ -1,0 +1,54 @@
+"""Live puppetry: the marionette stepped tick by tick, and through the 1 kHz servo loop."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import dmarionette as dm
+from dmarionette.hw import HapticSample
+from dmarionette.live import LiveMarionette, make_physics_step, run_live
+from dmarionette.marionette import MarionetteModel
+from dmarionette.marionette_rollout import simulate_marionette
+
+wp.config.log_level = wp.LOG_WARNING
+
+
+@pytest.fixture(scope="module")
+def model():
+    return MarionetteModel(dm.load_scene("hanging"), optimization_level=0)
+
+
+def test_tick_by_tick_reproduces_the_offline_simulation(model):
+    """Driven by the scene's own bar motion, 30 puppet steps tick by tick equal the captured rollout."""
+    live = LiveMarionette(model)
+    main = model.scene.bars[0]
+    steps = 30 * model.substeps
+    times = model.string_dt * np.arange(1, steps + 1)
+    position, _, rotation = main.trajectory.pose(times)
+    step = make_physics_step(live, "main", steps * model.string_dt)
+    for k in range(steps):
+        force = step(HapticSample.make(time=times[k], position=position[k], orientation=rotation[k]), times[k])
+        assert np.all(np.isfinite(force))
+    offline = simulate_marionette(model, 30 * model.puppet_dt - 1e-9, progress=False)
+    assert offline.frame_time[-1] == pytest.approx(live.time)
+    np.testing.assert_allclose(live.state.puppet.joint_q.numpy()[0], offline.joint_q[-1], rtol=0, atol=1e-12)
+
+
+def test_servo_loop_runs_the_marionette_within_the_device_limits(model):
+    """Half a second through the real servo loop with the simulated device.
+
+    Whether the physics keeps every 1 kHz deadline in a thread of this process depends on the
+    machine (it is measured, not asserted: see the README); what must hold is that the loop
+    runs, stays finite, and never sends more than the device's limit.
+    """
+    stats, live, summary = run_live(model, duration=0.5, force_scale=1.0)
+    assert stats.tick_count >= 400
+    assert live.tick > 0 and np.all(np.isfinite(live.state.puppet.joint_q.numpy()))
+    assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+
+
+def test_live_refuses_a_scene_without_bars(tmp_path, capsys):
+    from dmarionette.cli import main
+
+    assert main(["live", "strings", "--duration", "0.1"]) == 2
+    assert "needs a scene with a [puppet] and [bars]" in capsys.readouterr().err
