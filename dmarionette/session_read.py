@@ -99,6 +99,9 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
 def _session_metadata(path: Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
     """The decoded ``"dmarionette"`` record and the ``"scene"`` record; clear errors if absent."""
     topics = sorted({c.topic for c in records.channels.values()})
+    if "dmarionette" not in records.metadata and records.truncated and not records.channels:
+        raise ValueError(f"{path}: an MCAP file cut off after {records.size} bytes, before its metadata records "
+                         "(a recording that crashed at once): nothing to read")
     if "dmarionette" not in records.metadata:
         raise ValueError(f"{path}: an MCAP file, but not a dmarionette session: it has no 'dmarionette' "
                          f"metadata record (metadata found: {sorted(records.metadata)}; topics: {topics})")
