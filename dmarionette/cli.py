@@ -69,6 +69,10 @@ def _parser() -> argparse.ArgumentParser:
                            "~7 N weight becomes ~2 N, inside a PHANToM Omni's 3.3 N)")
     live.add_argument("--workspace-scale", type=float, default=1.0, help="S of P' = S W P (default 1)")
     live.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    live.add_argument("--own-process", action="store_true",
+                      help="run the physics in a child process instead of the servo loop's worker thread "
+                           "(on the 2-core development VM a pipe round trip costs ~160 us, so this kept "
+                           "fewer deadlines; see the README)")
     bench = sub.add_parser("bench", help="measure what accuracy costs in time",
                            description="Benchmarks. 'accuracy': sweep particles per string, string step, "
                                        "puppet rate and contact model against a refined reference; writes "
@@ -158,19 +162,12 @@ def _run_live(args: argparse.Namespace) -> int:
     if not args.force_scale >= 0.0 or not args.workspace_scale > 0.0:
         raise ValueError(f"--force-scale must be >= 0 and --workspace-scale > 0; got {args.force_scale}, "
                          f"{args.workspace_scale}")
-    model = MarionetteModel(scene, optimization_level=0 if args.fast_compile else 2)
-    writer = None
-    if args.record is not None:
-        from .session import SessionWriter
-
-        writer = SessionWriter(args.record, scene, Path(scene.source).read_text())
-    try:
-        stats, _, summary = run_live(model, device=args.device, bar=args.bar, duration=args.duration, record=writer,
-                                     feedback=args.feedback, force_scale=args.force_scale,
-                                     workspace_scale=args.workspace_scale)
-    finally:
-        if writer is not None:
-            writer.close()
+    level = 0 if args.fast_compile else 2
+    model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
+    stats, summary = run_live(model, device=args.device, bar=args.bar, duration=args.duration, record=args.record,
+                              feedback=args.feedback, force_scale=args.force_scale,
+                              workspace_scale=args.workspace_scale, process=args.own_process,
+                              optimization_level=level)
     print(stats.summary())
     if args.record is not None:
         summary["record"] = str(args.record)

@@ -207,56 +207,92 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray) ->
 
 def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "main", duration: float = 10.0,
              record=None, feedback: str = "reaction", force_scale: float = 1.0, workspace_scale: float = 1.0,
-             **servo_options):
+             process: bool = False, optimization_level: int = 2, **servo_options):
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
     ``workspace_scale``, ``W`` a translation putting the device origin at the bar's start.
-    ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`. Returns ``(servo statistics,
-    live marionette, summary dict)``.
+    By default the marionette (``model``) runs in the servo loop's worker thread; with
+    ``process=True`` in a child process (:mod:`dmarionette.live_process`), built from the
+    scene's file with ``optimization_level``. ``record``: an MCAP file path
+    for the session, or None. ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`.
+    Returns ``(servo statistics, summary dict)``.
     """
     from .hw import DeviceMapping, ServoLoop
 
     scene = model.scene
+    if bar not in model.bar_names:
+        raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
     start = np.array(scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
     mapping = DeviceMapping.make(workspace_scale, translation=start)
     haptic = make_device(device, scene, bar, trajectory_offset=start)
-    live = LiveMarionette(model)
-    lock = threading.Lock()
-    writer = record
     peak = {"force": 0.0}
+    if process:
+        from .live_process import PhysicsProcess
 
-    def on_tick(tick: LiveTick, position, rotation_deg) -> None:
-        if writer is None:
-            return
-        with lock:
-            for b, name in enumerate(model.bar_names):
-                writer.write_feedback(name, tick.t, tick.bar_feedback[b], tick.bar_reaction[b])
-            writer.write_bar_pose(bar, tick.t, position, rotation_deg)
-            writer.write_taut(tick.t, tick.string_taut)
-            if tick.puppet_stepped:
-                model.puppet_solver.eval_kinematics(live.state.puppet)
-                writer.write_puppet_state(tick.t, live.state.puppet.joint_q.numpy()[0].copy(),
-                                          live.state.puppet.body_pos.numpy()[0].copy(),
-                                          live.state.puppet.body_rot.numpy()[0].copy())
+        physics = PhysicsProcess(scene.source, bar, duration, feedback=feedback, force_scale=force_scale,
+                                 optimization_level=optimization_level,
+                                 record_path=None if record is None else str(record))
 
-    def on_device(kind: str, value) -> None:
-        if kind == "force":
-            peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
-        if writer is None:
-            return
-        with lock:
-            if kind == "sample":
-                writer.write_device_sample(bar, value)
-            else:
-                writer.write_force(bar, live.time, value)
+        def on_device(kind: str, value) -> None:
+            if kind == "force":
+                physics.last_force = value  # the child records what was actually sent
+                peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
 
-    world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
-                                   on_tick=on_tick)
+        world_step = physics.step
+    else:
+        live = LiveMarionette(model)
+        writer = None
+        if record is not None:
+            from pathlib import Path
+
+            from .session import SessionWriter
+
+            writer = SessionWriter(record, scene, Path(scene.source).read_text())
+        lock = threading.Lock()
+
+        def on_device(kind: str, value) -> None:
+            if kind == "force":
+                peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
+            if writer is not None:
+                with lock:
+                    if kind == "sample":
+                        writer.write_device_sample(bar, value)
+                    else:
+                        writer.write_force(bar, live.time, value)
+
+        def on_tick(tick: LiveTick, position, rotation_deg) -> None:
+            with lock:
+                _record_tick(writer, model, live, bar, tick, position, rotation_deg)
+
+        world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
+                                       on_tick=on_tick if writer is not None else None)
     loop = ServoLoop(_RecordingDevice(haptic, on_device), mapping.wrap(world_step), rate_hz=scene.string_hz,
                      **servo_options)
-    stats = loop.run(duration)
-    summary = {"device": device, "bar": bar, "simulated_seconds": round(live.time, 4),
-               "string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
-               "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
-    return stats, live, summary
+    try:
+        stats = loop.run(duration)
+    finally:
+        if process:
+            steps = physics.close()
+        else:
+            if writer is not None:
+                writer.close()
+            steps = {"string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
+                     "simulated_seconds": round(live.time, 4)}
+    summary = {"device": device, "bar": bar, "physics": "own process" if process else "servo worker thread",
+               **steps, "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
+    return stats, summary
+
+
+def _record_tick(writer, model: MarionetteModel, live: LiveMarionette, bar: str, tick: LiveTick, position,
+                 rotation_deg) -> None:
+    """Writes one tick of a live session: feedback, the driven bar's pose, taut flags, puppet state."""
+    for b, name in enumerate(model.bar_names):
+        writer.write_feedback(name, tick.t, tick.bar_feedback[b], tick.bar_reaction[b])
+    writer.write_bar_pose(bar, tick.t, position, rotation_deg)
+    writer.write_taut(tick.t, tick.string_taut)
+    if tick.puppet_stepped:
+        model.puppet_solver.eval_kinematics(live.state.puppet)
+        writer.write_puppet_state(tick.t, live.state.puppet.joint_q.numpy()[0].copy(),
+                                  live.state.puppet.body_pos.numpy()[0].copy(),
+                                  live.state.puppet.body_rot.numpy()[0].copy())

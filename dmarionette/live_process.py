@@ -1,0 +1,128 @@
+"""The live marionette in its own process (``dmarionette live --own-process``).
+
+In one process the physics (Warp launches, numpy) and the servo thread's deadline spin
+compete for Python's interpreter lock, and the physics misses deadlines. Here the physics
+runs in a child process (``spawn``: a fresh interpreter with its own lock and Warp runtime);
+the servo loop's physics call sends the device sample through a pipe and blocks on the
+answer, which releases the lock while the child computes.
+
+Measured on the 2-core development VM: a pipe round trip alone costs ~160 µs (p50; process
+wake-ups are expensive there), so with ~100 µs of physics this mode kept *fewer* deadlines
+than the worker thread (926-1112 vs 1408-1969 string steps in 2 s over four runs each) and
+is not the default. A shared-memory handshake without wake-ups is the next step.
+
+Messages (pickled tuples): parent -> child ``(position (3,), rotation (3, 3), t, last force
+sent (3,))`` or ``None`` to stop; child -> parent the world force ``(3,)``, or at the end a
+summary dict; on start the child answers ``("ready", info)`` or ``("error", text)``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from typing import Any
+
+import numpy as np
+
+__all__ = ["PhysicsProcess"]
+
+
+def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str, force_scale: float,
+                  optimization_level: int, record_path: str | None) -> None:
+    """The child: builds the live marionette, then answers one force per sample."""
+    try:
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_WARNING
+        from .hw.device import HapticSample
+        from .live import LiveMarionette, make_physics_step
+        from .marionette import MarionetteModel
+        from .scene import load_scene
+
+        scene = load_scene(scene_ref)
+        model = MarionetteModel(scene, optimization_level=optimization_level)
+        live = LiveMarionette(model)
+        writer = None
+        if record_path is not None:
+            from pathlib import Path
+
+            from .session import SessionWriter
+
+            writer = SessionWriter(record_path, scene, Path(scene.source).read_text())
+        step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
+                                 on_tick=_recorder(writer, model, live, bar) if writer else None)
+        # Kernels compile and graphs are captured above, before the parent's loop starts.
+    except Exception as error:  # reported to the parent, which raises it with context
+        conn.send(("error", f"{type(error).__name__}: {error}"))
+        return
+    conn.send(("ready", {"substeps": model.substeps, "string_dt": model.string_dt}))
+    try:
+        while True:
+            message = conn.recv()
+            if message is None:
+                break
+            position, rotation, t, last_force = message
+            if writer is not None and last_force is not None:
+                writer.write_force(bar, live.time, last_force)
+            sample = HapticSample.make(time=t, position=position, orientation=rotation)
+            if writer is not None:
+                writer.write_device_sample(bar, sample)
+            conn.send(np.asarray(step(sample, t), dtype=np.float64))
+    finally:
+        if writer is not None:
+            writer.close()
+        conn.send({"string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
+                   "simulated_seconds": round(live.time, 4)})
+
+
+def _recorder(writer, model, live, bar):
+    from .live import _record_tick
+
+    return lambda tick, position, rotation_deg: _record_tick(writer, model, live, bar, tick, position, rotation_deg)
+
+
+class PhysicsProcess:
+    """The live marionette in a child process; ``step(sample_world, t) -> force_world``.
+
+    Args:
+        scene_ref: a built-in scene name or a scene file path (the child loads it).
+        bar, duration, feedback, force_scale: as for :func:`dmarionette.live.make_physics_step`.
+        optimization_level: puppet kernel optimisation (compiled kernels are cached on disk).
+        record_path: write the session (MCAP) from the child, or None.
+        start_timeout: seconds to wait for the child to build the model.
+    """
+
+    def __init__(self, scene_ref: str, bar: str, duration: float, *, feedback: str = "reaction",
+                 force_scale: float = 1.0, optimization_level: int = 2, record_path: str | None = None,
+                 start_timeout: float = 300.0):
+        context = mp.get_context("spawn")
+        self._conn, child = context.Pipe()
+        self._process = context.Process(
+            target=_physics_main, name="dmarionette-physics", daemon=True,
+            args=(child, scene_ref, bar, duration, feedback, force_scale, optimization_level, record_path))
+        self._process.start()
+        if not self._conn.poll(start_timeout):
+            self._process.kill()
+            raise RuntimeError(f"the physics process did not start within {start_timeout} s")
+        kind, info = self._conn.recv()
+        if kind == "error":
+            self._process.join(5.0)
+            raise RuntimeError(f"the physics process could not start: {info}")
+        self.info = info
+        self.last_force: np.ndarray | None = None
+        self.summary: dict[str, Any] = {}
+
+    def step(self, sample, t: float) -> np.ndarray:
+        """Sends a world-frame sample, returns the world-frame force (blocks without holding the GIL)."""
+        self._conn.send((np.asarray(sample.position), sample.rotation, float(t), self.last_force))
+        return self._conn.recv()
+
+    def close(self) -> dict[str, Any]:
+        """Stops the child; returns its summary (steps run)."""
+        if self._process.is_alive():
+            self._conn.send(None)
+            if self._conn.poll(30.0):
+                self.summary = self._conn.recv()
+            self._process.join(30.0)
+        if self._process.is_alive():
+            self._process.kill()
+        return self.summary
