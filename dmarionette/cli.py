@@ -1,8 +1,12 @@
 """The ``dmarionette`` command line.
 
-``dmarionette simulate SCENE`` runs a scene headless and writes its trajectory, a
-summary and a picture; ``dmarionette demo`` does the same for the default scene;
-``dmarionette scenes`` lists the built-in scenes. ``--help`` on every command.
+- ``dmarionette simulate SCENE``: run a scene headless; write its trajectory, summary, animation;
+- ``dmarionette demo``: the same for the default scene (``hanging``);
+- ``dmarionette scenes``: list the built-in scenes;
+- ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop;
+- ``dmarionette bench accuracy``: what accuracy costs in time.
+
+``--help`` on every command.
 """
 
 from __future__ import annotations
@@ -57,8 +61,9 @@ def _parser() -> argparse.ArgumentParser:
                     "at its own rate; forces are clamped, ramped in, and cut by a watchdog. Prints the "
                     "servo tick statistics at the end.")
     live.add_argument("scene", nargs="?", default="hanging", help="scene name or TOML file (default: hanging)")
-    live.add_argument("--device", choices=["simulated", "openhaptics", "falcon", "spacemouse"],
-                      default="simulated", help="the haptic device (simulated: follows the scene's bar motion)")
+    live.add_argument("--device", choices=["sim", "simulated", "openhaptics", "falcon", "spacemouse"],
+                      default="simulated",
+                      help="the haptic device (sim = simulated: follows the scene's bar motion)")
     live.add_argument("--bar", default="main", help="the bar the device drives (default: main)")
     live.add_argument("--duration", type=float, default=10.0, help="seconds to run (default: 10)")
     live.add_argument("--record", type=Path, default=None, help="write the session to this MCAP file")
@@ -164,7 +169,8 @@ def _run_live(args: argparse.Namespace) -> int:
                          f"{args.workspace_scale}")
     level = 0 if args.fast_compile else 2
     model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
-    stats, summary = run_live(model, device=args.device, bar=args.bar, duration=args.duration, record=args.record,
+    device = "simulated" if args.device == "sim" else args.device
+    stats, summary = run_live(model, device=device, bar=args.bar, duration=args.duration, record=args.record,
                               feedback=args.feedback, force_scale=args.force_scale,
                               workspace_scale=args.workspace_scale, process=args.own_process,
                               optimization_level=level)
