@@ -158,12 +158,19 @@ def replay_session(path: str | Path, *, optimization_level: int = 2,
     session = read_session(path)
     scene = scene_for_replay(session)
     model = MarionetteModel(scene, optimization_level=optimization_level)
+    if not scene.bars:
+        raise ValueError(f"{session.path}: the session's scene has no [bars.*]: nothing drives a replay")
     puppet = session.channels.get("/puppet/state")
     ends = [session.channels[f"/bar/{b.name}/pose"]["t"].max() for b in scene.bars]
     if puppet is not None and len(puppet["t"]):
         ends.append(puppet["t"].max())
     end = float(max(ends))
-    duration = max(end - 0.5 * model.puppet_dt, model.puppet_dt)  # whole puppet steps up to the last record
+    # Whole puppet steps, none past the last recorded pose (beyond it a bar would only be held).
+    steps = int(np.floor(min(ends[:len(scene.bars)]) / model.puppet_dt + 1e-9))
+    if steps < 1:
+        raise ValueError(f"{session.path}: the recorded bar poses end at t = {end} s, before the first puppet "
+                         f"step ({model.puppet_dt} s): nothing to replay")
+    duration = (steps - 0.5) * model.puppet_dt
     trajectory = simulate_marionette(model, duration, progress=progress, frame_hz=1.0 / model.puppet_dt)
     report: dict[str, Any] = {"path": str(session.path), "scene": scene.name, "duration": float(trajectory.frame_time[-1]),
                               "truncated": session.truncated, "frames_compared": 0, "rms_body_gap": None,
