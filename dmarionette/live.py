@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -158,6 +159,8 @@ class _RecordingDevice(AbstractHapticDevice):
     def __init__(self, device: AbstractHapticDevice, record: Callable[[str, object], None]):
         self._device = device
         self._record = record
+        self._read_at: float | None = None
+        self.latencies: list[float] = []  # read -> next force written [s]
 
     @property
     def spec(self) -> HapticDeviceSpec:
@@ -174,12 +177,16 @@ class _RecordingDevice(AbstractHapticDevice):
         self._device.close()
 
     def read(self) -> HapticSample:
+        self._read_at = time.perf_counter()
         sample = self._device.read()
         self._record("sample", sample)
         return sample
 
     def write_force(self, force) -> None:
         self._device.write_force(force)
+        if self._read_at is not None:
+            self.latencies.append(time.perf_counter() - self._read_at)
+            self._read_at = None
         self._record("force", np.asarray(force, dtype=np.float64))
 
 
@@ -267,8 +274,8 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
 
         world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
                                        on_tick=on_tick if writer is not None else None)
-    loop = ServoLoop(_RecordingDevice(haptic, on_device), mapping.wrap(world_step), rate_hz=scene.string_hz,
-                     **servo_options)
+    proxy = _RecordingDevice(haptic, on_device)
+    loop = ServoLoop(proxy, mapping.wrap(world_step), rate_hz=scene.string_hz, **servo_options)
     try:
         stats = loop.run(duration)
     finally:
@@ -281,6 +288,11 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
                      "simulated_seconds": round(live.time, 4)}
     summary = {"device": device, "bar": bar, "physics": "own process" if process else "servo worker thread",
                **steps, "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
+    if proxy.latencies:
+        latency = np.array(proxy.latencies) * 1e6
+        summary["device_to_force_us"] = {"p50": round(float(np.median(latency)), 1),
+                                         "p99": round(float(np.percentile(latency, 99)), 1),
+                                         "max": round(float(latency.max()), 1)}
     return stats, summary
 
 
