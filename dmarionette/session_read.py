@@ -136,7 +136,8 @@ def _stack(values: list) -> np.ndarray:
 def _decode_topic(messages: list[Message]) -> dict[str, np.ndarray]:
     decoded = [json.loads(m.data) for m in messages]
     fields: dict[str, np.ndarray] = {"log_time": np.array([m.log_time for m in messages], dtype=np.int64)}
-    for key in decoded[0] if decoded else ():
+    keys = dict.fromkeys(k for d in decoded for k in d)  # optional fields too (missing: NaN)
+    for key in keys:
         array = _stack([d.get(key) for d in decoded])
         if key in _INT_FIELDS and array.dtype != object:
             array = array.astype(np.int64)

@@ -54,7 +54,10 @@ SCHEMAS: dict[str, dict] = {
         "description": "A haptic device sample, device frame (x right, y up, z towards the user).",
         "properties": {"t": _T, "position": _vector(3, "tip position [m], device frame"),
                        "orientation": _vector(4, "unit quaternion (w, x, y, z), device frame"),
-                       "buttons": {"type": "integer", "description": "button bitmask"}},
+                       "buttons": {"type": "integer", "description": "button bitmask"},
+                       "device_time": {"type": "number",
+                                       "description": "the device's clock [s since open], when t is the "
+                                                      "simulated time (optional)"}},
         "required": ["t", "position", "orientation", "buttons"]},
     "dmarionette.DeviceForce": {
         "title": "dmarionette.DeviceForce", "type": "object",
@@ -246,6 +249,7 @@ class SessionWriter:
         if compression not in kinds:
             raise ValueError(f"compression: got {compression!r}; expected one of {sorted(kinds)}")
         self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.scene = scene
         self.flush_seconds = float(flush_seconds)
         self._fsync = fsync
@@ -291,6 +295,9 @@ class SessionWriter:
         return channel
 
     def _write(self, topic: str, kind: str, t: float, message: dict) -> None:
+        if not (t >= 0.0 and math.isfinite(t)):
+            raise ValueError(f"{self.path}: {topic}: time t = {t!r}; expected a finite time >= 0 [s] "
+                             "(MCAP log times are unsigned nanoseconds)")
         data = _encode(message)
         log_time = int(round(t * 1e9))
         with self._lock:
@@ -306,11 +313,18 @@ class SessionWriter:
 
     # Messages ------------------------------------------------------------------------------
 
-    def write_device_sample(self, bar: str, sample) -> None:
-        """``/device/BAR/sample``: a :class:`dmarionette.hw.HapticSample` (device frame, its ``time`` [s])."""
-        self._write(f"/device/{bar}/sample", "device/sample", float(sample.time), {
-            "t": float(sample.time), "position": _floats(sample.position),
-            "orientation": _floats(sample.orientation), "buttons": int(sample.buttons)})
+    def write_device_sample(self, bar: str, sample, t: float | None = None) -> None:
+        """``/device/BAR/sample``: a :class:`dmarionette.hw.HapticSample` (device frame).
+
+        ``t`` [s] is the simulated time the sample belongs to; when given, the sample's own
+        clock (``sample.time``, seconds since the device opened) is kept as ``device_time``.
+        Without ``t``, ``sample.time`` is the time.
+        """
+        message = {"t": float(sample.time if t is None else t), "position": _floats(sample.position),
+                   "orientation": _floats(sample.orientation), "buttons": int(sample.buttons)}
+        if t is not None:
+            message["device_time"] = float(sample.time)
+        self._write(f"/device/{bar}/sample", "device/sample", message["t"], message)
 
     def write_force(self, bar: str, t: float, force) -> None:
         """``/device/BAR/force``: the force [N] sent to the device at ``t`` [s], device frame."""

@@ -308,3 +308,40 @@ def test_the_embedded_scene_is_self_contained(tmp_path, scene):
     np.testing.assert_array_equal(main.rotations[1], [0.0, 0.0, 5.0])
     assert session.extra_metadata["device"] == {"name": "simulated", "max_force": 3.3}
     assert 'include = "my_puppet.toml"' in session.scene_record["toml"]  # the text is kept verbatim
+
+
+def test_device_samples_keep_their_own_clock_and_bad_times_are_refused(tmp_path, scene, scene_text):
+    path = tmp_path / "clock.mcap"
+    with SessionWriter(path, scene, scene_text) as writer:
+        sample = HapticSample(time=12.5, position=np.zeros(3), orientation=np.array([1.0, 0, 0, 0]), buttons=2)
+        writer.write_device_sample("main", sample, t=0.25)
+        writer.write_device_sample("main", sample)
+        with pytest.raises(ValueError, match=r"/bar/main/pose: time t = -0.001"):
+            writer.write_bar_pose("main", -0.001, [0, 0, 0], [0, 0, 0])
+        with pytest.raises(ValueError, match="time t = nan"):
+            writer.write_force("main", float("nan"), [0, 0, 0])
+        writer.write_force("main", 0.25, [np.nan, 1.0, np.inf])  # non-finite values: JSON null, read as NaN
+    channel = read_session(path).channels["/device/main/sample"]
+    np.testing.assert_array_equal(channel["t"], [0.25, 12.5])
+    np.testing.assert_array_equal(channel["device_time"], [12.5, np.nan])
+    force = read_session(path).channels["/device/main/force"]["force"]
+    assert np.isnan(force[0, 0]) and force[0, 1] == 1.0 and np.isnan(force[0, 2])
+
+
+def test_without_writer_flush_the_file_is_written_unchunked(tmp_path, scene, scene_text, monkeypatch):
+    """Older mcap releases lack ``Writer.flush``: the writer then writes unchunked, where every
+    record reaches the file at once, and a copy of the open file still reads back."""
+    monkeypatch.delattr(Writer, "flush")
+    values = _synthetic(seed=2, steps=1500)
+    path = tmp_path / "unchunked.mcap"
+    writer = SessionWriter(path, scene, scene_text)
+    for k in range(len(values["t"])):
+        _write_tick(writer, values, k)
+    shutil.copyfile(path, tmp_path / "copy.mcap")
+    lost = values["t"][-1] - read_session(tmp_path / "copy.mcap").channels["/bar/main/pose"]["t"][-1]
+    assert 0.0 <= lost <= 1.0 + 1e-3
+    writer.close()
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+        assert summary.statistics.chunk_count == 0 and summary.statistics.message_count > 9 * 1500
+    np.testing.assert_array_equal(read_session(path).channels["/bar/hand/pose"]["position"], values["bar_position"][1])
