@@ -1,0 +1,50 @@
+"""Refuses marionette settings the simulator cannot run, with a clear message.
+
+:func:`check_marionette_settings` is meant to be called where a marionette is built
+(``MarionetteModel.__init__``, after the float32 check) or where a scene is loaded for a
+marionette. Every refusal below comes from a measurement in ``tests/test_hard_cases*.py``:
+
+- **a tied string with ``tie_stiffness = 0``**: the coupling hands the puppet the mean
+  string force as an anchor offset ``F / k`` (``kernels/string_body_coupling.py``,
+  ``apply_string_forces_to_anchors``), so ``k = 0`` gives ``0 / 0 = NaN`` and the whole
+  puppet becomes NaN on the first step (measured). A string that should not pull is
+  left untied (no ``body_point``).
+- **a long puppet step under several string steps**: with ``n > 1`` string steps per
+  puppet step, the strings follow a tie path extrapolated over the puppet step; with the
+  default constants the energy stays below the bars' work at 25 Hz and above, and grows
+  beyond it below (measured with still bars at string_hz = 1000: excess 0 J at 25 Hz,
+  0.012 J at 20 Hz, 0.085 J at 15 Hz, 0.10 J at 10 Hz, 0.58 J at 5 Hz, 228 J and a
+  joint 5.4 rad past its limit at 1 Hz). So ``puppet_hz >= 25`` is required when
+  ``string_hz / puppet_hz`` rounds to more than 1; with the puppet at the string rate
+  (``n = 1``) the coupling is a plain staggered step and 10 Hz was measured stable.
+"""
+
+from __future__ import annotations
+
+from .scene_fields import SceneError
+
+__all__ = ["MIN_SUBSTEPPED_PUPPET_HZ", "check_marionette_settings"]
+
+MIN_SUBSTEPPED_PUPPET_HZ = 25.0
+"""Lowest puppet rate [Hz] measured energy-consistent when the strings take several steps per puppet step."""
+
+
+def check_marionette_settings(scene) -> None:
+    """Raises :class:`SceneError` (a ``ValueError``) for settings a marionette cannot run.
+
+    Args:
+        scene: a loaded :class:`~dmarionette.scene.Scene` with a ``[puppet]``.
+    """
+    source = scene.source
+    substeps = max(1, round(scene.string_hz / scene.puppet_hz))
+    if substeps > 1 and scene.puppet_hz < MIN_SUBSTEPPED_PUPPET_HZ:
+        raise SceneError(f"{source}: [rates]", "puppet_hz", scene.puppet_hz,
+                         f">= {MIN_SUBSTEPPED_PUPPET_HZ:g} Hz while the strings take {substeps} steps per puppet "
+                         f"step (string_hz = {scene.string_hz:g}): over a longer puppet step the extrapolated "
+                         "string-body coupling puts energy into the puppet; raise puppet_hz, or set "
+                         "puppet_hz = string_hz")
+    for spec, point in zip(scene.strings, scene.string_body_points):
+        if point is not None and not spec.tie_stiffness > 0.0:
+            raise SceneError(f"{source}: [[strings]] {spec.name!r}", "tie_stiffness", spec.tie_stiffness,
+                             "> 0 N/m for a string tied to a body point (the coupling divides the string force "
+                             "by it); to have a string that does not pull, leave out its body_point")
