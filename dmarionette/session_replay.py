@@ -133,14 +133,15 @@ def _at(times: np.ndarray, sim_times: np.ndarray, values: np.ndarray) -> np.ndar
     return out.reshape((len(times),) + values.shape[1:])
 
 
-def replay_session(path: str | Path, *, optimization_level: int = 2,
-                   progress: bool = False) -> tuple[MarionetteTrajectory, dict[str, Any]]:
+def replay_session(path: str | Path, *, optimization_level: int = 2, progress: bool = False,
+                   device=None) -> tuple[MarionetteTrajectory, dict[str, Any]]:
     """Re-simulates a recorded session from its recorded bar poses.
 
     Args:
         path: the session file (a cut-off file replays up to its last complete record).
         optimization_level: Warp optimisation of the puppet kernels (0 compiles fast).
         progress: show a progress bar.
+        device: the Warp device (``None``: Warp's default).
 
     Returns:
         The re-simulated trajectory (frames at the puppet rate), and a report (JSON-ready):
@@ -157,7 +158,7 @@ def replay_session(path: str | Path, *, optimization_level: int = 2,
     start = time.perf_counter()
     session = read_session(path)
     scene = scene_for_replay(session)
-    model = MarionetteModel(scene, optimization_level=optimization_level)
+    model = MarionetteModel(scene, optimization_level=optimization_level, device=device)
     if not scene.bars:
         raise ValueError(f"{session.path}: the session's scene has no [bars.*]: nothing drives a replay")
     puppet = session.channels.get("/puppet/state")

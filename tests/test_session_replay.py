@@ -90,8 +90,9 @@ def test_replay_reproduces_the_recorded_motion(recorded):
     model, trajectory, path = recorded
     replayed, report = replay_session(path, optimization_level=0)
     assert report["frames_compared"] == len(trajectory.frame_time)
-    assert report["rms_body_gap"] < 1e-12 and report["max_body_gap"] < 1e-12, report
-    np.testing.assert_allclose(replayed.body_pos, trajectory.body_pos, rtol=0, atol=1e-12)
+    # 0.0 on the CPU; the margin is for devices whose atomic sums may change order.
+    assert report["rms_body_gap"] < 1e-9 and report["max_body_gap"] < 1e-9, report
+    np.testing.assert_allclose(replayed.body_pos, trajectory.body_pos, rtol=0, atol=1e-9)
     assert np.ptp(trajectory.body_pos[:, 0, 0]) > 1e-3  # the puppet moved
     assert report["rms_feedback_gap"] < 1e-2, report
     assert not report["truncated"]
@@ -106,7 +107,7 @@ def test_a_cut_off_session_replays_up_to_the_cut(recorded, tmp_path):
     assert session.truncated
     replayed, report = replay_session(cut, optimization_level=0)
     assert report["truncated"] and 0 < report["frames_compared"] < len(trajectory.frame_time)
-    assert report["rms_body_gap"] < 1e-12, report
+    assert report["rms_body_gap"] < 1e-9, report
     assert replayed.frame_time[-1] <= session.channels["/bar/main/pose"]["t"][-1] + 1e-9
 
 
