@@ -15,6 +15,7 @@ replay.
 """
 
 from .session_read import Session as Session
+from .session_read import format_session_info as format_session_info
 from .session_read import read_session as read_session
 from .session_read import session_bar_trajectories as session_bar_trajectories
 from .session_read import session_info as session_info
@@ -32,6 +33,7 @@ __all__ = [
     "SCHEMAS",
     "Session",
     "SessionWriter",
+    "format_session_info",
     "read_session",
     "record_simulation",
     "replay_session",

@@ -28,7 +28,7 @@ from .control_bar import BarTrajectory
 from .scene import Scene, scene_from_table
 from .session_write import FORMAT, FORMAT_VERSION
 
-__all__ = ["Session", "read_session", "session_bar_trajectories", "session_info"]
+__all__ = ["Session", "format_session_info", "read_session", "session_bar_trajectories", "session_info"]
 
 _MAGIC = b"\x89MCAP0\r\n"
 _INT_FIELDS = {"buttons", "taut"}
@@ -295,6 +295,25 @@ def session_info(path: str | Path) -> dict[str, Any]:
         "messages": sum(v["count"] for v in topics.values()),
         "topics": topics, "device_channels": device, "notes": notes,
     }
+
+
+def format_session_info(info: dict[str, Any]) -> str:
+    """:func:`session_info`'s summary as lines of text (what ``dmarionette info FILE`` prints)."""
+    duration = info["duration"] or 0.0
+    lines = [f"{info['path']}: dmarionette session, {info['bytes'] / 1e6:.2f} MB"
+             + (" (CUT OFF: no footer)" if info["truncated"] else ""),
+             f"  scene {info['scene']!r} ({info['scene_source']}), recorded by {info['recorder']} "
+             f"on {info['created']} with dmarionette {info['version']}",
+             f"  {duration:.3f} s simulated, {info['messages']} messages; strings at {info['string_hz']:g} Hz, "
+             f"puppet at {info['puppet_hz']:g} Hz",
+             f"  bars {info['bars']}, {len(info['strings'])} strings, {len(info['bodies'])} bodies",
+             "  topics:"]
+    width = max((len(t) for t in info["topics"]), default=0)
+    for topic, v in info["topics"].items():
+        span = f"{v['start']:.3f}-{v['end']:.3f} s" if v["count"] else "-"
+        lines.append(f"    {topic:<{width}}  {v['count']:>8} msgs  {v['rate_hz']:>9.2f} Hz  {span}")
+    lines += [f"  note: {note}" for note in info["notes"]]
+    return "\n".join(lines)
 
 
 def session_bar_trajectories(session: Session) -> dict[str, BarTrajectory]:

@@ -14,6 +14,7 @@ import dmarionette as dm
 from dmarionette.control_bar import euler_to_matrix
 from dmarionette.session import (
     SessionWriter,
+    format_session_info,
     read_session,
     record_simulation,
     replay_session,
@@ -49,6 +50,8 @@ def test_a_simulated_session_holds_the_run(recorded):
     assert info["topics"]["/strings/taut"]["count"] == steps
     assert info["topics"]["/puppet/state"]["count"] == frames
     assert info["topics"]["/puppet/state"]["rate_hz"] == pytest.approx(1000.0 / 33)
+    text = format_session_info(info)
+    assert "scene 'hanging'" in text and "/puppet/state" in text and "a simulated session" in text
     session = read_session(path)
     puppet = session.channels["/puppet/state"]
     np.testing.assert_array_equal(puppet["t"], trajectory.frame_time)
