@@ -249,10 +249,14 @@ class SessionWriter:
         if compression not in kinds:
             raise ValueError(f"compression: got {compression!r}; expected one of {sorted(kinds)}")
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.scene = scene
         self.flush_seconds = float(flush_seconds)
         self._fsync = fsync
+        # Everything that can fail on a bad scene comes before the file is created.
+        scene_record = {"name": scene.name, "source": str(scene.source), "toml": scene_text,
+                        "table_json": json.dumps(self_contained_table(scene_text, str(scene.source)))}
+        metadata = {k: json.dumps(v) for k, v in session_metadata(scene, recorder=recorder).items()}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("wb")
         # Writer.flush (finish the chunk in progress) came with newer mcap releases; without it,
         # write unchunked (every record goes to the file at once) and flush the file.
@@ -260,25 +264,18 @@ class SessionWriter:
         self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=kinds[compression],
                               use_chunking=self._chunked)
         self._writer.start(profile="", library=f"dmarionette {_version()} (mcap-python)")
+        self._writer.add_metadata("scene", scene_record)
+        self._writer.add_metadata("dmarionette", metadata)
         self._schema_ids = {name: self._writer.register_schema(name, SchemaEncoding.JSONSchema,
                                                                json.dumps(schema).encode())
                             for name, schema in SCHEMAS.items()}
         self._channels: dict[str, int] = {}
         self._sequence: dict[str, int] = {}
-        self._writer.add_metadata("scene", {
-            "name": scene.name,
-            "source": str(scene.source),
-            "toml": scene_text,
-            "table_json": json.dumps(self_contained_table(scene_text, str(scene.source))),
-        })
-        self._writer.add_metadata("dmarionette", {k: json.dumps(v) for k, v in
-                                                  session_metadata(scene, recorder=recorder).items()})
         self._lock = threading.Lock()
         self._dirty = False
         self._closed = False
         self._last_flush_t = -math.inf
-        self._last_flush_wall = time.monotonic()
-        self._flush_os()
+        self._flush_locked(-math.inf)  # header, metadata and schemas reach the disk at once
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_periodically, name="session-flush", daemon=True)
         self._flusher.start()
@@ -362,11 +359,6 @@ class SessionWriter:
 
     # Flushing ------------------------------------------------------------------------------
 
-    def _flush_os(self) -> None:
-        self._file.flush()
-        if self._fsync:
-            os.fsync(self._file.fileno())
-
     def _flush_locked(self, t: float) -> None:
         if self._chunked:
             self._writer.flush()  # finishes the chunk in progress and flushes the stream
@@ -402,7 +394,9 @@ class SessionWriter:
         self._stop.set()
         self._flusher.join()
         self._writer.finish()
-        self._flush_os()
+        self._file.flush()
+        if self._fsync:
+            os.fsync(self._file.fileno())
         self._file.close()
 
     @property

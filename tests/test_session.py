@@ -278,6 +278,9 @@ def test_bad_files_are_refused_with_clear_messages(tmp_path, scene, scene_text):
     session = read_session(poses_only)
     with pytest.raises(ValueError, match=r"poses\.mcap: calibration needs the channels \['/bar/main/pose'\]"):
         session.require(["/bar/main/pose", "/strings/taut"], "calibration")
+    with pytest.raises(ValueError):  # a scene text that is not TOML: refused before the file is made
+        SessionWriter(tmp_path / "never.mcap", scene, "name = [unclosed")
+    assert not (tmp_path / "never.mcap").exists()
     with pytest.raises(ValueError, match="reserved"):
         SessionWriter(tmp_path / "x.mcap", scene, scene_text).write_metadata("scene", {})
 
