@@ -169,11 +169,14 @@ def test_the_standard_mcap_reader_opens_the_file(synthetic_file):
     assert {s["title"] for s in SCHEMAS.values()} == set(SCHEMAS)
 
 
-def test_a_file_copied_while_being_written_reads_back_to_within_a_second(tmp_path, scene, scene_text):
-    """Copy the bytes of a session still open (no close, no footer), then cut them anywhere."""
+@pytest.mark.parametrize("chunk_bytes", [None, 256 * 1024])
+def test_a_file_copied_while_being_written_reads_back_to_within_a_second(tmp_path, scene, scene_text,
+                                                                         chunk_bytes):
+    """Copy the bytes of a session still open (no close, no footer), then cut them anywhere;
+    unchunked (the default) and chunked."""
     values = _synthetic(seed=1, steps=3400)
     path = tmp_path / "live.mcap"
-    writer = SessionWriter(path, scene, scene_text, flush_seconds=1.0)
+    writer = SessionWriter(path, scene, scene_text, flush_seconds=1.0, chunk_bytes=chunk_bytes)
     for k in range(len(values["t"])):
         _write_tick(writer, values, k)
     copy = tmp_path / "copy.mcap"
@@ -183,11 +186,13 @@ def test_a_file_copied_while_being_written_reads_back_to_within_a_second(tmp_pat
     assert session.truncated
     pose = session.channels["/bar/main/pose"]
     lost = last_written - pose["t"][-1]
-    assert 0.0 <= lost <= 1.0 + 1e-3, lost  # measured 0.06 s (chunks also close at 256 KiB)
+    assert 0.0 <= lost <= 1.0 + 1e-3, lost  # measured: unchunked 0-1 ms, chunked 0.06-0.16 s
     np.testing.assert_array_equal(pose["position"], values["bar_position"][0, :len(pose["t"])])
     assert session_info(copy)["truncated"] is True
     # The writer goes on and closes normally.
     writer.close()
+    with path.open("rb") as f:
+        assert (make_reader(f).get_summary().statistics.chunk_count > 0) == (chunk_bytes is not None)
     assert read_session(path).channels["/bar/main/pose"]["t"][-1] == last_written
     # Cut the copy at arbitrary bytes (mid-record): each cut reads back a prefix, no error.
     data = copy.read_bytes()
@@ -332,12 +337,12 @@ def test_device_samples_keep_their_own_clock_and_bad_times_are_refused(tmp_path,
 
 
 def test_without_writer_flush_the_file_is_written_unchunked(tmp_path, scene, scene_text, monkeypatch):
-    """Older mcap releases lack ``Writer.flush``: the writer then writes unchunked, where every
-    record reaches the file at once, and a copy of the open file still reads back."""
+    """Older mcap releases lack ``Writer.flush``: chunks asked for, the writer writes unchunked,
+    and a copy of the open file still reads back."""
     monkeypatch.delattr(Writer, "flush")
     values = _synthetic(seed=2, steps=1500)
     path = tmp_path / "unchunked.mcap"
-    writer = SessionWriter(path, scene, scene_text)
+    writer = SessionWriter(path, scene, scene_text, chunk_bytes=64 * 1024)
     for k in range(len(values["t"])):
         _write_tick(writer, values, k)
     shutil.copyfile(path, tmp_path / "copy.mcap")
