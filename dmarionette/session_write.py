@@ -262,7 +262,7 @@ class SessionWriter:
                         "table_json": json.dumps(self_contained_table(scene_text, str(scene.source)))}
         metadata = {k: json.dumps(v) for k, v in session_metadata(scene, recorder=recorder).items()}
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = self.path.open("wb")
+        self._file = self.path.open("wb", buffering=8192)  # reaches the OS every 8 KiB
         # Chunks need Writer.flush (finish the chunk in progress), which came with newer mcap
         # releases; without it the file is written unchunked.
         self._chunked = chunk_bytes is not None and hasattr(Writer, "flush")
