@@ -328,7 +328,9 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
         ``ground_depth`` and ``chair_depth`` [m] ``(F,)`` (largest puppet penetration),
         ``limit_violation`` [rad] ``(F,)`` (largest joint-limit violation),
         ``particle_min_y`` [m] ``(F,)`` (lowest string particle), ``joint_q`` ``(F, q)``,
-        ``body_pos`` ``(F, bodies, 3)``.
+        ``body_pos`` ``(F, bodies, 3)``, ``tie_force_max`` [N] ``(S,)`` (largest eq. 2 force
+        of each tie over the run, at every string step), ``tie_force_last`` [N] ``(S, 3)`` (mean
+        eq. 2 force of each tie over the last frame).
     """
     from .marionette import SolverMarionette
     from .marionette_rollout import MarionetteRollout
@@ -368,7 +370,7 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
         if on_frame is not None:
             on_frame(c + 1, s)
 
-    rollout.run(state, t0, chunks, on_chunk=on_chunk)
+    outputs = rollout.run(state, t0, chunks, on_chunk=on_chunk)
     energies, work, finite, ground, chair, limit, pmin, jq, pos = zip(*records)
     keys = [k for k in energies[0] if k != "total"]
     return {
@@ -383,4 +385,6 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
         "particle_min_y": np.array(pmin),
         "joint_q": np.array(jq),
         "body_pos": np.array(pos),
+        "tie_force_max": np.linalg.norm(outputs["tie_force"], axis=2).max(axis=0),
+        "tie_force_last": outputs["tie_force"][-frame_steps:].mean(axis=0),
     }
