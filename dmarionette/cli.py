@@ -61,9 +61,11 @@ def _parser() -> argparse.ArgumentParser:
                     "at its own rate; forces are clamped, ramped in, and cut by a watchdog. Prints the "
                     "servo tick statistics at the end.")
     live.add_argument("scene", nargs="?", default="hanging", help="scene name or TOML file (default: hanging)")
-    live.add_argument("--device", choices=["sim", "simulated", "openhaptics", "falcon", "spacemouse"],
+    live.add_argument("--device", choices=["sim", "simulated", "replay", "openhaptics", "falcon", "spacemouse"],
                       default="simulated",
-                      help="the haptic device (sim = simulated: follows the scene's bar motion)")
+                      help="the haptic device (sim = simulated: follows the scene's bar motion; replay: plays "
+                           "the device stream of --session)")
+    live.add_argument("--session", type=Path, default=None, help="the recorded session --device replay plays")
     live.add_argument("--bar", default="main", help="the bar the device drives (default: main)")
     live.add_argument("--duration", type=float, default=10.0, help="seconds to run (default: 10)")
     live.add_argument("--record", type=Path, default=None, help="write the session to this MCAP file")
@@ -78,6 +80,17 @@ def _parser() -> argparse.ArgumentParser:
                       help="run the physics in a child process instead of the servo loop's worker thread "
                            "(on the 2-core development VM a pipe round trip costs ~160 us, so this kept "
                            "fewer deadlines; see the README)")
+    info = sub.add_parser("info", help="summarise a recorded session (MCAP)",
+                          description="Summarise a recorded session: duration, topics with counts and rates, "
+                                      "scene, bars, whether the recording was cut off (docs/session.md).")
+    info.add_argument("session", type=Path, help="the .mcap file")
+    replay = sub.add_parser("replay", help="re-simulate a recorded session and compare",
+                            description="Rebuild the session's scene from its metadata, drive its bars with the "
+                                        "recorded bar poses, re-simulate, and report the gap between recorded "
+                                        "and re-simulated body positions.")
+    replay.add_argument("session", type=Path, help="the .mcap file")
+    replay.add_argument("--out", type=Path, default=None, help="also write trajectory.npz and summary.json here")
+    replay.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     bench = sub.add_parser("bench", help="measure what accuracy costs in time",
                            description="Benchmarks. 'accuracy': sweep particles per string, string step, "
                                        "puppet rate and contact model against a refined reference; writes "
@@ -156,6 +169,21 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_replay(args: argparse.Namespace) -> int:
+    from .session import replay_session
+
+    trajectory, report = replay_session(args.session, optimization_level=0 if args.fast_compile else 2)
+    if args.out is not None:
+        from .session import read_session
+        from .trajectory_file import summarize_marionette, write_marionette_trajectory
+
+        scene = read_session(args.session).scene
+        write_marionette_trajectory(args.out / "trajectory.npz", trajectory, scene)
+        (args.out / "summary.json").write_text(json.dumps(summarize_marionette(trajectory, scene), indent=2) + "\n")
+    print(json.dumps(report, indent=2, default=float))
+    return 0
+
+
 def _run_live(args: argparse.Namespace) -> int:
     from .live import run_live
     from .marionette import MarionetteModel
@@ -170,7 +198,9 @@ def _run_live(args: argparse.Namespace) -> int:
     level = 0 if args.fast_compile else 2
     model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
     device = "simulated" if args.device == "sim" else args.device
-    stats, summary = run_live(model, device=device, bar=args.bar, duration=args.duration, record=args.record,
+    if device == "replay" and args.session is None:
+        raise ValueError("--device replay needs --session FILE (a recorded session)")
+    stats, summary = run_live(model, device=device, bar=args.bar, session=args.session, duration=args.duration, record=args.record,
                               feedback=args.feedback, force_scale=args.force_scale,
                               workspace_scale=args.workspace_scale, process=args.own_process,
                               optimization_level=level)
@@ -198,6 +228,13 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.command == "live":
             return _run_live(args)
+        if args.command == "info":
+            from .session import format_session_info, session_info
+
+            print(format_session_info(session_info(args.session)))
+            return 0
+        if args.command == "replay":
+            return _run_replay(args)
         if args.command == "bench":
             from .accuracy import run_sweep, write_outputs
 

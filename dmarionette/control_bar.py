@@ -94,6 +94,10 @@ class BarTrajectory:
         rate[held] = 0.0
         return value, rate
 
+    def angles(self, times: np.ndarray) -> np.ndarray:
+        """XYZ Euler angles [deg] at ``times``, ``(T, 3)`` (the interpolated keyframe angles)."""
+        return self._evaluate(np.asarray(self.rotations, dtype=np.float64), times)[0]
+
     def pose(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bar centre position [m] ``(T, 3)``, velocity [m/s] ``(T, 3)`` and rotation ``(T, 3, 3)``."""
         position, velocity = self._evaluate(np.asarray(self.positions, dtype=np.float64), times)
@@ -159,7 +163,7 @@ def write_bar_trajectory_csv(path: str | Path, trajectory: BarTrajectory, times:
     """Samples ``trajectory`` at ``times`` into a CSV file that :func:`read_bar_trajectory_csv` reads."""
     path = Path(path)
     position, _, _ = trajectory.pose(times)
-    angles, _ = trajectory._evaluate(np.asarray(trajectory.rotations, dtype=np.float64), times)
+    angles = trajectory.angles(times)
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["t", "x", "y", "z", "rx", "ry", "rz"])

@@ -96,7 +96,7 @@ class LiveMarionette:
 
 def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *, feedback: str = "reaction",
                       force_scale: float = 1.0,
-                      on_tick: Callable[[LiveTick, np.ndarray, np.ndarray], None] | None = None):
+                      on_tick: Callable[[LiveTick, dict], None] | None = None):
     """A world-frame physics callback for the servo loop: the device drives ``driven_bar``.
 
     Args:
@@ -108,7 +108,8 @@ def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *,
         feedback: ``"reaction"`` (the strings' pull on the bar) or ``"eq4"`` (the paper's eq. 4 as
             printed, which spans the whole string length and is large).
         force_scale: multiplies the force before it leaves (the safety filter clamps after).
-        on_tick: called with the tick, the driven bar's pose (position, rotation deg) each tick.
+        on_tick: called each tick with the tick and every bar's pose at its end,
+            ``{bar: (position (3,), rotation (3,) XYZ deg)}``.
 
     Returns:
         ``step(sample_world, t) -> force_world (3,)`` (wrap with ``DeviceMapping.wrap``).
@@ -125,7 +126,9 @@ def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *,
     local = [np.array([bar.attach[names[i]] for i in idx]) for bar, idx in zip(bars, carried)]
     previous = {"position": None}
     ticks = int(np.ceil(duration / model.string_dt)) + 2
-    scripted = bar_inputs(model, model.string_dt * np.arange(1, ticks + 1))  # at the end of each string step
+    tick_times = model.string_dt * np.arange(1, ticks + 1)  # the end of each string step
+    scripted = bar_inputs(model, tick_times)
+    scripted_angles = [bar.trajectory.angles(tick_times) for bar in bars]
 
     def step(sample, _t: float) -> np.ndarray:
         k = min(live.tick, ticks - 1)  # past the planned duration the scripted bars hold still
@@ -138,7 +141,9 @@ def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *,
         tops[carried[driven]] = position + local[driven] @ rotation.T
         tick = live.advance(tops, bar_q, bar_qd)
         if on_tick is not None:
-            on_tick(tick, position, _matrix_to_euler_deg(rotation))
+            poses = {name: (bar_q[b], scripted_angles[b][k]) for b, name in enumerate(model.bar_names)}
+            poses[driven_bar] = (position, _matrix_to_euler_deg(rotation))
+            on_tick(tick, poses)
         force = tick.bar_reaction[driven] if feedback == "reaction" else tick.bar_feedback[driven]
         return force_scale * force
 
@@ -190,11 +195,21 @@ class _RecordingDevice(AbstractHapticDevice):
         self._record("force", np.asarray(force, dtype=np.float64))
 
 
-def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray) -> AbstractHapticDevice:
+def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None) -> AbstractHapticDevice:
     """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
-    world frame shifted by ``trajectory_offset``); the others open real hardware."""
+    world frame shifted by ``trajectory_offset``); ``replay`` plays the device stream of the
+    recorded ``session`` (an MCAP file); the others open real hardware."""
     from . import hw
 
+    if name == "replay":
+        from .session import read_session
+
+        recorded = read_session(session, load_scene=False)
+        topic = f"/device/{bar}/sample"
+        recorded.require([topic], "--device replay")
+        channel = recorded.channels[topic]
+        return hw.HapticDeviceReplay(channel["device_time"] if "device_time" in channel else channel["t"],
+                                     channel["position"], channel["orientation"], channel["buttons"])
     if name == "simulated":
         trajectory = scene.bars[[b.name for b in scene.bars].index(bar)].trajectory
 
@@ -209,12 +224,12 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray) ->
         return hw.HapticDeviceFalcon()
     if name == "spacemouse":
         return hw.HapticDeviceSpaceMouse()
-    raise ValueError(f"device: got {name!r}; expected one of simulated, openhaptics, falcon, spacemouse")
+    raise ValueError(f"device: got {name!r}; expected one of simulated, replay, openhaptics, falcon, spacemouse")
 
 
 def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "main", duration: float = 10.0,
              record=None, feedback: str = "reaction", force_scale: float = 1.0, workspace_scale: float = 1.0,
-             process: bool = False, optimization_level: int = 2, **servo_options):
+             process: bool = False, optimization_level: int = 2, session=None, **servo_options):
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
@@ -232,7 +247,7 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
         raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
     start = np.array(scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
     mapping = DeviceMapping.make(workspace_scale, translation=start)
-    haptic = make_device(device, scene, bar, trajectory_offset=start)
+    haptic = make_device(device, scene, bar, trajectory_offset=start, session=session)
     peak = {"force": 0.0}
     if process:
         from .live_process import PhysicsProcess
@@ -264,13 +279,13 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
             if writer is not None:
                 with lock:
                     if kind == "sample":
-                        writer.write_device_sample(bar, value)
+                        writer.write_device_sample(bar, value, t=live.time)
                     else:
                         writer.write_force(bar, live.time, value)
 
-        def on_tick(tick: LiveTick, position, rotation_deg) -> None:
+        def on_tick(tick: LiveTick, poses: dict) -> None:
             with lock:
-                _record_tick(writer, model, live, bar, tick, position, rotation_deg)
+                _record_tick(writer, model, live, tick, poses)
 
         world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
                                        on_tick=on_tick if writer is not None else None)
@@ -296,12 +311,11 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
     return stats, summary
 
 
-def _record_tick(writer, model: MarionetteModel, live: LiveMarionette, bar: str, tick: LiveTick, position,
-                 rotation_deg) -> None:
-    """Writes one tick of a live session: feedback, the driven bar's pose, taut flags, puppet state."""
+def _record_tick(writer, model: MarionetteModel, live: LiveMarionette, tick: LiveTick, poses: dict) -> None:
+    """Writes one tick of a live session: every bar's pose and feedback, taut flags, puppet state."""
     for b, name in enumerate(model.bar_names):
         writer.write_feedback(name, tick.t, tick.bar_feedback[b], tick.bar_reaction[b])
-    writer.write_bar_pose(bar, tick.t, position, rotation_deg)
+        writer.write_bar_pose(name, tick.t, *poses[name])
     writer.write_taut(tick.t, tick.string_taut)
     if tick.puppet_stepped:
         model.puppet_solver.eval_kinematics(live.state.puppet)

@@ -65,7 +65,7 @@ def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str
                 writer.write_force(bar, live.time, last_force)
             sample = HapticSample.make(time=t, position=position, orientation=rotation)
             if writer is not None:
-                writer.write_device_sample(bar, sample)
+                writer.write_device_sample(bar, sample, t=live.time)
             conn.send(np.asarray(step(sample, t), dtype=np.float64))
     finally:
         if writer is not None:
@@ -77,7 +77,7 @@ def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str
 def _recorder(writer, model, live, bar):
     from .live import _record_tick
 
-    return lambda tick, position, rotation_deg: _record_tick(writer, model, live, bar, tick, position, rotation_deg)
+    return lambda tick, poses: _record_tick(writer, model, live, tick, poses)
 
 
 class PhysicsProcess:

@@ -26,7 +26,7 @@ __all__ = ["record_simulation", "replay_session", "scene_for_replay"]
 
 def _bar_angles(bar, times: np.ndarray) -> np.ndarray:
     """The bar's XYZ Euler angles [deg] at ``times``, from its spline (as its pose uses them)."""
-    return bar.trajectory._evaluate(np.asarray(bar.trajectory.rotations, dtype=np.float64), times)[0]
+    return bar.trajectory.angles(times)
 
 
 def record_simulation(model: MarionetteModel, duration: float, path: str | Path, *,

@@ -60,3 +60,45 @@ def test_live_refuses_a_scene_without_bars(tmp_path, capsys):
 
     assert main(["live", "strings", "--duration", "0.1"]) == 2
     assert "needs a scene with a [puppet] and [bars]" in capsys.readouterr().err
+
+
+def test_record_info_replay_and_replay_device(tmp_path, capsys):
+    """`live --record` writes a session that `info` summarises and `replay` re-simulates, and
+    `--device replay` plays back.
+
+    Replay drives the bars with the recorded poses, which it reproduces exactly; the puppet
+    then agrees to 1e-6 m (measured 3.9e-7 m over 0.9 s). Replaying a *simulated* session gives
+    exactly 0 (tests/test_session_replay.py); the sub-micron gap of a live session is not yet
+    explained.
+    """
+    import json
+
+    from dmarionette.cli import main
+    from dmarionette.session import read_session
+
+    session = tmp_path / "live.mcap"
+    assert main(["live", "--duration", "1.0", "--record", str(session), "--fast-compile"]) == 0
+    capsys.readouterr()
+    recorded = read_session(session)
+    for topic in ("/device/main/sample", "/device/main/force", "/bar/main/pose", "/bar/main/feedback",
+                  "/strings/taut", "/puppet/state"):
+        assert len(recorded.channels[topic]["t"]) > 0, topic
+    forces = np.linalg.norm(recorded.channels["/device/main/force"]["force"], axis=1)
+    assert forces.max() <= 3.3 + 1e-12  # never above the simulated device's limit
+
+    assert main(["info", str(session)]) == 0
+    assert "/puppet/state" in capsys.readouterr().out
+
+    assert main(["replay", str(session), "--fast-compile"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["frames_compared"] > 10
+    assert report["max_body_gap"] < 1e-6, report
+    from dmarionette.session import session_bar_trajectories
+
+    pose = recorded.channels["/bar/main/pose"]
+    replayed = session_bar_trajectories(recorded)["main"].pose(pose["t"])[0]
+    np.testing.assert_array_equal(replayed, pose["position"])  # the bar trajectory, exactly
+
+    assert main(["live", "--device", "replay", "--session", str(session), "--duration", "0.5",
+                 "--fast-compile"]) == 0
+    assert '"device": "replay"' in capsys.readouterr().out
