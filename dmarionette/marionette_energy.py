@@ -327,7 +327,8 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
         start), ``finite`` (all string and puppet coordinates finite at every frame),
         ``ground_depth`` and ``chair_depth`` [m] ``(F,)`` (largest puppet penetration),
         ``limit_violation`` [rad] ``(F,)`` (largest joint-limit violation),
-        ``particle_min_y`` [m] ``(F,)`` (lowest string particle), ``joint_q`` ``(F, q)``,
+        ``particle_min_y`` [m] ``(F,)`` (lowest string particle), ``joint_q`` ``(F, q)``, ``joint_qd``
+        ``(F, qd)``,
         ``body_pos`` ``(F, bodies, 3)``, ``tie_force_max`` [N] ``(S,)`` (largest eq. 2 force
         of each tie over the run, at every string step), ``tie_force_last`` [N] ``(S, 3)`` (mean
         eq. 2 force of each tie over the last frame).
@@ -347,6 +348,7 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
     def record(state_now):
         q = state_now.strings.particle_q.numpy()
         jq = state_now.puppet.joint_q.numpy()[0].copy()
+        jqd = state_now.puppet.joint_qd.numpy()[0].copy()
         finite = bool(np.all(np.isfinite(q)) and np.all(np.isfinite(state_now.strings.particle_qd.numpy()))
                       and np.all(np.isfinite(jq)) and np.all(np.isfinite(state_now.puppet.joint_qd.numpy())))
         if finite:
@@ -361,7 +363,7 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
             energy = {"total": np.nan}
             pos = np.full((model.puppet.body_count, 3), np.nan)
             ground = chair = limit = np.nan
-        records.append((energy, meter.total(), finite, ground, chair, limit, float(np.min(q[:, 1])), jq, pos))
+        records.append((energy, meter.total(), finite, ground, chair, limit, float(np.min(q[:, 1])), jq, pos, jqd))
 
     record(state)
 
@@ -371,7 +373,7 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
             on_frame(c + 1, s)
 
     outputs = rollout.run(state, t0, chunks, on_chunk=on_chunk)
-    energies, work, finite, ground, chair, limit, pmin, jq, pos = zip(*records)
+    energies, work, finite, ground, chair, limit, pmin, jq, pos, jqd = zip(*records)
     keys = [k for k in energies[0] if k != "total"]
     return {
         "time": t0 + frame_steps * model.string_dt * np.arange(len(records)),
@@ -384,6 +386,7 @@ def simulate_energy_balance(model, duration: float, *, frame_hz: float = 30.0, s
         "limit_violation": np.array(limit),
         "particle_min_y": np.array(pmin),
         "joint_q": np.array(jq),
+        "joint_qd": np.array(jqd),
         "body_pos": np.array(pos),
         "tie_force_max": np.linalg.norm(outputs["tie_force"], axis=2).max(axis=0),
         "tie_force_last": outputs["tie_force"][-frame_steps:].mean(axis=0),

@@ -1,8 +1,11 @@
-"""Refuses marionette settings the simulator cannot run, with a clear message.
+"""Refuses settings the simulator cannot run, with a clear message.
 
 :func:`check_marionette_settings` is meant to be called where a marionette is built
-(``MarionetteModel.__init__``, after the float32 check) or where a scene is loaded for a
-marionette. Every refusal below comes from a measurement in ``tests/test_hard_cases*.py``:
+(``MarionetteModel.__init__``, after the float32 check); :func:`check_string_settings`
+where strings are built from a scene (``Scene.build_string_model``, or at the end of
+``scene_from_table``). Every refusal comes from a measurement in ``tests/test_hard_cases*.py``:
+
+- **float32 strings at a string step below 1e-4 s** (:func:`check_string_settings`).
 
 - **a tied string with ``tie_stiffness = 0``**: the coupling hands the puppet the mean
   string force as an anchor offset ``F / k`` (``kernels/string_body_coupling.py``,
@@ -23,10 +26,30 @@ from __future__ import annotations
 
 from .scene_fields import SceneError
 
-__all__ = ["MIN_SUBSTEPPED_PUPPET_HZ", "check_marionette_settings"]
+__all__ = ["MAX_FLOAT32_STRING_HZ", "MIN_SUBSTEPPED_PUPPET_HZ", "check_marionette_settings", "check_string_settings"]
 
 MIN_SUBSTEPPED_PUPPET_HZ = 25.0
 """Lowest puppet rate [Hz] measured energy-consistent when the strings take several steps per puppet step."""
+
+MAX_FLOAT32_STRING_HZ = 1.0e4
+"""Highest string rate [Hz] at which float32 strings were measured to track float64 (see the module doc)."""
+
+
+def check_string_settings(scene) -> None:
+    """Raises :class:`SceneError` for string settings that cannot work (any scene, with or
+    without a puppet): float32 with a string step so small that a step's position
+    increment ``h v`` nears float32's resolution at the scene's scale (``1.2e-7 m`` at 1 m).
+
+    Measured on the ``strings`` scene swaying at 5 Hz (top speed 1.6 m/s), largest
+    float32 - float64 particle gap: 1.9e-7 m after 0.2 s at 1 kHz, 3.2e-6 m after 0.5 s at
+    10 kHz, 1.1e-4 m after 0.5 s at 100 kHz (growing: 1 mm within a 5-s scene), 2.6e-4 m
+    after only 0.05 s at 1 MHz.
+    """
+    if scene.precision == "float32" and scene.string_hz > MAX_FLOAT32_STRING_HZ:
+        raise SceneError(f"{scene.source}: [rates]", "string_hz", scene.string_hz,
+                         f"<= {MAX_FLOAT32_STRING_HZ:g} Hz with [solver] precision = \"float32\" (a step of "
+                         f"{1.0 / scene.string_hz:g} s moves a particle by less than float32 resolves at 1 m, "
+                         "and the strings drift from the float64 answer); use precision = \"float64\"")
 
 
 def check_marionette_settings(scene) -> None:
@@ -35,6 +58,7 @@ def check_marionette_settings(scene) -> None:
     Args:
         scene: a loaded :class:`~dmarionette.scene.Scene` with a ``[puppet]``.
     """
+    check_string_settings(scene)
     source = scene.source
     substeps = max(1, round(scene.string_hz / scene.puppet_hz))
     if substeps > 1 and scene.puppet_hz < MIN_SUBSTEPPED_PUPPET_HZ:
