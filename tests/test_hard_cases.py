@@ -164,7 +164,7 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
     ~120 N per string for 20 ms); the energy must still never exceed it. Ground bound
     ``v H + M g / k`` with ``v`` = 5 m/s (nothing in the puppet is moved faster than the bars
     by the strings' pull). Measured: energy at most -1.16e-2 J from ``E(0) + W``, ground
-    6.3 mm (bound 171 mm), limit 0.465 rad (energy bound 3.1 rad).
+    6.3 mm (bound 5 x 0.033 + 0.0037 = 169 mm), limit 0.465 rad (energy bound 3.1 rad).
     """
     main, hand = hanging.bars
     p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
@@ -183,7 +183,7 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
 def test_dropped_onto_the_ground(hanging):
     """The puppet with its ties cut, released 0.4 m (feet) above the ground: it falls, lands and
     lies there. Bounds: transient ``v H + M g / k`` with ``v = sqrt(2 g 0.4)`` = 2.8 m/s
-    (97 mm; measured 80.7 mm). Lying (last second): ``M g / k + g H^2`` = 3.7 + 10.9 mm: the contact force is
+    (96 mm; measured 80.7 mm). Lying (last second): ``M g / k + g H^2`` = 3.7 + 10.7 mm: the contact force is
     switched on by the state at the start of a step, so a point that starts a step just
     above the ground falls freely for that step, ``g H^2`` deep at most.
 
@@ -209,7 +209,7 @@ def test_dropped_onto_the_ground(hanging):
 def test_dropped_onto_the_chair():
     """The seated puppet (chair scene) with its ties cut, released 0.2 m above its seat. Bounds:
     chair and ground penetration ``v H + M g / k`` with ``v = sqrt(2 g 0.2)`` = 2.0 m/s
-    (71 mm). Measured: chair 47.3 mm, ground 12.4 mm, limit 0.145 rad; it ends on the seat
+    (69 mm). Measured: chair 47.3 mm, ground 12.4 mm, limit 0.145 rad; it ends on the seat
     (pelvis above the seat top).
     """
     chair = dm.load_scene("chair")
@@ -253,7 +253,7 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging):
     10 cm clearance on top of the bars' speed); string particles, which are tied to body
     points whose predicted path (``x + H v``) can run ``v H`` further below, ``2 v H + M g / k``.
     Measured: bar work 11.6 J (the top segments' friction again), energy at most -1.16e-2 J
-    from ``E(0) + W``, puppet 28.8 mm (bound 73 mm), lowest particle -46.1 mm (bound 142 mm),
+    from ``E(0) + W``, puppet 28.8 mm (bound 70 mm), lowest particle -46.1 mm (bound 136 mm),
     limit 0.409 rad. The particles that deep are not lying on the ground: they are the
     lower end of a straight, *compressed* knee string pushed into the ground by the
     lowering bar, see ``test_hard_cases_strings.py::test_a_lowered_string_does_not_push_into_the_ground``.
@@ -281,3 +281,47 @@ def test_30_hz_with_10x_stiffer_strings(hanging):
     model = _model(hanging, strings=strings)
     r = simulate_energy_balance(model, 6.0)
     _check("10x stiffer at 30 Hz", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.0325)
+
+
+class SwayPath:
+    """A bar swaying for ever: ``p0 + a sin(2 pi f t)`` and a roll of ``r sin(2 pi f t)`` degrees
+    about the bar's forward axis (z)."""
+
+    def __init__(self, p0, amplitude, roll_deg, frequency):
+        self.p0, self.a = np.asarray(p0, dtype=np.float64), np.asarray(amplitude, dtype=np.float64)
+        self.roll, self.f = float(roll_deg), float(frequency)
+        self.positions, self.rotations = self.p0[None], np.zeros((1, 3))
+
+    def pose(self, times):
+        t = np.asarray(times, dtype=np.float64)
+        w = 2 * np.pi * self.f
+        s, c = np.sin(w * t)[:, None], np.cos(w * t)[:, None]
+        angles = np.zeros((len(t), 3))
+        angles[:, 2] = self.roll * s[:, 0]
+        return self.p0 + self.a * s, w * self.a * c, euler_to_matrix(angles)
+
+
+def test_two_minutes_of_swaying_marionette(hanging):
+    """The full marionette (default constants and rates) with the main bar swaying 4 cm and
+    rolling 6 deg with a period of 1.98 s (60 puppet steps) for 2 simulated minutes, the
+    energy read once per period (so every sample is at the same phase).
+
+    The 30-minute float64 run of the issue is ``test_hard_cases_strings.py``'s strings
+    run: the whole marionette for 30 minutes costs about 3 minutes with the tests' unoptimised
+    puppet kernels (measured 6.5 s per simulated minute), beyond this suite's budget. Here:
+    finite; within the energy bound; and periodic: from 30 s on (the strings and puppet
+    settle into the sway within a few periods) the energy at the sampled phase stays within
+    1e-4 J (any numerical creep or growing oscillation would show). Measured: spread
+    5.7e-9 J over 46 periods; energy at most -0.132 J from ``E(0) + W`` (W = 4.78 J);
+    limit 0.0005 rad; about 10 s of test time.
+    """
+    main, hand = hanging.bars
+    puppet_dt = round(hanging.string_hz / hanging.puppet_hz) / hanging.string_hz  # 33 ms
+    period = 60 * puppet_dt  # 1.98 s: the frames are whole puppet steps, so the sway period is too
+    sway = SwayPath(main.trajectory.positions[0], (0.04, 0.0, 0.0), 6.0, 1.0 / period)
+    model = _model(hanging, bars=(dataclasses.replace(main, trajectory=sway), _still(hand)))
+    r = simulate_energy_balance(model, 120.0, frame_hz=1.0 / period)
+    _check("2 minutes", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.0005)
+    late = r["energy"][r["time"] >= 30.0]
+    print(f"energy spread from 30 s on {np.ptp(late):.3e} J over {len(late)} samples")
+    assert np.ptp(late) <= 1e-4
