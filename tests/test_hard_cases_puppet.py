@@ -90,8 +90,9 @@ def test_a_joint_thrown_into_its_limit_at_30_hz_gains_no_energy(hanging):
     strings have already been dragged along the prediction: at the next frame the hand
     string holds 0.40 J of spring energy and its tie 0.57 J, which the next steps hand back
     to the puppet. The same happens to the knee string with the hip thrown at 15 rad/s
-    (0.62 J). Not a blow-up (the excess is gone within 0.2 s), but the coupling is not
-    passive at 30 Hz when a tied body point decelerates hard within one puppet step.
+    (0.50 J). Not a blow-up (after the 1.14 J peak at 66 ms the excess falls, rises again
+    to 0.27 J at 0.36 s and is gone after about 0.8 s), but the coupling is not passive at
+    30 Hz when a tied body point decelerates hard within one puppet step.
     """
     model, state, _ = _thrown_joint(hanging, "shoulder_left", 1, -20.0, 30.0)
     r = simulate_energy_balance(model, 1.0, state=state)
