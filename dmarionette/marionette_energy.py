@@ -57,6 +57,8 @@ The meter wraps a string solver (``SolverStringImplicit``) and adds one kernel l
 after every string step, so it also works inside captured graphs
 (``MarionetteRollout``). Install it on a marionette with :func:`install_bar_work_meter`
 (it replaces ``model.string_solver`` by the meter, which steps the original solver).
+The meter is a diagnostic: its accumulation is in place, so it has no meaningful
+gradient; do not install it on a model used under a ``wp.Tape``.
 """
 
 
