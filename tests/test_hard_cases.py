@@ -96,7 +96,8 @@ def _check(name, model, r, *, ground=None, limit=None, chair=None, string_ground
     excess = _excess(r)
     print(f"\n{name}: max excess after the start {excess[1:].max():.3e} J, bar work {r['bar_work'][-1]:.4f} J, "
           f"ground {r['ground_depth'].max() * 1e3:.2f} mm, chair {r['chair_depth'].max() * 1e3:.2f} mm, "
-          f"limit {r['limit_violation'].max():.4f} rad (bound {limit if limit is not None else np.nan:.3f}), lowest particle {r['particle_min_y'].min() * 1e3:.2f} mm")
+          f"limit {r['limit_violation'].max():.4f} rad (bound {limit if limit is not None else np.nan:.3f}), "
+          f"lowest particle {r['particle_min_y'].min() * 1e3:.2f} mm")
     assert excess.max() <= TOL_ENERGY, (name, excess.max())
     if ground is not None:
         assert r["ground_depth"].max() <= ground, (name, r["ground_depth"].max(), ground)

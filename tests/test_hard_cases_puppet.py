@@ -16,7 +16,7 @@ from dmarionette.marionette import MarionetteModel
 from dmarionette.marionette_energy import puppet_limit_violation, simulate_energy_balance
 from dmarionette.scene_fields import SceneError
 from dmarionette.settings_check import check_marionette_settings
-from test_hard_cases import G, PiecewiseLinearPath, _check, _contact_bound, _limit_bound, _model, _still
+from test_hard_cases import G, _check, _contact_bound, _limit_bound, _model, _still
 
 wp.config.log_level = wp.LOG_WARNING
 
