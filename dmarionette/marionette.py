@@ -31,6 +31,7 @@ from .articulation import (
 from .kernels.bar_feedback import eval_bar_feedback_kernel
 from .kernels.string_body_coupling import apply_string_forces_to_anchors, eval_tie_path
 from .scene import Scene
+from .settings_check import check_marionette_settings
 from .string_model import StringControl, StringModel, StringState
 from .string_solver import SolverStringImplicit
 
@@ -58,6 +59,7 @@ class MarionetteModel:
         if scene.precision != "float64":
             raise ValueError(f"{scene.source}: [solver] precision = {scene.precision!r}: a marionette runs in "
                              "float64 only (the puppet solver is float64; float32 is available for strings alone)")
+        check_marionette_settings(scene)  # settings measured not to work are refused, with the reason
         self.scene = scene
         self.device = wp.get_device(device)
         self.string_dt = scene.string_dt

@@ -252,13 +252,20 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     chair = _read_chair(table, source) if body_effects["chair"] else None
     ball = _read_ball(table, source) if body_effects["ball"] else None
 
-    return Scene(name=name, description=description, source=source, duration=duration,
+    scene = Scene(name=name, description=description, source=source, duration=duration,
                  string_hz=string_hz, puppet_hz=puppet_hz, precision=precision, effects=effects,
                  gravity=gravity, ground_height=ground_height, strings=strings, motion=motion,
                  puppet=puppet, string_body_points=body_points, bars=bars, body_effects=body_effects,
                  feedback_stiffness=read_float(feedback, "stiffness", where, 5.0, minimum=0.0),
                  feedback_damping=read_float(feedback, "damping", where, 0.5, minimum=0.0),
                  contact=contact, chair=chair, ball=ball, initial_pose=initial_pose)
+    # Settings the simulator was measured not to handle are refused here, with the reason.
+    from .settings_check import check_marionette_settings, check_string_settings
+
+    check_string_settings(scene)
+    if puppet is not None:
+        check_marionette_settings(scene)
+    return scene
 
 
 def _puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, Any]:

@@ -189,7 +189,7 @@ def test_the_smallest_and_largest_steps(hanging, string_hz, puppet_hz, seconds):
     _check(f"{string_hz:g}/{puppet_hz:g} Hz", model, r, ground=0.0, limit=_limit_bound(model, r))
 
 
-def test_a_slow_puppet_under_fast_strings_is_refused(hanging):
+def test_a_slow_puppet_under_fast_strings_is_refused(hanging, monkeypatch):
     """``puppet_hz`` below 25 Hz with several string steps per puppet step is refused: the
     coupling then puts energy in (``settings_check``'s module doc: +0.002 J at 20 Hz up to
     +135 J and a joint 5.4 rad past its limit at 1 Hz), which this test shows at 10 Hz with
@@ -199,6 +199,8 @@ def test_a_slow_puppet_under_fast_strings_is_refused(hanging):
     with pytest.raises(SceneError, match="puppet_hz.*25") as error:
         check_marionette_settings(scene)
     assert "string_hz" in str(error.value)
+    # Build it anyway (the model refuses it too) to show why it is refused.
+    monkeypatch.setattr("dmarionette.marionette.check_marionette_settings", lambda scene: None)
     model = MarionetteModel(scene, optimization_level=0)
     r = simulate_energy_balance(model, 6.0, frame_hz=10.0)
     motion = r["energy"] - r["parts"]["puppet_contact"] - r["parts"]["puppet_limit"]
@@ -207,13 +209,15 @@ def test_a_slow_puppet_under_fast_strings_is_refused(hanging):
     assert excess.max() > 1e-2  # the reason for the refusal
 
 
-def test_a_puppet_step_above_0_1_s_is_refused(hanging):
+def test_a_puppet_step_above_0_1_s_is_refused(hanging, monkeypatch):
     """``puppet_hz`` below 10 Hz is refused even at the string rate: at 4 Hz (strings and puppet)
     the energy of the motion grows by thousands of joules within 10 s (measured 8,000 J),
     which this test shows; 10 Hz is accepted and tested above."""
     scene = dataclasses.replace(hanging, string_hz=4.0, puppet_hz=4.0)
     with pytest.raises(SceneError, match="puppet_hz.*10"):
         check_marionette_settings(scene)
+    # Build it anyway (the model refuses it too) to show why it is refused.
+    monkeypatch.setattr("dmarionette.marionette.check_marionette_settings", lambda scene: None)
     model = MarionetteModel(scene, optimization_level=0)
     r = simulate_energy_balance(model, 10.0, frame_hz=4.0)
     motion = r["energy"] - r["parts"]["puppet_contact"] - r["parts"]["puppet_limit"]
@@ -230,8 +234,6 @@ def test_a_zero_stiffness_tie_is_refused(hanging):
         check_marionette_settings(dataclasses.replace(hanging, strings=strings))
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: a tied string with tie_stiffness = 0 makes the puppet NaN on the first "
-                                       "step; MarionetteModel does not yet call check_marionette_settings")
 def test_a_marionette_with_a_zero_stiffness_tie_is_refused_or_finite(hanging):
     """Scenes accept ``tie_stiffness = 0`` (``scene.py``: minimum 0). In a marionette,
     ``apply_string_forces_to_anchors`` (``kernels/string_body_coupling.py``) sets the body
