@@ -33,6 +33,7 @@ from .kernels.string_body_coupling import apply_string_forces_to_anchors, eval_t
 from .scene import Scene
 from .settings_check import check_marionette_settings
 from .string_model import StringControl, StringModel, StringState
+from .string_rollout import upload_values
 from .string_solver import SolverStringImplicit
 
 __all__ = ["MarionetteControl", "MarionetteModel", "MarionetteState", "SolverMarionette"]
@@ -193,10 +194,10 @@ class MarionetteControl:
         self.t0 = float(t0)
         times = t0 + model.string_dt * np.arange(1, model.substeps + 1)
         tops, bar_q, bar_qd = bar_inputs(model, times)
-        _upload(self.top_q, tops)
+        upload_values(self.top_q, tops)
         if model.bar_count:
-            _upload(self.bar_q, bar_q)
-            _upload(self.bar_qd, bar_qd)
+            upload_values(self.bar_q, bar_q)
+            upload_values(self.bar_qd, bar_qd)
 
 
 def initial_joint_q(puppet_model, scene: Scene) -> np.ndarray:
@@ -220,13 +221,6 @@ def bar_inputs(model: MarionetteModel, times: np.ndarray) -> tuple[np.ndarray, n
     for b, bar in enumerate(scene.bars):
         bar_q[:, b], bar_qd[:, b], _ = bar.trajectory.pose(times)
     return tops, bar_q, bar_qd
-
-
-def _upload(dst: wp.array, values: np.ndarray) -> None:
-    if dst.device.is_cpu:
-        dst.numpy()[...] = values
-    else:
-        dst.assign(wp.array(np.ascontiguousarray(values), dtype=dst.dtype, device=dst.device))
 
 
 class SolverMarionette:

@@ -20,7 +20,7 @@ import warp as wp
 from .string_model import StringControl, StringModel, StringState
 from .string_solver import SolverStringImplicit
 
-__all__ = ["StringRollout", "StringRolloutResult"]
+__all__ = ["StringRollout", "StringRolloutResult", "upload_values"]
 
 
 @dataclasses.dataclass
@@ -41,7 +41,7 @@ class StringRolloutResult:
     frame_velocities: np.ndarray
 
 
-def _upload(dst: wp.array, values: np.ndarray) -> None:
+def upload_values(dst: wp.array, values: np.ndarray) -> None:
     """Writes host values into a Warp array (in place on the CPU, where ``numpy()`` is a view)."""
     if dst.device.is_cpu:
         dst.numpy()[...] = values
@@ -142,9 +142,9 @@ class StringRollout:
         self._state.assign(state)
         for c in range(chunks):
             rows = slice(c * self.chunk_steps, (c + 1) * self.chunk_steps)
-            _upload(self._top_q, top_q[rows])
-            _upload(self._tie_q, tie_q[rows])
-            _upload(self._tie_qd, tie_qd[rows])
+            upload_values(self._top_q, top_q[rows])
+            upload_values(self._tie_q, tie_q[rows])
+            upload_values(self._tie_qd, tie_qd[rows])
             wp.capture_launch(self._graph)
             tie_force[rows] = self._tie_force.numpy()
             taut[rows] = self._taut.numpy()
