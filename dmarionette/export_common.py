@@ -275,6 +275,9 @@ def read_marionette_trajectory(path: str | Path):
     if not path.is_file():
         raise ExportError(f"{path}: no such file; expected a trajectory file (trajectory.npz from "
                           "'dmarionette simulate')")
+    if not zipfile.is_zipfile(path):
+        raise ExportError(f"{path}: not a NumPy .npz archive (not a zip file: {path.stat().st_size} bytes that do "
+                          "not start like one); expected a trajectory file from 'dmarionette simulate'")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
