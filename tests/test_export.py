@@ -334,3 +334,237 @@ def test_bvh_refuses_bad_input(synthetic, tmp_path):
         export_gltf(types.SimpleNamespace(**backwards), tmp_path / "x.glb")
     with pytest.raises(ExportError, match=r"field 'body_pos': got nothing"):
         export_gltf(types.SimpleNamespace(frame_time=[0.0], body_names=["a"]), tmp_path / "x.glb")
+
+
+# ----------------------------------------------------------------------------- glTF reading
+
+_COMPONENT = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
+_WIDTH = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
+
+
+def _accessor(gltf, blob, index):
+    acc = gltf.accessors[index]
+    view = gltf.bufferViews[acc.bufferView]
+    dtype = _COMPONENT[acc.componentType]
+    width = _WIDTH[acc.type]
+    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    data = np.frombuffer(blob, dtype=dtype, count=acc.count * width, offset=start)
+    return data.reshape(acc.count, width) if width > 1 else data
+
+
+def _validate_glb(path):
+    """The glTF 2.0 rules (specification sections 4.4 and 5) that the Khronos validator checks here.
+
+    Returns the parsed document and the binary chunk.
+    """
+    raw = path.read_bytes()
+    magic, version, length = struct.unpack_from("<III", raw, 0)
+    assert (magic, version, length) == (0x46546C67, 2, len(raw))
+    json_length, json_type = struct.unpack_from("<II", raw, 12)
+    assert json_type == 0x4E4F534A and json_length % 4 == 0
+    bin_start = 20 + json_length
+    bin_length, bin_type = struct.unpack_from("<II", raw, bin_start)
+    assert bin_type == 0x004E4942 and bin_length % 4 == 0 and bin_start + 8 + bin_length == len(raw)
+    document = json.loads(raw[20:bin_start])
+    assert document["asset"]["version"] == "2.0"
+    gltf = pygltflib.GLTF2().load_binary(str(path))
+    blob = gltf.binary_blob()
+    assert len(blob) == bin_length
+    (buffer,) = gltf.buffers
+    assert buffer.uri is None and bin_length - 3 <= buffer.byteLength <= bin_length
+    for view in gltf.bufferViews:
+        assert view.buffer == 0 and (view.byteOffset or 0) % 4 == 0
+        assert (view.byteOffset or 0) + view.byteLength <= buffer.byteLength
+    for i, acc in enumerate(gltf.accessors):
+        view = gltf.bufferViews[acc.bufferView]
+        size = np.dtype(_COMPONENT[acc.componentType]).itemsize
+        assert ((view.byteOffset or 0) + (acc.byteOffset or 0)) % size == 0
+        assert (acc.byteOffset or 0) + acc.count * size * _WIDTH[acc.type] <= view.byteLength
+        data = _accessor(gltf, blob, i).reshape(acc.count, -1)
+        assert acc.min is not None and acc.max is not None, f"accessor {i} lacks min/max"
+        assert np.array_equal(np.asarray(acc.min, dtype=data.dtype), data.min(axis=0))
+        assert np.array_equal(np.asarray(acc.max, dtype=data.dtype), data.max(axis=0))
+    children = [c for node in gltf.nodes for c in (node.children or [])]
+    assert len(children) == len(set(children)) and 0 not in children     # a tree under node 0
+    assert gltf.scenes[gltf.scene].nodes == [0]
+    for mesh in gltf.meshes:
+        for prim in mesh.primitives:
+            positions = _accessor(gltf, blob, prim.attributes.POSITION)
+            normals = _accessor(gltf, blob, prim.attributes.NORMAL)
+            indices = _accessor(gltf, blob, prim.indices).astype(np.int64)
+            assert prim.mode == 4 and len(indices) % 3 == 0 and indices.max() < len(positions)
+            assert len(normals) == len(positions)
+            np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
+            tri = positions[indices.reshape(-1, 3)].astype(np.float64)
+            facing = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            assert np.all(np.einsum("ij,ij->i", facing, tri.mean(axis=1)) > 0.0)   # CCW from outside
+            assert gltf.materials[prim.material].pbrMetallicRoughness is not None
+    (animation,) = gltf.animations
+    for sampler in animation.samplers:
+        times = _accessor(gltf, blob, sampler.input)
+        assert gltf.accessors[sampler.input].type == "SCALAR" and times.dtype == np.float32
+        assert np.all(np.diff(times) > 0.0) and times[0] >= 0.0
+        assert gltf.accessors[sampler.output].count == len(times)
+        assert sampler.interpolation == "LINEAR"
+    targets = set()
+    for channel in animation.channels:
+        node = gltf.nodes[channel.target.node]
+        assert node.matrix is None                              # animated nodes use TRS
+        values = _accessor(gltf, blob, animation.samplers[channel.sampler].output)
+        width = {"translation": 3, "rotation": 4}[channel.target.path]
+        assert values.shape[1] == width
+        if width == 4:
+            np.testing.assert_allclose(np.linalg.norm(values, axis=1), 1.0, atol=1e-6)
+        targets.add((channel.target.node, channel.target.path))
+    assert len(targets) == len(animation.channels)              # one channel per node and path
+    return gltf, blob
+
+
+def _node_tracks(gltf, blob):
+    """Per node name: (times, translations, rotations) decoded from the animation."""
+    tracks = {}
+    (animation,) = gltf.animations
+    for channel in animation.channels:
+        sampler = animation.samplers[channel.sampler]
+        name = gltf.nodes[channel.target.node].name
+        entry = tracks.setdefault(name, {})
+        entry["time"] = _accessor(gltf, blob, sampler.input)
+        entry[channel.target.path] = _accessor(gltf, blob, sampler.output)
+    return tracks
+
+
+def _check_gltf_poses(path, trajectory):
+    gltf, blob = _validate_glb(path)
+    tracks = _node_tracks(gltf, blob)
+    names = list(trajectory.body_names)
+    assert [n.name for n in gltf.nodes] == ["marionette"] + names + [f"bar_{b}" for b in trajectory.bar_names]
+    f32 = np.float32
+    worst = 0.0
+    for b, name in enumerate(names):
+        track = tracks[name]
+        assert np.array_equal(track["time"], np.asarray(trajectory.frame_time).astype(f32))
+        assert np.array_equal(track["translation"], np.asarray(trajectory.body_pos)[:, b].astype(f32))
+        q = np.asarray(trajectory.body_rot)[:, b]
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        got = track["rotation"].astype(np.float64)
+        assert np.all(np.einsum("ij,ij->i", got[1:], got[:-1]) >= 0.0)    # short-way interpolation
+        q = q * np.sign(np.einsum("ij,ij->i", q, got))[:, None]            # q and -q: the same rotation
+        error = np.abs(got - q)
+        assert np.all(error <= np.spacing(np.abs(q).astype(f32)).astype(np.float64)), name
+        worst = max(worst, error.max())
+        node = gltf.nodes[b + 1]
+        assert node.translation == [float(v) for v in track["translation"][0]]
+        assert node.rotation == [float(v) for v in track["rotation"][0]]
+        shape, size = trajectory.body_shape[b]
+        positions = _accessor(gltf, blob, gltf.meshes[node.mesh].primitives[0].attributes.POSITION)
+        if shape == "box":
+            np.testing.assert_allclose(positions.max(axis=0) - positions.min(axis=0), size, rtol=1e-6)
+        else:
+            np.testing.assert_allclose(np.linalg.norm(positions, axis=1), size[0], rtol=1e-6)
+    return gltf, worst
+
+
+def _check_trimesh(path, trajectory):
+    """trimesh (another reader) sees the body meshes at their frame-0 world poses."""
+    scene = trimesh.load(str(path), force="scene")
+    rot = _qmatrix(np.asarray(trajectory.body_rot)[0])
+    for b, name in enumerate(trajectory.body_names):
+        transform, geometry = scene.graph.get(name)
+        np.testing.assert_allclose(transform[:3, 3], trajectory.body_pos[0, b], atol=1e-6)
+        np.testing.assert_allclose(transform[:3, :3], rot[b], atol=1e-6)
+        shape, size = trajectory.body_shape[b]
+        mesh = scene.geometry[geometry]
+        expected = size if shape == "box" else (2 * size[0],) * 3
+        np.testing.assert_allclose(mesh.extents, expected, rtol=1e-6)
+        closed = mesh.copy()
+        closed.merge_vertices(merge_tex=True, merge_norm=True)   # flat shading splits the vertices
+        assert closed.is_watertight and closed.is_winding_consistent
+        assert closed.volume > 0.0                                # faces point outwards
+
+
+# ----------------------------------------------------------------------------- glTF tests
+
+def test_gltf_of_a_simulation_decodes_to_the_body_poses(simulated, tmp_path):
+    trajectory, _, _ = simulated
+    path = export_gltf(trajectory, tmp_path / "motion.glb")
+    gltf, worst = _check_gltf_poses(path, trajectory)
+    _check_trimesh(path, trajectory)
+    assert len(gltf.animations[0].channels) == 2 * (len(trajectory.body_names) + len(trajectory.bar_names))
+    print(f"simulated glTF: worst quaternion component error {worst:.2e}")
+
+
+def test_gltf_of_large_rotations_and_a_ball(synthetic, tmp_path):
+    trajectory, _ = synthetic
+    path = export_gltf(trajectory, tmp_path / "big.glb")
+    gltf, worst = _check_gltf_poses(path, trajectory)
+    _check_trimesh(path, trajectory)
+    assert gltf.nodes[13].name == "ball"
+    tracks = _node_tracks(gltf, gltf.binary_blob())
+    np.testing.assert_allclose(tracks["bar_main"]["translation"], trajectory.bar_pos[:, 0], atol=1e-7)
+    print(f"synthetic glTF: worst quaternion component error {worst:.2e}")
+
+
+def test_gltf_refuses_times_that_collide_in_float32(synthetic, tmp_path):
+    trajectory, _ = synthetic
+    close = dict(vars(trajectory), frame_time=1000.0 + 1e-6 * np.arange(SYNTH_FRAMES))
+    with pytest.raises(ExportError, match=r"equal in float32"):
+        export_gltf(types.SimpleNamespace(**close), tmp_path / "x.glb")
+
+
+# ----------------------------------------------------------------------------- files and command line
+
+def test_trajectory_file_reads_back_with_its_scene_puppet(simulated):
+    trajectory, scene, path = simulated
+    loaded = read_marionette_trajectory(path)
+    for name in ("frame_time", "body_pos", "body_rot", "joint_q", "bar_pos", "bar_rot", "tie_force"):
+        assert np.array_equal(getattr(loaded, name), getattr(trajectory, name)), name
+    assert loaded.body_names == trajectory.body_names and loaded.bar_names == trajectory.bar_names
+    assert [(s, tuple(z)) for s, z in loaded.body_shape] == [(s, tuple(z)) for s, z in trajectory.body_shape]
+    assert loaded.puppet == scene.puppet
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "dmarionette.cli", "export", *map(str, args)],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_export_command_writes_both_files(simulated, tmp_path):
+    trajectory, scene, path = simulated
+    run = _cli(path, "--out", tmp_path / "out")
+    assert run.returncode == 0, run.stderr
+    files = json.loads(run.stdout)
+    assert set(files) == {"bvh", "gltf"}
+    _check_bvh_poses(tmp_path / "out" / "motion.bvh", trajectory, scene.puppet)
+    _check_gltf_poses(tmp_path / "out" / "motion.glb", trajectory)
+    run = _cli(path, "--out", tmp_path / "bvh", "--format", "bvh", "--fps", "60")
+    assert run.returncode == 0, run.stderr
+    assert [p.name for p in (tmp_path / "bvh").iterdir()] == ["motion.bvh"]
+    assert bvh_reader.Bvh((tmp_path / "bvh" / "motion.bvh").read_text()).frame_time == pytest.approx(1 / 60, abs=1e-9)
+
+
+def test_export_command_refuses_missing_and_corrupt_files(simulated, tmp_path):
+    _, _, path = simulated
+    cases = {}
+    cases["missing"] = (tmp_path / "nothing.npz", r"nothing.npz: no such file")
+    (tmp_path / "text.npz").write_text("not an archive")
+    cases["text"] = (tmp_path / "text.npz", r"text.npz: not a NumPy .npz archive")
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(path.read_bytes()[:2000])
+    cases["truncated"] = (cut, r"cut.npz: (cannot be read|not a NumPy)")
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    np.savez(tmp_path / "nobody.npz", **{k: v for k, v in arrays.items() if k != "body_rot"})
+    cases["no body_rot"] = (tmp_path / "nobody.npz", r"nobody.npz: fields \['body_rot'\]: got nothing")
+    meta = json.loads(str(arrays["metadata"]))
+    np.savez(tmp_path / "strings.npz", **dict(arrays, metadata=np.array(json.dumps(dict(meta, kind=None)))))
+    cases["strings only"] = (tmp_path / "strings.npz", r"metadata.kind': got None; expected 'marionette'")
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    cases["other npz"] = (tmp_path / "other.npz", r"other.npz: field 'metadata': got nothing")
+    for label, (file, message) in cases.items():
+        run = _cli(file, "--out", tmp_path / "out")
+        assert run.returncode == 2, (label, run.stdout, run.stderr)
+        assert "Traceback" not in run.stderr, label
+        assert len(run.stderr.strip().splitlines()) == 1, (label, run.stderr)
+        import re
+
+        assert re.search(message, run.stderr), (label, run.stderr)
