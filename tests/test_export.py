@@ -107,6 +107,7 @@ def _synthetic():
                      - _qrotate(rot[:, b], np.asarray(j.anchor_child)))
     pos[:, -1] = np.stack([0.2 * s, 0.05 + 0.0 * s, 0.2 + 0.0 * s], axis=1)
     rot[:, -1] = _qaxis([0.0, 0.0, 1.0], -np.radians(720.0) * s)
+    rot[1::2, ::2] *= -1.0   # q and -q are the same rotation: every other frame flips sign (as input may)
     shapes = [(b.shape, b.size) for b in puppet.bodies] + [("sphere", (0.05, 0.0, 0.0))]
     traj = types.SimpleNamespace(frame_time=f * SYNTH_DT, body_pos=pos, body_rot=rot, body_names=names + ["ball"],
                                  body_shape=shapes, bar_names=["main"], bar_pos=pos[:, :1] + [0.0, 0.3, 0.0],
