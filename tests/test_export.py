@@ -569,3 +569,9 @@ def test_export_command_refuses_missing_and_corrupt_files(simulated, tmp_path):
         import re
 
         assert re.search(message, run.stderr), (label, run.stderr)
+
+
+def test_export_command_help():
+    run = subprocess.run([sys.executable, "-m", "dmarionette.cli", "export", "--help"], capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode == 0 and "--format" in run.stdout and "docs/export.md" in run.stdout
