@@ -71,12 +71,13 @@ def check_bvh(path, pos, rot, names, anchor):
     return perr, rerr
 
 
-def check_gltf(path, times, pos, rot, names):
+def check_gltf(path, times, pos, rot, names, particles):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     bpy.ops.import_scene.gltf(filepath=path)
     scene = bpy.context.scene
     fps = scene.render.fps / scene.render.fps_base
-    perr = rerr = 0.0
+    lines = scene.objects.get("string_lines")
+    perr = rerr = serr = 0.0
     for f, t in enumerate(times):
         frame = t * fps
         scene.frame_set(int(np.floor(frame)), subframe=float(frame - np.floor(frame)))
@@ -84,7 +85,14 @@ def check_gltf(path, times, pos, rot, names):
             m = np.array(scene.objects[name].matrix_world)
             perr = max(perr, np.abs(m[:3, 3] - TO_BLENDER @ pos[f, b]).max())
             rerr = max(rerr, np.abs(m[:3, :3] - TO_BLENDER @ rot[f, b] @ TO_BLENDER.T).max())
-    return perr, rerr
+        if lines is not None and particles is not None:
+            evaluated = lines.evaluated_get(bpy.context.evaluated_depsgraph_get())
+            mesh = evaluated.to_mesh()
+            world = np.array(evaluated.matrix_world)
+            verts = np.array([world[:3, :3] @ np.array(v.co) + world[:3, 3] for v in mesh.vertices])
+            evaluated.to_mesh_clear()
+            serr = max(serr, np.abs(verts - particles[f] @ TO_BLENDER.T).max())
+    return perr, rerr, serr
 
 
 def main(argv):
@@ -93,11 +101,12 @@ def main(argv):
         metadata = json.loads(str(data["metadata"]))
         times, pos, quat = data["frame_time"], data["body_pos"], data["body_rot"]
         names = [str(n) for n in data["body_names"]]
+        particles = data["particle_q"] if "particle_q" in data.files else None
     rot = _matrix(quat)
     report = {
         "blender": bpy.app.version_string,
         "bvh": check_bvh(bvh_path, pos, rot, names, _anchors(metadata, names)),
-        "gltf": check_gltf(glb_path, times, pos, rot, names),
+        "gltf": check_gltf(glb_path, times, pos, rot, names, particles),
     }
     print(json.dumps(report))
     ok = all(err <= 1e-5 for key in ("bvh", "gltf") for err in report[key])

@@ -340,7 +340,7 @@ def test_bvh_refuses_bad_input(synthetic, tmp_path):
 # ----------------------------------------------------------------------------- glTF reading
 
 _COMPONENT = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
-_WIDTH = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
+_WIDTH = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 
 
 def _accessor(gltf, blob, index):
@@ -386,20 +386,36 @@ def _validate_glb(path):
         assert np.array_equal(np.asarray(acc.min, dtype=data.dtype), data.min(axis=0))
         assert np.array_equal(np.asarray(acc.max, dtype=data.dtype), data.max(axis=0))
     children = [c for node in gltf.nodes for c in (node.children or [])]
-    assert len(children) == len(set(children)) and 0 not in children     # a tree under node 0
-    assert gltf.scenes[gltf.scene].nodes == [0]
+    roots = gltf.scenes[gltf.scene].nodes
+    assert len(children) == len(set(children)) and not set(roots) & set(children)   # a forest
+    assert sorted(children + roots) == list(range(len(gltf.nodes)))                  # every node in the scene
     for mesh in gltf.meshes:
         for prim in mesh.primitives:
             positions = _accessor(gltf, blob, prim.attributes.POSITION)
-            normals = _accessor(gltf, blob, prim.attributes.NORMAL)
             indices = _accessor(gltf, blob, prim.indices).astype(np.int64)
-            assert prim.mode == 4 and len(indices) % 3 == 0 and indices.max() < len(positions)
+            assert indices.max() < len(positions)
+            assert gltf.materials[prim.material].pbrMetallicRoughness is not None
+            if prim.mode == 1:                                  # LINES (the strings)
+                assert len(indices) % 2 == 0
+                continue
+            normals = _accessor(gltf, blob, prim.attributes.NORMAL)
+            assert prim.mode == 4 and len(indices) % 3 == 0
             assert len(normals) == len(positions)
             np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
             tri = positions[indices.reshape(-1, 3)].astype(np.float64)
             facing = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
             assert np.all(np.einsum("ij,ij->i", facing, tri.mean(axis=1)) > 0.0)   # CCW from outside
-            assert gltf.materials[prim.material].pbrMetallicRoughness is not None
+    for skin in gltf.skins or []:
+        assert len(set(skin.joints)) == len(skin.joints)
+        assert gltf.accessors[skin.inverseBindMatrices].count == len(skin.joints)
+        users = [n for n in gltf.nodes if n.skin is not None]
+        for node in users:                                       # skinned meshes: root nodes, no transform
+            assert gltf.nodes.index(node) in roots and node.translation is None and node.matrix is None
+            prim = gltf.meshes[node.mesh].primitives[0]
+            assert gltf.accessors[prim.attributes.JOINTS_0].componentType in (5121, 5123)
+            weights = _accessor(gltf, blob, prim.attributes.WEIGHTS_0)
+            np.testing.assert_allclose(weights.sum(axis=1), 1.0, atol=1e-6)
+            assert _accessor(gltf, blob, prim.attributes.JOINTS_0).max() < len(skin.joints)
     (animation,) = gltf.animations
     for sampler in animation.samplers:
         times = _accessor(gltf, blob, sampler.input)
@@ -438,7 +454,8 @@ def _check_gltf_poses(path, trajectory):
     gltf, blob = _validate_glb(path)
     tracks = _node_tracks(gltf, blob)
     names = list(trajectory.body_names)
-    assert [n.name for n in gltf.nodes] == ["marionette"] + names + [f"bar_{b}" for b in trajectory.bar_names]
+    expected = ["marionette"] + names + [f"bar_{b}" for b in trajectory.bar_names]
+    assert [n.name for n in gltf.nodes[:len(expected)]] == expected
     f32 = np.float32
     worst = 0.0
     for b, name in enumerate(names):
@@ -463,6 +480,49 @@ def _check_gltf_poses(path, trajectory):
         else:
             np.testing.assert_allclose(np.linalg.norm(positions, axis=1), size[0], rtol=1e-6)
     return gltf, worst
+
+
+def _skinned_strings(gltf, blob):
+    """Per frame, the world positions of the string vertices by the glTF skinning formula.
+
+    ``v_world = sum_i w_i J_i(t) IBM_i v``, with ``J_i(t)`` the joint's world matrix: here
+    the joint nodes sit under an identity ``strings`` node and animate their translation.
+    """
+    (skin,) = gltf.skins
+    node = next(n for n in gltf.nodes if n.skin is not None)
+    prim = gltf.meshes[node.mesh].primitives[0]
+    rest = _accessor(gltf, blob, prim.attributes.POSITION).astype(np.float64)
+    joint = _accessor(gltf, blob, prim.attributes.JOINTS_0)
+    weight = _accessor(gltf, blob, prim.attributes.WEIGHTS_0).astype(np.float64)
+    bind = _accessor(gltf, blob, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major
+    tracks = _node_tracks(gltf, blob)
+    group = gltf.nodes[skin.skeleton]
+    assert group.translation is None and group.rotation is None and group.matrix is None
+    moved = np.stack([tracks[gltf.nodes[j].name]["translation"] for j in skin.joints], axis=1).astype(np.float64)
+    frames = moved.shape[0]
+    world = np.zeros((frames, len(rest), 3))
+    homogeneous = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    for k in range(4):
+        ibm_v = np.einsum("vab,vb->va", bind[joint[:, k]], homogeneous)[:, :3]   # bind space
+        world += weight[None, :, k:k + 1] * (ibm_v[None] + moved[:, joint[:, k]])
+    indices = _accessor(gltf, blob, prim.indices).reshape(-1, 2)
+    return world, indices
+
+
+def _check_strings(gltf, trajectory):
+    """The skinned string vertices are the simulated particles at every frame (float32 rounding)."""
+    blob = gltf.binary_blob()
+    world, segments = _skinned_strings(gltf, blob)
+    q = np.asarray(trajectory.particle_q)
+    assert world.shape == q.shape
+    # The inverse bind matrix cancels the float32 rest position exactly, so what remains is
+    # one float32 rounding of each particle position: at most 2^-24 relative.
+    assert np.all(np.abs(world - q) <= 2.0**-24 * np.abs(q))
+    error = np.abs(world - q).max()
+    start = list(trajectory.string_start)
+    expected = [(k, k + 1) for s in range(len(start) - 1) for k in range(start[s], start[s + 1] - 1)]
+    assert [tuple(e) for e in segments] == expected                    # segments within each string
+    return error
 
 
 def _check_trimesh(path, trajectory):
@@ -490,8 +550,13 @@ def test_gltf_of_a_simulation_decodes_to_the_body_poses(simulated, tmp_path):
     path = export_gltf(trajectory, tmp_path / "motion.glb")
     gltf, worst = _check_gltf_poses(path, trajectory)
     _check_trimesh(path, trajectory)
-    assert len(gltf.animations[0].channels) == 2 * (len(trajectory.body_names) + len(trajectory.bar_names))
-    print(f"simulated glTF: worst quaternion component error {worst:.2e}")
+    string_error = _check_strings(gltf, trajectory)
+    particles = trajectory.particle_q.shape[1]
+    assert len(gltf.animations[0].channels) == 2 * (len(trajectory.body_names) + len(trajectory.bar_names)) + particles
+    print(f"simulated glTF: worst quaternion component error {worst:.2e}, strings {string_error:.2e} m")
+    plain = export_gltf(trajectory, tmp_path / "no_strings.glb", strings=False)
+    gltf, _ = _check_gltf_poses(plain, trajectory)
+    assert not gltf.skins and len(gltf.nodes) == 1 + len(trajectory.body_names) + len(trajectory.bar_names)
 
 
 def test_gltf_of_large_rotations_and_a_ball(synthetic, tmp_path):
