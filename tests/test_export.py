@@ -20,6 +20,7 @@ glTF: float32 values, compared with the float64 poses rounded once to float32.
 """
 
 import json
+import re
 import struct
 import subprocess
 import sys
@@ -570,11 +571,31 @@ def test_gltf_of_large_rotations_and_a_ball(synthetic, tmp_path):
     print(f"synthetic glTF: worst quaternion component error {worst:.2e}")
 
 
-def test_gltf_refuses_times_that_collide_in_float32(synthetic, tmp_path):
+def test_gltf_refuses_bad_times_and_strings(synthetic, tmp_path):
     trajectory, _ = synthetic
     close = dict(vars(trajectory), frame_time=1000.0 + 1e-6 * np.arange(SYNTH_FRAMES))
     with pytest.raises(ExportError, match=r"equal in float32"):
         export_gltf(types.SimpleNamespace(**close), tmp_path / "x.glb")
+    q = np.zeros((SYNTH_FRAMES, 10, 3))
+    strings = dict(vars(trajectory), particle_q=q, string_start=np.array([0, 4, 10]), string_names=["a", "b"])
+    export_gltf(types.SimpleNamespace(**strings), tmp_path / "ok.glb")
+    for change, message in (
+            ({"string_start": np.array([0, 4, 9])}, r"'string_start': got \[0, 4, 9\].*from 0 to 10"),
+            ({"string_start": np.array([0, 1, 10])}, r"at least 2 particles a string"),
+            ({"particle_q": q[:-1]}, r"'particle_q': got shape \(60, 10, 3\); expected \(61, P, 3\)"),
+            ({"particle_q": np.where(np.arange(10)[None, :, None] == 3, np.inf, q)}, r"'particle_q'.*non-finite")):
+        with pytest.raises(ExportError, match=message):
+            export_gltf(types.SimpleNamespace(**dict(strings, **change)), tmp_path / "x.glb")
+    export_gltf(types.SimpleNamespace(**dict(strings, particle_q=q[:-1])), tmp_path / "x.glb", strings=False)
+
+
+def test_single_frame_trajectories_export(synthetic, tmp_path):
+    trajectory, _ = synthetic
+    one = types.SimpleNamespace(**{k: (v[:1] if isinstance(v, np.ndarray) else v) for k, v in vars(trajectory).items()})
+    mocap = bvh_reader.Bvh(export_bvh(one, tmp_path / "one.bvh").read_text())
+    assert mocap.nframes == 1 and mocap.frame_time == pytest.approx(1.0 / 30.0, abs=1e-9)
+    _check_bvh_poses(tmp_path / "one.bvh", one, load_puppet())
+    _check_gltf_poses(export_gltf(one, tmp_path / "one.glb"), one)
 
 
 # ----------------------------------------------------------------------------- files and command line
@@ -631,8 +652,6 @@ def test_export_command_refuses_missing_and_corrupt_files(simulated, tmp_path):
         assert run.returncode == 2, (label, run.stdout, run.stderr)
         assert "Traceback" not in run.stderr, label
         assert len(run.stderr.strip().splitlines()) == 1, (label, run.stderr)
-        import re
-
         assert re.search(message, run.stderr), (label, run.stderr)
 
 
