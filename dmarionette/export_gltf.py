@@ -20,8 +20,10 @@ Contents (documented for users in ``docs/export.md``):
   line segments (glTF ``LINES``), a vertex per string particle, skinned to one joint node
   per particle (``string_NAME_K``, under a node ``strings``) whose ``translation`` is
   animated. Each vertex follows its joint with weight 1 and an inverse bind matrix that
-  undoes the joint's frame-0 position, so at every keyframe the vertices are exactly the
-  simulated particles, and between keyframes they move linearly. (A node animates a mesh
+  undoes the joint's frame-0 position, so at every keyframe the vertices are the simulated
+  particles (rounded once to float32), and between keyframes they move linearly. The
+  ``strings`` node and the mesh node ``string_lines`` are scene roots beside ``marionette``
+  (glTF ignores a skinned mesh node's own transform). (A node animates a mesh
   rigidly, and morph targets would need a weight track of frame-count length per frame:
   quadratic in the length of the motion; a skin is linear.) Lines have no thickness:
   Blender shows them as edges in the viewport (give them a *Skin* modifier or convert to a
@@ -226,7 +228,7 @@ def _add_strings(builder: _GlbBuilder, document: dict, strings: list[tuple[str, 
     rest32 = np.asarray(rest).astype(np.float32)
     count = len(rest32)
     bind = np.tile(np.eye(4, dtype=np.float32), (count, 1, 1))
-    bind[:, 3, :3] = -rest32                 # column-major: the translation is the last column
+    bind[:, 3, :3] = -rest32   # glTF reads the 16 floats column-major: elements 12-14 are the translation
     joint_ids = np.zeros((count, 4), dtype=np.uint16)
     joint_ids[:, 0] = np.arange(count)
     weights = np.zeros((count, 4), dtype=np.float32)
