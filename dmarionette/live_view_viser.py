@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -99,6 +100,8 @@ class LiveViewServer:
         self.buffer = SnapshotBuffer()
         self.frames_sent = 0
         """Snapshots sent to the scene so far."""
+        self.update_seconds = 0.0
+        """Wall time spent in :meth:`update` so far [s] (the view thread's work per frame, summed)."""
         self.last_sent: LiveSnapshot | None = None
         """The last snapshot sent (what the scene shows)."""
         self._drag: Callable[[np.ndarray, np.ndarray], None] | None = None
@@ -142,8 +145,8 @@ class LiveViewServer:
     def _build_scene(self) -> None:
         g, scene = self.geometry, self._server.scene
         scene.set_up_direction("+y")
-        self._server.initial_camera.position = (0.9, 0.9, 1.3)
-        self._server.initial_camera.look_at = (0.0, 0.55, 0.0)
+        self._server.initial_camera.position = (0.75, 1.05, 1.05)
+        self._server.initial_camera.look_at = (0.0, 0.75, 0.0)
         scene.add_grid("/ground", width=3.0, height=3.0, plane="xz", position=(0.0, g.ground_height, 0.0),
                        cell_size=0.1, section_size=0.5)
         if g.chair is not None:
@@ -167,7 +170,7 @@ class LiveViewServer:
         self._segments = g.string_segments()
         self._segment_string = g.string_of_segment()
         self._string_node = scene.add_line_segments(
-            "/strings", np.zeros((len(self._segments), 2, 3), np.float32), (255, 140, 0), thickness=0.003)
+            "/strings", np.zeros((len(self._segments), 2, 3), np.float32), (255, 140, 0), thickness=0.004)
         self._bar_segments = [(b, k) for b, attach in enumerate(g.bar_attach) for k in range(len(attach))]
         self._bar_node = scene.add_line_segments(
             "/bars", np.zeros((len(self._bar_segments), 2, 3), np.float32), BAR_RGB, thickness=0.012)
@@ -209,6 +212,7 @@ class LiveViewServer:
     def update(self, snapshot: LiveSnapshot) -> None:
         """Sends one snapshot to the scene (the view's thread calls it for each new snapshot)."""
         g = self.geometry
+        began = time.perf_counter()
         with self._server.atomic():
             if self._box_node is not None:
                 self._box_node.batched_positions = snapshot.body_pos[self._boxes]
@@ -236,6 +240,7 @@ class LiveViewServer:
                     (" · **bar dragged**" if snapshot.dragged else ""))
         self.last_sent = snapshot
         self.frames_sent += 1
+        self.update_seconds += time.perf_counter() - began
 
     def close(self) -> None:
         """Stops the update thread and the server (idempotent)."""

@@ -225,6 +225,8 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     # Clean shutdown: motors off, server stopped.
     times, forces = device.force_log()
     np.testing.assert_array_equal(forces[-1], np.zeros(3))
+    # The arrow's force is one the device was sent (the mapping's rotation is the identity here).
+    assert any(np.array_equal(last.force_sent, f) for f in forces[:-1])
     assert device.close_count == 1 and not device.is_open
     assert stats.stop_reason == "duration"
     assert not view.is_running
