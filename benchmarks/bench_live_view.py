@@ -7,8 +7,14 @@ Modes, interleaved round by round so that a change of machine load hits all of t
 * ``none``: no view (``dmarionette live --view none``);
 * ``server``: the browser view's server running and fed (``--view browser``), no browser connected;
 * ``client``: the same with one websocket client connected that receives and decodes every
-  frame as a browser would (tests/live_view_client.py; a real browser renders in its own
-  process, which on a 2-core machine also takes CPU from the loop: not measured here).
+  frame as a browser would (tests/live_view_client.py, in this process, so its decoding counts
+  in ``cpu_percent``; a real browser renders in its own process, which on a 2-core machine
+  also takes CPU from the loop: not measured here).
+
+Columns: tick lateness p50/p99/max [us], missed / stale ticks and watchdog trips per run,
+string steps per second (1000 = every tick ran the physics), view frames sent and received
+per second, this process's CPU time per wall second [% of one core; the servo thread's
+busy-wait is part of it] and the view thread's wall time per frame in ``update`` [ms].
 
 Also: the physics thread's cost of taking one snapshot (``LiveViewPublisher.publish``).
 The simulated device follows the ``hanging`` scene's main bar; optimised kernels; the
@@ -45,9 +51,11 @@ def run_mode(model, mode: str, seconds: float, rate: float) -> dict:
         view = LiveViewServer(LiveViewGeometry.from_model(model, "main"), host="127.0.0.1", port=0, rate_hz=rate)
         if mode == "client":
             client = ViewClient(view.url)
+    cpu = time.process_time()
     try:
         stats, summary = run_live(model, duration=seconds, force_scale=0.3, view=view)
     finally:
+        cpu = time.process_time() - cpu
         if view is not None:
             view.close()
         received = len(client.updates("/strings", "points")) if client is not None else 0
@@ -58,6 +66,7 @@ def run_mode(model, mode: str, seconds: float, rate: float) -> dict:
             "steps_per_s": summary["string_steps"] / seconds,
             "frames_per_s": (view.frames_sent / seconds) if view is not None else 0.0,
             "received_per_s": received / seconds,
+            "cpu_percent": 100.0 * cpu / seconds,
             "update_ms": (1e3 * view.update_seconds / max(view.frames_sent, 1)) if view is not None else 0.0}
 
 
@@ -94,7 +103,8 @@ def main() -> None:
     print(f"# Live view cost — {platform.machine()}, {os.cpu_count()} CPUs, load average "
           f"{min(loads):.2f}-{max(loads):.2f}; 'hanging', simulated device, {args.seconds:g} s x {args.rounds} "
           f"rounds, view {args.rate:g} Hz; medians over rounds\n")
-    keys = ["p50_us", "p99_us", "max_us", "missed", "stale", "trips", "steps_per_s", "frames_per_s", "received_per_s", "update_ms"]
+    keys = ["p50_us", "p99_us", "max_us", "missed", "stale", "trips", "steps_per_s", "frames_per_s", "received_per_s", "cpu_percent",
+            "update_ms"]
     print("| view | " + " | ".join(keys) + " |")
     print("|" + "---|" * (len(keys) + 1))
     for mode in modes:

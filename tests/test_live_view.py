@@ -262,3 +262,37 @@ def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys):
     assert "drop --own-process" in capsys.readouterr().err
     assert main(["live", "--duration", "0.3", "--snapshot", str(tmp_path / "x.jpg")]) == 2
     assert "expected a .png file name" in capsys.readouterr().err
+
+
+def test_dragged_simulated_device_follows_with_a_first_order_lag():
+    """From the first drag the device leaves its trajectory, starting where it was last read (no
+    jump), and approaches the dragged pose as ``e(t) = e(0) exp(-t / drag_lag)`` (exact for any
+    read times, since each read multiplies the error by ``exp(-dt / drag_lag)``); orientation too."""
+    clock = {"t": 0.0}
+    lag = 0.03
+    device = HapticDeviceSimulated(trajectory=lambda t: np.array([0.1 * t, 0.0, 0.0]), clock=lambda: clock["t"],
+                                   drag_lag=lag)
+    device.open()
+    clock["t"] = 0.5
+    grabbed = device.read().position
+    np.testing.assert_allclose(grabbed, [0.05, 0.0, 0.0])
+    target = np.array([0.02, -0.01, 0.03])
+    turn = np.array([np.cos(0.3), 0.0, np.sin(0.3), 0.0])  # 0.6 rad about y
+    device.drag_to(target, turn)
+    assert device.dragged
+    np.testing.assert_array_equal(device.read().position, grabbed)  # no jump when grabbed
+    reads = np.cumsum(np.random.default_rng(0).uniform(0.0005, 0.003, size=60))
+    for dt_total in reads:
+        clock["t"] = 0.5 + dt_total
+        sample = device.read()
+    expected = target + (grabbed - target) * np.exp(-reads[-1] / lag)
+    np.testing.assert_allclose(sample.position, expected, rtol=0, atol=1e-15)
+    assert abs(np.linalg.norm(sample.position - target) / np.linalg.norm(grabbed - target)
+               - np.exp(-reads[-1] / lag)) < 1e-12
+    clock["t"] += 1.0
+    sample = device.read()
+    np.testing.assert_allclose(sample.position, target, atol=1e-12)
+    np.testing.assert_allclose(sample.orientation, turn, atol=1e-12)
+    assert device.last_read is sample
+    with pytest.raises(ValueError, match="drag_lag"):
+        HapticDeviceSimulated(drag_lag=-1.0)
