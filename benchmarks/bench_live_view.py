@@ -2,7 +2,8 @@
 
 Run:  python benchmarks/bench_live_view.py [--seconds 20] [--rounds 3] [--rate 40]
 
-Modes, interleaved round by round so that a change of machine load hits all of them alike:
+Modes, interleaved round by round (their order rotating) so that a change of machine load
+hits all of them alike:
 
 * ``none``: no view (``dmarionette live --view none``);
 * ``server``: the browser view's server running and fed (``--view browser``), no browser connected;
@@ -96,7 +97,7 @@ def main() -> None:
     rows: dict[str, list[dict]] = {m: [] for m in modes}
     loads = []
     for r in range(args.rounds):
-        for mode in modes:
+        for mode in modes[r % 3:] + modes[:r % 3]:  # the order rotates, so no mode always runs first
             loads.append(os.getloadavg()[0])
             rows[mode].append(run_mode(model, mode, args.seconds, args.rate))
             print(f"round {r + 1} {mode}: {rows[mode][-1]}", file=sys.stderr, flush=True)

@@ -291,6 +291,7 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
         ax.set_aspect("equal")
         ax.axhspan(lo[1], geometry.ground_height, color="0.88")
         ax.set_xlabel(label)
+        ax.set_ylabel("y [m]")
         if geometry.chair is not None:
             c, h = geometry.chair
             ax.add_patch(plt.Rectangle((c[axis] - h[axis], c[1] - h[1]), 2 * h[axis], 2 * h[1], color="tan",
@@ -318,8 +319,8 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
         tail, force = snapshot.bar_pos[geometry.driven_bar], arrow_scale * snapshot.force_sent
         ax.annotate("", xy=(tail[axis] + force[axis], tail[1] + force[1]), xytext=(tail[axis], tail[1]),
                     arrowprops={"arrowstyle": "->", "color": "royalblue", "lw": 1.5})
-    fig.suptitle(f"{title}   t = {snapshot.t:.3f} s   (strings: dark taut, orange slack; arrows: red reaction "
-                 f"per bar, blue force sent; {arrow_scale:g} m/N)", fontsize=9)
+    fig.suptitle(f"{title}   t = {snapshot.t:.3f} s\nstrings: dark taut, orange slack; arrows: red = reaction on "
+                 f"each bar, blue = force sent to the device ({arrow_scale:g} m/N)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
