@@ -294,5 +294,36 @@ def test_dragged_simulated_device_follows_with_a_first_order_lag():
     np.testing.assert_allclose(sample.position, target, atol=1e-12)
     np.testing.assert_allclose(sample.orientation, turn, atol=1e-12)
     assert device.last_read is sample
+    with pytest.raises(ValueError, match="finite position"):
+        device.drag_to([np.nan, 0.0, 0.0])
+    np.testing.assert_allclose(device.read().position, target, atol=1e-12)  # the target is kept
     with pytest.raises(ValueError, match="drag_lag"):
         HapticDeviceSimulated(drag_lag=-1.0)
+
+
+def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
+    """With a replay device the gizmo stays hidden and a drag sent anyway moves nothing."""
+    from dmarionette.hw import HapticDeviceReplay
+
+    geometry = LiveViewGeometry.from_model(model, "main")
+    times = np.linspace(0.0, 1.0, 11)
+    positions = np.stack([0.01 * times, np.zeros_like(times), np.zeros_like(times)], axis=1)
+    device = HapticDeviceReplay(times, positions)
+    with LiveViewServer(geometry, host="127.0.0.1", port=0) as view:
+        client = ViewClient(view.url)
+        try:
+            _wait(lambda: client.updates("/strings", "points"), 10, "the scene to reach the client")
+            session = threading.Thread(target=run_live, args=(model,), kwargs={"device": device, "duration": 0.6,
+                                                                              "view": view})
+            session.start()
+            _wait(lambda: view.frames_sent >= 2, 60, "the first snapshots")
+            assert not view._gizmo.visible
+            client.send(vm.TransformControlsUpdateMessage(name="/drag/main", wxyz=(1.0, 0.0, 0.0, 0.0),
+                                                          position=(0.3, 0.3, 0.3)))
+            session.join(timeout=120)
+            last = view.buffer.latest()
+            assert not last.dragged
+            assert np.linalg.norm(last.bar_pos[0] - np.array([0.3, 0.3, 0.3])) > 0.5
+        finally:
+            client.close()
+    assert not device.is_open

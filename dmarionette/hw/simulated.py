@@ -174,8 +174,15 @@ class HapticDeviceSimulated(_RecordingDevice):
         Args:
             position: Dragged position [m], shape (3,), device frame.
             orientation: Quaternion (w, x, y, z) or rotation matrix (3, 3); None for identity.
+
+        Raises:
+            ValueError: A non-finite pose (the device keeps its previous target).
         """
-        self._drag_target = HapticSample.make(0.0, position, orientation)
+        target = HapticSample.make(0.0, position, orientation)
+        if not (np.all(np.isfinite(target.position)) and np.all(np.isfinite(target.orientation))):
+            raise ValueError(f"HapticDeviceSimulated.drag_to: need a finite position [m] and orientation; got "
+                             f"{np.asarray(position).tolist()}, {None if orientation is None else np.asarray(orientation).tolist()}")
+        self._drag_target = target
 
     def set_pose(self, position: Any, orientation: Any = None, buttons: int = 0) -> None:
         """Sets the pose reported by ``read`` (used when there is no trajectory).
