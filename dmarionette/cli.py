@@ -3,7 +3,8 @@
 - ``dmarionette simulate SCENE``: run a scene headless; write its trajectory, summary, animation;
 - ``dmarionette demo``: the same for the default scene (``hanging``);
 - ``dmarionette scenes``: list the built-in scenes;
-- ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop;
+- ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop
+  (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time.
 
 ``--help`` on every command.

