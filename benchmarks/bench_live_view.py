@@ -104,13 +104,14 @@ def main() -> None:
     print(f"# Live view cost — {platform.machine()}, {os.cpu_count()} CPUs, load average "
           f"{min(loads):.2f}-{max(loads):.2f}; 'hanging', simulated device, {args.seconds:g} s x {args.rounds} "
           f"rounds, view {args.rate:g} Hz; medians over rounds\n")
-    keys = ["p50_us", "p99_us", "max_us", "missed", "stale", "trips", "steps_per_s", "frames_per_s", "received_per_s", "cpu_percent",
-            "update_ms"]
+    keys = ["p50_us", "p99_us", "max_us", "missed", "stale", "trips", "steps_per_s", "frames_per_s", "received_per_s",
+            "cpu_percent", "update_ms"]
     print("| view | " + " | ".join(keys) + " |")
     print("|" + "---|" * (len(keys) + 1))
     for mode in modes:
         med = {k: float(np.median([row[k] for row in rows[mode]])) for k in keys}
-        print(f"| {mode} | " + " | ".join(f"{med[k]:.2f}" if k == "update_ms" else f"{med[k]:.0f}" for k in keys) + " |")
+        cells = [f"{med[k]:.2f}" if k == "update_ms" else f"{med[k]:.0f}" for k in keys]
+        print(f"| {mode} | " + " | ".join(cells) + " |")
     print(f"\none snapshot in the physics thread: {publish_cost(model) * 1e6:.1f} us (median)")
 
 

@@ -263,9 +263,10 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
     for the session, or None. ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`.
     ``device``: a name (:func:`make_device`) or a device object (its frame: the world shifted to
     the bar's start, as for ``simulated``).
-    ``view``: a live view (:class:`dmarionette.live_view_viser.LiveViewServer`, or anything
-    with a ``buffer`` (:class:`~dmarionette.live_view.SnapshotBuffer`), a ``rate_hz`` and
-    ``connect_device(drag)``), or None. It gets snapshots at its rate from the physics thread;
+    ``view``: a :class:`~dmarionette.live_view.AbstractLiveView` (the browser view
+    :class:`dmarionette.live_view_viser.LiveViewServer`, or
+    :class:`~dmarionette.live_view.LiveViewHeadless`), or None. It gets snapshots at its rate
+    from the physics thread;
     when the device is a :class:`~dmarionette.hw.HapticDeviceSimulated`, ``drag(position,
     rotation)`` (world frame) moves it (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`).
     Returns ``(servo statistics, summary dict)``.

@@ -18,16 +18,20 @@ browser view (:mod:`dmarionette.live_view_viser`) and the headless picture
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import final
 
 import numpy as np
 
 from .control_bar import euler_to_matrix
 
-__all__ = ["LiveSnapshot", "LiveViewGeometry", "LiveViewHeadless", "LiveViewPublisher", "SLACK_RGB", "SnapshotBuffer", "TAUT_RGB",
+__all__ = ["AbstractLiveView", "LiveSnapshot", "LiveViewGeometry", "LiveViewHeadless", "LiveViewPublisher", "SLACK_RGB",
+           "SnapshotBuffer", "TAUT_RGB",
            "render_live_snapshot", "string_colors"]
 
 TAUT_RGB = (38, 38, 38)
@@ -222,7 +226,35 @@ class LiveViewPublisher:
             force_sent=np.array(force, dtype=np.float64), dragged=self.dragged))
 
 
-class LiveViewHeadless:
+class AbstractLiveView(abc.ABC):
+    """A view of a live session, fed by :func:`dmarionette.live.run_live`.
+
+    Attributes:
+        buffer: Where the physics publishes its snapshots.
+        rate_hz: Snapshots per second the view wants [Hz].
+    """
+
+    buffer: SnapshotBuffer
+    rate_hz: float
+
+    @abc.abstractmethod
+    def connect_device(self, drag: Callable[[np.ndarray, np.ndarray], None] | None) -> None:
+        """What a drag in the view calls, ``drag(position [m] (3,), rotation (3, 3))`` in the world
+        frame, or None when the device cannot be moved by the view."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Stops the view (idempotent)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@final
+class LiveViewHeadless(AbstractLiveView):
     """No display: keeps the latest snapshot, for a picture at the end (``live --snapshot FILE``).
 
     Args:
@@ -238,12 +270,6 @@ class LiveViewHeadless:
 
     def close(self) -> None:
         """Nothing to stop."""
-
-    def __enter__(self) -> LiveViewHeadless:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def scripted_rotations(angles_deg: list[np.ndarray], k: int) -> np.ndarray:

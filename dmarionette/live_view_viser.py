@@ -22,11 +22,12 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import final
 
 import numpy as np
 
 from .hw.device import matrix_from_quat, quat_from_matrix
-from .live_view import LiveSnapshot, LiveViewGeometry, SnapshotBuffer, string_colors
+from .live_view import AbstractLiveView, LiveSnapshot, LiveViewGeometry, SnapshotBuffer, string_colors
 
 __all__ = ["LiveViewServer"]
 
@@ -69,7 +70,8 @@ def _icosphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
     return np.array(vertices, dtype=np.float32), np.array(f, dtype=np.uint32)
 
 
-class LiveViewServer:
+@final
+class LiveViewServer(AbstractLiveView):
     """A browser view of a live session, served by viser on ``host:port``.
 
     Use as a context manager (or call :meth:`close`); pass it to
@@ -135,12 +137,6 @@ class LiveViewServer:
     def is_running(self) -> bool:
         """True while the update thread runs."""
         return self._thread.is_alive()
-
-    def __enter__(self) -> LiveViewServer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def _build_scene(self) -> None:
         g, scene = self.geometry, self._server.scene

@@ -180,8 +180,9 @@ class HapticDeviceSimulated(_RecordingDevice):
         """
         target = HapticSample.make(0.0, position, orientation)
         if not (np.all(np.isfinite(target.position)) and np.all(np.isfinite(target.orientation))):
-            raise ValueError(f"HapticDeviceSimulated.drag_to: need a finite position [m] and orientation; got "
-                             f"{np.asarray(position).tolist()}, {None if orientation is None else np.asarray(orientation).tolist()}")
+            got = None if orientation is None else np.asarray(orientation).tolist()
+            raise ValueError("HapticDeviceSimulated.drag_to: need a finite position [m] and orientation; got "
+                             f"{np.asarray(position).tolist()}, {got}")
         self._drag_target = target
 
     def set_pose(self, position: Any, orientation: Any = None, buttons: int = 0) -> None:
