@@ -294,8 +294,8 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
         publisher = LiveViewPublisher(view.buffer, view.rate_hz, force_to_world=mapping.force_to_world)
 
         def drag(position_world, rotation_world) -> None:
-            publisher.dragged = True
             haptic.drag_to(mapping.position_to_device(position_world), mapping.rotation.T @ rotation_world)
+            publisher.dragged = True
 
         view.connect_device(drag if isinstance(haptic, HapticDeviceSimulated) else None)
     if process:
