@@ -3,7 +3,8 @@
 - ``dmarionette simulate SCENE``: run a scene headless; write its trajectory, summary, animation;
 - ``dmarionette demo``: the same for the default scene (``hanging``);
 - ``dmarionette scenes``: list the built-in scenes;
-- ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop;
+- ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop
+  (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time;
 - ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md).
 
@@ -81,6 +82,18 @@ def _parser() -> argparse.ArgumentParser:
                       help="run the physics in a child process instead of the servo loop's worker thread "
                            "(on the 2-core development VM a pipe round trip costs ~160 us, so this kept "
                            "fewer deadlines; see the README)")
+    live.add_argument("--view", choices=["none", "browser"], default="none",
+                      help="none (default): no view, nothing but the servo loop; browser: a 3D view served on "
+                           "http://HOST:PORT (viser; needs the 'view' extra): puppet, strings (dark taut, orange "
+                           "slack), bars, force arrows; with the simulated device the driven bar can be dragged "
+                           "(docs/live_view.md)")
+    live.add_argument("--view-port", type=int, default=8080,
+                      help="TCP port of the browser view (default 8080; 0: any free port; a taken port: the next)")
+    live.add_argument("--view-host", default="127.0.0.1",
+                      help="address the browser view listens on (default 127.0.0.1, this machine only)")
+    live.add_argument("--view-hz", type=float, default=40.0, help="view updates per second (default 40)")
+    live.add_argument("--snapshot", type=Path, default=None,
+                      help="write a picture (PNG) of the last frame here at the end; works with any --view")
     info = sub.add_parser("info", help="summarise a recorded session (MCAP)",
                           description="Summarise a recorded session: duration, topics with counts and rates, "
                                       "scene, bars, whether the recording was cut off (docs/session.md).")
@@ -235,15 +248,39 @@ def _run_live(args: argparse.Namespace) -> int:
     if not args.force_scale >= 0.0 or not args.workspace_scale > 0.0:
         raise ValueError(f"--force-scale must be >= 0 and --workspace-scale > 0; got {args.force_scale}, "
                          f"{args.workspace_scale}")
+    if (args.view != "none" or args.snapshot is not None) and args.own_process:
+        raise ValueError("--view browser and --snapshot need the physics in this process: drop --own-process")
+    if not (args.view_hz > 0.0 and args.view_hz < float("inf")):
+        raise ValueError(f"--view-hz: got {args.view_hz}; expected a rate > 0 [Hz]")
+    if args.snapshot is not None and args.snapshot.suffix.lower() != ".png":
+        raise ValueError(f"--snapshot: got {str(args.snapshot)!r}; expected a .png file name")
     level = 0 if args.fast_compile else 2
     model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
     device = "simulated" if args.device == "sim" else args.device
     if device == "replay" and args.session is None:
         raise ValueError("--device replay needs --session FILE (a recorded session)")
-    stats, summary = run_live(model, device=device, bar=args.bar, session=args.session, duration=args.duration, record=args.record,
-                              feedback=args.feedback, force_scale=args.force_scale,
-                              workspace_scale=args.workspace_scale, process=args.own_process,
-                              optimization_level=level)
+    from .live_view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
+
+    geometry = LiveViewGeometry.from_model(model, args.bar) if args.bar in model.bar_names else None
+    view = None
+    if args.view == "browser" and geometry is not None:
+        from .live_view_viser import LiveViewServer
+
+        view = LiveViewServer(geometry, host=args.view_host, port=args.view_port, rate_hz=args.view_hz)
+        print(f"live view: {view.url}", file=sys.stderr, flush=True)
+    elif args.snapshot is not None:
+        view = LiveViewHeadless()
+    try:
+        stats, summary = run_live(model, device=device, bar=args.bar, session=args.session, duration=args.duration,
+                                  record=args.record, feedback=args.feedback, force_scale=args.force_scale,
+                                  workspace_scale=args.workspace_scale, process=args.own_process,
+                                  optimization_level=level, view=view)
+    finally:
+        if view is not None:
+            view.close()
+    if args.snapshot is not None and view.buffer.latest() is not None:
+        summary["snapshot"] = str(render_live_snapshot(args.snapshot, geometry, view.buffer.latest(),
+                                                       title=scene.description))
     print(stats.summary())
     if args.record is not None:
         summary["record"] = str(args.record)

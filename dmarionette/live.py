@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from .hw.device import AbstractHapticDevice, HapticDeviceSpec, HapticSample
+from .live_view import scripted_rotations
 from .marionette import MarionetteModel, SolverMarionette, bar_inputs
 
 __all__ = ["LiveMarionette", "LiveTick", "make_device", "make_physics_step", "run_live"]
@@ -63,6 +64,12 @@ class LiveMarionette:
         self._feedback = self._next.bar_feedback.numpy()
         self._reaction = self._next.bar_reaction.numpy()
         self._taut = self._next.string_taut.numpy()
+        # Where the latest string state is after string step j of a puppet step: the solver's
+        # two spare string states in turn, and the step's output (then assigned to self.state)
+        # after the last one (see SolverMarionette.step_string).
+        spare = [s.particle_q.numpy() for s in self.solver._spare]
+        self._particle_after = [self.state.strings.particle_q.numpy() if j == n - 1 else spare[j % 2]
+                                for j in range(n)]
         assert self._top_q.shape == (n, s, 3) and self._bar_q.shape == (n, b, 3)
 
     def _capture(self, j: int):
@@ -81,6 +88,15 @@ class LiveMarionette:
         """Simulated time [s] after the ticks run so far."""
         return self.tick * self.model.string_dt
 
+    def latest_particle_q(self) -> np.ndarray:
+        """Host view of the string particles after the latest tick [m], ``(P, 3)`` (do not keep it:
+        the next ticks overwrite it)."""
+        return self._particle_after[(self.tick - 1) % self.model.substeps]
+
+    def latest_string_taut(self) -> np.ndarray:
+        """Host view of the taut flags after the latest tick, ``(S,)``."""
+        return self._taut[(self.tick - 1) % self.model.substeps]
+
     def advance(self, tops: np.ndarray, bar_q: np.ndarray, bar_qd: np.ndarray) -> LiveTick:
         """One string step with the string tops ``(S, 3)`` and bar centres/velocities ``(B, 3)`` at its end."""
         j = self.tick % self.model.substeps
@@ -96,7 +112,7 @@ class LiveMarionette:
 
 def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *, feedback: str = "reaction",
                       force_scale: float = 1.0,
-                      on_tick: Callable[[LiveTick, dict], None] | None = None):
+                      on_tick: Callable[[LiveTick, dict], None] | None = None, view=None):
     """A world-frame physics callback for the servo loop: the device drives ``driven_bar``.
 
     Args:
@@ -110,6 +126,8 @@ def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *,
         force_scale: multiplies the force before it leaves (the safety filter clamps after).
         on_tick: called each tick with the tick and every bar's pose at its end,
             ``{bar: (position (3,), rotation (3,) XYZ deg)}``.
+        view: a :class:`dmarionette.live_view.LiveViewPublisher` given a snapshot whenever one
+            is due (a clock read per tick otherwise), or None.
 
     Returns:
         ``step(sample_world, t) -> force_world (3,)`` (wrap with ``DeviceMapping.wrap``).
@@ -144,6 +162,10 @@ def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *,
             poses = {name: (bar_q[b], scripted_angles[b][k]) for b, name in enumerate(model.bar_names)}
             poses[driven_bar] = (position, _matrix_to_euler_deg(rotation))
             on_tick(tick, poses)
+        if view is not None and view.due():
+            rotations = scripted_rotations(scripted_angles, k)
+            rotations[driven] = rotation
+            view.publish(live, bar_q, rotations, tick.bar_reaction)
         force = tick.bar_reaction[driven] if feedback == "reaction" else tick.bar_feedback[driven]
         return force_scale * force
 
@@ -227,9 +249,10 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
     raise ValueError(f"device: got {name!r}; expected one of simulated, replay, openhaptics, falcon, spacemouse")
 
 
-def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "main", duration: float = 10.0,
-             record=None, feedback: str = "reaction", force_scale: float = 1.0, workspace_scale: float = 1.0,
-             process: bool = False, optimization_level: int = 2, session=None, **servo_options):
+def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "simulated", bar: str = "main",
+             duration: float = 10.0, record=None, feedback: str = "reaction", force_scale: float = 1.0,
+             workspace_scale: float = 1.0, process: bool = False, optimization_level: int = 2, session=None,
+             view=None, **servo_options):
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
@@ -238,6 +261,14 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
     ``process=True`` in a child process (:mod:`dmarionette.live_process`), built from the
     scene's file with ``optimization_level``. ``record``: an MCAP file path
     for the session, or None. ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`.
+    ``device``: a name (:func:`make_device`) or a device object (its frame: the world shifted to
+    the bar's start, as for ``simulated``).
+    ``view``: a :class:`~dmarionette.live_view.AbstractLiveView` (the browser view
+    :class:`dmarionette.live_view_viser.LiveViewServer`, or
+    :class:`~dmarionette.live_view.LiveViewHeadless`), or None. It gets snapshots at its rate
+    from the physics thread;
+    when the device is a :class:`~dmarionette.hw.HapticDeviceSimulated`, ``drag(position,
+    rotation)`` (world frame) moves it (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`).
     Returns ``(servo statistics, summary dict)``.
     """
     from .hw import DeviceMapping, ServoLoop
@@ -247,8 +278,26 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
         raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
     start = np.array(scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
     mapping = DeviceMapping.make(workspace_scale, translation=start)
-    haptic = make_device(device, scene, bar, trajectory_offset=start, session=session)
+    if isinstance(device, AbstractHapticDevice):
+        haptic, device = device, type(device).__name__
+    else:
+        haptic = make_device(device, scene, bar, trajectory_offset=start, session=session)
     peak = {"force": 0.0}
+    publisher = None
+    if view is not None:
+        if process:
+            raise ValueError("a live view needs the physics in this process: drop --own-process (the view reads "
+                             "the physics' snapshots in memory)")
+        from .hw import HapticDeviceSimulated
+        from .live_view import LiveViewPublisher
+
+        publisher = LiveViewPublisher(view.buffer, view.rate_hz, force_to_world=mapping.force_to_world)
+
+        def drag(position_world, rotation_world) -> None:
+            haptic.drag_to(mapping.position_to_device(position_world), mapping.rotation.T @ rotation_world)
+            publisher.dragged = True
+
+        view.connect_device(drag if isinstance(haptic, HapticDeviceSimulated) else None)
     if process:
         from .live_process import PhysicsProcess
 
@@ -276,6 +325,8 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
         def on_device(kind: str, value) -> None:
             if kind == "force":
                 peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
+                if publisher is not None:
+                    publisher.force_sent = value
             if writer is not None:
                 with lock:
                     if kind == "sample":
@@ -288,7 +339,7 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
                 _record_tick(writer, model, live, tick, poses)
 
         world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
-                                       on_tick=on_tick if writer is not None else None)
+                                       on_tick=on_tick if writer is not None else None, view=publisher)
     proxy = _RecordingDevice(haptic, on_device)
     loop = ServoLoop(proxy, mapping.wrap(world_step), rate_hz=scene.string_hz, **servo_options)
     try:
@@ -303,6 +354,8 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
                      "simulated_seconds": round(live.time, 4)}
     summary = {"device": device, "bar": bar, "physics": "own process" if process else "servo worker thread",
                **steps, "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
+    if view is not None:
+        summary["view_snapshots"] = view.buffer.published
     if proxy.latencies:
         latency = np.array(proxy.latencies) * 1e6
         summary["device_to_force_us"] = {"p50": round(float(np.median(latency)), 1),

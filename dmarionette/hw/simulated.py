@@ -126,18 +126,64 @@ class _RecordingDevice(AbstractHapticDevice):
 class HapticDeviceSimulated(_RecordingDevice):
     """A device that follows a scripted trajectory or a pose set by hand, and records forces.
 
+    A live view may also *drag* it (:meth:`drag_to`): from the first drag on, ``read`` follows
+    the dragged pose instead of the trajectory.
+
     Args:
         trajectory: Optional callable ``t [s] -> pose`` (see :data:`Trajectory`); when None
             the pose is whatever :meth:`set_pose` last set (initially the workspace centre).
         spec: Limits and workspace; defaults to Omni-like limits.
         clock: Monotonic clock [s]; ``time.perf_counter`` by default. Tests may inject one.
+        drag_lag: Time constant [s] of the first-order lag with which a dragged device moves
+            to the dragged pose (0: it jumps there).
     """
 
     def __init__(self, trajectory: Trajectory | None = None, spec: HapticDeviceSpec = DEFAULT_SIMULATED_SPEC,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
+                 clock: Callable[[], float] = time.perf_counter, drag_lag: float = 0.03) -> None:
         super().__init__(spec, clock)
+        if not (np.isfinite(drag_lag) and drag_lag >= 0.0):
+            raise ValueError(f"HapticDeviceSimulated: drag_lag must be a finite time >= 0 [s], got {drag_lag}")
         self._trajectory = trajectory
         self._pose = HapticSample.make(0.0, spec.workspace_center)
+        self._drag_lag = float(drag_lag)
+        self._drag_target: HapticSample | None = None  # set by any thread, read by the reader
+        self._dragged: HapticSample | None = None  # where the dragged device is (reader's thread only)
+        self._last: HapticSample | None = None  # the last sample read (reader's thread only)
+
+    @property
+    def last_read(self) -> HapticSample | None:
+        """The last sample ``read`` returned (None before the first); safe to look at from any
+        thread (samples are never modified after they are made)."""
+        return self._last
+
+    @property
+    def dragged(self) -> bool:
+        """True once :meth:`drag_to` was called: ``read`` follows the drag, not the trajectory."""
+        return self._drag_target is not None
+
+    def drag_to(self, position: Any, orientation: Any = None) -> None:
+        """Moves the device by hand (a mouse drag in the live view), from any thread.
+
+        From the first call on, ``read`` reports a pose that approaches the latest dragged pose
+        with a first-order lag of ``drag_lag`` (a mouse sends poses at 30-60 Hz; without the lag
+        the string tops would jump several millimetres in one 1 ms tick at each mouse event),
+        starting from the last pose read, so the bar does not jump when it is grabbed. The pose
+        is then held where the drag leaves it. Thread-safe: the new target replaces the old one
+        in one reference assignment, which a concurrent ``read`` sees whole or not at all.
+
+        Args:
+            position: Dragged position [m], shape (3,), device frame.
+            orientation: Quaternion (w, x, y, z) or rotation matrix (3, 3); None for identity.
+
+        Raises:
+            ValueError: A non-finite pose (the device keeps its previous target).
+        """
+        target = HapticSample.make(0.0, position, orientation)
+        if not (np.all(np.isfinite(target.position)) and np.all(np.isfinite(target.orientation))):
+            got = None if orientation is None else np.asarray(orientation).tolist()
+            raise ValueError("HapticDeviceSimulated.drag_to: need a finite position [m] and orientation; got "
+                             f"{np.asarray(position).tolist()}, {got}")
+        self._drag_target = target
 
     def set_pose(self, position: Any, orientation: Any = None, buttons: int = 0) -> None:
         """Sets the pose reported by ``read`` (used when there is no trajectory).
@@ -152,13 +198,28 @@ class HapticDeviceSimulated(_RecordingDevice):
     def read(self) -> HapticSample:
         self._check("read")
         t = self.time()
-        if self._trajectory is None:
+        target = self._drag_target
+        if target is not None:
+            sample = self._follow_drag(t, target)
+        elif self._trajectory is None:
             p = self._pose
-            return HapticSample(t, p.position.copy(), p.orientation.copy(), p.buttons)
-        pose = self._trajectory(t)
-        if isinstance(pose, tuple):
-            return HapticSample.make(t, *pose)
-        return HapticSample.make(t, pose)
+            sample = HapticSample(t, p.position.copy(), p.orientation.copy(), p.buttons)
+        else:
+            pose = self._trajectory(t)
+            sample = HapticSample.make(t, *pose) if isinstance(pose, tuple) else HapticSample.make(t, pose)
+        self._last = sample
+        return sample
+
+    def _follow_drag(self, t: float, target: HapticSample) -> HapticSample:
+        """One lag step towards the dragged pose (position linearly, orientation by nlerp)."""
+        previous = self._dragged or self._last or self._pose
+        dt = max(t - previous.time, 0.0) if self._dragged is not None else 0.0
+        a = 1.0 if self._drag_lag == 0.0 else 1.0 - np.exp(-dt / self._drag_lag)
+        q_to = target.orientation if np.dot(target.orientation, previous.orientation) >= 0.0 else -target.orientation
+        q = previous.orientation + a * (q_to - previous.orientation)
+        position = previous.position + a * (target.position - previous.position)
+        self._dragged = HapticSample(t, position, q / np.linalg.norm(q), previous.buttons)
+        return HapticSample(t, position.copy(), self._dragged.orientation.copy(), previous.buttons)
 
 
 @final
