@@ -384,6 +384,15 @@ class MarionetteGradient:
         grads["string_stiffness"] = s.string_stiffness.grad.numpy() * self._segments_per_string
         return RolloutInputs(**grads)
 
+    def memory(self) -> dict[str, int]:
+        """Bytes the engine holds for gradients: ``checkpoints`` (host, one per segment),
+        ``tape`` (the planned taped segments' arrays and gradients: one per segment length
+        used), ``outputs`` (the host outputs and input copies of the last forward)."""
+        checkpoints = sum(sum(a.nbytes for a in vars(c).values()) for c in self._checkpoints)
+        host = sum(np.asarray(getattr(self._inputs, k)).nbytes for k in INPUT_FIELDS) if self._inputs else 0
+        host += sum(int(np.prod(s)) * 8 for s in self.output_shapes.values())
+        return {"checkpoints": checkpoints, "tape": self._taped.nbytes, "outputs": host}
+
     def _parameter_arrays(self) -> list[wp.array]:
         s, pup = self.model.strings, self.model.puppet
         arrays = [s.string_tie_stiffness, s.string_tie_damping, s.string_stiffness]

@@ -54,6 +54,7 @@ class _Plan:
         self.device = m.device
         self.steps = steps
         self.grads: list[wp.array] = []  # every gradient buffer to clear before a reverse pass
+        self.arrays: list[wp.array] = []  # every array of the plan (for its memory)
         n, s, b = m.substeps, m.strings.string_count, max(m.bar_count, 1)
         p, nb, npt = m.strings.particle_count, m.puppet.body_count, len(m.puppet.point_names)
         z = self.zeros
@@ -82,14 +83,22 @@ class _Plan:
 
     def zeros(self, shape, dtype, grad=True) -> wp.array:
         a = wp.zeros(shape, dtype=dtype, requires_grad=grad, device=self.device)
+        self.arrays.append(a)
         if grad:
             self.grads.append(a.grad)
         return a
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the plan's arrays and their gradients."""
+        return sum(a.capacity for a in self.arrays) + sum(g.capacity for g in self.grads)
+
     def _track(self, obj) -> None:
         for value in vars(obj).values():
-            if isinstance(value, wp.array) and value.requires_grad:
-                self.grads.append(value.grad)
+            if isinstance(value, wp.array):
+                self.arrays.append(value)
+                if value.requires_grad:
+                    self.grads.append(value.grad)
 
     def _points_arrays(self, nb, npt) -> dict:
         z = self.zeros
@@ -154,6 +163,11 @@ class TapedSegment:
         self.capture = bool(capture)
         self._plans: dict[int, _Plan] = {}
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the planned segments (arrays and gradients; not the graphs' own records)."""
+        return sum(plan.nbytes for plan, _ in self._plans.values())
+
     # ------------------------------------------------------------------ the taped step
     def _points(self, puppet_state, arrays: dict):
         """Body poses and tied points of ``puppet_state`` into ``arrays`` (a shallow copy of
@@ -211,15 +225,38 @@ class TapedSegment:
                       outputs=[puppet_control.spring_anchor_pos, puppet_control.spring_anchor_vel], device=m.device)
         m.puppet_solver.step(state_in.puppet, state_out.puppet, puppet_control, m.puppet_dt)
 
-    def _forward(self, plan: _Plan, last: bool, tape) -> None:
-        """The segment's launches on ``tape``; then every gradient buffer of the plan cleared."""
+    def _forward(self, plan: _Plan, last: bool, tape, clear: list[wp.array]) -> None:
+        """The segment's launches on ``tape``; then the gradient buffers ``clear`` zeroed."""
         with tape:
             for k in range(plan.steps):
                 self._step(plan.states[k], plan.states[k + 1], plan.controls[k], plan.steps_arrays[k], tape)
             if last:
                 self._points(plan.states[-1].puppet, plan.final_points)
+        for g in clear:
+            g.zero_()
+
+    def _residue(self, plan: _Plan, last: bool) -> list[wp.array]:
+        """The gradient buffers a reverse pass leaves non-zero.
+
+        Warp's adjoint of a plain array store reads the element's gradient and zeroes it, so
+        after a reverse pass only the buffers of arrays that are read but never stored to in
+        the segment (its start state, its inputs) or only accumulated into (atomic adds: the
+        bar feedback) hold anything. Found by a reverse pass with every gradient buffer set
+        to ones; only these are cleared before each replay (clearing all of them cost about
+        a fifth of the reverse pass). The model parameters' gradients are restored after.
+        """
+        saved = [a.grad.numpy().copy() for a in self.parameters]
+        warm = wp.Tape()
+        self._forward(plan, last, warm, plan.grads)
+        for g in plan.grads:
+            upload_values(g, np.ones(g.numpy().shape))
+        warm.backward()
+        residue = [g for g in plan.grads if np.any(g.numpy() != 0.0)]
         for g in plan.grads:
             g.zero_()
+        for a, g in zip(self.parameters, saved):
+            upload_values(a.grad, g)
+        return residue
 
     def _plan(self, steps: int, last: bool) -> tuple[_Plan, wp.Tape]:
         key = (steps, last)
@@ -227,16 +264,10 @@ class TapedSegment:
             plan = _Plan(self.model, steps)
             tape = wp.Tape()
             if self.capture:
-                # One eager pass, forward and reverse, loads every module before capture begins
-                # (the model parameters' accumulated gradients are kept as they were).
-                saved = [a.grad.numpy().copy() for a in self.parameters]
-                warm = wp.Tape()
-                self._forward(plan, last, warm)
-                warm.backward()
-                for a, g in zip(self.parameters, saved):
-                    upload_values(a.grad, g)
+                # The eager pass of _residue also loads every module before capture begins.
+                plan.clear = self._residue(plan, last)
                 with wp.ScopedCapture(device=self.model.device) as forward:
-                    self._forward(plan, last, tape)
+                    self._forward(plan, last, tape, plan.clear)
                 with wp.ScopedCapture(device=self.model.device) as reverse:
                     tape.backward()
                 plan.graphs = (forward.graph, reverse.graph)
@@ -276,7 +307,7 @@ class TapedSegment:
             wp.capture_launch(plan.graphs[0])
         else:
             tape = wp.Tape()  # not reset(): that would clear the parameters' accumulated gradients
-            self._forward(plan, last, tape)
+            self._forward(plan, last, tape, plan.grads)
         if expected_end is not None:
             _check_rerun(expected_end, states[-1], a, b)
         # Seed: the per-step outputs of this segment, then the state adjoint from the next one.
