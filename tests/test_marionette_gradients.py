@@ -268,6 +268,7 @@ def test_bad_inputs_are_refused(smooth):
     with pytest.raises(ValueError, match="checkpoint_steps: got 0"):
         MarionetteGradient(smooth.model, 3, checkpoint_steps=0)
 
+    import jax
     import jax.numpy as jnp
 
     from fitting import marionette_rollout
@@ -276,6 +277,10 @@ def test_bad_inputs_are_refused(smooth):
     x = {k: jnp.asarray(getattr(good, k)) for k in INPUT_FIELDS}
     with pytest.raises(ValueError, match=r"inputs\['bar_q'\]: got shape \(990, 2, 3\)"):
         f({**x, "bar_q": jnp.zeros((t, 2, 3))})
+    with pytest.raises(ValueError, match=r"inputs\['tie_damping'\]: contains NaN"):
+        f({**x, "tie_damping": x["tie_damping"].at[1].set(jnp.nan)})
+    with pytest.raises(Exception, match=r"RolloutInputs.tie_damping: non-finite value nan at index \(1,\)"):
+        jax.jit(f)({**x, "tie_damping": x["tie_damping"].at[1].set(jnp.nan)})
     with pytest.raises(ValueError, match=r"missing \['joint_q0'\]"):
         f({k: v for k, v in x.items() if k != "joint_q0"})
     assert set(OUTPUT_FIELDS) == set(f(x))
