@@ -244,7 +244,7 @@ class MarionetteGradient:
         }
         self._chunks = {}
         self._capture = bool(capture)
-        self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), capture=capture)
+        self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), self.checkpoint_steps, capture=capture)
         self._inputs: RolloutInputs | None = None
         self._checkpoints: list[Checkpoint] = []
 

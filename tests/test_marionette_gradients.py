@@ -200,13 +200,14 @@ def test_gradients_with_smoothed_contact_match_finite_differences(contact):
 
 def test_checkpointing_does_not_change_the_gradient(smooth):
     """``checkpoint_steps = puppet_steps`` (one taped segment) against 8 segments (7 of 4 steps, one of 2),
-    and against the default ``ceil(sqrt(30)) = 6`` (5 segments of 6)."""
+    against the default ``ceil(sqrt(30)) = 6`` (5 segments of 6), and without graph capture."""
     assert len(smooth.engine.segments) == 8 and smooth.engine.segments[-1] == (28, 30)
     default = MarionetteGradient(smooth.model, PUPPET_STEPS)
     assert default.checkpoint_steps == 6 and len(default.segments) == 5
     whole = MarionetteGradient(smooth.model, PUPPET_STEPS, checkpoint_steps=PUPPET_STEPS)
     assert len(whole.segments) == 1
-    for engine in (whole, default):
+    plain = MarionetteGradient(smooth.model, PUPPET_STEPS, checkpoint_steps=4, capture=False)
+    for engine in (whole, default, plain):
         engine.forward(smooth.inputs)
         g = engine.backward(smooth.weights)
         for name in INPUT_FIELDS:
