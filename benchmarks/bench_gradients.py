@@ -55,12 +55,12 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def one(seconds: float, repeats: int, capture: bool) -> dict:
+def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | None = None) -> dict:
     scene = dm.load_scene("hanging")
     scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
     model = MarionetteModel(scene, requires_grad=True)
     steps = round(seconds / model.puppet_dt)
-    engine = MarionetteGradient(model, steps, capture=capture)
+    engine = MarionetteGradient(model, steps, capture=capture, checkpoint_steps=checkpoint_steps)
     inputs = engine.scene_inputs()
     cot = {k: np.ones(s) for k, s in engine.output_shapes.items()}
     base = _rss_mib()
@@ -85,10 +85,12 @@ def one(seconds: float, repeats: int, capture: bool) -> dict:
             "outputs_mib": mem["outputs"] / MIB, "rss_above_model_mib": _peak_mib() - base}
 
 
-def _run(seconds: float, repeats: int, capture: bool = True) -> dict:
+def _run(seconds: float, repeats: int, capture: bool = True, checkpoint_steps: int | None = None) -> dict:
     cmd = [sys.executable, __file__, "--one", str(seconds), "--repeats", str(repeats)]
     if not capture:
         cmd.append("--no-capture")
+    if checkpoint_steps:
+        cmd += ["--checkpoint-steps", str(checkpoint_steps)]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -100,15 +102,22 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--one", type=float, help=argparse.SUPPRESS)
     p.add_argument("--no-capture", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--checkpoint-steps", type=int, nargs="*", default=[],
+                   help="also run every length with these segment lengths C (besides the default sqrt(P))")
     args = p.parse_args()
     if args.one is not None:
-        print(json.dumps(one(args.one, args.repeats, not args.no_capture)))
+        c = args.checkpoint_steps[0] if args.checkpoint_steps else None
+        print(json.dumps(one(args.one, args.repeats, not args.no_capture, c)))
         return
     print(f"# {platform.processor() or platform.machine()}, warp {wp.__version__}, hanging scene 6 x 50, "
           "1 kHz / 30 Hz, smoothed contact")
-    rows = [_run(s, args.repeats) for s in args.seconds]
+    rows = []
+    for s in args.seconds:
+        rows.append(_run(s, args.repeats))
+        rows += [_run(s, args.repeats, checkpoint_steps=c) for c in args.checkpoint_steps]
     if args.memory_seconds:
         rows.append(_run(args.memory_seconds, 1))
+        rows += [_run(args.memory_seconds, 1, checkpoint_steps=c) for c in args.checkpoint_steps]
     rows.append(_run(min(args.seconds), args.repeats, capture=False))
     print("| rollout | P | C | forward [s] | backward [s] | backward / forward | tape [MiB] | checkpoints [MiB] "
           "| outputs [MiB] | peak RSS above model [MiB] |")
