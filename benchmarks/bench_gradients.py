@@ -14,6 +14,8 @@ serial on the CPU). Reported per length, medians over ``--repeats``:
   the cotangent seeds written in, the captured reverse pass, the gradients read out);
 - ``backward, no capture``: the same with ``capture=False`` (every launch from Python), at
   the shortest length only, to show what capture buys;
+- ``backward / forward``: the median over the repeats of each backward's time over the
+  forward run just before it (adjacent in time, so that a changing machine load cancels);
 - memory: the bytes the engine allocates for gradients (``engine.memory()``: the taped
   segment's arrays and gradients, the checkpoints, the host outputs), and the process's
   peak resident set (``ru_maxrss``) above its size after the model was built and the
@@ -80,6 +82,7 @@ def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | Non
     return {"seconds": seconds, "puppet_steps": steps, "string_steps": engine.string_steps,
             "checkpoint_steps": engine.checkpoint_steps, "segments": len(engine.segments), "capture": capture,
             "forward_s": statistics.median(forward), "backward_s": statistics.median(backward),
+            "ratio": statistics.median(b / f for f, b in zip(forward, backward)),
             "spread_backward": (max(backward) - min(backward)) / statistics.median(backward),
             "first_s": first, "tape_mib": mem["tape"] / MIB, "checkpoints_mib": mem["checkpoints"] / MIB,
             "outputs_mib": mem["outputs"] / MIB, "rss_above_model_mib": _peak_mib() - base}
@@ -125,7 +128,7 @@ def main() -> None:
     for r in rows:
         label = f"{r['seconds']:g} s" + ("" if r["capture"] else " (no capture)")
         print(f"| {label} | {r['puppet_steps']} | {r['checkpoint_steps']} | {r['forward_s']:.3f} | "
-              f"{r['backward_s']:.3f} | {r['backward_s'] / r['forward_s']:.1f} | {r['tape_mib']:.1f} | "
+              f"{r['backward_s']:.3f} | {r['ratio']:.1f} | {r['tape_mib']:.1f} | "
               f"{r['checkpoints_mib']:.2f} | {r['outputs_mib']:.1f} | {r['rss_above_model_mib']:.0f} |")
     print("\nfirst backward (plans the segments, captures their graphs):",
           ", ".join(f"{r['seconds']:g} s: {r['first_s']:.1f} s" for r in rows))
