@@ -288,7 +288,8 @@ def string_energy(model: StringModel, q: np.ndarray, qd: np.ndarray, tie_q: np.n
     for s in range(model.string_count):
         a, b = model.string_start_np[s], model.string_start_np[s + 1]
         lengths = np.linalg.norm(np.diff(q[a:b], axis=0), axis=1)
-        spring += 0.5 * float(k_s[s]) * float(np.sum((lengths - rest[s]) ** 2))
+        # Tension-only segments (``kernels/string_terms.compute_string_spring``): no energy while slack.
+        spring += 0.5 * float(k_s[s]) * float(np.sum(np.maximum(lengths - rest[s], 0.0) ** 2))
         if model.effects.ground_contact:
             depth = np.maximum(float(model.ground_height) - q[a + 1:b, 1], 0.0)
             ground += 0.5 * float(k_ground[s]) * float(np.sum(depth**2))

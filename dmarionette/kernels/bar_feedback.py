@@ -64,7 +64,7 @@ def eval_bar_feedback_kernel(scalar, internal_friction: bool):
                 - feedback_damping * (bar_qd[bar] - particle_qd[last])
             )
             wp.atomic_add(bar_feedback, bar, f)
-        reaction, _k = t.compute_string_spring(
+        reaction, _k, _taut = t.compute_string_spring(
             particle_q[first], particle_q[first + 1], string_stiffness[s], string_rest_length[s]
         )
         if wp.static(FRICTION):

@@ -30,7 +30,9 @@ from .string_terms import string_terms
 
 @functools.cache
 def eval_string_spring_kernel(scalar):
-    """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the force on ``p`` and ``K_pp``."""
+    """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the (tension-only) force on ``p``,
+    ``K_pp`` if the segment is active and the block it would use once activated (see
+    ``string_terms.compute_string_spring``)."""
     t = string_terms(scalar)
     vec3, mat33 = t.vec3, t.mat33
 
@@ -43,20 +45,35 @@ def eval_string_spring_kernel(scalar):
         string_rest_length: wp.array(dtype=scalar),
         # State in:
         particle_q: wp.array(dtype=vec3),
+        segment_forced: wp.array(dtype=wp.int32),
         # State out:
         segment_force: wp.array(dtype=vec3),
         segment_jacobian: wp.array(dtype=mat33),
+        segment_jacobian_active: wp.array(dtype=mat33),
+        segment_active: wp.array(dtype=wp.int32),
     ):
+        """``segment_forced[p] = 1`` activates segment ``p`` whether or not it is taut now (the
+        active set a previous solve found); the segment is active if taut or forced, and
+        ``segment_jacobian`` holds its block if active, zero if not."""
         p = wp.tid()
         s = particle_string[p]
         if p == string_start[s + 1] - 1:
             # The last particle starts no segment.
             segment_force[p] = vec3(scalar(0.0))
             segment_jacobian[p] = mat33(scalar(0.0))
+            segment_jacobian_active[p] = mat33(scalar(0.0))
+            segment_active[p] = 0
             return
-        f, k = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s], string_rest_length[s])
+        f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s],
+                                             string_rest_length[s])
+        active = wp.max(taut, segment_forced[p])
         segment_force[p] = f
-        segment_jacobian[p] = k
+        segment_jacobian_active[p] = k
+        segment_active[p] = active
+        if active == 1:
+            segment_jacobian[p] = k
+        else:
+            segment_jacobian[p] = mat33(scalar(0.0))
 
     return eval_string_spring
 

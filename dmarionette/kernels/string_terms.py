@@ -23,26 +23,58 @@ def string_terms(scalar) -> SimpleNamespace:
 
     @wp.func
     def compute_string_spring(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
-        """Spring between neighbours a and b, paper term 1: ``f_a = -k_s (|x_a - x_b| - d) u``.
+        """Spring between neighbours a and b, paper term 1, made tension-only:
+        ``f_a = -k_s max(|x_a - x_b| - d, 0) u``, ``u = (x_a - x_b) / |x_a - x_b|``.
 
-        Returns the force on ``a`` and ``K_aa = df_a/dx_a`` (and ``K_ab = -K_aa``).
+        Returns the force on ``a``, the Jacobian block ``K_aa`` the implicit step uses when
+        the segment is *active* in the step (``K_ab = -K_aa``), and whether the segment is
+        taut now (``1``/``0``).
 
-        Deliberate deviation from an exact Newton linearisation: the geometric
-        (transverse) part of the Jacobian, ``(1 - d/l)(I - u u^T)``, is clamped at zero
-        while the segment is compressed (``l < d``). The force itself is exact; only the
-        system matrix differs, and it stays symmetric positive definite, so the
-        block-tridiagonal solve never meets an indefinite pivot when a slack string
-        buckles (Choi & Ko, SIGGRAPH 2002).
+        **Deliberate deviation from the paper:** the paper prints ``-k_s (|x_a - x_b| - d) u``,
+        which also pushes when the segment is shorter than its rest length. A real string
+        does not push: with the printed spring a straight string lowered onto the ground acts
+        as a rod and drives its lower particles 0.3 m through the ground penalty
+        (``tests/test_hard_cases_strings.py``). Here the potential is
+        ``1/2 k_s max(l - d, 0)^2`` (``string_model.string_energy``), which is convex in the
+        positions (the printed spring's is not). For a taut segment (``l > d``) force and
+        Jacobian are the paper's, so taut strings behave exactly as before.
+
+        **Linearising across the kink** (backward Euler takes ``K`` at the start of the step):
+        a segment is active in a step if it is taut at the start *or at the end* of the
+        step; the end is found by the solve (``kernels/string_solve``, an active-set loop:
+        solve, activate the segments that end taut, solve again). An active segment uses
+
+        - taut: the exact ``K = -k_s (u u^T + (1 - d/l)(I - u u^T))``;
+        - slack now, taut at the end: the axial ``K = -k_s u u^T`` (the force is still the
+          exact zero): over the step a spring of rest length ``l``, whose energy starts at
+          the true 0 and ends at ``1/2 k_s (l' - l)^2 >= 1/2 k_s max(l' - d, 0)^2``.
+
+        So every active segment's step sees a quadratic surrogate that equals the true
+        potential at the start and bounds it from above at the end, and an inactive segment
+        is slack at both ends (no force, no energy). Switching ``K`` on only once a segment
+        *is* taut would let it stretch by up to ``dt |v_a - v_b|`` in a step with no force
+        acting, and ``1/2 k_s stretch^2`` would appear from nothing: that is why an earlier
+        tension-only attempt gained up to 0.1 J in the hard-case energy checks, and without
+        internal friction it blew up. The geometric (transverse) factor ``(1 - d/l)`` is
+        non-negative wherever it is used, so the system matrix stays symmetric positive
+        definite and the block-tridiagonal solve never meets an indefinite pivot (Choi & Ko,
+        SIGGRAPH 2002, clamp it for the same reason).
         """
         e = x_a - x_b
         length = wp.length(e)
-        u = e / length
-        force = -stiffness * (length - rest_length) * u
-        # -k_s (u u^T + c (I - u u^T)) = -k_s c I - k_s (1 - c) u u^T, with c clamped at 0.
-        geometric = wp.max(scalar(1.0) - rest_length / length, scalar(0.0))
-        eye = wp.identity(n=3, dtype=scalar)
-        jacobian = wp.outer(-stiffness * (scalar(1.0) - geometric) * u, u) - (stiffness * geometric) * eye
-        return force, jacobian
+        zero = scalar(0.0)
+        u = vec3(zero)
+        if length > zero:
+            u = e / length  # coincident particles (a string folded onto itself): no direction, no force
+        force = -stiffness * wp.max(length - rest_length, zero) * u
+        taut = int(0)
+        jacobian = wp.outer(-stiffness * u, u)
+        if length > rest_length:
+            taut = 1
+            geometric = scalar(1.0) - rest_length / length
+            eye = wp.identity(n=3, dtype=scalar)
+            jacobian = wp.outer(-stiffness * (scalar(1.0) - geometric) * u, u) - (stiffness * geometric) * eye
+        return force, jacobian, taut
 
     @wp.func
     def compute_internal_friction(v_a: vec3, v_b: vec3, friction: scalar):
