@@ -85,8 +85,8 @@ _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in 
 
 
 @functools.cache
-def _eval_bar_work_kernel(scalar, internal_friction: bool):
-    t = string_terms(scalar)
+def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
+    t = string_terms(scalar, tension_only)
     vec3 = t.vec3
     FRICTION = internal_friction
 
@@ -145,7 +145,7 @@ class BarWorkMeter:
         self.solver = solver
         self.model: StringModel = solver.model
         m = self.model
-        self._kernel = _eval_bar_work_kernel(m.scalar, m.effects.internal_friction)
+        self._kernel = _eval_bar_work_kernel(m.scalar, m.effects.internal_friction, m.effects.tension_only)
         self.bar_work = wp.zeros(m.string_count, dtype=wp.float64, device=m.device)
 
     def reset(self) -> None:

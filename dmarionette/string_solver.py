@@ -82,7 +82,8 @@ class SolverStringImplicit:
 
     def __init__(self, model: StringModel):
         self.model = model
-        self._eval_spring = eval_string_spring_kernel(model.scalar)
+        self._tension_only = model.effects.tension_only
+        self._eval_spring = eval_string_spring_kernel(model.scalar, self._tension_only)
         self._eval_system = eval_string_system_kernel(model.scalar, model.effects.as_tuple())
         self._solve, self._solve_active, self._solve_adjoint = solve_string_system_kernels(model.scalar)
         self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
@@ -98,7 +99,7 @@ class SolverStringImplicit:
         tape = _active_tape()
         h = m.scalar(dt)
         forced = self._none_forced
-        if tape is not None:
+        if tape is not None and self._tension_only:
             # The active set, unrecorded (segments taut at the start or at the end of the step),
             # in arrays of this step's own (the recorded pass reads the flags again backwards) ...
             ws = StringWorkspace.allocate(m, requires_grad=False)
@@ -113,14 +114,16 @@ class SolverStringImplicit:
             forced = ws.segment_active
             # ... then the recorded step with that active set.
             ws = StringWorkspace.allocate(m, requires_grad=True)
+        elif tape is not None:
+            ws = StringWorkspace.allocate(m, requires_grad=True)
         else:
             ws = self._workspace
-        self.eval_string_spring(state_in, forced, ws)  # tension-only spring force and stiffness per segment
+        self.eval_string_spring(state_in, forced, ws)  # spring force and stiffness per segment
         self.eval_string_system(state_in, control, h, ws)  # all force terms -> A dv = b
-        if tape is None:
+        if tape is None and self._tension_only:
             self.solve_string_system_active(state_in, control, h, ws)  # block Thomas + active set
         else:
-            self.solve_string_system(ws, tape)  # block Thomas with the active set found above
+            self.solve_string_system(ws, tape)  # block Thomas (with the active set found above)
         self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
         self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
 

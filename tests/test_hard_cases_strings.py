@@ -103,18 +103,20 @@ def test_30_minutes_of_swaying_strings_in_float64():
     assert np.ptp(late) <= 1e-4
 
 
+@pytest.mark.parametrize("tension_only", [False, True])
 @pytest.mark.parametrize("segment_stiffness", [1e7])
-def test_very_stiff_strings_in_float32_track_float64(segment_stiffness):
+def test_very_stiff_strings_in_float32_track_float64(segment_stiffness, tension_only):
     """Segment stiffness 1e7 N/m (400x the default) in float32 and float64, the ``strings``
     scene for 2 s at 1 kHz: both finite, both within the energy bound, and float32 within
-    1 mm of float64 (the README's float32 claim). Measured: gap 8.6e-7 m; so float32 needs
-    no refusal for stiff strings at 1 kHz."""
+    1 mm of float64 (the README's float32 claim). Measured: gap 8.6e-7 m (tension-only springs:
+    5.3e-7 m); so float32 needs no refusal for stiff strings at 1 kHz."""
     scene = dm.load_scene("strings")
     strings = tuple(dataclasses.replace(s, stiffness=segment_stiffness / (s.particle_count - 1))
                     for s in scene.strings)
     final = {}
     for precision in ("float64", "float32"):
-        sc = dataclasses.replace(scene, strings=strings, precision=precision)
+        sc = dataclasses.replace(scene, strings=strings, precision=precision,
+                                 effects=dataclasses.replace(scene.effects, tension_only=tension_only))
         rollout = MeteredStringRollout(sc, sc.build_string_model(), chunk=100)
         energy, work, _, finite = rollout.run(20)
         assert finite, precision
@@ -161,11 +163,12 @@ def test_a_lowered_string_does_not_push_into_the_ground(internal_friction):
     the ground; its top is lowered by 0.5 m at ``v_top`` = 0.5 m/s. A string cannot push: it
     must pile up on the ground.
 
-    With the paper's printed spring (``-k_s (l - d) u``, which pushes when compressed) the
-    lowest particle ended 303 mm below the ground: a perfectly straight chain has nothing to
-    buckle it, so it acted as a stiff rod and drove its lower particles through the weak
-    per-particle ground penalty (``k_p`` = 41 N/m against ``k_s`` = 24,500 N/m). The
-    springs are now tension-only (``kernels/string_terms.compute_string_spring``).
+    With the paper's printed spring (``-k_s (l - d) u``, which pushes when compressed; the
+    default) the lowest particle ends 303 mm below the ground: a perfectly straight chain
+    has nothing to buckle it, so it acts as a stiff rod and drives its lower particles
+    through the weak per-particle ground penalty (``k_p`` = 41 N/m against ``k_s`` = 24,500
+    N/m). Here with tension-only springs (``StringEffects(tension_only=True)``,
+    ``kernels/string_terms.compute_string_spring_tension_only``).
 
     Bounds, for one particle of mass ``m`` on its penalty spring ``k_p``, step ``h``:
 
@@ -183,8 +186,8 @@ def test_a_lowered_string_does_not_push_into_the_ground(internal_friction):
       friction's, not the spring's (README, "internal friction as printed").
     """
     spec = StringSpec(name="s", top=(0.0, 1.0, 0.0), bottom=(0.0, 0.0, 0.0), length=1.0, particle_count=50)
-    model = build_string_model([spec], effects=dm.StringEffects(internal_friction=internal_friction),
-                               gravity=(0.0, -G, 0.0), ground_height=0.0)
+    effects = dm.StringEffects(internal_friction=internal_friction, tension_only=True)
+    model = build_string_model([spec], effects=effects, gravity=(0.0, -G, 0.0), ground_height=0.0)
     solver = SolverStringImplicit(model)
     a, b = model.state(), model.state()
     top = wp.array([[0.0, 1.0, 0.0]], dtype=wp.vec3d)

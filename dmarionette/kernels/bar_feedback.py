@@ -23,9 +23,10 @@ from .string_terms import string_terms
 
 
 @functools.cache
-def eval_bar_feedback_kernel(scalar, internal_friction: bool):
-    """Builds ``eval_bar_feedback`` for a float type (internal friction in the reaction or not)."""
-    t = string_terms(scalar)
+def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool = False):
+    """Builds ``eval_bar_feedback`` for a float type (internal friction in the reaction or not;
+    the segment spring of ``StringEffects.tension_only``)."""
+    t = string_terms(scalar, tension_only)
     vec3 = t.vec3
     FRICTION = internal_friction
 

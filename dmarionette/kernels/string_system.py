@@ -29,11 +29,11 @@ from .string_terms import string_terms
 
 
 @functools.cache
-def eval_string_spring_kernel(scalar):
+def eval_string_spring_kernel(scalar, tension_only: bool = False):
     """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the (tension-only) force on ``p``,
     ``K_pp`` if the segment is active and the block it would use once activated (see
-    ``string_terms.compute_string_spring``)."""
-    t = string_terms(scalar)
+    ``string_terms.compute_string_spring``; the printed spring is always active)."""
+    t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
 
     @wp.kernel(module="unique")

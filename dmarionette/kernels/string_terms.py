@@ -16,13 +16,40 @@ import warp as wp
 
 
 @functools.cache
-def string_terms(scalar) -> SimpleNamespace:
-    """Builds the string force terms for the float type ``scalar`` (``wp.float32``/``wp.float64``)."""
+def string_terms(scalar, tension_only: bool = False) -> SimpleNamespace:
+    """Builds the string force terms for the float type ``scalar`` (``wp.float32``/``wp.float64``);
+    ``tension_only`` chooses the segment spring (``compute_string_spring``): the paper's
+    printed spring (default) or the tension-only one (``StringEffects.tension_only``)."""
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
 
     @wp.func
-    def compute_string_spring(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+    def compute_string_spring_printed(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+        """Spring between neighbours a and b, paper term 1 as printed: ``f_a = -k_s (|x_a - x_b| - d) u``
+        (it also pushes when the segment is shorter than ``d``).
+
+        Returns the force on ``a``, ``K_aa = df_a/dx_a`` (and ``K_ab = -K_aa``), and ``1`` (the
+        segment is always in the implicit system).
+
+        Deliberate deviation from an exact Newton linearisation: the geometric
+        (transverse) part of the Jacobian, ``(1 - d/l)(I - u u^T)``, is clamped at zero
+        while the segment is compressed (``l < d``). The force itself is exact; only the
+        system matrix differs, and it stays symmetric positive definite, so the
+        block-tridiagonal solve never meets an indefinite pivot when a slack string
+        buckles (Choi & Ko, SIGGRAPH 2002).
+        """
+        e = x_a - x_b
+        length = wp.length(e)
+        u = e / length
+        force = -stiffness * (length - rest_length) * u
+        # -k_s (u u^T + c (I - u u^T)) = -k_s c I - k_s (1 - c) u u^T, with c clamped at 0.
+        geometric = wp.max(scalar(1.0) - rest_length / length, scalar(0.0))
+        eye = wp.identity(n=3, dtype=scalar)
+        jacobian = wp.outer(-stiffness * (scalar(1.0) - geometric) * u, u) - (stiffness * geometric) * eye
+        return force, jacobian, int(1)
+
+    @wp.func
+    def compute_string_spring_tension_only(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
         """Spring between neighbours a and b, paper term 1, made tension-only:
         ``f_a = -k_s max(|x_a - x_b| - d, 0) u``, ``u = (x_a - x_b) / |x_a - x_b|``.
 
@@ -30,11 +57,13 @@ def string_terms(scalar) -> SimpleNamespace:
         the segment is *active* in the step (``K_ab = -K_aa``), and whether the segment is
         taut now (``1``/``0``).
 
-        **Deliberate deviation from the paper:** the paper prints ``-k_s (|x_a - x_b| - d) u``,
-        which also pushes when the segment is shorter than its rest length. A real string
-        does not push: with the printed spring a straight string lowered onto the ground acts
-        as a rod and drives its lower particles 0.3 m through the ground penalty
-        (``tests/test_hard_cases_strings.py``). Here the potential is
+        **Deliberate deviation from the paper** (chosen with ``StringEffects(tension_only=True)``,
+        scene key ``[effects] tension_only = true``; the default is the printed spring,
+        ``compute_string_spring_printed``, see the last paragraph): the paper prints
+        ``-k_s (|x_a - x_b| - d) u``, which also pushes when the segment is shorter than its
+        rest length. A real string does not push: with the printed spring a straight string
+        lowered onto the ground acts as a rod and drives its lower particles 0.3 m through the
+        ground penalty (``tests/test_hard_cases_strings.py``). Here the potential is
         ``1/2 k_s max(l - d, 0)^2`` (``string_model.string_energy``), which is convex in the
         positions (the printed spring's is not). For a taut segment (``l > d``) force and
         Jacobian are the paper's, so taut strings behave exactly as before.
@@ -59,6 +88,15 @@ def string_terms(scalar) -> SimpleNamespace:
         non-negative wherever it is used, so the system matrix stays symmetric positive
         definite and the block-tridiagonal solve never meets an indefinite pivot (Choi & Ko,
         SIGGRAPH 2002, clamp it for the same reason).
+
+        **Why it is not the default:** strings alone, and a marionette whose puppet runs at the
+        string rate, pass every test with it. With the puppet at 30 Hz the string-body
+        coupling (``kernels/string_body_coupling``: the strings follow a constant-velocity
+        predicted path, the body is held to that path by the stiff tie) is not passive
+        when a tie force switches on and off within a puppet step: a puppet on 10x stiffer
+        tension-only strings bounces on its head string and is pumped 13 cm up in 4 s, and
+        with the default strings the puppet does not settle (``tests/test_marionette.py``).
+        ``settings_check`` refuses tension-only strings with a puppet slower than the strings.
         """
         e = x_a - x_b
         length = wp.length(e)
@@ -137,7 +175,7 @@ def string_terms(scalar) -> SimpleNamespace:
     return SimpleNamespace(
         vec3=vec3,
         mat33=mat33,
-        compute_string_spring=compute_string_spring,
+        compute_string_spring=compute_string_spring_tension_only if tension_only else compute_string_spring_printed,
         compute_internal_friction=compute_internal_friction,
         compute_air_drag=compute_air_drag,
         compute_ground_contact=compute_ground_contact,
