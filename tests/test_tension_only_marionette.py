@@ -15,6 +15,7 @@ import dmarionette as dm
 from dmarionette.marionette import MarionetteModel
 from dmarionette.marionette_energy import simulate_energy_balance
 from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.scene import SCENE_DIR
 from dmarionette.scene_fields import SceneError
 from dmarionette.settings_check import check_marionette_settings
 from test_hard_cases import G, PiecewiseLinearPath, _check, _contact_bound, _limit_bound, _still
@@ -65,6 +66,22 @@ def test_fully_coupled_all_strings_slack_and_lying_on_the_ground(tension_only):
     bound = _contact_bound(model, v)
     _check("slack on the ground, tension-only, 1 kHz", model, r, ground=bound, limit=_limit_bound(model, r),
            string_ground=bound + v * model.puppet_dt)
+
+
+def test_the_scene_key_is_read_and_refused_at_load_under_a_slower_puppet(tmp_path):
+    """``[effects] tension_only`` defaults to false (the printed spring); ``true`` in a scene
+    file is refused when the file is loaded with the puppet at 30 Hz (the message names the
+    file, the table, the key and the fix), and accepted with ``puppet_hz = string_hz``."""
+    text = (SCENE_DIR / "hanging.toml").read_text()
+    assert dm.load_scene("hanging").effects.tension_only is False
+    slow = tmp_path / "slow.toml"
+    slow.write_text(text.replace("feedback = true", "feedback = true\ntension_only = true", 1)
+                    .replace('include = "puppet.toml"', f'include = "{SCENE_DIR / "puppet.toml"}"', 1))
+    with pytest.raises(SceneError, match=r"slow\.toml.*\[effects\].*tension_only.*puppet_hz = string_hz"):
+        dm.load_scene(slow)
+    fast = tmp_path / "fast.toml"
+    fast.write_text(slow.read_text().replace("puppet_hz = 30.0", "puppet_hz = 1000.0", 1))
+    assert dm.load_scene(fast).effects.tension_only is True
 
 
 def test_tension_only_strings_under_a_30_hz_puppet_are_refused(monkeypatch):
