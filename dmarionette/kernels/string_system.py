@@ -52,9 +52,10 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
         segment_jacobian_active: wp.array(dtype=mat33),
         segment_active: wp.array(dtype=wp.int32),
     ):
-        """``segment_forced[p] = 1`` activates segment ``p`` whether or not it is taut now (the
-        active set a previous solve found); the segment is active if taut or forced, and
-        ``segment_jacobian`` holds its block if active, zero if not."""
+        """Tension-only springs: ``segment_forced[p] = 1`` activates segment ``p`` whether or not
+        it is taut now (the active set a previous solve found); the segment is active if taut
+        or forced, and ``segment_jacobian`` holds its block if active, zero if not. The
+        printed spring writes only ``segment_force`` and ``segment_jacobian`` (always active)."""
         p = wp.tid()
         s = particle_string[p]
         if p == string_start[s + 1] - 1:
@@ -66,8 +67,11 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
             return
         f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s],
                                              string_rest_length[s])
-        active = wp.max(taut, segment_forced[p])
         segment_force[p] = f
+        if wp.static(not tension_only):
+            segment_jacobian[p] = k  # the printed spring is always active
+            return
+        active = wp.max(taut, segment_forced[p])
         segment_jacobian_active[p] = k
         segment_active[p] = active
         if active == 1:
