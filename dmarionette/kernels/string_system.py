@@ -31,7 +31,7 @@ from .string_terms import string_terms
 @functools.cache
 def eval_string_spring_kernel(scalar, tension_only: bool = False):
     """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the (tension-only) force on ``p``,
-    ``K_pp`` if the segment is active and the block it would use once activated (see
+    ``K_pp`` if the segment is active, else the block it would use once activated (see
     ``string_terms.compute_string_spring``; the printed spring is always active)."""
     t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
@@ -72,12 +72,12 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
             segment_jacobian[p] = k  # the printed spring is always active
             return
         active = wp.max(taut, segment_forced[p])
-        segment_jacobian_active[p] = k
         segment_active[p] = active
         if active == 1:
             segment_jacobian[p] = k
         else:
             segment_jacobian[p] = mat33(scalar(0.0))
+            segment_jacobian_active[p] = k  # read by the solve only for inactive segments
 
     return eval_string_spring
 
