@@ -2,10 +2,10 @@
 
 One step is five named passes::
 
-    eval_string_spring     each segment's (tension-only) spring force and stiffness, once per segment
+    eval_string_spring     each segment's spring force and stiffness (printed or tension-only), once per segment
     eval_string_system     forces and Jacobians of every term -> block-tridiagonal A dv = b
-    solve_string_system    exact O(n) block Thomas solve, one chain per thread; segments that
-                           the solution ends taut are activated and the chain solved again
+    solve_string_system    exact O(n) block Thomas solve, one chain per thread (tension-only springs:
+                           segments the solution ends taut are activated, the chain solved again)
     integrate_string       v1 = v0 + dv, x1 = x0 + h v1; the top particle follows its bar
     eval_string_tie_force  eq. 2 force on each body point, taut flags (paper §3.2)
 
@@ -57,7 +57,7 @@ class StringWorkspace:
             return cls(
                 segment_force=zeros(model.vec3, requires_grad),
                 segment_jacobian=zeros(model.mat33, requires_grad),
-                segment_jacobian_active=zeros(model.mat33, requires_grad),
+                segment_jacobian_active=zeros(model.mat33, False),  # read only by the unrecorded solve
                 segment_active=zeros(wp.int32, False),
                 system_diag=zeros(model.mat33, requires_grad),
                 system_upper=zeros(model.mat33, requires_grad),
