@@ -81,21 +81,25 @@ def string_terms(scalar, tension_only: bool = False) -> SimpleNamespace:
         So every active segment's step sees a quadratic surrogate that equals the true
         potential at the start and bounds it from above at the end, and an inactive segment
         is slack at both ends (no force, no energy). Switching ``K`` on only once a segment
-        *is* taut would let it stretch by up to ``dt |v_a - v_b|`` in a step with no force
-        acting, and ``1/2 k_s stretch^2`` would appear from nothing: that is why an earlier
-        tension-only attempt gained up to 0.1 J in the hard-case energy checks, and without
-        internal friction it blew up. The geometric (transverse) factor ``(1 - d/l)`` is
+        *is* taut (or is predicted taut from ``x + dt v``) lets it stretch by up to
+        ``dt |v_a - v_b|`` in a step with no force acting, and ``1/2 k_s stretch^2`` appears
+        from nothing (measured: a string without internal friction, hanging still, then blew
+        up within 0.4 s). The energy must count only ``1/2 k_s max(l - d, 0)^2`` too: the
+        printed potential also counts compressed segments, energy a tension-only string does
+        not store. The geometric (transverse) factor ``(1 - d/l)`` is
         non-negative wherever it is used, so the system matrix stays symmetric positive
         definite and the block-tridiagonal solve never meets an indefinite pivot (Choi & Ko,
         SIGGRAPH 2002, clamp it for the same reason).
 
         **Why it is not the default:** strings alone, and a marionette whose puppet runs at the
-        string rate, pass every test with it. With the puppet at 30 Hz the string-body
+        string rate, pass the hard cases tried with it (``tests/test_hard_cases_strings.py``,
+        ``tests/test_tension_only_marionette.py``). With the puppet at 30 Hz the string-body
         coupling (``kernels/string_body_coupling``: the strings follow a constant-velocity
         predicted path, the body is held to that path by the stiff tie) is not passive
         when a tie force switches on and off within a puppet step: a puppet on 10x stiffer
         tension-only strings bounces on its head string and is pumped 13 cm up in 4 s, and
-        with the default strings the puppet does not settle (``tests/test_marionette.py``).
+        on the default strings it still moves at 1.3 mm/s after 6 s of still bars
+        (``tests/test_marionette.py`` asks below 1 mm/s).
         ``settings_check`` refuses tension-only strings with a puppet slower than the strings.
         """
         e = x_a - x_b
