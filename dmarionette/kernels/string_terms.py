@@ -83,8 +83,8 @@ def string_terms(scalar, tension_only: bool = False) -> SimpleNamespace:
         is slack at both ends (no force, no energy). Switching ``K`` on only once a segment
         *is* taut (or is predicted taut from ``x + dt v``) lets it stretch by up to
         ``dt |v_a - v_b|`` in a step with no force acting, and ``1/2 k_s stretch^2`` appears
-        from nothing (measured: a string without internal friction, hanging still, then blew
-        up within 0.4 s). The energy must count only ``1/2 k_s max(l - d, 0)^2`` too: the
+        from nothing (measured: a string without internal friction went unstable while
+        hanging still, 4 m/s within 50 ms, NaN after 0.4 s). The energy must count only ``1/2 k_s max(l - d, 0)^2`` too: the
         printed potential also counts compressed segments, energy a tension-only string does
         not store. The geometric (transverse) factor ``(1 - d/l)`` is
         non-negative wherever it is used, so the system matrix stays symmetric positive
