@@ -237,7 +237,8 @@ class SolverMarionette:
     def __init__(self, model: MarionetteModel):
         self.model = model
         m = model
-        self._feedback = eval_bar_feedback_kernel(wp.float64, m.scene.effects.internal_friction) \
+        self._feedback = eval_bar_feedback_kernel(wp.float64, m.scene.effects.internal_friction,
+                                                  m.scene.effects.tension_only) \
             if m.scene.body_effects["feedback"] and m.bar_count else None
         self._spare = (m.strings.state(), m.strings.state())
         n_points = len(m.puppet.point_names)

@@ -63,7 +63,6 @@ gradient; do not install it on a model used under a ``wp.Tape``.
 
 
 import functools
-import inspect
 
 import numpy as np
 import warp as wp
@@ -85,26 +84,16 @@ __all__ = [
 _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 
 
-def _spring_takes_velocities(t) -> bool:
-    """Whether ``compute_string_spring`` takes ``(x_a, x_b, v_a, v_b, k, d, dt)`` (a spring whose
-    activity depends on the motion) rather than ``(x_a, x_b, k, d)``."""
-    return len(inspect.signature(t.compute_string_spring.func).parameters) == 7
-
-
 @functools.cache
-def _eval_bar_work_kernel(scalar, internal_friction: bool):
-    t = string_terms(scalar)
+def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
+    t = string_terms(scalar, tension_only)
     vec3 = t.vec3
     FRICTION = internal_friction
-    WITH_VELOCITIES = _spring_takes_velocities(t)
 
     @wp.func
     def compute_top_force(x0: vec3, x1: vec3, v0: vec3, v1: vec3, k: scalar, d: scalar, c: scalar):
-        # The force of the state itself (no step ahead: dt = 0), as the feedback's exact reaction.
-        if wp.static(WITH_VELOCITIES):
-            f, _k = t.compute_string_spring(x0, x1, v0, v1, k, d, scalar(0.0))
-        else:
-            f, _k = t.compute_string_spring(x0, x1, k, d)
+        # The force of the state itself, as the feedback's exact reaction.
+        f, _k, _taut = t.compute_string_spring(x0, x1, k, d)
         if wp.static(FRICTION):
             f_f, _d = t.compute_internal_friction(v0, v1, c)
             f = f + f_f
@@ -156,7 +145,7 @@ class BarWorkMeter:
         self.solver = solver
         self.model: StringModel = solver.model
         m = self.model
-        self._kernel = _eval_bar_work_kernel(m.scalar, m.effects.internal_friction)
+        self._kernel = _eval_bar_work_kernel(m.scalar, m.effects.internal_friction, m.effects.tension_only)
         self.bar_work = wp.zeros(m.string_count, dtype=wp.float64, device=m.device)
 
     def reset(self) -> None:

@@ -218,7 +218,8 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     effects_table = read_table(table, "effects", source, {})
     where = f"{source}: [effects]"
     check_keys(effects_table, [*_EFFECTS, *_BODY_EFFECTS], where)
-    effects = StringEffects(**{k: read_bool(effects_table, k, where, True) for k in _EFFECTS})
+    defaults = StringEffects()
+    effects = StringEffects(**{k: read_bool(effects_table, k, where, getattr(defaults, k)) for k in _EFFECTS})
     body_effects = {k: read_bool(effects_table, k, where, v) for k, v in _BODY_EFFECTS.items()}
 
     world = read_table(table, "world", source, {})

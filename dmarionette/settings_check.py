@@ -20,6 +20,15 @@ where strings are built from a scene (``Scene.build_string_model``, or at the en
   excess over 6 s: -0.013 J at 25 Hz, +0.002 J at 20 Hz, +0.026 J at 15 Hz, +0.040 J at
   10 Hz, +0.064 J at 5 Hz, +135 J and a joint 5.4 rad past its limit at 1 Hz). So
   ``puppet_hz >= 25`` is required when ``string_hz / puppet_hz`` rounds to more than 1.
+- **tension-only strings under a slower puppet** (``[effects] tension_only = true`` with
+  ``string_hz / puppet_hz`` rounding to more than 1): the extrapolated coupling is not
+  passive when a tie force switches on and off within a puppet step. Measured with the
+  ``hanging`` scene at 30 Hz: with still bars the puppet does not settle (torso still
+  moving at 1.3 mm/s after 6 s), the 30 Hz run leaves the 1 kHz one by 34 mm (21.7 mm with
+  the printed spring), a shoulder thrown into its limit gains 0.62 J, and on 10x stiffer
+  strings the puppet bounces on its head string and is pumped 13 cm up in 4 s. With the
+  puppet at the string rate it settles and the hard cases tried
+  holds (ties carry the weight to 4e-7 after 6 s), so ``puppet_hz = string_hz`` is required.
 - **any puppet step longer than 0.1 s**: with the puppet at the string rate (``n = 1``) the
   coupling is a plain staggered step; measured excess -0.020 J at 10 Hz and 5 Hz, but
   8,000 J at 4 Hz, 150,000 J at 3 Hz (string particles metres below the ground). So
@@ -79,6 +88,12 @@ def check_marionette_settings(scene) -> None:
                          f"step (string_hz = {scene.string_hz:g}): over a longer puppet step the extrapolated "
                          "string-body coupling puts energy into the puppet; raise puppet_hz, or set "
                          "puppet_hz = string_hz")
+    if substeps > 1 and scene.effects.tension_only:
+        raise SceneError(f"{source}: [effects]", "tension_only", True,
+                         f"false while the strings take {substeps} steps per puppet step (string_hz = "
+                         f"{scene.string_hz:g}, puppet_hz = {scene.puppet_hz:g}): the extrapolated string-body "
+                         "coupling pumps energy into the puppet when a tension-only string goes slack and taut "
+                         "within a puppet step; set puppet_hz = string_hz, or tension_only = false")
     for spec, point in zip(scene.strings, scene.string_body_points):
         if point is not None and not spec.tie_stiffness > 0.0:
             raise SceneError(f"{source}: [[strings]] {spec.name!r}", "tie_stiffness", spec.tie_stiffness,

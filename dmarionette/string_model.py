@@ -53,6 +53,10 @@ class StringEffects:
     air_drag: bool = True
     ground_contact: bool = True
     ground_friction: bool = True
+    #: Tension-only segment springs (no push when shorter than the rest length), a deliberate
+    #: deviation from the paper's printed spring (``kernels/string_terms``); off by default:
+    #: the 30 Hz string-body coupling is not ready for it (refused there by ``settings_check``).
+    tension_only: bool = False
 
     def as_tuple(self) -> tuple[bool, bool, bool, bool, bool]:
         """The switches in kernel order; ground friction needs ground contact."""
@@ -288,7 +292,10 @@ def string_energy(model: StringModel, q: np.ndarray, qd: np.ndarray, tie_q: np.n
     for s in range(model.string_count):
         a, b = model.string_start_np[s], model.string_start_np[s + 1]
         lengths = np.linalg.norm(np.diff(q[a:b], axis=0), axis=1)
-        spring += 0.5 * float(k_s[s]) * float(np.sum((lengths - rest[s]) ** 2))
+        stretch = lengths - rest[s]
+        if model.effects.tension_only:  # no energy while slack (``kernels/string_terms``)
+            stretch = np.maximum(stretch, 0.0)
+        spring += 0.5 * float(k_s[s]) * float(np.sum(stretch**2))
         if model.effects.ground_contact:
             depth = np.maximum(float(model.ground_height) - q[a + 1:b, 1], 0.0)
             ground += 0.5 * float(k_ground[s]) * float(np.sum(depth**2))

@@ -2,14 +2,19 @@
 
 One step is five named passes::
 
-    eval_string_spring     each segment's spring force and stiffness, once per segment
+    eval_string_spring     each segment's spring force and stiffness (printed or tension-only), once per segment
     eval_string_system     forces and Jacobians of every term -> block-tridiagonal A dv = b
-    solve_string_system    exact O(n) block Thomas solve, one chain per thread
+    solve_string_system    exact O(n) block Thomas solve, one chain per thread (tension-only springs:
+                           segments the solution ends taut are activated, the chain solved again)
     integrate_string       v1 = v0 + dv, x1 = x0 + h v1; the top particle follows its bar
     eval_string_tie_force  eq. 2 force on each body point, taut flags (paper §3.2)
 
 Under a ``wp.Tape`` each step allocates its own intermediates (one array per step, as
-Warp's reverse pass needs) and the solve records its hand-written adjoint.
+Warp's reverse pass needs) and the solve records its hand-written adjoint. The active set of
+the tension-only springs (which segments are in the system) is found first by an unrecorded
+pass; the recorded pass then assembles and solves the system with that active set, so the
+gradient is that of the step with the active set held fixed (the derivative of the
+piecewise-smooth step away from its kinks).
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ class StringWorkspace:
 
     segment_force: wp.array
     segment_jacobian: wp.array
+    segment_jacobian_active: wp.array
+    segment_active: wp.array
     system_diag: wp.array
     system_upper: wp.array
     system_rhs: wp.array
@@ -50,6 +57,8 @@ class StringWorkspace:
             return cls(
                 segment_force=zeros(model.vec3, requires_grad),
                 segment_jacobian=zeros(model.mat33, requires_grad),
+                segment_jacobian_active=zeros(model.mat33, False),  # read only by the unrecorded solve
+                segment_active=zeros(wp.int32, False),
                 system_diag=zeros(model.mat33, requires_grad),
                 system_upper=zeros(model.mat33, requires_grad),
                 system_rhs=zeros(model.vec3, requires_grad),
@@ -73,11 +82,13 @@ class SolverStringImplicit:
 
     def __init__(self, model: StringModel):
         self.model = model
-        self._eval_spring = eval_string_spring_kernel(model.scalar)
+        self._tension_only = model.effects.tension_only
+        self._eval_spring = eval_string_spring_kernel(model.scalar, self._tension_only)
         self._eval_system = eval_string_system_kernel(model.scalar, model.effects.as_tuple())
-        self._solve, self._solve_adjoint = solve_string_system_kernels(model.scalar)
+        self._solve, self._solve_active, self._solve_adjoint = solve_string_system_kernels(model.scalar)
         self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
         self._workspace = StringWorkspace.allocate(model, requires_grad=False)
+        self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
 
     def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float) -> None:
         """Advances the strings by ``dt`` seconds from ``state_in`` into ``state_out``.
@@ -86,21 +97,44 @@ class SolverStringImplicit:
         """
         m = self.model
         tape = _active_tape()
-        ws = StringWorkspace.allocate(m, requires_grad=True) if tape is not None else self._workspace
         h = m.scalar(dt)
-        self.eval_string_spring(state_in, ws)  # spring force and stiffness per segment
+        forced = self._none_forced
+        if tape is not None and self._tension_only:
+            # The active set, unrecorded (segments taut at the start or at the end of the step),
+            # in arrays of this step's own (the recorded pass reads the flags again backwards) ...
+            ws = StringWorkspace.allocate(m, requires_grad=False)
+            runtime = wp._src.context.runtime
+            runtime.tape = None
+            try:
+                self.eval_string_spring(state_in, forced, ws)
+                self.eval_string_system(state_in, control, h, ws)
+                self.solve_string_system_active(state_in, control, h, ws)
+            finally:
+                runtime.tape = tape
+            forced = ws.segment_active
+            # ... then the recorded step with that active set.
+            ws = StringWorkspace.allocate(m, requires_grad=True)
+        elif tape is not None:
+            ws = StringWorkspace.allocate(m, requires_grad=True)
+        else:
+            ws = self._workspace
+        self.eval_string_spring(state_in, forced, ws)  # spring force and stiffness per segment
         self.eval_string_system(state_in, control, h, ws)  # all force terms -> A dv = b
-        self.solve_string_system(ws, tape)  # block Thomas, one chain per thread
+        if tape is None and self._tension_only:
+            self.solve_string_system_active(state_in, control, h, ws)  # block Thomas + active set
+        else:
+            self.solve_string_system(ws, tape)  # block Thomas (with the active set found above)
         self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
         self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
 
-    def eval_string_spring(self, state_in, ws: StringWorkspace) -> None:
+    def eval_string_spring(self, state_in, forced, ws: StringWorkspace) -> None:
         m = self.model
         wp.launch(
             self._eval_spring,
             dim=m.particle_count,
-            inputs=[m.particle_string, m.string_start, m.string_stiffness, m.string_rest_length, state_in.particle_q],
-            outputs=[ws.segment_force, ws.segment_jacobian],
+            inputs=[m.particle_string, m.string_start, m.string_stiffness, m.string_rest_length,
+                    state_in.particle_q, forced],
+            outputs=[ws.segment_force, ws.segment_jacobian, ws.segment_jacobian_active, ws.segment_active],
             device=m.device,
         )
 
@@ -120,6 +154,20 @@ class SolverStringImplicit:
             ],
             outputs=[ws.system_diag, ws.system_upper, ws.system_rhs],
             device=m.device,
+        )
+
+    def solve_string_system_active(self, state_in, control, h, ws: StringWorkspace) -> None:
+        """The solve with the springs' active set resolved in place (not differentiable)."""
+        m = self.model
+        wp.launch(
+            self._solve_active,
+            dim=m.string_count,
+            inputs=[m.string_start, m.string_rest_length, state_in.particle_q, state_in.particle_qd,
+                    ws.segment_jacobian_active, control.top_q, h],
+            outputs=[ws.segment_active, ws.system_diag, ws.system_upper, ws.system_rhs,
+                     ws.scratch_c, ws.scratch_d, ws.particle_dv],
+            device=m.device,
+            record_tape=False,
         )
 
     def solve_string_system(self, ws: StringWorkspace, tape) -> None:

@@ -307,9 +307,9 @@ def test_two_minutes_of_swaying_marionette(hanging):
     rolling 6 deg with a period of 1.98 s (60 puppet steps) for 2 simulated minutes, the
     energy read once per period (so every sample is at the same phase).
 
-    The 30-minute float64 run of the issue is ``test_hard_cases_strings.py``'s strings
-    run: the whole marionette for 30 minutes costs about 3 minutes with the tests' unoptimised
-    puppet kernels (measured 6.5 s per simulated minute), beyond this suite's budget. Here:
+    The 30-minute float64 run of the issue is ``test_hard_cases_long.py`` (the whole
+    marionette, -O2 puppet kernels, 20 particles per string) and, for the strings alone,
+    ``test_hard_cases_strings.py``. Here:
     finite; within the energy bound; and periodic: from 30 s on (the strings and puppet
     settle into the sway within a few periods) the energy at the sampled phase stays within
     1e-4 J (any numerical creep or growing oscillation would show). Measured: spread

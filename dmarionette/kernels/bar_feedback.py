@@ -23,9 +23,10 @@ from .string_terms import string_terms
 
 
 @functools.cache
-def eval_bar_feedback_kernel(scalar, internal_friction: bool):
-    """Builds ``eval_bar_feedback`` for a float type (internal friction in the reaction or not)."""
-    t = string_terms(scalar)
+def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool = False):
+    """Builds ``eval_bar_feedback`` for a float type (internal friction in the reaction or not;
+    the segment spring of ``StringEffects.tension_only``)."""
+    t = string_terms(scalar, tension_only)
     vec3 = t.vec3
     FRICTION = internal_friction
 
@@ -64,7 +65,7 @@ def eval_bar_feedback_kernel(scalar, internal_friction: bool):
                 - feedback_damping * (bar_qd[bar] - particle_qd[last])
             )
             wp.atomic_add(bar_feedback, bar, f)
-        reaction, _k = t.compute_string_spring(
+        reaction, _k, _taut = t.compute_string_spring(
             particle_q[first], particle_q[first + 1], string_stiffness[s], string_rest_length[s]
         )
         if wp.static(FRICTION):

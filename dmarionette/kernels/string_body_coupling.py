@@ -27,6 +27,21 @@ string's pull would reach the body only through the tie's small stretch.
 With ``n = 1`` (the puppet at the string rate) this is a staggered coupling of two
 implicit integrators. The predicted path is first-order accurate in ``H``; the gap it
 causes at 30 Hz is measured by the tests against the fully coupled run.
+
+**Known limit: the coupling is not passive when the prediction is badly wrong.** The
+prediction ignores every acceleration within the step. When a joint limit (or a contact)
+stops a tied limb within a 33 ms step, the strings have already been dragged up to
+``H |v|`` along a path the body never takes, and the stiff tie pulls the body towards it;
+the string and tie springs store that energy and hand it back: +1.14 J with a shoulder
+thrown at 20 rad/s into its limit at 30 Hz (the motion had 0.17 J), none at 100 Hz and
+above (``tests/test_hard_cases_puppet.py``, a strict expected failure). The gain is the
+energy of a prediction error ``~ H dv`` in springs of stiffness ``k``, so it falls fast
+with ``H``; it also needs a tie force that changes within the step, which is why
+tension-only strings (whose tie force switches off when they go slack) are refused under
+a slower puppet (``settings_check``). A trial puppet step under the previous step's tie
+forces, as the predictor, was tried: it removes the thrown joint's gain but is explicit in
+the strings (``k H^2 / M`` = 0.7 at 30 Hz with the default strings, 7 with 10x stiffer
+ones, which diverged), so it was not kept.
 """
 
 import functools

@@ -7,6 +7,14 @@ with ``L_j = A_{j-1,j}^T``, then back substitution ``x_j = d'_j - C'_j x_{j+1}``
 The system is symmetric positive definite (see ``compute_string_spring``), so no pivoting
 is needed.
 
+``solve_string_system_active`` is the same solve with the tension-only springs' active set
+resolved (``string_terms.compute_string_spring``): a segment that was slack at the start of
+the step is not in the system; if the solution ends it taut, its block (``K``, assembled as
+``eval_string_system`` would) is added to the chain's system in place and the chain is
+solved again, until no further segment ends taut (each pass only adds segments, so it ends;
+at most ``MAX_ACTIVE_SET_PASSES`` re-solves, a cap the tests never reach). Only chains where a
+segment snaps taut pay for a second solve.
+
 Its loop carries values from one particle to the next, which Warp's automatic adjoint
 does not replay correctly, so the solve has a hand-written adjoint instead:
 for ``A x = b`` with ``A`` symmetric, ``b_bar = A^{-1} x_bar`` (the same solve) and
@@ -20,10 +28,13 @@ import functools
 
 import warp as wp
 
+MAX_ACTIVE_SET_PASSES = 8  # re-solves per chain and step at most (each activates >= 1 segment)
+
 
 @functools.cache
 def solve_string_system_kernels(scalar):
-    """Builds ``(solve_string_system, solve_string_system_adjoint)`` for a float type."""
+    """Builds ``(solve_string_system, solve_string_system_active, solve_string_system_adjoint)``
+    for a float type."""
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
 
@@ -74,6 +85,89 @@ def solve_string_system_kernels(scalar):
             string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
         )
 
+    @wp.func
+    def eval_segment_activation(
+        string_start: wp.array(dtype=wp.int32),
+        s: int,
+        rest_length: scalar,
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        top_q: wp.array(dtype=vec3),
+        dt: scalar,
+        segment_jacobian_active: wp.array(dtype=mat33),
+        particle_dv: wp.array(dtype=vec3),
+        segment_active: wp.array(dtype=wp.int32),
+        system_diag: wp.array(dtype=mat33),
+        system_upper: wp.array(dtype=mat33),
+        system_rhs: wp.array(dtype=vec3),
+    ):
+        """Activates the inactive segments of chain ``s`` that the solution ``dv`` ends taut
+        (``x1 = x0 + dt (v0 + dv)``; the top particle ends at ``top_q``), adding their blocks
+        to the system as ``eval_string_system`` assembles them; returns how many."""
+        start = string_start[s]
+        last = string_start[s + 1] - 1
+        added = int(0)
+        for p in range(start, last):
+            if segment_active[p] == 0:
+                x_b = particle_q[p + 1] + dt * (particle_qd[p + 1] + particle_dv[p + 1])
+                x_a = top_q[s]
+                if p > start:
+                    x_a = particle_q[p] + dt * (particle_qd[p] + particle_dv[p])
+                if wp.length(x_a - x_b) > rest_length:
+                    segment_active[p] = 1
+                    added += 1
+                    k = segment_jacobian_active[p]
+                    hhk = (dt * dt) * k
+                    v_b = particle_qd[p + 1]
+                    if p == start:
+                        # Row of particle start+1: h^2 K v + h K_{j0} dx_0 with K_{j0} = -K.
+                        system_rhs[p + 1] = system_rhs[p + 1] + hhk * v_b - dt * (k * (top_q[s] - particle_q[start]))
+                    else:
+                        v_a = particle_qd[p]
+                        system_diag[p] = system_diag[p] - hhk
+                        system_upper[p] = system_upper[p] + hhk
+                        system_rhs[p] = system_rhs[p] + hhk * (v_a - v_b)
+                        system_rhs[p + 1] = system_rhs[p + 1] + hhk * (v_b - v_a)
+                    system_diag[p + 1] = system_diag[p + 1] - hhk
+        return added
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def solve_string_system_active(
+        # Model:
+        string_start: wp.array(dtype=wp.int32),
+        string_rest_length: wp.array(dtype=scalar),
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        segment_jacobian_active: wp.array(dtype=mat33),
+        # Control:
+        top_q: wp.array(dtype=vec3),
+        dt: scalar,
+        # State in and out (segments activated, their blocks added):
+        segment_active: wp.array(dtype=wp.int32),
+        system_diag: wp.array(dtype=mat33),
+        system_upper: wp.array(dtype=mat33),
+        system_rhs: wp.array(dtype=vec3),
+        # State out:
+        scratch_c: wp.array(dtype=mat33),
+        scratch_d: wp.array(dtype=vec3),
+        particle_dv: wp.array(dtype=vec3),
+    ):
+        s = wp.tid()
+        compute_block_thomas(
+            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+        )
+        for _pass in range(MAX_ACTIVE_SET_PASSES):
+            added = eval_segment_activation(
+                string_start, s, string_rest_length[s], particle_q, particle_qd, top_q, dt,
+                segment_jacobian_active, particle_dv, segment_active, system_diag, system_upper, system_rhs,
+            )
+            if added == 0:
+                break
+            compute_block_thomas(
+                string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+            )
+
     @wp.kernel(module="unique", enable_backward=False)
     def solve_string_system_adjoint(
         # Model:
@@ -108,4 +202,4 @@ def solve_string_system_kernels(scalar):
         for p in range(start, last + 1):
             particle_dv_grad[p] = vec3(scalar(0.0))  # consumed, as Warp's own adjoints do
 
-    return solve_string_system, solve_string_system_adjoint
+    return solve_string_system, solve_string_system_active, solve_string_system_adjoint

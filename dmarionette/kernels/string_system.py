@@ -29,9 +29,11 @@ from .string_terms import string_terms
 
 
 @functools.cache
-def eval_string_spring_kernel(scalar):
-    """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the force on ``p`` and ``K_pp``."""
-    t = string_terms(scalar)
+def eval_string_spring_kernel(scalar, tension_only: bool = False):
+    """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the (tension-only) force on ``p``,
+    ``K_pp`` if the segment is active, else the block it would use once activated (see
+    ``string_terms.compute_string_spring``; the printed spring is always active)."""
+    t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
 
     @wp.kernel(module="unique")
@@ -43,20 +45,39 @@ def eval_string_spring_kernel(scalar):
         string_rest_length: wp.array(dtype=scalar),
         # State in:
         particle_q: wp.array(dtype=vec3),
+        segment_forced: wp.array(dtype=wp.int32),
         # State out:
         segment_force: wp.array(dtype=vec3),
         segment_jacobian: wp.array(dtype=mat33),
+        segment_jacobian_active: wp.array(dtype=mat33),
+        segment_active: wp.array(dtype=wp.int32),
     ):
+        """Tension-only springs: ``segment_forced[p] = 1`` activates segment ``p`` whether or not
+        it is taut now (the active set a previous solve found); the segment is active if taut
+        or forced, and ``segment_jacobian`` holds its block if active, zero if not. The
+        printed spring writes only ``segment_force`` and ``segment_jacobian`` (always active)."""
         p = wp.tid()
         s = particle_string[p]
         if p == string_start[s + 1] - 1:
             # The last particle starts no segment.
             segment_force[p] = vec3(scalar(0.0))
             segment_jacobian[p] = mat33(scalar(0.0))
+            segment_jacobian_active[p] = mat33(scalar(0.0))
+            segment_active[p] = 0
             return
-        f, k = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s], string_rest_length[s])
+        f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s],
+                                             string_rest_length[s])
         segment_force[p] = f
-        segment_jacobian[p] = k
+        if wp.static(not tension_only):
+            segment_jacobian[p] = k  # the printed spring is always active
+            return
+        active = wp.max(taut, segment_forced[p])
+        segment_active[p] = active
+        if active == 1:
+            segment_jacobian[p] = k
+        else:
+            segment_jacobian[p] = mat33(scalar(0.0))
+            segment_jacobian_active[p] = k  # read by the solve only for inactive segments
 
     return eval_string_spring
 

@@ -16,16 +16,20 @@ import warp as wp
 
 
 @functools.cache
-def string_terms(scalar) -> SimpleNamespace:
-    """Builds the string force terms for the float type ``scalar`` (``wp.float32``/``wp.float64``)."""
+def string_terms(scalar, tension_only: bool = False) -> SimpleNamespace:
+    """Builds the string force terms for the float type ``scalar`` (``wp.float32``/``wp.float64``);
+    ``tension_only`` chooses the segment spring (``compute_string_spring``): the paper's
+    printed spring (default) or the tension-only one (``StringEffects.tension_only``)."""
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
 
     @wp.func
-    def compute_string_spring(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
-        """Spring between neighbours a and b, paper term 1: ``f_a = -k_s (|x_a - x_b| - d) u``.
+    def compute_string_spring_printed(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+        """Spring between neighbours a and b, paper term 1 as printed: ``f_a = -k_s (|x_a - x_b| - d) u``
+        (it also pushes when the segment is shorter than ``d``).
 
-        Returns the force on ``a`` and ``K_aa = df_a/dx_a`` (and ``K_ab = -K_aa``).
+        Returns the force on ``a``, ``K_aa = df_a/dx_a`` (and ``K_ab = -K_aa``), and ``1`` (the
+        segment is always in the implicit system).
 
         Deliberate deviation from an exact Newton linearisation: the geometric
         (transverse) part of the Jacobian, ``(1 - d/l)(I - u u^T)``, is clamped at zero
@@ -42,7 +46,77 @@ def string_terms(scalar) -> SimpleNamespace:
         geometric = wp.max(scalar(1.0) - rest_length / length, scalar(0.0))
         eye = wp.identity(n=3, dtype=scalar)
         jacobian = wp.outer(-stiffness * (scalar(1.0) - geometric) * u, u) - (stiffness * geometric) * eye
-        return force, jacobian
+        return force, jacobian, int(1)
+
+    @wp.func
+    def compute_string_spring_tension_only(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+        """Spring between neighbours a and b, paper term 1, made tension-only:
+        ``f_a = -k_s max(|x_a - x_b| - d, 0) u``, ``u = (x_a - x_b) / |x_a - x_b|``.
+
+        Returns the force on ``a``, the Jacobian block ``K_aa`` the implicit step uses when
+        the segment is *active* in the step (``K_ab = -K_aa``), and whether the segment is
+        taut now (``1``/``0``).
+
+        **Deliberate deviation from the paper** (chosen with ``StringEffects(tension_only=True)``,
+        scene key ``[effects] tension_only = true``; the default is the printed spring,
+        ``compute_string_spring_printed``, see the last paragraph): the paper prints
+        ``-k_s (|x_a - x_b| - d) u``, which also pushes when the segment is shorter than its
+        rest length. A real string does not push: with the printed spring a straight string
+        lowered onto the ground acts as a rod and drives its lower particles 0.3 m through the
+        ground penalty (``tests/test_hard_cases_strings.py``). Here the potential is
+        ``1/2 k_s max(l - d, 0)^2`` (``string_model.string_energy``), which is convex in the
+        positions (the printed spring's is not). For a taut segment (``l > d``) force and
+        Jacobian are the paper's, so taut strings behave exactly as before.
+
+        **Linearising across the kink** (backward Euler takes ``K`` at the start of the step):
+        a segment is active in a step if it is taut at the start *or at the end* of the
+        step; the end is found by the solve (``kernels/string_solve``, an active-set loop:
+        solve, activate the segments that end taut, solve again). An active segment uses
+
+        - taut: the exact ``K = -k_s (u u^T + (1 - d/l)(I - u u^T))``;
+        - slack now, taut at the end: the axial ``K = -k_s u u^T`` (the force is still the
+          exact zero): over the step a spring of rest length ``l``, whose energy starts at
+          the true 0 and ends at ``1/2 k_s (l' - l)^2 >= 1/2 k_s max(l' - d, 0)^2``.
+
+        So every active segment's step sees a quadratic surrogate that equals the true
+        potential at the start and bounds it from above at the end, and an inactive segment
+        is slack at both ends (no force, no energy). Switching ``K`` on only once a segment
+        *is* taut (or is predicted taut from ``x + dt v``) lets it stretch by up to
+        ``dt |v_a - v_b|`` in a step with no force acting, and ``1/2 k_s stretch^2`` appears
+        from nothing (measured: a string without internal friction went unstable while
+        hanging still, 4 m/s within 50 ms, NaN after 0.4 s). The energy must count only ``1/2 k_s max(l - d, 0)^2`` too: the
+        printed potential also counts compressed segments, energy a tension-only string does
+        not store. The geometric (transverse) factor ``(1 - d/l)`` is
+        non-negative wherever it is used, so the system matrix stays symmetric positive
+        definite and the block-tridiagonal solve never meets an indefinite pivot (Choi & Ko,
+        SIGGRAPH 2002, clamp it for the same reason).
+
+        **Why it is not the default:** strings alone, and a marionette whose puppet runs at the
+        string rate, pass the hard cases tried with it (``tests/test_hard_cases_strings.py``,
+        ``tests/test_tension_only_marionette.py``). With the puppet at 30 Hz the string-body
+        coupling (``kernels/string_body_coupling``: the strings follow a constant-velocity
+        predicted path, the body is held to that path by the stiff tie) is not passive
+        when a tie force switches on and off within a puppet step: a puppet on 10x stiffer
+        tension-only strings bounces on its head string and is pumped 13 cm up in 4 s, and
+        on the default strings it still moves at 1.3 mm/s after 6 s of still bars
+        (``tests/test_marionette.py`` asks below 1 mm/s).
+        ``settings_check`` refuses tension-only strings with a puppet slower than the strings.
+        """
+        e = x_a - x_b
+        length = wp.length(e)
+        zero = scalar(0.0)
+        u = vec3(zero)
+        if length > zero:
+            u = e / length  # coincident particles (a string folded onto itself): no direction, no force
+        force = -stiffness * wp.max(length - rest_length, zero) * u
+        taut = int(0)
+        jacobian = wp.outer(-stiffness * u, u)
+        if length > rest_length:
+            taut = 1
+            geometric = scalar(1.0) - rest_length / length
+            eye = wp.identity(n=3, dtype=scalar)
+            jacobian = wp.outer(-stiffness * (scalar(1.0) - geometric) * u, u) - (stiffness * geometric) * eye
+        return force, jacobian, taut
 
     @wp.func
     def compute_internal_friction(v_a: vec3, v_b: vec3, friction: scalar):
@@ -105,7 +179,7 @@ def string_terms(scalar) -> SimpleNamespace:
     return SimpleNamespace(
         vec3=vec3,
         mat33=mat33,
-        compute_string_spring=compute_string_spring,
+        compute_string_spring=compute_string_spring_tension_only if tension_only else compute_string_spring_printed,
         compute_internal_friction=compute_internal_friction,
         compute_air_drag=compute_air_drag,
         compute_ground_contact=compute_ground_contact,

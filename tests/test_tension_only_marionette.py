@@ -1,0 +1,106 @@
+"""Tension-only strings (``[effects] tension_only = true``) in the marionette: fully coupled
+(puppet at the string rate) they carry the puppet and pass the hard cases; under a slower
+puppet they are refused (``settings_check``), and the test shows why.
+
+Energy, penetration and limit checks as in ``test_hard_cases.py`` (module doc there).
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import warp as wp
+
+import dmarionette as dm
+from dmarionette.marionette import MarionetteModel
+from dmarionette.marionette_energy import simulate_energy_balance
+from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.scene import SCENE_DIR
+from dmarionette.scene_fields import SceneError
+from dmarionette.settings_check import check_marionette_settings
+from test_hard_cases import G, PiecewiseLinearPath, _check, _contact_bound, _limit_bound, _still
+
+wp.config.log_level = wp.LOG_WARNING
+
+
+@pytest.fixture(scope="module")
+def tension_only():
+    """The ``hanging`` scene with tension-only strings, the puppet at the string rate (1 kHz)."""
+    scene = dm.load_scene("hanging")
+    return dataclasses.replace(scene, puppet_hz=scene.string_hz,
+                               effects=dataclasses.replace(scene.effects, tension_only=True))
+
+
+def test_fully_coupled_the_strings_carry_the_puppet_at_rest(tension_only):
+    """Still bars, 6 s: the ties' vertical pull balances the puppet's weight and the puppet
+    hangs still (tolerances as in ``test_marionette.py::test_at_rest_the_strings_carry_the_puppet``:
+    0.2 % of the weight, torso below 1 mm/s). Measured: ties 3.6e-7 of the weight, torso
+    at 6.6e-6 m/s."""
+    scene = dataclasses.replace(tension_only, bars=tuple(_still(b) for b in tension_only.bars))
+    model = MarionetteModel(scene, optimization_level=0)
+    trajectory = simulate_marionette(model, 6.0, progress=False)
+    weight = model.puppet_mass * G
+    lift = trajectory.tie_force[-100:, :, 1].sum(axis=1).mean()
+    torso_speed = np.linalg.norm(np.diff(trajectory.body_pos[-10:, 0], axis=0), axis=1).max() / (
+        trajectory.frame_time[1] - trajectory.frame_time[0])
+    print(f"\nties {abs(lift - weight) / weight:.2e} of the weight, torso {torso_speed:.2e} m/s")
+    assert abs(lift - weight) <= 2e-3 * weight, (lift, weight)
+    assert torso_speed < 1e-3, torso_speed
+
+
+def test_fully_coupled_all_strings_slack_and_lying_on_the_ground(tension_only):
+    """``test_hard_cases.py::test_all_strings_slack_and_lying_on_the_ground`` (both bars lowered
+    by 1.2 / 1.1 m at 0.6 m/s, 6 s) with tension-only strings, fully coupled, and the same
+    bounds (``H`` is now 1 ms). With the printed spring a straight knee string acted as a
+    rod there and pushed its lower end 46 mm into the ground (at 1 kHz fully coupled:
+    52 mm); tension-only, the strings fold onto the ground. Measured: lowest particle 1.9 mm
+    below the ground, puppet 3.6 mm, energy at most -5.1e-3 J from ``E(0) + W``."""
+    main, hand = tension_only.bars
+    p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
+    times = [0.0, 1.0, 3.0]
+    bars = (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, [p0, p0, p0 - [0, 1.2, 0]])),
+            dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, [h0, h0, h0 - [0, 1.1, 0]])))
+    model = MarionetteModel(dataclasses.replace(tension_only, bars=bars), optimization_level=0)
+    r = simulate_energy_balance(model, 6.0)
+    v = np.sqrt(2 * G * 0.1) + 0.6
+    bound = _contact_bound(model, v)
+    _check("slack on the ground, tension-only, 1 kHz", model, r, ground=bound, limit=_limit_bound(model, r),
+           string_ground=bound + v * model.puppet_dt)
+
+
+def test_the_scene_key_is_read_and_refused_at_load_under_a_slower_puppet(tmp_path):
+    """``[effects] tension_only`` defaults to false (the printed spring); ``true`` in a scene
+    file is refused when the file is loaded with the puppet at 30 Hz (the message names the
+    file, the table, the key and the fix), and accepted with ``puppet_hz = string_hz``."""
+    text = (SCENE_DIR / "hanging.toml").read_text()
+    assert dm.load_scene("hanging").effects.tension_only is False
+    slow = tmp_path / "slow.toml"
+    slow.write_text(text.replace("feedback = true", "feedback = true\ntension_only = true", 1)
+                    .replace('include = "puppet.toml"', f'include = "{SCENE_DIR / "puppet.toml"}"', 1))
+    with pytest.raises(SceneError, match=r"slow\.toml.*\[effects\].*tension_only.*puppet_hz = string_hz"):
+        dm.load_scene(slow)
+    fast = tmp_path / "fast.toml"
+    fast.write_text(slow.read_text().replace("puppet_hz = 30.0", "puppet_hz = 1000.0", 1))
+    assert dm.load_scene(fast).effects.tension_only is True
+
+
+def test_tension_only_strings_under_a_30_hz_puppet_are_refused(monkeypatch):
+    """Refused with the key, the rates and the fix in the message. Built anyway to show why:
+    10x stiffer tension-only strings (stiffness, tie stiffness and damping) at the default
+    30 Hz: the puppet bounces on its head string and the coupling pumps it up (measured:
+    the torso 13 cm above its start after 4 s; with the printed spring it settles within
+    2 mm of it)."""
+    scene = dm.load_scene("hanging")
+    strings = tuple(dataclasses.replace(s, stiffness=10 * s.stiffness, tie_stiffness=10 * s.tie_stiffness,
+                                        tie_damping=10 * s.tie_damping) for s in scene.strings)
+    scene = dataclasses.replace(scene, strings=strings, effects=dataclasses.replace(scene.effects, tension_only=True))
+    with pytest.raises(SceneError, match="tension_only") as error:
+        check_marionette_settings(scene)
+    assert "puppet_hz = string_hz" in str(error.value) and "33 steps" in str(error.value)
+    check_marionette_settings(dataclasses.replace(scene, puppet_hz=scene.string_hz))  # fully coupled: accepted
+    monkeypatch.setattr("dmarionette.marionette.check_marionette_settings", lambda scene: None)
+    model = MarionetteModel(scene, optimization_level=0)
+    trajectory = simulate_marionette(model, 4.0, progress=False)
+    rise = trajectory.body_pos[-1, 0, 1] - trajectory.body_pos[0, 0, 1]
+    print(f"\ntension-only at 30 Hz, 10x stiffer: torso {rise * 1e3:+.1f} mm after 4 s")
+    assert rise > 0.05  # the reason for the refusal
