@@ -208,6 +208,12 @@ class MarionetteGradient:
         if not getattr(model, "requires_grad", False):
             raise ValueError("MarionetteGradient: the model was built without gradients; build it with "
                              "MarionetteModel(scene, requires_grad=True)")
+        if model.strings.effects.tension_only:
+            # The taped segments replay the printed spring's passes; the tension-only springs'
+            # active-set pass (string_solver.py) is not yet part of them.
+            raise ValueError(f"{model.scene.source}: [effects] tension_only = true: gradients through "
+                             "tension-only strings are not supported yet; use the printed spring "
+                             "(tension_only = false) for fitting")
         if not (isinstance(puppet_steps, (int, np.integer)) and puppet_steps >= 1):
             raise ValueError(f"puppet_steps: got {puppet_steps!r}; expected an integer >= 1")
         if checkpoint_steps is None:

@@ -207,7 +207,7 @@ class TapedSegment:
             control_j = StringControl(control.top_q[j], tie_q[j], tie_qd[j])
             ws = arrays["workspaces"][j]
             # SolverStringImplicit.step's five passes, with this step's own workspace.
-            solver.eval_string_spring(previous, ws)
+            solver.eval_string_spring(previous, solver._none_forced, ws)  # printed spring: no forced set
             solver.eval_string_system(previous, control_j, h, ws)
             solver.solve_string_system(ws, tape)
             solver.integrate_string(previous, nxt, control_j, h, ws)
