@@ -362,6 +362,7 @@ class MarionetteGradient:
                 raise ValueError(f"cotangents: unknown output {name!r}; expected some of {list(OUTPUT_FIELDS)}")
             cot[name] = _checked(f"cotangents[{name!r}]", value, self.output_shapes[name])
         m = self.model
+        self._set_constants(self._inputs)  # another engine on the same model may have run since
         params = self._parameter_arrays()
         for a in params:
             a.grad.zero_()
