@@ -76,10 +76,13 @@ def _parser() -> argparse.ArgumentParser:
                            "~7 N weight becomes ~2 N, inside a PHANToM Omni's 3.3 N)")
     live.add_argument("--workspace-scale", type=float, default=1.0, help="S of P' = S W P (default 1)")
     live.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
-    live.add_argument("--own-process", action="store_true",
-                      help="run the physics in a child process instead of the servo loop's worker thread "
-                           "(on the 2-core development VM a pipe round trip costs ~160 us, so this kept "
-                           "fewer deadlines; see the README)")
+    live.add_argument("--physics", choices=["thread", "process", "shm"], default=None,
+                      help="where the marionette runs: the servo loop's worker thread, a child process over a "
+                           "pipe, or a child process over shared memory, pinned, real-time priority where "
+                           "allowed (default: shm; measured in docs/hardware.md)")
+    live.add_argument("--own-process", action="store_true", help="the same as --physics process (older spelling)")
+    live.add_argument("--no-realtime", action="store_true",
+                      help="with --physics shm: do not ask for SCHED_FIFO priority")
     info = sub.add_parser("info", help="summarise a recorded session (MCAP)",
                           description="Summarise a recorded session: duration, topics with counts and rates, "
                                       "scene, bars, whether the recording was cut off (docs/session.md).")
@@ -203,7 +206,7 @@ def _run_live(args: argparse.Namespace) -> int:
     stats, summary = run_live(model, device=device, bar=args.bar, session=args.session, duration=args.duration, record=args.record,
                               feedback=args.feedback, force_scale=args.force_scale,
                               workspace_scale=args.workspace_scale, process=args.own_process,
-                              optimization_level=level)
+                              physics=args.physics, realtime=not args.no_realtime, optimization_level=level)
     print(stats.summary())
     if args.record is not None:
         summary["record"] = str(args.record)

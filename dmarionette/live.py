@@ -23,7 +23,16 @@ import warp as wp
 from .hw.device import AbstractHapticDevice, HapticDeviceSpec, HapticSample
 from .marionette import MarionetteModel, SolverMarionette, bar_inputs
 
-__all__ = ["LiveMarionette", "LiveTick", "make_device", "make_physics_step", "run_live"]
+__all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "LiveMarionette", "LiveTick", "make_device", "make_physics_step",
+           "run_live"]
+
+PHYSICS_MODES = ("thread", "process", "shm")
+"""Where the marionette runs during live puppetry: the servo loop's worker thread, a child
+process over a pipe, or a child process over shared memory (see ``docs/hardware.md``)."""
+DEFAULT_PHYSICS = "shm"
+SIMULATED_TABLE_HZ = 2000.0
+"""Rate [Hz] at which :func:`make_device` tabulates the simulated device's trajectory."""
+"""Chosen by measurement (``benchmarks/bench_live.py``, docs/hardware.md "Live timing")."""
 
 
 @dataclasses.dataclass
@@ -195,10 +204,18 @@ class _RecordingDevice(AbstractHapticDevice):
         self._record("force", np.asarray(force, dtype=np.float64))
 
 
-def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None) -> AbstractHapticDevice:
+def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None,
+                duration: float | None = None) -> AbstractHapticDevice:
     """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
     world frame shifted by ``trajectory_offset``); ``replay`` plays the device stream of the
-    recorded ``session`` (an MCAP file); the others open real hardware."""
+    recorded ``session`` (an MCAP file); the others open real hardware.
+
+    With ``duration`` [s] the simulated device's trajectory is tabulated beforehand at
+    :data:`SIMULATED_TABLE_HZ` for ``duration`` + 1 s, positions interpolated linearly and the
+    rotation taken from the table entry at or before the read, then held after the end. A
+    spline evaluation per read costs ~160 µs (measured), which a real device's read does not,
+    and which would otherwise count in the servo tick and the device-to-force latency.
+    """
     from . import hw
 
     if name == "replay":
@@ -213,9 +230,21 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
     if name == "simulated":
         trajectory = scene.bars[[b.name for b in scene.bars].index(bar)].trajectory
 
-        def pose(t: float):
-            position, _, rotation = trajectory.pose(np.array([t]))
-            return position[0] - trajectory_offset, rotation[0]
+        if duration is None:
+            def pose(t: float):
+                position, _, rotation = trajectory.pose(np.array([t]))
+                return position[0] - trajectory_offset, rotation[0]
+        else:
+            table_t = np.arange(int(np.ceil((duration + 1.0) * SIMULATED_TABLE_HZ)) + 1) / SIMULATED_TABLE_HZ
+            table_p, _, table_r = trajectory.pose(table_t)
+            table_p = table_p - trajectory_offset
+            last = len(table_t) - 1
+
+            def pose(t: float):
+                x = min(max(t * SIMULATED_TABLE_HZ, 0.0), float(last))
+                i = min(int(x), last - 1)
+                w = x - i
+                return (1.0 - w) * table_p[i] + w * table_p[i + 1], table_r[i if w < 1.0 else i + 1]
 
         return hw.HapticDeviceSimulated(trajectory=pose)
     if name == "openhaptics":
@@ -229,27 +258,63 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
 
 def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "main", duration: float = 10.0,
              record=None, feedback: str = "reaction", force_scale: float = 1.0, workspace_scale: float = 1.0,
-             process: bool = False, optimization_level: int = 2, session=None, **servo_options):
+             process: bool = False, optimization_level: int = 2, session=None, physics: str | None = None,
+             realtime: bool = True, **servo_options):
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
     ``workspace_scale``, ``W`` a translation putting the device origin at the bar's start.
-    By default the marionette (``model``) runs in the servo loop's worker thread; with
-    ``process=True`` in a child process (:mod:`dmarionette.live_process`), built from the
-    scene's file with ``optimization_level``. ``record``: an MCAP file path
-    for the session, or None. ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`.
-    Returns ``(servo statistics, summary dict)``.
+    Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES`; :data:`DEFAULT_PHYSICS`
+    when None, ``"process"`` when ``process=True``, the older spelling):
+
+    * ``"thread"``: ``model`` itself, in the servo loop's worker thread;
+    * ``"process"``: a child process over a pipe (:mod:`dmarionette.live_process`);
+    * ``"shm"``: a child process over shared memory (:mod:`dmarionette.hw.shm_link`); with
+      two or more usable CPUs the servo thread and the child are pinned to the first two,
+      and with ``realtime`` both ask for SCHED_FIFO priority 10 (refusal is noted in the
+      statistics, not an error).
+
+    The child processes build the model from the scene's file with ``optimization_level``.
+    ``record``: an MCAP file path for the session, or None. ``servo_options`` go to
+    :class:`dmarionette.hw.ServoLoop`. Returns ``(servo statistics, summary dict)``.
     """
+    import os
+
     from .hw import DeviceMapping, ServoLoop
+
+    mode = physics if physics is not None else ("process" if process else DEFAULT_PHYSICS)
+    if mode not in PHYSICS_MODES:
+        raise ValueError(f"--physics: got {mode!r}; expected one of {', '.join(PHYSICS_MODES)}")
 
     scene = model.scene
     if bar not in model.bar_names:
         raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
     start = np.array(scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
     mapping = DeviceMapping.make(workspace_scale, translation=start)
-    haptic = make_device(device, scene, bar, trajectory_offset=start, session=session)
+    haptic = make_device(device, scene, bar, trajectory_offset=start, session=session, duration=duration)
     peak = {"force": 0.0}
-    if process:
+    if mode == "shm":
+        from .hw.shm_link import SharedMemoryPhysics
+        from .live_process import LivePhysicsFactory
+
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        servo_cpu, physics_cpu = (cpus[0], cpus[1]) if len(cpus) >= 2 else (None, None)
+        priority = 10 if realtime else None
+        servo_options.setdefault("cpu", servo_cpu)
+        servo_options.setdefault("realtime_priority", priority)
+        factory = LivePhysicsFactory(scene.source, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
+                                     optimization_level=optimization_level,
+                                     record_path=None if record is None else str(record))
+        physics_link = SharedMemoryPhysics(factory, rate_hz=scene.string_hz, cpu=physics_cpu,
+                                           realtime_priority=priority)
+
+        def on_device(kind: str, value) -> None:
+            if kind == "force":
+                physics_link.last_force = value  # the child records what was actually sent
+                peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
+
+        device_step = physics_link
+    elif mode == "process":
         from .live_process import PhysicsProcess
 
         physics = PhysicsProcess(scene.source, bar, duration, feedback=feedback, force_scale=force_scale,
@@ -261,7 +326,7 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
                 physics.last_force = value  # the child records what was actually sent
                 peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
 
-        world_step = physics.step
+        device_step = mapping.wrap(physics.step)
     else:
         live = LiveMarionette(model)
         writer = None
@@ -287,21 +352,24 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
             with lock:
                 _record_tick(writer, model, live, tick, poses)
 
-        world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
-                                       on_tick=on_tick if writer is not None else None)
+        device_step = mapping.wrap(make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
+                                                     on_tick=on_tick if writer is not None else None))
     proxy = _RecordingDevice(haptic, on_device)
-    loop = ServoLoop(proxy, mapping.wrap(world_step), rate_hz=scene.string_hz, **servo_options)
+    loop = ServoLoop(proxy, device_step, rate_hz=scene.string_hz, **servo_options)
     try:
         stats = loop.run(duration)
     finally:
-        if process:
+        if mode == "shm":
+            steps = physics_link.close()
+        elif mode == "process":
             steps = physics.close()
         else:
             if writer is not None:
                 writer.close()
             steps = {"string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
                      "simulated_seconds": round(live.time, 4)}
-    summary = {"device": device, "bar": bar, "physics": "own process" if process else "servo worker thread",
+    names = {"thread": "servo worker thread", "process": "own process", "shm": "own process, shared memory"}
+    summary = {"device": device, "bar": bar, "physics": names[mode], "physics_mode": mode,
                **steps, "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
     if proxy.latencies:
         latency = np.array(proxy.latencies) * 1e6

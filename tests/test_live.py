@@ -41,7 +41,7 @@ def test_servo_loop_runs_the_marionette_within_the_device_limits(model):
     machine (it is measured, not asserted: see the README); what must hold is that the loop
     runs, stays finite, and never sends more than the device's limit.
     """
-    stats, summary = run_live(model, duration=0.5, force_scale=1.0)
+    stats, summary = run_live(model, duration=0.5, force_scale=1.0, physics="thread")
     assert stats.tick_count >= 400
     assert summary["string_steps"] > 0 and summary["physics"] == "servo worker thread"
     assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
