@@ -56,12 +56,20 @@ class RecordingSpring(SpringPhysics):
         return {"forces_seen": len(self.sent), "last": [float(x) for x in self.sent[-1]]}
 
 
+def pinned_realtime():
+    """The set-up run_live uses: servo and physics on the first two CPUs, SCHED_FIFO 10 (where allowed)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    servo, physics = (cpus[0], cpus[1]) if len(cpus) >= 2 else (None, None)
+    return {"cpu": servo, "realtime_priority": 10}, {"cpu": physics, "realtime_priority": 10}
+
+
 def test_spring_through_shared_memory_is_exact_and_the_child_sees_the_forces_sent():
     """A fixed device pose: every fresh answer is -k (P - c), to the last bit, in the device frame."""
     position = np.array([0.01, -0.02, 0.005])
     dev = HapticDeviceSimulated(spec=ROOMY)
     dev.set_pose(position)
-    link = SharedMemoryPhysics(RecordingSpring(120.0, centre=(0.0, 0.01, 0.0)), realtime_priority=None)
+    servo_options, physics_options = pinned_realtime()
+    link = SharedMemoryPhysics(RecordingSpring(120.0, centre=(0.0, 0.01, 0.0)), **physics_options)
     try:
         sent = []
 
@@ -71,7 +79,7 @@ def test_spring_through_shared_memory_is_exact_and_the_child_sees_the_forces_sen
             sent.append(np.asarray(force, float))
 
         dev.write_force = write  # tells the child what was sent, as run_live does
-        stats = ServoLoop(dev, link, safety=NO_RAMP).run(duration=0.3)
+        stats = ServoLoop(dev, link, safety=NO_RAMP, **servo_options).run(duration=0.3)
     finally:
         summary = link.close()
     expected = -120.0 * (position - np.array([0.0, 0.01, 0.0]))
@@ -82,16 +90,10 @@ def test_spring_through_shared_memory_is_exact_and_the_child_sees_the_forces_sen
     np.testing.assert_array_equal(forces[-1], np.zeros(3))  # motors off at the end
     assert "physics: own process, shared memory" in stats.summary()
     assert 0 < summary["forces_seen"] <= len(sent)
-    np.testing.assert_array_equal(summary["last"], expected)  # the child got the forces actually sent
+    # The child is told the forces actually sent (the last one it saw is one of them, bit for bit).
+    assert any(np.array_equal(summary["last"], f) for f in sent)
     assert len(link.compute_times) == stats.tick_count - stats.stale_ticks
     print(stats.summary())
-
-
-def pinned_realtime():
-    """The set-up run_live uses: servo and physics on the first two CPUs, SCHED_FIFO 10 (where allowed)."""
-    cpus = sorted(os.sched_getaffinity(0))
-    servo, physics = (cpus[0], cpus[1]) if len(cpus) >= 2 else (None, None)
-    return {"cpu": servo, "realtime_priority": 10}, {"cpu": physics, "realtime_priority": 10}
 
 
 def test_killing_the_physics_process_zeroes_the_force_within_5ms_and_stops_the_loop():
