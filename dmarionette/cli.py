@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 __all__ = ["main"]
@@ -203,10 +204,18 @@ def _run_live(args: argparse.Namespace) -> int:
     device = "simulated" if args.device == "sim" else args.device
     if device == "replay" and args.session is None:
         raise ValueError("--device replay needs --session FILE (a recorded session)")
+    def on_start(info: dict) -> None:
+        # CLOCK_MONOTONIC is the clock of the simulated device and of time.monotonic() in any process
+        # (tests relate a recording's device times to the moment they kill this process by it).
+        record = f"; recording to {args.record}" if args.record is not None else ""
+        print(f"live: servo loop starting at CLOCK_MONOTONIC {time.monotonic():.6f} s; physics: {info['physics']} "
+              f"(pid {info['physics_pid']}){record}", file=sys.stderr, flush=True)
+
     stats, summary = run_live(model, device=device, bar=args.bar, session=args.session, duration=args.duration, record=args.record,
                               feedback=args.feedback, force_scale=args.force_scale,
                               workspace_scale=args.workspace_scale, process=args.own_process,
-                              physics=args.physics, realtime=not args.no_realtime, optimization_level=level)
+                              physics=args.physics, realtime=not args.no_realtime, optimization_level=level,
+                              on_start=on_start)
     print(stats.summary())
     if args.record is not None:
         summary["record"] = str(args.record)

@@ -259,7 +259,7 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
 def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "main", duration: float = 10.0,
              record=None, feedback: str = "reaction", force_scale: float = 1.0, workspace_scale: float = 1.0,
              process: bool = False, optimization_level: int = 2, session=None, physics: str | None = None,
-             realtime: bool = True, **servo_options):
+             realtime: bool = True, on_start: Callable[[dict], None] | None = None, **servo_options):
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
@@ -275,7 +275,9 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
       statistics, not an error).
 
     The child processes build the model from the scene's file with ``optimization_level``.
-    ``record``: an MCAP file path for the session, or None. ``servo_options`` go to
+    ``record``: an MCAP file path for the session, or None. ``on_start``: called just before
+    the servo loop starts, with ``{"physics": mode, "physics_pid": pid}`` (the pid of the
+    process that steps the marionette and writes the recording). ``servo_options`` go to
     :class:`dmarionette.hw.ServoLoop`. Returns ``(servo statistics, summary dict)``.
     """
     import os
@@ -357,6 +359,9 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
     proxy = _RecordingDevice(haptic, on_device)
     loop = ServoLoop(proxy, device_step, rate_hz=scene.string_hz, **servo_options)
     try:
+        if on_start is not None:
+            pid = {"shm": lambda: physics_link.pid, "process": lambda: physics.pid}.get(mode, os.getpid)()
+            on_start({"physics": mode, "physics_pid": pid})
         stats = loop.run(duration)
     finally:
         if mode == "shm":

@@ -189,6 +189,7 @@ class PhysicsProcess:
             self._process.join(5.0)
             raise RuntimeError(f"the physics process could not start: {info}")
         self.info = info
+        self.pid = self._process.pid
         self.last_force: np.ndarray | None = None
         self.summary: dict[str, Any] = {}
 
