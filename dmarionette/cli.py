@@ -77,10 +77,10 @@ def _parser() -> argparse.ArgumentParser:
                            "~7 N weight becomes ~2 N, inside a PHANToM Omni's 3.3 N)")
     live.add_argument("--workspace-scale", type=float, default=1.0, help="S of P' = S W P (default 1)")
     live.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
-    live.add_argument("--physics", choices=["thread", "process", "shm"], default=None,
+    live.add_argument("--physics", choices=["auto", "thread", "process", "shm"], default=None,
                       help="where the marionette runs: the servo loop's worker thread, a child process over a "
-                           "pipe, or a child process over shared memory, pinned, real-time priority where "
-                           "allowed (default: shm; measured in docs/hardware.md)")
+                           "pipe, or a child process over shared memory with real-time priority where allowed; "
+                           "auto (default): shm where SCHED_FIFO is allowed, else thread (docs/hardware.md)")
     live.add_argument("--own-process", action="store_true", help="the same as --physics process (older spelling)")
     live.add_argument("--no-realtime", action="store_true",
                       help="with --physics shm: do not ask for SCHED_FIFO priority")

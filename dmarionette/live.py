@@ -13,6 +13,7 @@ feedback, through ``W``'s rotation only, then the servo loop's safety filter.
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -29,10 +30,13 @@ __all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "LiveMarionette", "LiveTick", "ma
 PHYSICS_MODES = ("thread", "process", "shm")
 """Where the marionette runs during live puppetry: the servo loop's worker thread, a child
 process over a pipe, or a child process over shared memory (see ``docs/hardware.md``)."""
-DEFAULT_PHYSICS = "shm"
+DEFAULT_PHYSICS = "auto"
 SIMULATED_TABLE_HZ = 2000.0
 """Rate [Hz] at which :func:`make_device` tabulates the simulated device's trajectory."""
-"""Chosen by measurement (``benchmarks/bench_live.py``, docs/hardware.md "Live timing")."""
+"""Chosen by measurement (``benchmarks/bench_live.py``, docs/hardware.md "Live timing"): ``"auto"``
+is ``"shm"`` where SCHED_FIFO is allowed (it kept 99.7-100 % of the ticks fresh under a load
+average of 6 on 2 CPUs) and ``"thread"`` where it is not (there, ``"shm"`` without real-time
+priority kept fewer ticks than the worker thread: 15-45 % against 55-68 %)."""
 
 
 @dataclasses.dataclass
@@ -204,6 +208,17 @@ class _RecordingDevice(AbstractHapticDevice):
         self._record("force", np.asarray(force, dtype=np.float64))
 
 
+def fifo_allowed() -> bool:
+    """Whether this process may use SCHED_FIFO: tried on the calling thread, then put back."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, policy, param)
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
 def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None,
                 duration: float | None = None) -> AbstractHapticDevice:
     """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
@@ -264,15 +279,16 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
     ``workspace_scale``, ``W`` a translation putting the device origin at the bar's start.
-    Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES`; :data:`DEFAULT_PHYSICS`
-    when None, ``"process"`` when ``process=True``, the older spelling):
+    Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES` or ``"auto"``;
+    :data:`DEFAULT_PHYSICS` when None, ``"process"`` when ``process=True``, the older spelling):
 
     * ``"thread"``: ``model`` itself, in the servo loop's worker thread;
     * ``"process"``: a child process over a pipe (:mod:`dmarionette.live_process`);
+    * ``"auto"``: ``"shm"`` where SCHED_FIFO is allowed (and ``realtime``), else ``"thread"``;
     * ``"shm"``: a child process over shared memory (:mod:`dmarionette.hw.shm_link`); with
-      two or more usable CPUs the servo thread and the child are pinned to the first two,
-      and with ``realtime`` both ask for SCHED_FIFO priority 10 (refusal is noted in the
-      statistics, not an error).
+      ``realtime`` the servo thread and the child ask for SCHED_FIFO priority 10 (refusal is
+      noted in the statistics, not an error) and, when it is allowed and there are two or
+      more usable CPUs, are pinned to the first two.
 
     The child processes build the model from the scene's file with ``optimization_level``.
     ``record``: an MCAP file path for the session, or None. ``on_start``: called just before
@@ -280,13 +296,14 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
     process that steps the marionette and writes the recording). ``servo_options`` go to
     :class:`dmarionette.hw.ServoLoop`. Returns ``(servo statistics, summary dict)``.
     """
-    import os
 
     from .hw import DeviceMapping, ServoLoop
 
     mode = physics if physics is not None else ("process" if process else DEFAULT_PHYSICS)
+    if mode == "auto":
+        mode = "shm" if realtime and fifo_allowed() else "thread"
     if mode not in PHYSICS_MODES:
-        raise ValueError(f"--physics: got {mode!r}; expected one of {', '.join(PHYSICS_MODES)}")
+        raise ValueError(f"--physics: got {mode!r}; expected auto or one of {', '.join(PHYSICS_MODES)}")
 
     scene = model.scene
     if bar not in model.bar_names:
@@ -299,9 +316,12 @@ def run_live(model: MarionetteModel, *, device: str = "simulated", bar: str = "m
         from .hw.shm_link import SharedMemoryPhysics
         from .live_process import LivePhysicsFactory
 
-        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-        servo_cpu, physics_cpu = (cpus[0], cpus[1]) if len(cpus) >= 2 else (None, None)
         priority = 10 if realtime else None
+        # Pinned only with real-time priority: a pinned thread at normal priority cannot move away
+        # from a busy CPU, and measured far worse on a loaded machine than an unpinned one.
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        pin = len(cpus) >= 2 and realtime and fifo_allowed()
+        servo_cpu, physics_cpu = (cpus[0], cpus[1]) if pin else (None, None)
         servo_options.setdefault("cpu", servo_cpu)
         servo_options.setdefault("realtime_priority", priority)
         factory = LivePhysicsFactory(scene.source, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
