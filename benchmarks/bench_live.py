@@ -14,9 +14,10 @@ kernels) runs
 * ``shm-nort``: the same without real-time priority (what a user without the right gets).
 
 Per run: tick lateness p50/p99/max (tick start minus deadline), missed ticks (deadlines
-skipped), watchdog trips, the fraction of ticks that wrote a force computed for them (a
-fresh string step; the rest held the last one), and the device-to-force latency (device
-read to the force written, p50/p99). With ``--repeats`` > 1 each figure is the median over
+skipped), watchdog trips, the fraction of ticks run that wrote a force computed for them
+(fresh; the rest held the last one), string steps run per 1 kHz deadline (missed deadlines
+count against it), and the device-to-force latency (device read to the force written,
+p50/p99). With ``--repeats`` > 1 each figure is the median over
 the runs (modes interleaved, so load drifts hit all alike), with the range. The load average
 (1 min) is printed before each run. Targets (issue 5): p99 lateness <= 0.5 ms and no watchdog
 trips, on a quiet machine.
@@ -42,19 +43,29 @@ MODES = {"thread": {"physics": "thread"}, "process": {"physics": "process"},
          "shm": {"physics": "shm"}, "shm-nort": {"physics": "shm", "realtime": False}}
 COLUMNS = [("lateness_p50_us", "p50 [us]"), ("lateness_p99_us", "p99 [us]"), ("lateness_max_us", "max [us]"),
            ("missed", "missed"), ("watchdog_trips", "trips"), ("fresh_percent", "fresh [%]"),
+           ("steps_percent", "steps/deadlines [%]"),
            ("latency_p50_us", "dev->force p50 [us]"), ("latency_p99_us", "dev->force p99 [us]")]
 
 
 def run_once(model: MarionetteModel, mode: str, seconds: float) -> dict:
     load = os.getloadavg()[0]
+    before = os.times()
     stats, summary = run_live(model, duration=seconds, force_scale=0.3, **MODES[mode])
+    after = os.times()
+    servo_cpu = (after.user + after.system) - (before.user + before.system)
     latency = summary.get("device_to_force_us", {"p50": float("nan"), "p99": float("nan")})
     return {"mode": mode, "load_1min": load, "ticks": stats.tick_count,
             "lateness_p50_us": stats.lateness_p50 * 1e6, "lateness_p99_us": stats.lateness_p99 * 1e6,
             "lateness_max_us": stats.lateness_max * 1e6, "missed": stats.missed_ticks,
             "watchdog_trips": stats.watchdog_trips, "fresh_percent": 100.0 * stats.fresh_fraction,
             "latency_p50_us": latency["p50"], "latency_p99_us": latency["p99"],
-            "string_steps": summary["string_steps"], "notes": list(stats.notes)}
+            "string_steps": summary["string_steps"],
+            # CPU time of this process (servo thread, and the physics in thread mode) and of the
+            # shared-memory physics process (which includes its start-up), per second of run [%].
+            "servo_process_cpu_percent": 100.0 * servo_cpu / seconds,
+            "physics_process_cpu_percent": 100.0 * summary.get("physics_cpu_seconds", float("nan")) / seconds,
+            "steps_percent": 100.0 * summary["string_steps"] / (seconds * model.scene.string_hz),
+            "notes": list(stats.notes)}
 
 
 def table(runs: list[dict], modes: list[str]) -> str:
@@ -67,10 +78,10 @@ def table(runs: list[dict], modes: list[str]) -> str:
         for key, _ in COLUMNS:
             values = np.array([r[key] for r in rows], dtype=float)
             median = float(np.median(values))
-            text = f"{median:.1f}" if key == "fresh_percent" else f"{median:.0f}"
+            digits = 1 if key.endswith("percent") else 0
+            text = f"{median:.{digits}f}"
             if len(values) > 1:
-                text += f" ({values.min():.{1 if key == 'fresh_percent' else 0}f}-" \
-                        f"{values.max():.{1 if key == 'fresh_percent' else 0}f})"
+                text += f" ({values.min():.{digits}f}-{values.max():.{digits}f})"
             cells.append(text)
         lines.append(f"| {mode} | {len(rows)} | {min(loads):.1f}-{max(loads):.1f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -97,7 +108,8 @@ def main() -> None:
             runs.append(run)
             print(f"[{k + 1}/{args.repeats}] {mode}: load {run['load_1min']:.2f}; p99 {run['lateness_p99_us']:.0f} us, "
                   f"missed {run['missed']}, trips {run['watchdog_trips']}, fresh {run['fresh_percent']:.1f} %, "
-                  f"latency p50 {run['latency_p50_us']:.0f} us; {'; '.join(run['notes'])}", flush=True)
+                  f"latency p50 {run['latency_p50_us']:.0f} us; CPU this process {run['servo_process_cpu_percent']:.0f} %, "
+                  f"physics process {run['physics_process_cpu_percent']:.0f} %; {'; '.join(run['notes'])}", flush=True)
     print(f"\n# Live servo loop — {platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}; "
           f"'hanging', simulated device, {args.seconds:g} s per run, medians (range)\n")
     print(table(runs, modes))

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing as mp
+import time
 from typing import Any
 
 import numpy as np
@@ -104,7 +105,7 @@ class _LivePhysics:
             self.writer.close()
         live = self.live
         return {"string_steps": live.tick, "puppet_steps": live.tick // self.model.substeps,
-                "simulated_seconds": round(live.time, 4)}
+                "simulated_seconds": round(live.time, 4), "physics_cpu_seconds": round(time.process_time(), 3)}
 
 
 def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str, force_scale: float,
