@@ -108,7 +108,8 @@ def main() -> None:
             runs.append(run)
             print(f"[{k + 1}/{args.repeats}] {mode}: load {run['load_1min']:.2f}; p99 {run['lateness_p99_us']:.0f} us, "
                   f"missed {run['missed']}, trips {run['watchdog_trips']}, fresh {run['fresh_percent']:.1f} %, "
-                  f"latency p50 {run['latency_p50_us']:.0f} us; CPU this process {run['servo_process_cpu_percent']:.0f} %, "
+                  f"latency p50 {run['latency_p50_us']:.0f} us; "
+                  f"CPU this process {run['servo_process_cpu_percent']:.0f} %, "
                   f"physics process {run['physics_process_cpu_percent']:.0f} %; {'; '.join(run['notes'])}", flush=True)
     print(f"\n# Live servo loop — {platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}; "
           f"'hanging', simulated device, {args.seconds:g} s per run, medians (range)\n")

@@ -13,7 +13,8 @@ answer, which releases the lock while the child computes.
 Measured on the 2-core development VM: a pipe round trip alone costs ~160 µs (p50; process
 wake-ups are expensive there), so with ~100 µs of physics this mode kept *fewer* deadlines
 than the worker thread (926-1112 vs 1408-1969 string steps in 2 s over four runs each) and
-is not the default. A shared-memory handshake without wake-ups is the next step.
+is not the default. The shared-memory mode (``--physics shm``, :mod:`dmarionette.hw.shm_link`)
+has no wake-ups and is the default where real-time priority is allowed (docs/hardware.md).
 
 Messages (pickled tuples): parent -> child ``(position (3,), rotation (3, 3), t, last force
 sent (3,))`` or ``None`` to stop; child -> parent the world force ``(3,)``, or at the end a

@@ -11,6 +11,11 @@ Threads (all in this process):
   and then forces ramp in again.
 * the **physics thread** calls the user's ``step(sample, t) -> force``. It is separate so
   that a physics callback that blocks or loops cannot hold the motors at a stale force.
+  Instead of a ``step`` the loop takes a :class:`PhysicsLink`: the same request/answer
+  protocol to physics elsewhere, e.g. another process over shared memory
+  (:class:`dmarionette.hw.shm_link.SharedMemoryPhysics`), which the loop spins on instead of
+  waiting on an event. A link whose physics is gone for good (a dead process) stops the
+  loop, motors off.
 * the **caller's thread** waits in :meth:`ServoLoop.run`, where Ctrl-C arrives.
 
 Motors off (zero force, then ``close``) on every way out: end of ``duration``,
@@ -21,7 +26,10 @@ KeyboardInterrupt (re-raised after the motors are off) and a device disconnect
 The GIL: a CPU-bound Python thread keeps the GIL for up to ``sys.getswitchinterval()``
 (5 ms by default) before the servo thread can run, which alone would break the 5 ms
 stall guarantee. ``run`` therefore lowers the switch interval (``switch_interval``,
-0.2 ms by default) for its duration and restores it after. ``benchmarks/bench_servo_ticks.py``
+0.2 ms by default) for its duration and restores it after. It also freezes the garbage
+collector's current objects (``gc.freeze``) for its duration, so a full collection over a
+large model cannot stall a tick, and with ``cpu`` pins the servo thread and, while it waits,
+the calling thread to that CPU. ``benchmarks/bench_servo_ticks.py``
 measures what a busy thread does to the ticks, and what a separate process buys.
 """
 
