@@ -42,6 +42,23 @@ class FailingPhysics:
         return np.zeros(3)
 
 
+class StallingSpring(SpringPhysics):
+    """A spring whose step blocks once, for ``length`` seconds, at device time ``at``."""
+
+    def __init__(self, at: float, length: float):
+        super().__init__(100.0)
+        self.at, self.length, self.stalled_at = at, length, None
+
+    def step(self, sample, t):
+        if sample.time > self.at and self.stalled_at is None:
+            self.stalled_at = sample.time  # when the device was read for the stalled request
+            time.sleep(self.length)
+        return super().step(sample, t)
+
+    def close(self):
+        return {"stalled_at": self.stalled_at}
+
+
 class RecordingSpring(SpringPhysics):
     """A spring that also keeps the forces the servo says it sent, and returns their count."""
 
@@ -138,6 +155,32 @@ def test_killing_the_physics_process_zeroes_the_force_within_5ms_and_stops_the_l
     assert stats.stop_reason == "physics error" and stats.watchdog_trips >= 1
     assert not dev.is_open and dev.close_count == 1
     assert times[-1] - killed[0] < 0.5  # the loop ended, it did not run on for the 5 s asked
+
+
+def test_a_stalled_physics_process_gets_zero_force_within_5ms_then_ramps_back():
+    """The child blocks for 60 ms: zero force within 5 ms (the request's age, 2 ms, plus a tick),
+    zero while it lasts, then the force comes back ramped over rearm_ramp_time; the loop goes on."""
+    servo_options, physics_options = pinned_realtime()
+    dev = HapticDeviceSimulated(spec=ROOMY)
+    dev.set_pose([0.02, 0.0, 0.0])
+    link = SharedMemoryPhysics(StallingSpring(at=0.2, length=0.06), **physics_options)
+    safety = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.1)
+    try:
+        stats = ServoLoop(dev, link, safety=safety, **servo_options).run(duration=0.5)
+    finally:
+        start = link.close()["stalled_at"]
+    times, forces = dev.force_log()
+    zero = times[(times > start) & np.all(forces == 0.0, axis=1)][0]
+    print(f"zero force {(zero - start) * 1e3:.2f} ms after the stalled request; {stats.summary()}")
+    assert np.count_nonzero((times > start) & (times < zero)) <= 4
+    if stats.realtime:
+        assert zero - start < 0.005
+    during = forces[(times > zero) & (times < start + 0.055)]
+    np.testing.assert_array_equal(during, np.zeros_like(during))
+    back = forces[(times > start + 0.065) & (times < start + 0.12), 0]
+    assert back.min() > -2.0 and back.min() < -0.01  # ramping in again, not yet at full force
+    assert np.any(forces[times > 0.45, 0] == -2.0) and stats.stop_reason == "duration"
+    assert stats.watchdog_trips >= 1
 
 
 def test_an_exception_in_the_physics_process_reaches_the_caller_with_motors_off():
