@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 __all__ = ["main"]
@@ -78,22 +79,28 @@ def _parser() -> argparse.ArgumentParser:
                            "~7 N weight becomes ~2 N, inside a PHANToM Omni's 3.3 N)")
     live.add_argument("--workspace-scale", type=float, default=1.0, help="S of P' = S W P (default 1)")
     live.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
-    live.add_argument("--own-process", action="store_true",
-                      help="run the physics in a child process instead of the servo loop's worker thread "
-                           "(on the 2-core development VM a pipe round trip costs ~160 us, so this kept "
-                           "fewer deadlines; see the README)")
+    live.add_argument("--physics", choices=["auto", "thread", "process", "shm"], default=None,
+                      help="where the marionette runs: the servo loop's worker thread, a child process over a "
+                           "pipe, or a child process over shared memory with real-time priority where allowed; "
+                           "auto (default): thread with --view browser or --snapshot (the view reads the "
+                           "physics in this process; process and shm are refused with a view), otherwise shm "
+                           "where SCHED_FIFO is allowed, else thread (docs/hardware.md)")
+    live.add_argument("--own-process", action="store_true", help="the same as --physics process (older spelling)")
+    live.add_argument("--no-realtime", action="store_true",
+                      help="with --physics shm: do not ask for SCHED_FIFO priority")
     live.add_argument("--view", choices=["none", "browser"], default="none",
                       help="none (default): no view, nothing but the servo loop; browser: a 3D view served on "
                            "http://HOST:PORT (viser; needs the 'view' extra): puppet, strings (dark taut, orange "
-                           "slack), bars, force arrows; with the simulated device the driven bar can be dragged "
-                           "(docs/live_view.md)")
+                           "slack), bars, force arrows; with the simulated device the driven bar can be dragged; "
+                           "runs the physics in the servo loop's worker thread (docs/live_view.md)")
     live.add_argument("--view-port", type=int, default=8080,
                       help="TCP port of the browser view (default 8080; 0: any free port; a taken port: the next)")
     live.add_argument("--view-host", default="127.0.0.1",
                       help="address the browser view listens on (default 127.0.0.1, this machine only)")
     live.add_argument("--view-hz", type=float, default=40.0, help="view updates per second (default 40)")
     live.add_argument("--snapshot", type=Path, default=None,
-                      help="write a picture (PNG) of the last frame here at the end; works with any --view")
+                      help="write a picture (PNG) of the last frame here at the end; works with any --view "
+                           "(and, like it, runs the physics in the worker thread)")
     info = sub.add_parser("info", help="summarise a recorded session (MCAP)",
                           description="Summarise a recorded session: duration, topics with counts and rates, "
                                       "scene, bars, whether the recording was cut off (docs/session.md).")
@@ -238,7 +245,7 @@ def _run_replay(args: argparse.Namespace) -> int:
 
 
 def _run_live(args: argparse.Namespace) -> int:
-    from .live import run_live
+    from .live import resolve_physics, run_live
     from .marionette import MarionetteModel
     from .scene import load_scene
 
@@ -248,8 +255,11 @@ def _run_live(args: argparse.Namespace) -> int:
     if not args.force_scale >= 0.0 or not args.workspace_scale > 0.0:
         raise ValueError(f"--force-scale must be >= 0 and --workspace-scale > 0; got {args.force_scale}, "
                          f"{args.workspace_scale}")
-    if (args.view != "none" or args.snapshot is not None) and args.own_process:
-        raise ValueError("--view browser and --snapshot need the physics in this process: drop --own-process")
+    if args.own_process and args.physics not in (None, "process"):
+        raise ValueError(f"--own-process is --physics process; got it together with --physics {args.physics}")
+    # Checked before anything compiles: a view reads the physics' snapshots in this process.
+    resolve_physics(args.physics, process=args.own_process, realtime=not args.no_realtime,
+                    view=args.view != "none" or args.snapshot is not None)
     if not (args.view_hz > 0.0 and args.view_hz < float("inf")):
         raise ValueError(f"--view-hz: got {args.view_hz}; expected a rate > 0 [Hz]")
     if args.snapshot is not None and args.snapshot.suffix.lower() != ".png":
@@ -260,6 +270,13 @@ def _run_live(args: argparse.Namespace) -> int:
     if device == "replay" and args.session is None:
         raise ValueError("--device replay needs --session FILE (a recorded session)")
     from .live_view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
+
+    def on_start(info: dict) -> None:
+        # CLOCK_MONOTONIC is the clock of the simulated device and of time.monotonic() in any process
+        # (tests relate a recording's device times to the moment they kill this process by it).
+        record = f"; recording to {args.record}" if args.record is not None else ""
+        print(f"live: servo loop starting at CLOCK_MONOTONIC {time.monotonic():.6f} s; physics: {info['physics']} "
+              f"(pid {info['physics_pid']}){record}", file=sys.stderr, flush=True)
 
     geometry = LiveViewGeometry.from_model(model, args.bar) if args.bar in model.bar_names else None
     view = None
@@ -274,7 +291,8 @@ def _run_live(args: argparse.Namespace) -> int:
         stats, summary = run_live(model, device=device, bar=args.bar, session=args.session, duration=args.duration,
                                   record=args.record, feedback=args.feedback, force_scale=args.force_scale,
                                   workspace_scale=args.workspace_scale, process=args.own_process,
-                                  optimization_level=level, view=view)
+                                  physics=args.physics, realtime=not args.no_realtime, optimization_level=level,
+                                  on_start=on_start, view=view)
     finally:
         if view is not None:
             view.close()

@@ -13,6 +13,7 @@ feedback, through ``W``'s rotation only, then the servo loop's safety filter.
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -24,7 +25,20 @@ from .hw.device import AbstractHapticDevice, HapticDeviceSpec, HapticSample
 from .live_view import scripted_rotations
 from .marionette import MarionetteModel, SolverMarionette, bar_inputs
 
-__all__ = ["LiveMarionette", "LiveTick", "make_device", "make_physics_step", "run_live"]
+__all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "LiveMarionette", "LiveTick", "make_device", "make_physics_step",
+           "resolve_physics", "run_live"]
+
+PHYSICS_MODES = ("thread", "process", "shm")
+"""Where the marionette runs during live puppetry: the servo loop's worker thread, a child
+process over a pipe, or a child process over shared memory (see ``docs/hardware.md``)."""
+DEFAULT_PHYSICS = "auto"
+"""Chosen by measurement (``benchmarks/bench_live.py``, docs/hardware.md "Live timing"): ``"auto"``
+is ``"shm"`` where SCHED_FIFO is allowed (it kept 99.7-100 % of the ticks fresh under a load
+average of 6 on 2 CPUs) and ``"thread"`` where it is not (there, ``"shm"`` without real-time
+priority kept fewer ticks than the worker thread: 15-45 % against 55-68 %). With a live view
+(or any ``view``) ``"auto"`` is ``"thread"``: the view reads the physics' snapshots in memory."""
+SIMULATED_TABLE_HZ = 2000.0
+"""Rate [Hz] at which :func:`make_device` tabulates the simulated device's trajectory."""
 
 
 @dataclasses.dataclass
@@ -217,10 +231,29 @@ class _RecordingDevice(AbstractHapticDevice):
         self._record("force", np.asarray(force, dtype=np.float64))
 
 
-def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None) -> AbstractHapticDevice:
+def fifo_allowed() -> bool:
+    """Whether this process may use SCHED_FIFO: tried on the calling thread, then put back."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, policy, param)
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
+def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None,
+                duration: float | None = None) -> AbstractHapticDevice:
     """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
     world frame shifted by ``trajectory_offset``); ``replay`` plays the device stream of the
-    recorded ``session`` (an MCAP file); the others open real hardware."""
+    recorded ``session`` (an MCAP file); the others open real hardware.
+
+    With ``duration`` [s] the simulated device's trajectory is tabulated beforehand at
+    :data:`SIMULATED_TABLE_HZ` for ``duration`` + 1 s, positions interpolated linearly and the
+    rotation taken from the table entry at or before the read, then held after the end. A
+    spline evaluation per read costs ~160 µs (measured), which a real device's read does not,
+    and which would otherwise count in the servo tick and the device-to-force latency.
+    """
     from . import hw
 
     if name == "replay":
@@ -235,9 +268,21 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
     if name == "simulated":
         trajectory = scene.bars[[b.name for b in scene.bars].index(bar)].trajectory
 
-        def pose(t: float):
-            position, _, rotation = trajectory.pose(np.array([t]))
-            return position[0] - trajectory_offset, rotation[0]
+        if duration is None:
+            def pose(t: float):
+                position, _, rotation = trajectory.pose(np.array([t]))
+                return position[0] - trajectory_offset, rotation[0]
+        else:
+            table_t = np.arange(int(np.ceil((duration + 1.0) * SIMULATED_TABLE_HZ)) + 1) / SIMULATED_TABLE_HZ
+            table_p, _, table_r = trajectory.pose(table_t)
+            table_p = table_p - trajectory_offset
+            last = len(table_t) - 1
+
+            def pose(t: float):
+                x = min(max(t * SIMULATED_TABLE_HZ, 0.0), float(last))
+                i = min(int(x), last - 1)
+                w = x - i
+                return (1.0 - w) * table_p[i] + w * table_p[i + 1], table_r[i if w < 1.0 else i + 1]
 
         return hw.HapticDeviceSimulated(trajectory=pose)
     if name == "openhaptics":
@@ -249,29 +294,77 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
     raise ValueError(f"device: got {name!r}; expected one of simulated, replay, openhaptics, falcon, spacemouse")
 
 
+def resolve_physics(physics: str | None, *, process: bool = False, realtime: bool = True,
+                    view: bool = False) -> str:
+    """The physics mode a live session runs in (:data:`PHYSICS_MODES`), checked before anything is built.
+
+    Args:
+        physics: ``"auto"``, one of :data:`PHYSICS_MODES`, or None (:data:`DEFAULT_PHYSICS`, or
+            ``"process"`` when ``process``).
+        process: the older spelling of ``physics="process"`` (``--own-process``).
+        realtime: whether real-time priority may be asked for (``"auto"`` picks ``"shm"`` only then).
+        view: whether a live view (or a ``--snapshot``) reads the physics' snapshots: ``"auto"`` is
+            then ``"thread"``, and ``"process"``/``"shm"`` are refused.
+
+    Raises:
+        ValueError: an unknown mode, or a child-process mode together with a view.
+    """
+    mode = physics if physics is not None else ("process" if process else DEFAULT_PHYSICS)
+    if mode == "auto":
+        if view:
+            return "thread"
+        return "shm" if realtime and fifo_allowed() else "thread"
+    if mode not in PHYSICS_MODES:
+        raise ValueError(f"--physics: got {mode!r}; expected auto or one of {', '.join(PHYSICS_MODES)}")
+    if view and mode != "thread":
+        spelled = "--own-process" if physics is None else f"--physics {mode}"
+        raise ValueError(f"{spelled}: a live view (--view browser or --snapshot) needs the physics in this process "
+                         f"(it reads the physics' snapshots in memory): drop {spelled} (auto and thread run it in "
+                         f"the servo loop's worker thread), or drop the view")
+    return mode
+
+
 def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "simulated", bar: str = "main",
              duration: float = 10.0, record=None, feedback: str = "reaction", force_scale: float = 1.0,
              workspace_scale: float = 1.0, process: bool = False, optimization_level: int = 2, session=None,
+             physics: str | None = None, realtime: bool = True, on_start: Callable[[dict], None] | None = None,
              view=None, **servo_options):
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
     ``workspace_scale``, ``W`` a translation putting the device origin at the bar's start.
-    By default the marionette (``model``) runs in the servo loop's worker thread; with
-    ``process=True`` in a child process (:mod:`dmarionette.live_process`), built from the
-    scene's file with ``optimization_level``. ``record``: an MCAP file path
-    for the session, or None. ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`.
+    Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES` or ``"auto"``;
+    :data:`DEFAULT_PHYSICS` when None, ``"process"`` when ``process=True``, the older spelling):
+
+    * ``"thread"``: ``model`` itself, in the servo loop's worker thread;
+    * ``"process"``: a child process over a pipe (:mod:`dmarionette.live_process`);
+    * ``"auto"``: ``"thread"`` with a ``view``; otherwise ``"shm"`` where SCHED_FIFO is allowed
+      (and ``realtime``), else ``"thread"``;
+    * ``"shm"``: a child process over shared memory (:mod:`dmarionette.hw.shm_link`); with
+      ``realtime`` the servo thread and the child ask for SCHED_FIFO priority 10 (refusal is
+      noted in the statistics, not an error) and, when it is allowed and there are two or
+      more usable CPUs, are pinned to the first two.
+
+    The child processes build the model from the scene's file with ``optimization_level``.
+    ``record``: an MCAP file path for the session, or None. ``on_start``: called just before
+    the servo loop starts, with ``{"physics": mode, "physics_pid": pid}`` (the pid of the
+    process that steps the marionette and writes the recording). ``servo_options`` go to
+    :class:`dmarionette.hw.ServoLoop`.
     ``device``: a name (:func:`make_device`) or a device object (its frame: the world shifted to
     the bar's start, as for ``simulated``).
     ``view``: a :class:`~dmarionette.live_view.AbstractLiveView` (the browser view
     :class:`dmarionette.live_view_viser.LiveViewServer`, or
     :class:`~dmarionette.live_view.LiveViewHeadless`), or None. It gets snapshots at its rate
-    from the physics thread;
-    when the device is a :class:`~dmarionette.hw.HapticDeviceSimulated`, ``drag(position,
+    from the physics thread, so it needs ``physics`` ``"thread"`` (or ``"auto"``, which then is
+    ``"thread"``); ``"process"`` or ``"shm"`` with a view raise ValueError before anything is
+    built. When the device is a :class:`~dmarionette.hw.HapticDeviceSimulated`, ``drag(position,
     rotation)`` (world frame) moves it (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`).
     Returns ``(servo statistics, summary dict)``.
     """
+
     from .hw import DeviceMapping, ServoLoop
+
+    mode = resolve_physics(physics, process=process, realtime=realtime, view=view is not None)
 
     scene = model.scene
     if bar not in model.bar_names:
@@ -281,13 +374,10 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
     if isinstance(device, AbstractHapticDevice):
         haptic, device = device, type(device).__name__
     else:
-        haptic = make_device(device, scene, bar, trajectory_offset=start, session=session)
+        haptic = make_device(device, scene, bar, trajectory_offset=start, session=session, duration=duration)
     peak = {"force": 0.0}
     publisher = None
     if view is not None:
-        if process:
-            raise ValueError("a live view needs the physics in this process: drop --own-process (the view reads "
-                             "the physics' snapshots in memory)")
         from .hw import HapticDeviceSimulated
         from .live_view import LiveViewPublisher
 
@@ -298,7 +388,31 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
             publisher.dragged = True
 
         view.connect_device(drag if isinstance(haptic, HapticDeviceSimulated) else None)
-    if process:
+    if mode == "shm":
+        from .hw.shm_link import SharedMemoryPhysics
+        from .live_process import LivePhysicsFactory
+
+        priority = 10 if realtime else None
+        # Pinned only with real-time priority: a pinned thread at normal priority cannot move away
+        # from a busy CPU, and measured far worse on a loaded machine than an unpinned one.
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        pin = len(cpus) >= 2 and realtime and fifo_allowed()
+        servo_cpu, physics_cpu = (cpus[0], cpus[1]) if pin else (None, None)
+        servo_options.setdefault("cpu", servo_cpu)
+        servo_options.setdefault("realtime_priority", priority)
+        factory = LivePhysicsFactory(scene.source, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
+                                     optimization_level=optimization_level,
+                                     record_path=None if record is None else str(record))
+        physics_link = SharedMemoryPhysics(factory, rate_hz=scene.string_hz, cpu=physics_cpu,
+                                           realtime_priority=priority)
+
+        def on_device(kind: str, value) -> None:
+            if kind == "force":
+                physics_link.last_force = value  # the child records what was actually sent
+                peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
+
+        device_step = physics_link
+    elif mode == "process":
         from .live_process import PhysicsProcess
 
         physics = PhysicsProcess(scene.source, bar, duration, feedback=feedback, force_scale=force_scale,
@@ -310,7 +424,7 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
                 physics.last_force = value  # the child records what was actually sent
                 peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
 
-        world_step = physics.step
+        device_step = mapping.wrap(physics.step)
     else:
         live = LiveMarionette(model)
         writer = None
@@ -338,21 +452,28 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
             with lock:
                 _record_tick(writer, model, live, tick, poses)
 
-        world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
-                                       on_tick=on_tick if writer is not None else None, view=publisher)
+        device_step = mapping.wrap(make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
+                                                     on_tick=on_tick if writer is not None else None,
+                                                     view=publisher))
     proxy = _RecordingDevice(haptic, on_device)
-    loop = ServoLoop(proxy, mapping.wrap(world_step), rate_hz=scene.string_hz, **servo_options)
+    loop = ServoLoop(proxy, device_step, rate_hz=scene.string_hz, **servo_options)
     try:
+        if on_start is not None:
+            pid = {"shm": lambda: physics_link.pid, "process": lambda: physics.pid}.get(mode, os.getpid)()
+            on_start({"physics": mode, "physics_pid": pid})
         stats = loop.run(duration)
     finally:
-        if process:
+        if mode == "shm":
+            steps = physics_link.close()
+        elif mode == "process":
             steps = physics.close()
         else:
             if writer is not None:
                 writer.close()
             steps = {"string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
                      "simulated_seconds": round(live.time, 4)}
-    summary = {"device": device, "bar": bar, "physics": "own process" if process else "servo worker thread",
+    names = {"thread": "servo worker thread", "process": "own process", "shm": "own process, shared memory"}
+    summary = {"device": device, "bar": bar, "physics": names[mode], "physics_mode": mode,
                **steps, "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
     if view is not None:
         summary["view_snapshots"] = view.buffer.published
