@@ -2,7 +2,7 @@
 
 Threads (all in this process):
 
-* the **servo thread** owns the clock and the device. Each tick it waits for its deadline
+* the **servo thread** owns the clock and the device (or devices). Each tick it waits for its deadline
   (``time.sleep`` until ``spin_margin`` before it, then a busy-wait), reads a sample,
   hands it to the physics thread, waits for the answer at most ``compute_budget`` of a
   period, passes the force through :class:`~dmarionette.hw.safety.ForceSafetyFilter`
@@ -17,6 +17,13 @@ Threads (all in this process):
   waiting on an event. A link whose physics is gone for good (a dead process) stops the
   loop, motors off.
 * the **caller's thread** waits in :meth:`ServoLoop.run`, where Ctrl-C arrives.
+
+Several devices (the paper's two Omnis, one per bar, both at 1 kHz in one haptic process):
+give :class:`ServoLoop` a sequence of devices. Each tick reads every device, asks the physics
+once with all samples, and writes each device its own row of the answer through its own
+:class:`~dmarionette.hw.safety.ForceSafetyFilter` (its own limits and ramp). The physics is
+one, so the watchdog is one: a stall or a non-finite value zeroes every device. Any way out
+(one device unplugged or raising included) turns every device's motors off.
 
 Motors off (zero force, then ``close``) on every way out: end of ``duration``,
 :meth:`ServoLoop.request_stop`, an exception in the physics (re-raised from ``run``),
@@ -42,7 +49,7 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -55,7 +62,10 @@ __all__ = ["PhysicsLink", "PhysicsStep", "ServoLoop", "ServoStatistics", "run_se
 PhysicsStep = Callable[[HapticSample, float], Any]
 """``step(sample, t) -> force``: ``sample`` the latest device reading (device frame, SI),
 ``t`` the loop time [s] since start; returns the force to render [N], shape (3,), device
-frame (use :class:`~dmarionette.hw.mapping.DeviceMapping` to come from the world)."""
+frame (use :class:`~dmarionette.hw.mapping.DeviceMapping` to come from the world). With
+several devices: ``step(samples, t) -> forces``, ``samples`` a tuple (one per device, in
+order), ``forces`` shape (n, 3), row ``i`` in device ``i``'s frame
+(:meth:`~dmarionette.hw.mapping.DeviceMapping.wrap_many`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,8 +162,9 @@ class _PhysicsWorker(PhysicsLink):
 
     notes = ("physics: worker thread",)
 
-    def __init__(self, step: PhysicsStep) -> None:
+    def __init__(self, step: PhysicsStep, shape: tuple[int, ...] = (3,)) -> None:
         self._step = step
+        self._shape = shape
         self._cv = threading.Condition()
         self._request: tuple[HapticSample, float] | None = None
         self._stop = False
@@ -200,7 +211,7 @@ class _PhysicsWorker(PhysicsLink):
                 sample, t = self._request
                 self._request = None
             try:
-                force = np.asarray(self._step(sample, t), dtype=float).reshape(3)
+                force = np.asarray(self._step(sample, t), dtype=float).reshape(self._shape)
             except BaseException as e:  # noqa: BLE001 - KeyboardInterrupt included, re-raised by run()
                 self.error = e
                 self.busy = False
@@ -212,13 +223,16 @@ class _PhysicsWorker(PhysicsLink):
 
 
 class ServoLoop:
-    """The haptic servo loop around one device and one physics callback.
+    """The haptic servo loop around one device (or several) and one physics callback.
 
     Args:
         device: The device; opened by ``run`` if it is not open, always closed at the end.
+            Or a sequence of distinct devices, all driven in the same ticks (see the module
+            docstring): ``step`` then takes a tuple of samples and returns forces (n, 3).
         step: ``step(sample, t) -> force [N] (3,)``, see :data:`PhysicsStep`, run on a worker
             thread; or a started :class:`PhysicsLink` (e.g. physics in another process,
             :class:`dmarionette.hw.shm_link.SharedMemoryPhysics`), which the caller closes.
+            A link serves one device only.
         rate_hz: Tick rate [Hz].
         safety: Ramp-in, limits and watchdog timeout.
         spin_margin: Sleep until this long before a deadline, then busy-wait [s].
@@ -231,7 +245,8 @@ class ServoLoop:
         cpu: Pin the servo thread to this CPU (Linux ``sched_setaffinity``); None leaves it.
     """
 
-    def __init__(self, device: AbstractHapticDevice, step: PhysicsStep | PhysicsLink, *, rate_hz: float = 1000.0,
+    def __init__(self, device: AbstractHapticDevice | Sequence[AbstractHapticDevice], step: PhysicsStep | PhysicsLink,
+                 *, rate_hz: float = 1000.0,
                  safety: SafetyConfig = SafetyConfig(), spin_margin: float = 0.0005,
                  compute_budget: float = 0.6, switch_interval: float | None = 0.0002,
                  realtime_priority: int | None = None, cpu: int | None = None) -> None:
@@ -239,7 +254,18 @@ class ServoLoop:
             raise ValueError(f"ServoLoop: rate_hz must be > 0, got {rate_hz}")
         if not 0.0 < compute_budget < 1.0:
             raise ValueError(f"ServoLoop: compute_budget must be in (0, 1) of a period, got {compute_budget}")
-        self.device = device
+        self.several = not isinstance(device, AbstractHapticDevice)
+        self.devices: tuple[AbstractHapticDevice, ...] = tuple(device) if self.several else (device,)
+        if not self.devices or not all(isinstance(d, AbstractHapticDevice) for d in self.devices):
+            raise ValueError(f"ServoLoop: device must be a haptic device or a non-empty sequence of them; got "
+                             f"{device!r}")
+        if len({id(d) for d in self.devices}) != len(self.devices):
+            raise ValueError("ServoLoop: the same device object was given twice; each device is read and written "
+                             "once per tick")
+        if self.several and isinstance(step, PhysicsLink):
+            raise ValueError(f"ServoLoop: a PhysicsLink serves one device; got {len(self.devices)} devices (use a "
+                             "step callable, run on the worker thread)")
+        self.device = self.devices[0]
         self.step = step
         self.rate_hz = float(rate_hz)
         self.period = 1.0 / self.rate_hz
@@ -272,8 +298,13 @@ class ServoLoop:
         """
         self._stop.clear()
         self._error = None
-        if not self.device.is_open:
-            self.device.open()
+        try:
+            for device in self.devices:
+                if not device.is_open:
+                    device.open()
+        except BaseException:
+            self._motors_off()  # the ones already opened
+            raise
         # Everything alive now (a simulator's model is many objects) leaves the collector's view,
         # so a full collection triggered by the loop's own allocations costs microseconds, not
         # the ~10-20 ms seen as single late ticks; undone when the loop ends.
@@ -346,15 +377,18 @@ class ServoLoop:
 
     def _servo(self, duration: float | None) -> None:
         realtime, notes = self._make_realtime()
-        device, period = self.device, self.period
-        filt = ForceSafetyFilter(device.spec, self.safety)
+        devices, period, n = self.devices, self.period, len(self.devices)
+        filters = [ForceSafetyFilter(d.spec, self.safety) for d in devices]
         own_worker = not isinstance(self.step, PhysicsLink)
-        worker = _PhysicsWorker(self.step) if own_worker else self.step
+        worker = _PhysicsWorker(self.step, (n, 3) if self.several else (3,)) if own_worker else self.step
         notes.extend(worker.notes)
+        if self.several:
+            notes.append(f"devices: {n}")
         lateness: list[float] = []
         missed = stale = trips = 0
         reason = "stopped"
-        held = np.zeros(3)
+        held = np.zeros((n, 3))
+        zero = np.zeros(3)
         tripped = False
         t0 = time.perf_counter()
         k = 0
@@ -368,9 +402,9 @@ class ServoLoop:
                     reason = "duration"
                     break
                 lateness.append(now - deadline)
-                sample = device.read()
+                samples = tuple(d.read() for d in devices)
                 if not worker.busy:
-                    worker.submit(sample, t)
+                    worker.submit(samples if self.several else samples[0], t)
                 wait_end = deadline + self.compute_budget * period
                 if worker.busy:  # do not wait past the moment the watchdog must act
                     wait_end = min(wait_end, worker.submitted_at + self.safety.watchdog_timeout + 1e-5)
@@ -382,7 +416,7 @@ class ServoLoop:
                 fresh = worker.take()
                 now = time.perf_counter()
                 if fresh is not None:
-                    held = fresh
+                    held = fresh.reshape(n, 3)
                 else:
                     stale += 1
                 # Stalled: a request has waited too long (the servo's own lateness does not count).
@@ -390,24 +424,29 @@ class ServoLoop:
                 if stalled:
                     gone = worker.failure()
                     if gone is not None:  # e.g. the physics process died: zero now, then motors off
-                        device.write_force(np.zeros(3))
+                        for d in devices:
+                            d.write_force(zero)
                         trips += 1
                         reason, self._error = "physics error", gone
                         break
-                finite = bool(np.all(np.isfinite(held)))
-                if stalled or not finite:
+                finite = np.all(np.isfinite(held), axis=1)
+                if stalled or not finite.all():  # one physics: a non-finite row zeroes every device
                     if not tripped:
                         trips += 1
                         tripped = True
-                    if not finite:
-                        filt.nonfinite_count += 1
-                    force = filt(np.zeros(3), now - t0)
+                    forces = []
+                    for i, filt in enumerate(filters):
+                        if not finite[i]:
+                            filt.nonfinite_count += 1
+                        forces.append(filt(zero, now - t0))
                 else:
                     if tripped:  # recovered after a trip: ramp in again
                         tripped = False
-                        filt.rearm(now - t0)
-                    force = filt(held, now - t0)
-                device.write_force(force)
+                        for filt in filters:
+                            filt.rearm(now - t0)
+                    forces = [filt(held[i], now - t0) for i, filt in enumerate(filters)]
+                for d, force in zip(devices, forces):
+                    d.write_force(force)
                 k += 1
                 behind = int((time.perf_counter() - t0) / period) - k
                 if behind > 0:  # a whole period or more late: skip those deadlines
@@ -418,7 +457,9 @@ class ServoLoop:
         except BaseException as e:  # noqa: BLE001 - motors off below, then re-raised by run()
             reason, self._error = "error", e
         finally:
-            self._motors_off()
+            error = self._motors_off()
+            if error is not None and self._error is None:
+                reason, self._error = "error", error
             if own_worker:
                 worker.stop()
             lat = np.asarray(lateness, dtype=float)
@@ -427,19 +468,33 @@ class ServoLoop:
                 rate_hz=self.rate_hz, tick_count=int(lat.size), duration=time.perf_counter() - t0,
                 lateness=lat, lateness_p50=pct(50), lateness_p99=pct(99),
                 lateness_max=float(lat.max()) if lat.size else 0.0, missed_ticks=missed, stale_ticks=stale,
-                watchdog_trips=trips, nonfinite_forces=filt.nonfinite_count, clamped_forces=filt.clamp_count,
+                watchdog_trips=trips, nonfinite_forces=sum(f.nonfinite_count for f in filters),
+                clamped_forces=sum(f.clamp_count for f in filters),
                 stop_reason=reason, realtime=realtime, notes=tuple(notes))
             self._finished.set()
 
-    def _motors_off(self) -> None:
-        """Zero force, then close; a lost device may refuse the zero, close still runs."""
-        try:
-            if self.device.is_open:
-                self.device.write_force(np.zeros(3))
-        except HapticDeviceError:
-            pass
-        finally:
-            self.device.close()
+    def _motors_off(self) -> BaseException | None:
+        """Zero force, then close, for every device, whatever any one of them does.
+
+        A lost device may refuse the zero (:class:`HapticDeviceError`, ignored); close still
+        runs, and the other devices are still zeroed and closed. Returns the first other
+        exception a device raised here (the caller reports it), or None.
+        """
+        first: BaseException | None = None
+        for device in self.devices:
+            try:
+                if device.is_open:
+                    device.write_force(np.zeros(3))
+            except HapticDeviceError:
+                pass
+            except Exception as e:  # noqa: BLE001 - the next devices must still go off
+                first = first or e
+            finally:
+                try:
+                    device.close()
+                except Exception as e:  # noqa: BLE001 - likewise
+                    first = first or e
+        return first
 
 
 def pin_to_cpu(who: str, cpu: int) -> str:
