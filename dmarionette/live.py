@@ -30,8 +30,8 @@ from .hw.device import AbstractHapticDevice, HapticDeviceError, HapticDeviceSpec
 from .live_view import scripted_rotations
 from .marionette import MarionetteModel, SolverMarionette, bar_inputs
 
-__all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "LiveMarionette", "LiveTick", "make_device", "make_physics_step",
-           "resolve_physics", "run_live"]
+__all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "LiveMarionette", "LiveTick", "bar_mapping", "make_device",
+           "make_physics_step", "resolve_physics", "run_live"]
 
 PHYSICS_MODES = ("thread", "process", "shm")
 """Where the marionette runs during live puppetry: the servo loop's worker thread, a child
@@ -90,6 +90,12 @@ class LiveMarionette:
         self._particle_after = [self.state.strings.particle_q.numpy() if j == n - 1 else spare[j % 2]
                                 for j in range(n)]
         assert self._top_q.shape == (n, s, 3) and self._bar_q.shape == (n, b, 3)
+
+    def reset(self) -> None:
+        """Back to the scene's rest state at time 0 (the captured graphs are kept)."""
+        self.state.assign(self.model.state())
+        self._next.assign(self.state)
+        self.tick = 0
 
     def _capture(self, j: int):
         n = self.model.substeps
@@ -287,10 +293,12 @@ def fifo_allowed() -> bool:
 
 
 def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None,
-                duration: float | None = None) -> AbstractHapticDevice:
+                duration: float | None = None, workspace_scale: float = 1.0) -> AbstractHapticDevice:
     """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
-    world frame shifted by ``trajectory_offset``); ``replay`` plays the device stream of the
-    recorded ``session`` (an MCAP file); the others open real hardware.
+    world frame shifted by ``trajectory_offset`` and divided by ``workspace_scale``, so that
+    through ``P' = S W P`` with the device origin at ``trajectory_offset`` the bar moves as in
+    the scene, whatever the scale); ``replay`` plays the device stream of the recorded
+    ``session`` (an MCAP file); the others open real hardware.
 
     With ``duration`` [s] the simulated device's trajectory is tabulated beforehand at
     :data:`SIMULATED_TABLE_HZ` for ``duration`` + 1 s, positions interpolated linearly and the
@@ -315,11 +323,11 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
         if duration is None:
             def pose(t: float):
                 position, _, rotation = trajectory.pose(np.array([t]))
-                return position[0] - trajectory_offset, rotation[0]
+                return (position[0] - trajectory_offset) / workspace_scale, rotation[0]
         else:
             table_t = np.arange(int(np.ceil((duration + 1.0) * SIMULATED_TABLE_HZ)) + 1) / SIMULATED_TABLE_HZ
             table_p, _, table_r = trajectory.pose(table_t)
-            table_p = table_p - trajectory_offset
+            table_p = (table_p - trajectory_offset) / workspace_scale
             last = len(table_t) - 1
 
             def pose(t: float):
@@ -376,6 +384,27 @@ def resolve_physics(physics: str | None, *, process: bool = False, realtime: boo
     return mode
 
 
+def bar_mapping(model: MarionetteModel, bar: str, workspace_scale: float = 1.0):
+    """The mapping ``P' = S W P`` (eq. 3) of a device driving ``bar``: its origin at the bar's start.
+
+    ``S`` is ``workspace_scale`` (uniform, > 0), ``W`` the translation by the bar's start divided
+    by ``S`` (``W`` = the start itself would put the origin at ``S`` times the start). A device
+    displacement ``d`` moves the bar by ``S d``; forces come back unscaled, so a world stiffness
+    ``k`` is felt as ``S k`` (:meth:`~dmarionette.hw.DeviceMapping.stiffness_to_device`).
+
+    Returns:
+        a :class:`dmarionette.hw.DeviceMapping`.
+    """
+    from .hw import DeviceMapping
+
+    if bar not in model.bar_names:
+        raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
+    if not (np.isfinite(workspace_scale) and workspace_scale > 0.0):
+        raise ValueError(f"--workspace-scale: got {workspace_scale}; expected a finite number > 0")
+    start = np.array(model.scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
+    return DeviceMapping.make(float(workspace_scale), translation=start / float(workspace_scale))
+
+
 def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Sequence = "simulated",
              bar: str | Sequence[str] = "main", duration: float = 10.0, record=None, feedback: str = "reaction",
              force_scale: float = 1.0, workspace_scale: float | Sequence[float] = 1.0, process: bool = False,
@@ -384,8 +413,10 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
-    ``workspace_scale``, ``W`` a translation putting the device origin at the bar's start.
-    Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES` or ``"auto"``;
+    ``workspace_scale``, ``W`` a translation (by the bar's start divided by ``S``) putting the
+    device origin at the bar's start. A device displacement ``d`` moves the bar by ``S d``, so a
+    world stiffness ``k`` is felt as ``S k`` (:meth:`~dmarionette.hw.DeviceMapping.stiffness_to_device`;
+    the force itself is not scaled). Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES` or ``"auto"``;
     :data:`DEFAULT_PHYSICS` when None, ``"process"`` when ``process=True``, the older spelling):
 
     * ``"thread"``: ``model`` itself, in the servo loop's worker thread;
@@ -451,15 +482,15 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
             raise ValueError(f"--bar: got {name!r}; expected one of {model.bar_names}")
     starts = [np.array(scene.bars[model.bar_names.index(name)].trajectory.positions[0], dtype=np.float64)
               for name in bars]
-    mappings = [DeviceMapping.make(scale, translation=start) for scale, start in zip(scales, starts)]
+    mappings = [bar_mapping(model, name, scale) for name, scale in zip(bars, scales)]
     haptics, device_names = [], []
-    for name, bar_name, start in zip(devices, bars, starts):
+    for name, bar_name, start, scale in zip(devices, bars, starts, scales):
         if isinstance(name, AbstractHapticDevice):
             haptics.append(name)
             device_names.append(type(name).__name__)
         else:
             haptics.append(make_device(name, scene, bar_name, trajectory_offset=start, session=session,
-                                       duration=duration))
+                                       duration=duration, workspace_scale=float(scale)))
             device_names.append(name)
     bar, mapping, haptic, start = bars[0], mappings[0], haptics[0], starts[0]  # the single-device modes
     peaks = [0.0] * len(haptics)
