@@ -11,7 +11,9 @@ kernels) runs
 * ``process``: in a child process, one pipe round trip per tick;
 * ``shm``: in a child process over shared memory, servo thread and child pinned to the first
   two CPUs, both asking for SCHED_FIFO 10 (the default of ``dmarionette live``);
-* ``shm-nort``: the same without real-time priority (what a user without the right gets).
+* ``shm-nort``: the same without real-time priority (what a user without the right gets);
+* ``thread-2dev``: as ``thread``, with two simulated devices, one on ``main`` and one on
+  ``hand`` (both read and written every tick by the one servo loop; not in the default list).
 
 Per run: tick lateness p50/p99/max (tick start minus deadline), missed ticks (deadlines
 skipped), watchdog trips, the fraction of ticks run that wrote a force computed for them
@@ -40,7 +42,8 @@ from dmarionette.live import run_live  # noqa: E402
 from dmarionette.marionette import MarionetteModel  # noqa: E402
 
 MODES = {"thread": {"physics": "thread"}, "process": {"physics": "process"},
-         "shm": {"physics": "shm"}, "shm-nort": {"physics": "shm", "realtime": False}}
+         "shm": {"physics": "shm"}, "shm-nort": {"physics": "shm", "realtime": False},
+         "thread-2dev": {"physics": "thread", "device": ["simulated", "simulated"], "bar": ["main", "hand"]}}
 COLUMNS = [("lateness_p50_us", "p50 [us]"), ("lateness_p99_us", "p99 [us]"), ("lateness_max_us", "max [us]"),
            ("missed", "missed"), ("watchdog_trips", "trips"), ("fresh_percent", "fresh [%]"),
            ("steps_percent", "steps/deadlines [%]"),

@@ -555,9 +555,10 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
 
             writer = SessionWriter(record, scene, Path(scene.source).read_text())
             writer.write_metadata("live", {
-                "devices": [{"bar": b, "device": n, "workspace_scale": float(s), "max_force_N": h.spec.max_force,
+                "devices": [{"bar": b, "device": n, "workspace_scale": float(s), "S": m.scale.tolist(),
+                             "W": m.device_to_world.tolist(), "max_force_N": h.spec.max_force,
                              "max_continuous_force_N": h.spec.max_continuous_force}
-                            for b, n, s, h in zip(bars, device_names, scales, haptics)],
+                            for b, n, s, m, h in zip(bars, device_names, scales, mappings, haptics)],
                 "feedback": feedback, "force_scale": float(force_scale)})
         lock = threading.Lock()
 

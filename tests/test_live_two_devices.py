@@ -224,9 +224,12 @@ def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
             assert len(recorded.channels[f"/device/{bar}/{kind}"]["t"]) > 100, (bar, kind)
         forces = np.linalg.norm(recorded.channels[f"/device/{bar}/force"]["force"], axis=1)
         assert 0.0 < forces.max() <= 3.3 + 1e-12
-    # Each bar pose driven by a device is one of that device's samples mapped to the world by S W.
-    for bar, scale in zip(BARS, (1.0, 2.0)):
-        world = bar_mapping(model, bar, scale).position_to_world(recorded.channels[f"/device/{bar}/sample"]["position"])
+    # Each bar pose driven by a device is one of that device's samples mapped to the world by the
+    # recorded S W, which is the mapping run_live uses (origin at the bar's start).
+    for bar, scale, meta in zip(BARS, (1.0, 2.0), live_meta):
+        mapping = DeviceMapping(np.array(meta["S"]), np.array(meta["W"]))
+        np.testing.assert_array_equal(mapping.matrix, bar_mapping(model, bar, scale).matrix)
+        world = mapping.position_to_world(recorded.channels[f"/device/{bar}/sample"]["position"])
         pose = recorded.channels[f"/bar/{bar}/pose"]["position"]
         gap = np.abs(pose[:, None, :] - world[None, :, :]).max(axis=2).min(axis=1)
         assert len(pose) > 100 and gap.max() < 1e-12, gap.max()
