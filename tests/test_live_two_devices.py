@@ -5,10 +5,12 @@ import json
 import numpy as np
 import pytest
 import warp as wp
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import dmarionette as dm
 from dmarionette.hw import DeviceMapping, HapticSample, SafetyConfig, ServoLoop
-from dmarionette.hw.device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceSpec
+from dmarionette.hw.device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError, HapticDeviceSpec
 from dmarionette.hw.simulated import HapticDeviceSimulated
 from dmarionette.live import LiveMarionette, bar_mapping, make_device, make_physics_step, run_live
 from dmarionette.marionette import MarionetteModel
@@ -120,12 +122,15 @@ def test_servo_loop_gives_each_device_its_own_row_and_limits():
     def step(samples, t):
         assert len(samples) == 2 and all(isinstance(x, HapticSample) for x in samples)
         calls["n"] += 1
+        if calls["n"] == 130:
+            loop.request_stop()
         if 100 <= calls["n"] < 110:
             return [[np.nan, 0.0, 0.0], [0.0, -0.5, 0.0]]
         return [[5.0, 0.0, 0.0], [0.0, -0.5, 0.0]]
 
     loop = ServoLoop([a, b], step, safety=NO_RAMP)
-    stats = loop.run(duration=0.3)
+    stats = loop.run(duration=10.0)  # stopped by the step after 130 answers
+    assert stats.stop_reason == "stopped"
     assert not a.is_open and not b.is_open
     fa, fb = a.force_log()[1], b.force_log()[1]
     assert np.linalg.norm(fa, axis=1).max() <= 1.0 + 1e-12 and np.linalg.norm(fb, axis=1).max() <= 3.3 + 1e-12
@@ -135,13 +140,98 @@ def test_servo_loop_gives_each_device_its_own_row_and_limits():
     assert len(fa) == len(fb)  # the same ticks, and each device's own motors-off zero
     np.testing.assert_array_equal(fa[-1], 0.0)
     np.testing.assert_array_equal(fb[-1], 0.0)
-    if calls["n"] >= 110:
-        assert stats.watchdog_trips >= 1 and stats.nonfinite_forces >= 1
-        nan_rows = np.where(np.all(fa == 0.0, axis=1) & np.all(fb == 0.0, axis=1))[0]
-        assert len(nan_rows) >= 2  # the NaN on one device zeroed both (plus the final zero)
+    assert stats.watchdog_trips >= 1 and stats.nonfinite_forces >= 1
+    zero_both = np.all(fa == 0.0, axis=1) & np.all(fb == 0.0, axis=1)
+    assert zero_both[:-1].sum() >= 1  # a NaN for device a zeroed b as well (besides the final zero)
     assert "devices: 2" in stats.summary()
     with pytest.raises(ValueError, match="same device object was given twice"):
         ServoLoop([a, a], step)
+
+
+def _spec(name, peak, continuous=None):
+    return HapticDeviceSpec(name, max_force=peak, max_continuous_force=peak if continuous is None else continuous,
+                            workspace_min=(-1, -1, -1), workspace_max=(1, 1, 1))
+
+
+finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")
+@given(peaks=st.tuples(st.floats(1e-3, 40.0), st.floats(1e-3, 40.0)),
+       rows=st.lists(st.tuples(*[finite_or_not] * 6), min_size=1, max_size=30),
+       ramp=st.sampled_from([0.0, 0.02]))
+@settings(max_examples=10, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
+def test_no_force_written_to_either_device_exceeds_its_own_limit(peaks, rows, ramp):
+    """Property: whatever the physics answers (any floats, NaN and inf included), each device only
+    ever gets a finite force within its own peak, and both end at zero."""
+    a, b = HapticDeviceSimulated(spec=_spec("a", peaks[0])), HapticDeviceSimulated(spec=_spec("b", peaks[1]))
+    calls = [0]
+
+    def step(samples, t):
+        calls[0] += 1
+        return np.array(rows[calls[0] % len(rows)]).reshape(2, 3)
+
+    with np.errstate(all="ignore"):
+        stats = ServoLoop([a, b], step, safety=SafetyConfig(ramp_time=ramp, continuous_time_constant=0.0,
+                                                            rearm_ramp_time=0.01)).run(duration=0.05)
+    assert stats.tick_count > 10
+    for device, peak in zip((a, b), peaks):
+        written = device.force_log()[1]
+        assert len(written) >= stats.tick_count and np.all(np.isfinite(written))
+        assert np.all(np.linalg.norm(written, axis=1) <= peak * (1 + 1e-12))
+        np.testing.assert_array_equal(written[-1], np.zeros(3))
+
+
+class _FailingWrite(AbstractHapticDevice):
+    """Wraps a simulated device; ``write_force`` raises ``error`` from the ``after``-th call on."""
+
+    def __init__(self, device: HapticDeviceSimulated, after: int, error: BaseException):
+        self.inner, self.after, self.error = device, after, error
+
+    spec = property(lambda self: self.inner.spec)
+    is_open = property(lambda self: self.inner.is_open)
+
+    def open(self):
+        self.inner.open()
+
+    def close(self):
+        self.inner.close()
+
+    def read(self):
+        return self.inner.read()
+
+    def write_force(self, force):
+        self.after -= 1
+        if self.after <= 0:
+            raise self.error
+        self.inner.write_force(force)
+
+
+@pytest.mark.parametrize("how", ["physics error", "keyboard interrupt", "device error", "device bug"])
+def test_both_motors_off_on_every_way_out(how):
+    """A physics exception, Ctrl-C in the physics, or either device raising (a HapticDeviceError
+    or any other exception): the error comes out of ``run`` and both devices end at zero, closed."""
+    a = HapticDeviceSimulated(spec=_spec("a", 2.0))
+    inner_b = HapticDeviceSimulated(spec=_spec("b", 2.0))
+    errors = {"physics error": ValueError("physics broke"), "keyboard interrupt": KeyboardInterrupt(),
+              "device error": HapticDeviceError("b: USB write failed"), "device bug": RuntimeError("b: bug")}
+    error = errors[how]
+    b = _FailingWrite(inner_b, 50, error) if how.startswith("device") else inner_b
+    calls = [0]
+
+    def step(samples, t):
+        calls[0] += 1
+        if not how.startswith("device") and calls[0] == 50:
+            raise error
+        return [[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]]
+
+    with pytest.raises(type(error)):
+        ServoLoop([a, b], step, safety=NO_RAMP).run(duration=5.0)
+    for device in (a, inner_b):
+        assert not device.is_open and device.close_count == 1
+        forces = device.force_log()[1]
+        assert len(forces) >= 40 and np.all(forces[-1] == 0.0)
+        assert np.abs(forces[:-1]).max() == pytest.approx(0.5)  # it did get its force before
 
 
 class _UnpluggedAfter(AbstractHapticDevice):
