@@ -19,7 +19,8 @@ from dmarionette.marionette_rollout import simulate_marionette
 wp.config.log_level = wp.LOG_WARNING
 
 BARS = ["main", "hand"]
-NO_RAMP = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0)
+# Full force at once, and again at once after a watchdog trip (a loaded machine trips it).
+NO_RAMP = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.0)
 
 
 @pytest.fixture(scope="module")
