@@ -87,7 +87,8 @@ def _parser() -> argparse.ArgumentParser:
                       help="where the marionette runs: the servo loop's worker thread, a child process over a "
                            "pipe, or a child process over shared memory with real-time priority where allowed; "
                            "auto (default): thread with --view browser or --snapshot (the view reads the "
-                           "physics in this process; process and shm are refused with a view), otherwise shm "
+                           "physics in this process) or with two devices; process and shm are refused there; "
+                           "otherwise shm "
                            "where SCHED_FIFO is allowed, else thread (docs/hardware.md)")
     live.add_argument("--own-process", action="store_true", help="the same as --physics process (older spelling)")
     live.add_argument("--no-realtime", action="store_true",
