@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 __all__ = ["main"]
@@ -64,11 +65,14 @@ def _parser() -> argparse.ArgumentParser:
                     "servo tick statistics at the end.")
     live.add_argument("scene", nargs="?", default="hanging", help="scene name or TOML file (default: hanging)")
     live.add_argument("--device", choices=["sim", "simulated", "replay", "openhaptics", "falcon", "spacemouse"],
-                      default="simulated",
+                      action="append", default=None,
                       help="the haptic device (sim = simulated: follows the scene's bar motion; replay: plays "
-                           "the device stream of --session)")
+                           "the device stream of --session; default simulated). Give it twice, with --bar twice, "
+                           "for two devices, one per bar (the n-th --device drives the n-th --bar; physics thread "
+                           "only; docs/hardware.md \"Two devices\")")
     live.add_argument("--session", type=Path, default=None, help="the recorded session --device replay plays")
-    live.add_argument("--bar", default="main", help="the bar the device drives (default: main)")
+    live.add_argument("--bar", action="append", default=None,
+                      help="the bar the device drives (default: main); once per --device")
     live.add_argument("--duration", type=float, default=10.0, help="seconds to run (default: 10)")
     live.add_argument("--record", type=Path, default=None, help="write the session to this MCAP file")
     live.add_argument("--feedback", choices=["reaction", "eq4"], default="reaction",
@@ -76,24 +80,32 @@ def _parser() -> argparse.ArgumentParser:
     live.add_argument("--force-scale", type=float, default=0.3,
                       help="multiplies the feedback before the safety filter (default 0.3: the puppet's "
                            "~7 N weight becomes ~2 N, inside a PHANToM Omni's 3.3 N)")
-    live.add_argument("--workspace-scale", type=float, default=1.0, help="S of P' = S W P (default 1)")
+    live.add_argument("--workspace-scale", type=float, action="append", default=None,
+                      help="S of P' = S W P (default 1); once for all devices or once per --device")
     live.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
-    live.add_argument("--own-process", action="store_true",
-                      help="run the physics in a child process instead of the servo loop's worker thread "
-                           "(on the 2-core development VM a pipe round trip costs ~160 us, so this kept "
-                           "fewer deadlines; see the README)")
+    live.add_argument("--physics", choices=["auto", "thread", "process", "shm"], default=None,
+                      help="where the marionette runs: the servo loop's worker thread, a child process over a "
+                           "pipe, or a child process over shared memory with real-time priority where allowed; "
+                           "auto (default): thread with --view browser or --snapshot (the view reads the "
+                           "physics in this process) or with two devices; process and shm are refused there; "
+                           "otherwise shm "
+                           "where SCHED_FIFO is allowed, else thread (docs/hardware.md)")
+    live.add_argument("--own-process", action="store_true", help="the same as --physics process (older spelling)")
+    live.add_argument("--no-realtime", action="store_true",
+                      help="with --physics shm: do not ask for SCHED_FIFO priority")
     live.add_argument("--view", choices=["none", "browser"], default="none",
                       help="none (default): no view, nothing but the servo loop; browser: a 3D view served on "
                            "http://HOST:PORT (viser; needs the 'view' extra): puppet, strings (dark taut, orange "
-                           "slack), bars, force arrows; with the simulated device the driven bar can be dragged "
-                           "(docs/live_view.md)")
+                           "slack), bars, force arrows; with the simulated device the driven bar can be dragged; "
+                           "runs the physics in the servo loop's worker thread (docs/live_view.md)")
     live.add_argument("--view-port", type=int, default=8080,
                       help="TCP port of the browser view (default 8080; 0: any free port; a taken port: the next)")
     live.add_argument("--view-host", default="127.0.0.1",
                       help="address the browser view listens on (default 127.0.0.1, this machine only)")
     live.add_argument("--view-hz", type=float, default=40.0, help="view updates per second (default 40)")
     live.add_argument("--snapshot", type=Path, default=None,
-                      help="write a picture (PNG) of the last frame here at the end; works with any --view")
+                      help="write a picture (PNG) of the last frame here at the end; works with any --view "
+                           "(and, like it, runs the physics in the worker thread)")
     info = sub.add_parser("info", help="summarise a recorded session (MCAP)",
                           description="Summarise a recorded session: duration, topics with counts and rates, "
                                       "scene, bars, whether the recording was cut off (docs/session.md).")
@@ -238,30 +250,55 @@ def _run_replay(args: argparse.Namespace) -> int:
 
 
 def _run_live(args: argparse.Namespace) -> int:
-    from .live import run_live
+    from .live import resolve_physics, run_live
     from .marionette import MarionetteModel
     from .scene import load_scene
 
     scene = load_scene(args.scene)
     if scene.puppet is None or not scene.bars:
         raise ValueError(f"{scene.source}: live puppetry needs a scene with a [puppet] and [bars]")
-    if not args.force_scale >= 0.0 or not args.workspace_scale > 0.0:
+    devices = ["simulated" if d == "sim" else d for d in (args.device or ["simulated"])]
+    if args.bar is None and len(devices) > 1:
+        raise ValueError(f"--device given {len(devices)} times: give --bar once per device (the n-th --device "
+                         f"drives the n-th --bar); bars in {scene.source}: {[b.name for b in scene.bars]}")
+    bars = args.bar or ["main"]
+    if len(bars) != len(devices):
+        raise ValueError(f"--bar given {len(bars)} times for {len(devices)} --device; expected one bar per device")
+    for bar in bars:
+        if bar not in [b.name for b in scene.bars]:
+            raise ValueError(f"--bar: got {bar!r}; expected one of {[b.name for b in scene.bars]} ({scene.source})")
+    if len(set(bars)) != len(bars):
+        raise ValueError(f"--bar: got {bars}; expected a different bar for each device")
+    scales = args.workspace_scale or [1.0]
+    if len(scales) not in (1, len(devices)):
+        raise ValueError(f"--workspace-scale given {len(scales)} times for {len(devices)} devices; expected once "
+                         "for all or once per device")
+    if not args.force_scale >= 0.0 or not all(s > 0.0 for s in scales):
         raise ValueError(f"--force-scale must be >= 0 and --workspace-scale > 0; got {args.force_scale}, "
-                         f"{args.workspace_scale}")
-    if (args.view != "none" or args.snapshot is not None) and args.own_process:
-        raise ValueError("--view browser and --snapshot need the physics in this process: drop --own-process")
+                         f"{scales}")
+    if "replay" in devices and args.session is None:
+        raise ValueError("--device replay needs --session FILE (a recorded session)")
+    if args.own_process and args.physics not in (None, "process"):
+        raise ValueError(f"--own-process is --physics process; got it together with --physics {args.physics}")
+    # Checked before anything compiles: a view reads the physics' snapshots in this process.
+    resolve_physics(args.physics, process=args.own_process, realtime=not args.no_realtime,
+                    view=args.view != "none" or args.snapshot is not None, devices=len(devices))
     if not (args.view_hz > 0.0 and args.view_hz < float("inf")):
         raise ValueError(f"--view-hz: got {args.view_hz}; expected a rate > 0 [Hz]")
     if args.snapshot is not None and args.snapshot.suffix.lower() != ".png":
         raise ValueError(f"--snapshot: got {str(args.snapshot)!r}; expected a .png file name")
     level = 0 if args.fast_compile else 2
     model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
-    device = "simulated" if args.device == "sim" else args.device
-    if device == "replay" and args.session is None:
-        raise ValueError("--device replay needs --session FILE (a recorded session)")
     from .live_view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
 
-    geometry = LiveViewGeometry.from_model(model, args.bar) if args.bar in model.bar_names else None
+    def on_start(info: dict) -> None:
+        # CLOCK_MONOTONIC is the clock of the simulated device and of time.monotonic() in any process
+        # (tests relate a recording's device times to the moment they kill this process by it).
+        record = f"; recording to {args.record}" if args.record is not None else ""
+        print(f"live: servo loop starting at CLOCK_MONOTONIC {time.monotonic():.6f} s; physics: {info['physics']} "
+              f"(pid {info['physics_pid']}){record}", file=sys.stderr, flush=True)
+
+    geometry = LiveViewGeometry.from_model(model, bars[0])  # the first device's bar: drag handle, force arrow
     view = None
     if args.view == "browser" and geometry is not None:
         from .live_view_viser import LiveViewServer
@@ -271,10 +308,14 @@ def _run_live(args: argparse.Namespace) -> int:
     elif args.snapshot is not None:
         view = LiveViewHeadless()
     try:
-        stats, summary = run_live(model, device=device, bar=args.bar, session=args.session, duration=args.duration,
+        several = len(devices) > 1
+        stats, summary = run_live(model, device=devices if several else devices[0], bar=bars if several else bars[0],
+                                  session=args.session, duration=args.duration,
                                   record=args.record, feedback=args.feedback, force_scale=args.force_scale,
-                                  workspace_scale=args.workspace_scale, process=args.own_process,
-                                  optimization_level=level, view=view)
+                                  workspace_scale=scales if len(scales) > 1 else scales[0],
+                                  process=args.own_process,
+                                  physics=args.physics, realtime=not args.no_realtime, optimization_level=level,
+                                  on_start=on_start, view=view)
     finally:
         if view is not None:
             view.close()

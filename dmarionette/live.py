@@ -8,23 +8,42 @@ one per string-step index, so a tick costs one graph replay and a little host wo
 at the bar's centre (paper §3.1) and is mapped to the world by ``P' = S W P`` (eq. 3,
 :class:`dmarionette.hw.mapping.DeviceMapping`); the force sent back is the driven bar's
 feedback, through ``W``'s rotation only, then the servo loop's safety filter.
+
+Several devices may drive several bars (the paper's two Omnis, one per bar): each has its
+own mapping (its origin at its bar's start), feels its own bar's force and has its own
+safety filter, all in the same servo ticks (:class:`dmarionette.hw.ServoLoop` with a sequence
+of devices); this runs in the ``"thread"`` physics mode.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import warp as wp
 
-from .hw.device import AbstractHapticDevice, HapticDeviceSpec, HapticSample
+from .hw.device import AbstractHapticDevice, HapticDeviceError, HapticDeviceSpec, HapticSample
 from .live_view import scripted_rotations
 from .marionette import MarionetteModel, SolverMarionette, bar_inputs
 
-__all__ = ["LiveMarionette", "LiveTick", "make_device", "make_physics_step", "run_live"]
+__all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "LiveMarionette", "LiveTick", "bar_mapping", "make_device",
+           "make_physics_step", "resolve_physics", "run_live"]
+
+PHYSICS_MODES = ("thread", "process", "shm")
+"""Where the marionette runs during live puppetry: the servo loop's worker thread, a child
+process over a pipe, or a child process over shared memory (see ``docs/hardware.md``)."""
+DEFAULT_PHYSICS = "auto"
+"""Chosen by measurement (``benchmarks/bench_live.py``, docs/hardware.md "Live timing"): ``"auto"``
+is ``"shm"`` where SCHED_FIFO is allowed (it kept 99.7-100 % of the ticks fresh under a load
+average of 6 on 2 CPUs) and ``"thread"`` where it is not (there, ``"shm"`` without real-time
+priority kept fewer ticks than the worker thread: 15-45 % against 55-68 %). With a live view
+(or any ``view``) ``"auto"`` is ``"thread"``: the view reads the physics' snapshots in memory."""
+SIMULATED_TABLE_HZ = 2000.0
+"""Rate [Hz] at which :func:`make_device` tabulates the simulated device's trajectory."""
 
 
 @dataclasses.dataclass
@@ -72,6 +91,12 @@ class LiveMarionette:
                                 for j in range(n)]
         assert self._top_q.shape == (n, s, 3) and self._bar_q.shape == (n, b, 3)
 
+    def reset(self) -> None:
+        """Back to the scene's rest state at time 0 (the captured graphs are kept)."""
+        self.state.assign(self.model.state())
+        self._next.assign(self.state)
+        self.tick = 0
+
     def _capture(self, j: int):
         n = self.model.substeps
         with wp.ScopedCapture(device=self.model.device) as capture:
@@ -110,15 +135,16 @@ class LiveMarionette:
                         string_taut=self._taut[j].copy(), puppet_stepped=j == self.model.substeps - 1)
 
 
-def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *, feedback: str = "reaction",
-                      force_scale: float = 1.0,
+def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], duration: float, *,
+                      feedback: str = "reaction", force_scale: float = 1.0,
                       on_tick: Callable[[LiveTick, dict], None] | None = None, view=None):
-    """A world-frame physics callback for the servo loop: the device drives ``driven_bar``.
+    """A world-frame physics callback for the servo loop: the device (or devices) drive bars.
 
     Args:
         live: the marionette stepped per tick.
-        driven_bar: the bar whose centre follows the (mapped) device tip; other bars follow the
-            scene's trajectories.
+        driven_bar: the bar whose centre follows the (mapped) device tip; or a sequence of
+            distinct bars, one per device, in the servo loop's device order. Other bars follow
+            the scene's trajectories.
         duration: how long the session may run [s]; the scripted bars' inputs are evaluated
             for it beforehand (a spline evaluation per tick would cost a large part of a tick).
         feedback: ``"reaction"`` (the strings' pull on the bar) or ``"eq4"`` (the paper's eq. 4 as
@@ -130,44 +156,62 @@ def make_physics_step(live: LiveMarionette, driven_bar: str, duration: float, *,
             is due (a clock read per tick otherwise), or None.
 
     Returns:
-        ``step(sample_world, t) -> force_world (3,)`` (wrap with ``DeviceMapping.wrap``).
+        For one bar (a name): ``step(sample_world, t) -> force_world (3,)`` (wrap with
+        ``DeviceMapping.wrap``). For a sequence: ``step(samples_world, t) -> forces_world
+        (n, 3)``, row ``i`` the force on bar ``i`` (wrap with ``DeviceMapping.wrap_many``).
     """
     model = live.model
     names = [s.name for s in model.scene.strings]
     bars = model.scene.bars
-    if driven_bar not in model.bar_names:
-        raise ValueError(f"driven bar: got {driven_bar!r}; expected one of {model.bar_names}")
+    several = not isinstance(driven_bar, str)
+    driven_names = list(driven_bar) if several else [driven_bar]
+    for name in driven_names:
+        if name not in model.bar_names:
+            raise ValueError(f"driven bar: got {name!r}; expected one of {model.bar_names}")
+    if not driven_names or len(set(driven_names)) != len(driven_names):
+        raise ValueError(f"driven bars: got {driven_names}; expected distinct bars, one per device")
     if feedback not in ("reaction", "eq4"):
         raise ValueError(f"feedback: got {feedback!r}; expected 'reaction' or 'eq4'")
-    driven = model.bar_names.index(driven_bar)
+    driven = [model.bar_names.index(name) for name in driven_names]
     carried = [[i for i, n in enumerate(names) if n in bar.attach] for bar in bars]
-    local = [np.array([bar.attach[names[i]] for i in idx]) for bar, idx in zip(bars, carried)]
-    previous = {"position": None}
+    local = [np.array([bar.attach[names[i]] for i in idx]).reshape(-1, 3) for bar, idx in zip(bars, carried)]
+    previous: list[np.ndarray | None] = [None] * len(driven)
     ticks = int(np.ceil(duration / model.string_dt)) + 2
     tick_times = model.string_dt * np.arange(1, ticks + 1)  # the end of each string step
     scripted = bar_inputs(model, tick_times)
     scripted_angles = [bar.trajectory.angles(tick_times) for bar in bars]
 
-    def step(sample, _t: float) -> np.ndarray:
+    def step_all(samples, _t: float) -> np.ndarray:
         k = min(live.tick, ticks - 1)  # past the planned duration the scripted bars hold still
         tops, bar_q, bar_qd = scripted[0][k].copy(), scripted[1][k].copy(), scripted[2][k].copy()
-        position = np.asarray(sample.position, dtype=np.float64)
-        velocity = np.zeros(3) if previous["position"] is None else (position - previous["position"]) / model.string_dt
-        previous["position"] = position
-        rotation = sample.rotation
-        bar_q[driven], bar_qd[driven] = position, velocity
-        tops[carried[driven]] = position + local[driven] @ rotation.T
+        rotations = []
+        for i, (b, sample) in enumerate(zip(driven, samples, strict=True)):
+            position = np.asarray(sample.position, dtype=np.float64)
+            velocity = np.zeros(3) if previous[i] is None else (position - previous[i]) / model.string_dt
+            previous[i] = position
+            rotation = sample.rotation
+            rotations.append(rotation)
+            bar_q[b], bar_qd[b] = position, velocity
+            tops[carried[b]] = position + local[b] @ rotation.T
         tick = live.advance(tops, bar_q, bar_qd)
         if on_tick is not None:
             poses = {name: (bar_q[b], scripted_angles[b][k]) for b, name in enumerate(model.bar_names)}
-            poses[driven_bar] = (position, _matrix_to_euler_deg(rotation))
+            for b, rotation in zip(driven, rotations):
+                poses[model.bar_names[b]] = (bar_q[b], _matrix_to_euler_deg(rotation))
             on_tick(tick, poses)
         if view is not None and view.due():
-            rotations = scripted_rotations(scripted_angles, k)
-            rotations[driven] = rotation
-            view.publish(live, bar_q, rotations, tick.bar_reaction)
+            all_rotations = scripted_rotations(scripted_angles, k)
+            for b, rotation in zip(driven, rotations):
+                all_rotations[b] = rotation
+            view.publish(live, bar_q, all_rotations, tick.bar_reaction)
         force = tick.bar_reaction[driven] if feedback == "reaction" else tick.bar_feedback[driven]
         return force_scale * force
+
+    if several:
+        return step_all
+
+    def step(sample, t: float) -> np.ndarray:
+        return step_all((sample,), t)[0]
 
     return step
 
@@ -183,9 +227,10 @@ def _matrix_to_euler_deg(r: np.ndarray) -> np.ndarray:
 class _RecordingDevice(AbstractHapticDevice):
     """A device that records what it reads and the forces actually sent (after the safety filter)."""
 
-    def __init__(self, device: AbstractHapticDevice, record: Callable[[str, object], None]):
+    def __init__(self, device: AbstractHapticDevice, record: Callable[[str, object], None], label: str | None = None):
         self._device = device
         self._record = record
+        self._label = label  # with several devices: which one, put in front of its errors
         self._read_at: float | None = None
         self.latencies: list[float] = []  # read -> next force written [s]
 
@@ -205,22 +250,62 @@ class _RecordingDevice(AbstractHapticDevice):
 
     def read(self) -> HapticSample:
         self._read_at = time.perf_counter()
-        sample = self._device.read()
+        try:
+            sample = self._device.read()
+        except HapticDeviceError as error:
+            self._raise_labelled(error)
         self._record("sample", sample)
         return sample
 
     def write_force(self, force) -> None:
-        self._device.write_force(force)
+        try:
+            self._device.write_force(force)
+        except HapticDeviceError as error:
+            self._raise_labelled(error)
         if self._read_at is not None:
             self.latencies.append(time.perf_counter() - self._read_at)
             self._read_at = None
         self._record("force", np.asarray(force, dtype=np.float64))
 
 
-def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None) -> AbstractHapticDevice:
+    def _raise_labelled(self, error: HapticDeviceError):
+        """Re-raises ``error`` with the device's label in front (several devices: which one failed)."""
+        labelled = None
+        if self._label is not None:
+            try:
+                labelled = type(error)(f"{self._label}: {error}")
+            except TypeError:  # an error class with another constructor: raised as it is
+                labelled = None
+        if labelled is None:
+            raise error
+        raise labelled from error
+
+
+def fifo_allowed() -> bool:
+    """Whether this process may use SCHED_FIFO: tried on the calling thread, then put back."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, policy, param)
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
+def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None,
+                duration: float | None = None, workspace_scale: float = 1.0) -> AbstractHapticDevice:
     """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
-    world frame shifted by ``trajectory_offset``); ``replay`` plays the device stream of the
-    recorded ``session`` (an MCAP file); the others open real hardware."""
+    world frame shifted by ``trajectory_offset`` and divided by ``workspace_scale``, so that
+    through ``P' = S W P`` with the device origin at ``trajectory_offset`` the bar moves as in
+    the scene, whatever the scale); ``replay`` plays the device stream of the recorded
+    ``session`` (an MCAP file); the others open real hardware.
+
+    With ``duration`` [s] the simulated device's trajectory is tabulated beforehand at
+    :data:`SIMULATED_TABLE_HZ` for ``duration`` + 1 s, positions interpolated linearly and the
+    rotation taken from the table entry at or before the read, then held after the end. A
+    spline evaluation per read costs ~160 µs (measured), which a real device's read does not,
+    and which would otherwise count in the servo tick and the device-to-force latency.
+    """
     from . import hw
 
     if name == "replay":
@@ -235,9 +320,21 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
     if name == "simulated":
         trajectory = scene.bars[[b.name for b in scene.bars].index(bar)].trajectory
 
-        def pose(t: float):
-            position, _, rotation = trajectory.pose(np.array([t]))
-            return position[0] - trajectory_offset, rotation[0]
+        if duration is None:
+            def pose(t: float):
+                position, _, rotation = trajectory.pose(np.array([t]))
+                return (position[0] - trajectory_offset) / workspace_scale, rotation[0]
+        else:
+            table_t = np.arange(int(np.ceil((duration + 1.0) * SIMULATED_TABLE_HZ)) + 1) / SIMULATED_TABLE_HZ
+            table_p, _, table_r = trajectory.pose(table_t)
+            table_p = (table_p - trajectory_offset) / workspace_scale
+            last = len(table_t) - 1
+
+            def pose(t: float):
+                x = min(max(t * SIMULATED_TABLE_HZ, 0.0), float(last))
+                i = min(int(x), last - 1)
+                w = x - i
+                return (1.0 - w) * table_p[i] + w * table_p[i + 1], table_r[i if w < 1.0 else i + 1]
 
         return hw.HapticDeviceSimulated(trajectory=pose)
     if name == "openhaptics":
@@ -249,45 +346,156 @@ def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, se
     raise ValueError(f"device: got {name!r}; expected one of simulated, replay, openhaptics, falcon, spacemouse")
 
 
-def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "simulated", bar: str = "main",
-             duration: float = 10.0, record=None, feedback: str = "reaction", force_scale: float = 1.0,
-             workspace_scale: float = 1.0, process: bool = False, optimization_level: int = 2, session=None,
-             view=None, **servo_options):
+def resolve_physics(physics: str | None, *, process: bool = False, realtime: bool = True,
+                    view: bool = False, devices: int = 1) -> str:
+    """The physics mode a live session runs in (:data:`PHYSICS_MODES`), checked before anything is built.
+
+    Args:
+        physics: ``"auto"``, one of :data:`PHYSICS_MODES`, or None (:data:`DEFAULT_PHYSICS`, or
+            ``"process"`` when ``process``).
+        process: the older spelling of ``physics="process"`` (``--own-process``).
+        realtime: whether real-time priority may be asked for (``"auto"`` picks ``"shm"`` only then).
+        view: whether a live view (or a ``--snapshot``) reads the physics' snapshots: ``"auto"`` is
+            then ``"thread"``, and ``"process"``/``"shm"`` are refused.
+        devices: how many devices drive bars. With two or more, ``"auto"`` is ``"thread"`` and
+            ``"process"``/``"shm"`` are refused: their child-process protocols carry one device's
+            sample and force per tick (see docs/hardware.md "Two devices").
+
+    Raises:
+        ValueError: an unknown mode, or a child-process mode together with a view or several devices.
+    """
+    mode = physics if physics is not None else ("process" if process else DEFAULT_PHYSICS)
+    if mode == "auto":
+        if view or devices > 1:
+            return "thread"
+        return "shm" if realtime and fifo_allowed() else "thread"
+    if mode not in PHYSICS_MODES:
+        raise ValueError(f"--physics: got {mode!r}; expected auto or one of {', '.join(PHYSICS_MODES)}")
+    if view and mode != "thread":
+        spelled = "--own-process" if physics is None else f"--physics {mode}"
+        raise ValueError(f"{spelled}: a live view (--view browser or --snapshot) needs the physics in this process "
+                         f"(it reads the physics' snapshots in memory): drop {spelled} (auto and thread run it in "
+                         f"the servo loop's worker thread), or drop the view")
+    if devices > 1 and mode != "thread":
+        spelled = "--own-process" if physics is None else f"--physics {mode}"
+        raise ValueError(f"{spelled}: {devices} devices run with the physics in the servo loop's worker thread only "
+                         f"(--physics thread or auto); the {mode} mode's child process exchanges one device's "
+                         f"sample and force per tick")
+    return mode
+
+
+def bar_mapping(model: MarionetteModel, bar: str, workspace_scale: float = 1.0):
+    """The mapping ``P' = S W P`` (eq. 3) of a device driving ``bar``: its origin at the bar's start.
+
+    ``S`` is ``workspace_scale`` (uniform, > 0), ``W`` the translation by the bar's start divided
+    by ``S`` (``W`` = the start itself would put the origin at ``S`` times the start). A device
+    displacement ``d`` moves the bar by ``S d``; forces come back unscaled, so a world stiffness
+    ``k`` is felt as ``S k`` (:meth:`~dmarionette.hw.DeviceMapping.stiffness_to_device`).
+
+    Returns:
+        a :class:`dmarionette.hw.DeviceMapping`.
+    """
+    from .hw import DeviceMapping
+
+    if bar not in model.bar_names:
+        raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
+    if not (np.isfinite(workspace_scale) and workspace_scale > 0.0):
+        raise ValueError(f"--workspace-scale: got {workspace_scale}; expected a finite number > 0")
+    start = np.array(model.scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
+    return DeviceMapping.make(float(workspace_scale), translation=start / float(workspace_scale))
+
+
+def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Sequence = "simulated",
+             bar: str | Sequence[str] = "main", duration: float = 10.0, record=None, feedback: str = "reaction",
+             force_scale: float = 1.0, workspace_scale: float | Sequence[float] = 1.0, process: bool = False,
+             optimization_level: int = 2, session=None, physics: str | None = None, realtime: bool = True,
+             on_start: Callable[[dict], None] | None = None, view=None, **servo_options):
     """Live puppetry: a device drives ``bar`` through the 1 kHz servo loop (paper §3).
 
     The device tip maps to the bar's centre with ``P' = S W P``: ``S`` the uniform
-    ``workspace_scale``, ``W`` a translation putting the device origin at the bar's start.
-    By default the marionette (``model``) runs in the servo loop's worker thread; with
-    ``process=True`` in a child process (:mod:`dmarionette.live_process`), built from the
-    scene's file with ``optimization_level``. ``record``: an MCAP file path
-    for the session, or None. ``servo_options`` go to :class:`dmarionette.hw.ServoLoop`.
+    ``workspace_scale``, ``W`` a translation (by the bar's start divided by ``S``) putting the
+    device origin at the bar's start. A device displacement ``d`` moves the bar by ``S d``, so a
+    world stiffness ``k`` is felt as ``S k`` (:meth:`~dmarionette.hw.DeviceMapping.stiffness_to_device`;
+    the force itself is not scaled). Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES` or ``"auto"``;
+    :data:`DEFAULT_PHYSICS` when None, ``"process"`` when ``process=True``, the older spelling):
+
+    * ``"thread"``: ``model`` itself, in the servo loop's worker thread;
+    * ``"process"``: a child process over a pipe (:mod:`dmarionette.live_process`);
+    * ``"auto"``: ``"thread"`` with a ``view`` or several devices; otherwise ``"shm"`` where
+      SCHED_FIFO is allowed (and ``realtime``), else ``"thread"``;
+    * ``"shm"``: a child process over shared memory (:mod:`dmarionette.hw.shm_link`); with
+      ``realtime`` the servo thread and the child ask for SCHED_FIFO priority 10 (refusal is
+      noted in the statistics, not an error) and, when it is allowed and there are two or
+      more usable CPUs, are pinned to the first two.
+
+    The child processes build the model from the scene's file with ``optimization_level``.
+    ``record``: an MCAP file path for the session, or None. ``on_start``: called just before
+    the servo loop starts, with ``{"physics": mode, "physics_pid": pid}`` (the pid of the
+    process that steps the marionette and writes the recording). ``servo_options`` go to
+    :class:`dmarionette.hw.ServoLoop`.
     ``device``: a name (:func:`make_device`) or a device object (its frame: the world shifted to
     the bar's start, as for ``simulated``).
+
+    Several devices: ``device`` a list (names or objects) and ``bar`` a list of as many distinct
+    bars, device ``i`` driving bar ``i`` (the paper's two Omnis); ``workspace_scale`` one for all
+    or a list, one per device. Each device has its own mapping ``P' = S_i W_i P`` (origin at its
+    bar's start), feels its own bar's force through ``W_i``'s rotation and has its own safety
+    filter; one servo loop reads and writes all of them each tick, and every way out turns
+    every device's motors off. Physics ``"thread"`` only (``"auto"`` is ``"thread"``).
+
     ``view``: a :class:`~dmarionette.live_view.AbstractLiveView` (the browser view
     :class:`dmarionette.live_view_viser.LiveViewServer`, or
     :class:`~dmarionette.live_view.LiveViewHeadless`), or None. It gets snapshots at its rate
-    from the physics thread;
-    when the device is a :class:`~dmarionette.hw.HapticDeviceSimulated`, ``drag(position,
-    rotation)`` (world frame) moves it (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`).
-    Returns ``(servo statistics, summary dict)``.
+    from the physics thread, so it needs ``physics`` ``"thread"`` (or ``"auto"``, which then is
+    ``"thread"``); ``"process"`` or ``"shm"`` with a view raise ValueError before anything is
+    built. When the (first) device is a :class:`~dmarionette.hw.HapticDeviceSimulated`,
+    ``drag(position, rotation)`` (world frame) moves it
+    (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`); the force-sent arrow is the first
+    device's.
+
+    Returns:
+        ``(servo statistics, summary dict)``. With several devices the summary's ``device``,
+        ``bar``, ``workspace_scale``, ``peak_force_sent_N`` and ``max_force_N`` are lists, one
+        entry per device.
     """
+
     from .hw import DeviceMapping, ServoLoop
 
+    several = isinstance(device, (list, tuple))
+    devices = list(device) if several else [device]
+    bars = [bar] if isinstance(bar, str) else list(bar)
+    scales = (list(workspace_scale) if isinstance(workspace_scale, (list, tuple, np.ndarray))
+              else [workspace_scale] * len(bars))
+    if len(devices) != len(bars) or not bars:
+        raise ValueError(f"--device/--bar: got {len(devices)} device(s) {devices} and {len(bars)} bar(s) {bars}; "
+                         "expected one bar per device")
+    if len(scales) != len(bars):
+        raise ValueError(f"--workspace-scale: got {len(scales)} values {scales} for {len(bars)} devices; expected "
+                         "one for all or one per device")
+    if len(set(bars)) != len(bars):
+        raise ValueError(f"--bar: got {bars}; expected a different bar for each device")
+    mode = resolve_physics(physics, process=process, realtime=realtime, view=view is not None, devices=len(devices))
+
     scene = model.scene
-    if bar not in model.bar_names:
-        raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
-    start = np.array(scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
-    mapping = DeviceMapping.make(workspace_scale, translation=start)
-    if isinstance(device, AbstractHapticDevice):
-        haptic, device = device, type(device).__name__
-    else:
-        haptic = make_device(device, scene, bar, trajectory_offset=start, session=session)
-    peak = {"force": 0.0}
+    for name in bars:
+        if name not in model.bar_names:
+            raise ValueError(f"--bar: got {name!r}; expected one of {model.bar_names}")
+    starts = [np.array(scene.bars[model.bar_names.index(name)].trajectory.positions[0], dtype=np.float64)
+              for name in bars]
+    mappings = [bar_mapping(model, name, scale) for name, scale in zip(bars, scales)]
+    haptics, device_names = [], []
+    for name, bar_name, start, scale in zip(devices, bars, starts, scales):
+        if isinstance(name, AbstractHapticDevice):
+            haptics.append(name)
+            device_names.append(type(name).__name__)
+        else:
+            haptics.append(make_device(name, scene, bar_name, trajectory_offset=start, session=session,
+                                       duration=duration, workspace_scale=float(scale)))
+            device_names.append(name)
+    bar, mapping, haptic, start = bars[0], mappings[0], haptics[0], starts[0]  # the single-device modes
+    peaks = [0.0] * len(haptics)
     publisher = None
     if view is not None:
-        if process:
-            raise ValueError("a live view needs the physics in this process: drop --own-process (the view reads "
-                             "the physics' snapshots in memory)")
         from .hw import HapticDeviceSimulated
         from .live_view import LiveViewPublisher
 
@@ -298,7 +506,32 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
             publisher.dragged = True
 
         view.connect_device(drag if isinstance(haptic, HapticDeviceSimulated) else None)
-    if process:
+    if mode == "shm":
+        from .hw.shm_link import SharedMemoryPhysics
+        from .live_process import LivePhysicsFactory
+
+        priority = 10 if realtime else None
+        # Pinned only with real-time priority: a pinned thread at normal priority cannot move away
+        # from a busy CPU, and measured far worse on a loaded machine than an unpinned one.
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        pin = len(cpus) >= 2 and realtime and fifo_allowed()
+        servo_cpu, physics_cpu = (cpus[0], cpus[1]) if pin else (None, None)
+        servo_options.setdefault("cpu", servo_cpu)
+        servo_options.setdefault("realtime_priority", priority)
+        factory = LivePhysicsFactory(scene.source, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
+                                     optimization_level=optimization_level,
+                                     record_path=None if record is None else str(record))
+        physics_link = SharedMemoryPhysics(factory, rate_hz=scene.string_hz, cpu=physics_cpu,
+                                           realtime_priority=priority)
+
+        def on_device(kind: str, value) -> None:
+            if kind == "force":
+                physics_link.last_force = value  # the child records what was actually sent
+                peaks[0] = max(peaks[0], float(np.linalg.norm(value)))
+
+        device_step = physics_link
+        handlers = [on_device]
+    elif mode == "process":
         from .live_process import PhysicsProcess
 
         physics = PhysicsProcess(scene.source, bar, duration, feedback=feedback, force_scale=force_scale,
@@ -308,9 +541,10 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
         def on_device(kind: str, value) -> None:
             if kind == "force":
                 physics.last_force = value  # the child records what was actually sent
-                peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
+                peaks[0] = max(peaks[0], float(np.linalg.norm(value)))
 
-        world_step = physics.step
+        device_step = mapping.wrap(physics.step)
+        handlers = [on_device]
     else:
         live = LiveMarionette(model)
         writer = None
@@ -320,44 +554,72 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice = "si
             from .session import SessionWriter
 
             writer = SessionWriter(record, scene, Path(scene.source).read_text())
+            writer.write_metadata("live", {
+                "devices": [{"bar": b, "device": n, "workspace_scale": float(s), "S": m.scale.tolist(),
+                             "W": m.device_to_world.tolist(), "max_force_N": h.spec.max_force,
+                             "max_continuous_force_N": h.spec.max_continuous_force}
+                            for b, n, s, m, h in zip(bars, device_names, scales, mappings, haptics)],
+                "feedback": feedback, "force_scale": float(force_scale)})
         lock = threading.Lock()
 
-        def on_device(kind: str, value) -> None:
-            if kind == "force":
-                peak["force"] = max(peak["force"], float(np.linalg.norm(value)))
-                if publisher is not None:
-                    publisher.force_sent = value
-            if writer is not None:
-                with lock:
-                    if kind == "sample":
-                        writer.write_device_sample(bar, value, t=live.time)
-                    else:
-                        writer.write_force(bar, live.time, value)
+        def make_handler(i: int) -> Callable[[str, object], None]:
+            def on_device(kind: str, value) -> None:
+                if kind == "force":
+                    peaks[i] = max(peaks[i], float(np.linalg.norm(value)))
+                    if i == 0 and publisher is not None:
+                        publisher.force_sent = value
+                if writer is not None:
+                    with lock:
+                        if kind == "sample":
+                            writer.write_device_sample(bars[i], value, t=live.time)
+                        else:
+                            writer.write_force(bars[i], live.time, value)
+
+            return on_device
+
+        handlers = [make_handler(i) for i in range(len(haptics))]
 
         def on_tick(tick: LiveTick, poses: dict) -> None:
             with lock:
                 _record_tick(writer, model, live, tick, poses)
 
-        world_step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
-                                       on_tick=on_tick if writer is not None else None, view=publisher)
-    proxy = _RecordingDevice(haptic, on_device)
-    loop = ServoLoop(proxy, mapping.wrap(world_step), rate_hz=scene.string_hz, **servo_options)
+        world_step = make_physics_step(live, bars if several else bar, duration, feedback=feedback,
+                                       force_scale=force_scale, on_tick=on_tick if writer is not None else None,
+                                       view=publisher)
+        device_step = DeviceMapping.wrap_many(mappings, world_step) if several else mapping.wrap(world_step)
+    proxies = [_RecordingDevice(h, handler, label=f"device {i} ({n}, bar {b!r})" if several else None)
+               for i, (h, handler, n, b) in enumerate(zip(haptics, handlers, device_names, bars))]
     try:
+        loop = ServoLoop(proxies if several else proxies[0], device_step, rate_hz=scene.string_hz, **servo_options)
+        if on_start is not None:
+            pid = {"shm": lambda: physics_link.pid, "process": lambda: physics.pid}.get(mode, os.getpid)()
+            on_start({"physics": mode, "physics_pid": pid})
         stats = loop.run(duration)
     finally:
-        if process:
+        for h in haptics:  # ServoLoop.run closed them (motors off); again in case it never started
+            h.close()
+        if mode == "shm":
+            steps = physics_link.close()
+        elif mode == "process":
             steps = physics.close()
         else:
             if writer is not None:
                 writer.close()
             steps = {"string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
                      "simulated_seconds": round(live.time, 4)}
-    summary = {"device": device, "bar": bar, "physics": "own process" if process else "servo worker thread",
-               **steps, "peak_force_sent_N": round(peak["force"], 4), "max_force_N": haptic.spec.max_force}
+    names = {"thread": "servo worker thread", "process": "own process", "shm": "own process, shared memory"}
+    peak = [round(p, 4) for p in peaks]
+    limit = [h.spec.max_force for h in haptics]
+    summary = {"device": device_names if several else device_names[0], "bar": bars if several else bar,
+               "physics": names[mode], "physics_mode": mode, **steps,
+               "peak_force_sent_N": peak if several else peak[0], "max_force_N": limit if several else limit[0]}
+    if several:
+        summary["workspace_scale"] = [float(s) for s in scales]
     if view is not None:
         summary["view_snapshots"] = view.buffer.published
-    if proxy.latencies:
-        latency = np.array(proxy.latencies) * 1e6
+    latencies = [x for p in proxies for x in p.latencies]
+    if latencies:
+        latency = np.array(latencies) * 1e6
         summary["device_to_force_us"] = {"p50": round(float(np.median(latency)), 1),
                                          "p99": round(float(np.percentile(latency, 99)), 1),
                                          "max": round(float(latency.max()), 1)}

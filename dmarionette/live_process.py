@@ -1,4 +1,8 @@
-"""The live marionette in its own process (``dmarionette live --own-process``).
+"""The live marionette in its own process: through a pipe (``--physics process``) or shared memory (``--physics shm``).
+
+Shared memory: :class:`LivePhysicsFactory` builds the marionette in the child that
+:class:`dmarionette.hw.shm_link.SharedMemoryPhysics` spawns; the rest of this module is the
+pipe version.
 
 In one process the physics (Warp launches, numpy) and the servo thread's deadline spin
 compete for Python's interpreter lock, and the physics misses deadlines. Here the physics
@@ -9,7 +13,8 @@ answer, which releases the lock while the child computes.
 Measured on the 2-core development VM: a pipe round trip alone costs ~160 µs (p50; process
 wake-ups are expensive there), so with ~100 µs of physics this mode kept *fewer* deadlines
 than the worker thread (926-1112 vs 1408-1969 string steps in 2 s over four runs each) and
-is not the default. A shared-memory handshake without wake-ups is the next step.
+is not the default. The shared-memory mode (``--physics shm``, :mod:`dmarionette.hw.shm_link`)
+has no wake-ups and is the default where real-time priority is allowed (docs/hardware.md).
 
 Messages (pickled tuples): parent -> child ``(position (3,), rotation (3, 3), t, last force
 sent (3,))`` or ``None`` to stop; child -> parent the world force ``(3,)``, or at the end a
@@ -18,12 +23,90 @@ summary dict; on start the child answers ``("ready", info)`` or ``("error", text
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
+import time
 from typing import Any
 
 import numpy as np
 
-__all__ = ["PhysicsProcess"]
+__all__ = ["LivePhysicsFactory", "PhysicsProcess"]
+
+
+@dataclasses.dataclass(frozen=True)
+class LivePhysicsFactory:
+    """Builds the live marionette in the shared-memory physics process (picklable: sent to the child).
+
+    The child works in the device frame: it maps each sample to the world with ``mapping``
+    (eq. 3), steps the marionette and returns the force through ``W``'s rotation, so the
+    servo process only reads, filters and writes. It also writes the recording, with the
+    device samples and the forces actually sent in the device frame (as the worker-thread
+    mode does).
+
+    Attributes:
+        scene_ref: A built-in scene name or a scene file path (the child loads it).
+        bar, duration, feedback, force_scale: As for :func:`dmarionette.live.make_physics_step`.
+        mapping: Device-to-world mapping of the driven bar.
+        optimization_level: Puppet kernel optimisation (compiled kernels are cached on disk).
+        record_path: Write the session (MCAP) from the child, or None.
+    """
+
+    scene_ref: str
+    bar: str
+    duration: float
+    mapping: Any
+    feedback: str = "reaction"
+    force_scale: float = 1.0
+    optimization_level: int = 2
+    record_path: str | None = None
+
+    def __call__(self) -> _LivePhysics:
+        return _LivePhysics(self)
+
+
+class _LivePhysics:
+    """The child's physics object for :class:`~dmarionette.hw.shm_link.SharedMemoryPhysics`."""
+
+    def __init__(self, f: LivePhysicsFactory) -> None:
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_WARNING
+        from .live import LiveMarionette, make_physics_step
+        from .marionette import MarionetteModel
+        from .scene import load_scene
+
+        scene = load_scene(f.scene_ref)
+        self.model = MarionetteModel(scene, optimization_level=f.optimization_level)
+        self.live = LiveMarionette(self.model)
+        self.bar = f.bar
+        self.writer = None
+        if f.record_path is not None:
+            from pathlib import Path
+
+            from .session import SessionWriter
+
+            self.writer = SessionWriter(f.record_path, scene, Path(scene.source).read_text())
+        world_step = make_physics_step(self.live, f.bar, f.duration, feedback=f.feedback, force_scale=f.force_scale,
+                                       on_tick=_recorder(self.writer, self.model, self.live, f.bar)
+                                       if self.writer else None)
+        self._step = f.mapping.wrap(world_step)
+        self.info = {"substeps": self.model.substeps, "string_dt": self.model.string_dt}
+
+    def force_sent(self, force: np.ndarray) -> None:
+        if self.writer is not None:
+            self.writer.write_force(self.bar, self.live.time, force)
+
+    def step(self, sample, t: float) -> np.ndarray:
+        if self.writer is not None:
+            self.writer.write_device_sample(self.bar, sample, t=self.live.time)
+        return self._step(sample, t)
+
+    def close(self) -> dict[str, Any]:
+        if self.writer is not None:
+            self.writer.close()
+        live = self.live
+        return {"string_steps": live.tick, "puppet_steps": live.tick // self.model.substeps,
+                "simulated_seconds": round(live.time, 4), "physics_cpu_seconds": round(time.process_time(), 3)}
 
 
 def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str, force_scale: float,
@@ -108,6 +191,7 @@ class PhysicsProcess:
             self._process.join(5.0)
             raise RuntimeError(f"the physics process could not start: {info}")
         self.info = info
+        self.pid = self._process.pid
         self.last_force: np.ndarray | None = None
         self.summary: dict[str, Any] = {}
 

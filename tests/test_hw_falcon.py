@@ -203,3 +203,35 @@ def test_real_pyusb_without_a_falcon_says_so():
     # The real libusb backend (or its absence): either way a clear error, never a crash.
     with pytest.raises(HapticDeviceError, match="no Novint Falcon found|no USB backend"):
         HapticDeviceFalcon().open()
+
+
+def test_unplug_mid_run_motors_off_and_a_replugged_falcon_starts_at_zero():
+    """Unplugged while pushing: a clear error, the loop stops, no command reaches the device after,
+    and a re-plugged Falcon gets zero motor commands (the stale force is not resumed)."""
+    from dmarionette.hw.servo import ServoLoop
+
+    vf = VirtualFalcon(firmware_running=True)
+    vf.position = np.array([0.02, 0.0, 0.11])
+    dev = HapticDeviceFalcon(backend=VirtualFalconBackend([vf]))
+    unplugged_at = []
+
+    def step(sample, t):
+        if t > 0.15 and not unplugged_at:
+            unplugged_at.append(len(vf.commands))
+            vf.unplugged = True
+        return -50.0 * sample.position  # pushes: ~1 N
+
+    loop = ServoLoop(dev, step, safety=SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0))
+    with pytest.raises(DeviceDisconnectedError, match="Falcon: USB I/O failed.*unplugged or powered off"):
+        loop.run(duration=3.0)
+    assert loop.statistics.stop_reason == "disconnected" and loop.statistics.duration < 1.0
+    assert not dev.is_open
+    assert any(np.any(motor != 0) for motor, _, _ in vf.commands[:unplugged_at[0]])  # it was pushing
+    sent = len(vf.commands)
+    time.sleep(0.05)
+    assert len(vf.commands) == sent  # nothing is sent to an unplugged device any more
+    vf.unplugged = False  # plugged back in: a new session starts from zero force
+    with HapticDeviceFalcon(backend=VirtualFalconBackend([vf]), home=False) as again:
+        time.sleep(0.03)
+        again.read()
+    assert len(vf.commands) > sent and all(np.all(motor == 0) for motor, _, _ in vf.commands[sent:])

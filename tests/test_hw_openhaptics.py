@@ -201,3 +201,26 @@ def test_servo_loop_through_openhaptics(fake, fake_lib_path):
         assert forces[:, 1].min() == pytest.approx(-3.3)
     np.testing.assert_array_equal(forces[-1], np.zeros(3))
     assert stats.stop_reason == "duration" and not dev.is_open
+
+
+def test_unplug_mid_run_stops_the_servo_loop_with_force_output_disabled(fake, fake_lib_path):
+    """A communication error (the device unplugged) while the loop pushes: a clear error, the loop
+    stops, and the library is left with force output disabled, the scheduler stopped."""
+    import threading
+
+    from dmarionette.hw.servo import ServoLoop
+
+    fake.set_transform(np.eye(3), [0.0, 20.0, 0.0])
+    dev = HapticDeviceOpenHaptics(fake_lib_path)
+    loop = ServoLoop(dev, lambda s, t: -100.0 * s.position,
+                     safety=SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0))
+    timer = threading.Timer(0.2, lambda: fake.lib.fake_hd_inject_error(HD.COMM_ERROR, 7))
+    timer.start()
+    with pytest.raises(DeviceDisconnectedError, match=r"0x0302 \(Communication error\)"):
+        loop.run(duration=3.0)
+    timer.join()
+    assert loop.statistics.stop_reason == "disconnected" and loop.statistics.duration < 1.0
+    _, forces = fake.force_log()
+    assert forces[:, 1].min() < -1.0  # it was pushing (-2 N) before
+    assert fake.state() == {"initialized": 0, "force_enabled": 0, "scheduler": 0, "callbacks": 0}
+    assert not dev.is_open

@@ -241,3 +241,25 @@ def test_replay_device_through_the_loop():
         np.testing.assert_allclose(s.position, positions[i])
     assert seen[-1][1].buttons == 1 and dev.finished
     assert_motors_off(dev)
+
+
+def test_refused_realtime_priority_is_said_in_the_tick_summary(monkeypatch):
+    """Where SCHED_FIFO is not allowed (no CAP_SYS_NICE), the loop runs anyway and its summary says so."""
+    import os
+    import warnings
+
+    def refuse(*args):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    dev = HapticDeviceSimulated()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stats = ServoLoop(dev, lambda s, t: [0.0, 0.0, 0.0], realtime_priority=10).run(duration=0.05)
+    assert not stats.realtime and stats.stop_reason == "duration"
+    assert "servo thread: SCHED_FIFO 10 refused ([Errno 1] Operation not permitted), normal scheduling" \
+        in stats.summary()
+    assert any("SCHED_FIFO" in str(w.message) for w in caught)
+    from dmarionette.live import fifo_allowed
+
+    assert not fifo_allowed()  # so `auto` picks the worker thread there

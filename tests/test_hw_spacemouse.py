@@ -176,3 +176,20 @@ def test_real_hidapi_module_is_the_right_one():
     # No SpaceMouse here: enumeration works and open reports it cleanly.
     with pytest.raises(HapticDeviceError, match="no 3Dconnexion device|HID enumeration failed"):
         HapticDeviceSpaceMouse().open()
+
+
+def test_unplugged_mid_run_stops_the_servo_loop():
+    import threading
+
+    from dmarionette.hw.servo import ServoLoop
+
+    t = FakeTransport([SPLIT_TRANSLATION] * 10)
+    dev = HapticDeviceSpaceMouse(t, refuse_force=True)
+    loop = ServoLoop(dev, lambda s, tt: [0.0, 0.0, 0.0], safety=SafetyConfig(ramp_time=0.0))
+    timer = threading.Timer(0.1, lambda: setattr(t, "unplugged", True))
+    timer.start()
+    with pytest.raises(DeviceDisconnectedError, match="unplugged"):
+        loop.run(duration=3.0)
+    timer.join()
+    assert loop.statistics.stop_reason == "disconnected" and loop.statistics.duration < 1.0
+    assert t.closed and not dev.is_open

@@ -41,7 +41,7 @@ def test_servo_loop_runs_the_marionette_within_the_device_limits(model):
     machine (it is measured, not asserted: see the README); what must hold is that the loop
     runs, stays finite, and never sends more than the device's limit.
     """
-    stats, summary = run_live(model, duration=0.5, force_scale=1.0)
+    stats, summary = run_live(model, duration=0.5, force_scale=1.0, physics="thread")
     assert stats.tick_count >= 400
     assert summary["string_steps"] > 0 and summary["physics"] == "servo worker thread"
     assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
@@ -102,3 +102,44 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
     assert main(["live", "--device", "replay", "--session", str(session), "--duration", "0.5",
                  "--fast-compile"]) == 0
     assert '"device": "replay"' in capsys.readouterr().out
+
+
+def test_servo_loop_with_the_physics_over_shared_memory(model):
+    """The same through the shared-memory child (spawned: it loads the scene and the cached kernels).
+    Its scheduling (SCHED_FIFO, CPUs) or the refusal is in the statistics' notes."""
+    stats, summary = run_live(model, duration=0.5, force_scale=1.0, physics="shm", optimization_level=0)
+    assert stats.tick_count >= 400
+    assert summary["string_steps"] > 0 and summary["physics"] == "own process, shared memory"
+    assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+    assert any("physics process" in n for n in stats.notes) and "shared memory" in stats.summary()
+
+
+def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
+    from dmarionette.live import fifo_allowed
+
+    stats, summary = run_live(model, duration=0.2, physics="auto", optimization_level=0)
+    assert summary["physics_mode"] == ("shm" if fifo_allowed() else "thread")
+    assert run_live(model, duration=0.1, physics="auto", realtime=False)[1]["physics_mode"] == "thread"
+    with pytest.raises(ValueError, match="--physics: got 'gpu'; expected auto or one of thread, process, shm"):
+        run_live(model, duration=0.1, physics="gpu")
+
+
+def test_tabulated_simulated_device_follows_the_trajectory():
+    """Linear interpolation of a 2 kHz table: exact at the table's times, within the interpolation
+    error bound h^2/8 max|x''| in between (h = 0.5 ms)."""
+    from dmarionette.live import SIMULATED_TABLE_HZ, make_device
+
+    scene = dm.load_scene("hanging")
+    trajectory = scene.bars[0].trajectory
+    offset = np.array(trajectory.positions[0])
+    exact = make_device("simulated", scene, "main", trajectory_offset=offset)
+    table = make_device("simulated", scene, "main", trajectory_offset=offset, duration=2.0)
+    fine = np.linspace(0.0, 2.0, 40001)
+    p = trajectory.pose(fine)[0]
+    accel = np.abs(np.diff(p, 2, axis=0)).max() / (fine[1] - fine[0]) ** 2
+    h = 1.0 / SIMULATED_TABLE_HZ
+    for t in np.concatenate([np.arange(0, 2.0, h)[::97], np.random.default_rng(0).uniform(0, 2.0, 50)]):
+        (pe, _), (pt, _) = exact._trajectory(t), table._trajectory(t)
+        on_grid = abs(t * SIMULATED_TABLE_HZ - round(t * SIMULATED_TABLE_HZ)) < 1e-9
+        tol = 1e-12 if on_grid else h * h / 8 * accel * 1.01 + 1e-12
+        assert np.abs(pt - pe).max() <= tol, (t, pt - pe)

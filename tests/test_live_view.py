@@ -263,9 +263,10 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     client.close()
 
 
-def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys):
+def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys, monkeypatch):
     """`live --view browser --view-port 0` serves on loopback and says where; `--snapshot` writes a
-    picture of the last frame without a browser; `--view` with `--own-process` is refused."""
+    picture of the last frame without a browser; with a view `--physics auto` is `thread`, and
+    `--own-process` or `--physics shm|process` are refused before the model is built."""
     from matplotlib.image import imread
 
     from dmarionette.cli import main
@@ -280,11 +281,23 @@ def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys):
     assert main(["live", "--duration", "0.3", "--fast-compile", "--snapshot", str(picture)]) == 0
     summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
     assert summary["snapshot"] == str(picture) and summary["view_snapshots"] >= 1
+    assert summary["physics_mode"] == "thread"  # auto, with a view
     image = imread(picture)[:, :, :3]
     assert image.shape[0] > 300 and image.shape[1] > 600
 
+    import dmarionette.marionette
+
+    def no_model(*_args, **_kwargs):
+        raise AssertionError("the model was built before the physics mode was checked")
+
+    monkeypatch.setattr(dmarionette.marionette, "MarionetteModel", no_model)
     assert main(["live", "--duration", "0.3", "--view", "browser", "--own-process"]) == 2
     assert "drop --own-process" in capsys.readouterr().err
+    for mode in ("shm", "process"):
+        assert main(["live", "--duration", "0.3", "--snapshot", str(picture), "--physics", mode]) == 2
+        err = capsys.readouterr().err
+        assert f"--physics {mode}: a live view" in err and "needs the physics in this process" in err
+    monkeypatch.undo()
     assert main(["live", "--duration", "0.3", "--snapshot", str(tmp_path / "x.jpg")]) == 2
     assert "expected a .png file name" in capsys.readouterr().err
 

@@ -28,10 +28,13 @@ from .openhaptics import HapticDeviceOpenHaptics as HapticDeviceOpenHaptics
 from .safety import ForceSafetyFilter as ForceSafetyFilter
 from .safety import SafetyConfig as SafetyConfig
 from .safety import clamp_force as clamp_force
+from .servo import PhysicsLink as PhysicsLink
 from .servo import PhysicsStep as PhysicsStep
 from .servo import ServoLoop as ServoLoop
 from .servo import ServoStatistics as ServoStatistics
 from .servo import run_servo_loop as run_servo_loop
+from .shm_link import PhysicsProcessError as PhysicsProcessError
+from .shm_link import SharedMemoryPhysics as SharedMemoryPhysics
 from .simulated import HapticDeviceReplay as HapticDeviceReplay
 from .simulated import HapticDeviceSimulated as HapticDeviceSimulated
 from .spacemouse import HapticDeviceSpaceMouse as HapticDeviceSpaceMouse
@@ -51,10 +54,13 @@ __all__ = [
     "HapticDeviceSpaceMouse",
     "HapticDeviceSpec",
     "HapticSample",
+    "PhysicsLink",
+    "PhysicsProcessError",
     "PhysicsStep",
     "SafetyConfig",
     "ServoLoop",
     "ServoStatistics",
+    "SharedMemoryPhysics",
     "clamp_force",
     "matrix_from_quat",
     "quat_from_matrix",

@@ -12,7 +12,7 @@ scale ``s`` and scalar ``k``, simply ``k_dev = s k``. The same holds for damping
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -163,6 +163,28 @@ class DeviceMapping:
 
         def step(sample: HapticSample, t: float) -> np.ndarray:
             return self.force_to_device(world_step(self.sample_in_world(sample), t))
+
+        return step
+
+    @staticmethod
+    def wrap_many(mappings: Sequence[DeviceMapping], world_step: Callable[[tuple, float], Any],
+                  ) -> Callable[[tuple, float], np.ndarray]:
+        """:meth:`wrap` for several devices at once, each through its own mapping.
+
+        Args:
+            mappings: one mapping per device, in the servo loop's device order.
+            world_step: ``step(samples_world (tuple), t) -> forces_world [N] (n, 3)``.
+
+        Returns:
+            ``step(samples_device, t) -> forces_device [N] (n, 3)``: sample ``i`` goes to the
+            world by ``S_i W_i``, force row ``i`` comes back by ``R_{W_i}^T``.
+        """
+        mappings = tuple(mappings)
+
+        def step(samples: tuple, t: float) -> np.ndarray:
+            world = tuple(m.sample_in_world(s) for m, s in zip(mappings, samples, strict=True))
+            forces = np.asarray(world_step(world, t), dtype=float).reshape(len(mappings), 3)
+            return np.stack([m.force_to_device(f) for m, f in zip(mappings, forces)])
 
         return step
 

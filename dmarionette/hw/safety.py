@@ -34,7 +34,7 @@ def clamp_force(force: Any, max_force: float) -> np.ndarray:
     f = np.asarray(force, dtype=float).reshape(3)
     if not np.all(np.isfinite(f)):
         return np.zeros(3)
-    n = math.sqrt(float(f @ f))
+    n = math.hypot(*f)  # no overflow for huge finite forces (f @ f would be inf)
     if n > max_force:
         return f * (max_force / n) if n > 0.0 else np.zeros(3)
     return f.copy()
@@ -115,7 +115,7 @@ class ForceSafetyFilter:
             self.nonfinite_count += 1
             f = np.zeros(3)
         f = f * self.ramp_factor(t)
-        n = math.sqrt(float(f @ f))
+        n = math.hypot(*f)  # no overflow for huge finite forces (f @ f would be inf)
         limit = self.max_force
         tau = self.config.continuous_time_constant
         if tau > 0.0:
