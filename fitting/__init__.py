@@ -4,3 +4,18 @@ This package may import ``dmarionette``; ``dmarionette`` never imports it. Its c
 with the differentiable-rollouts issue; the simulator's Warp-tape gradients it will wrap are
 tested in tests/test_string_gradients.py.
 """
+
+# Keyframe authoring (docs/authoring.md).
+from .author import AuthoringProblem as AuthoringProblem
+from .author import author as author
+from .author import build_problem as build_problem
+from .bar_spline import BarParameterisation as BarParameterisation
+from .keyframes import AuthorSpec as AuthorSpec
+from .keyframes import KeyframeError as KeyframeError
+from .keyframes import keyframes_from_table as keyframes_from_table
+from .keyframes import load_keyframes as load_keyframes
+from .objective import AuthoringObjective as AuthoringObjective
+from .solve import solve as solve
+
+__all__ = ["AuthorSpec", "AuthoringObjective", "AuthoringProblem", "BarParameterisation", "KeyframeError",
+           "author", "build_problem", "keyframes_from_table", "load_keyframes", "solve"]
