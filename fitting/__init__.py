@@ -1,8 +1,8 @@
 """fitting: optimisation on top of dmarionette (JAX + optimistix): keyframe authoring, calibration.
 
-This package may import ``dmarionette``; ``dmarionette`` never imports it. Its contents arrive
-with the differentiable-rollouts issue; the simulator's Warp-tape gradients it will wrap are
-tested in tests/test_string_gradients.py.
+This package may import ``dmarionette``; ``dmarionette`` never imports it. ``marionette_rollout``
+exposes a checkpointed marionette rollout (``dmarionette.marionette_grad``) to JAX with a
+custom VJP (docs/gradients.md).
 """
 
 # Keyframe authoring (docs/authoring.md).
@@ -15,7 +15,8 @@ from .keyframes import KeyframeError as KeyframeError
 from .keyframes import keyframes_from_table as keyframes_from_table
 from .keyframes import load_keyframes as load_keyframes
 from .objective import AuthoringObjective as AuthoringObjective
+from .rollout import marionette_rollout as marionette_rollout
 from .solve import solve as solve
 
 __all__ = ["AuthorSpec", "AuthoringObjective", "AuthoringProblem", "BarParameterisation", "KeyframeError",
-           "author", "build_problem", "keyframes_from_table", "load_keyframes", "solve"]
+           "author", "build_problem", "keyframes_from_table", "load_keyframes", "marionette_rollout", "solve"]

@@ -38,29 +38,22 @@ from .solve import SolveResult, solve
 __all__ = ["AuthoringProblem", "author", "authored_scene_table", "build_problem", "write_scene"]
 
 
-class _CountingEngine:
-    """The gradient engine, counting its forward and backward passes (and their time)."""
+def _count_passes(engine) -> dict:
+    """Counts the engine's forward and backward passes (and their time), in place."""
+    counts = {"forward": 0, "backward": 0, "forward_s": 0.0, "backward_s": 0.0}
 
-    def __init__(self, engine):
-        self._engine = engine
-        self.counts = {"forward": 0, "backward": 0, "forward_s": 0.0, "backward_s": 0.0}
+    def counted(name, method):
+        def call(*args, **kwargs):
+            start = time.perf_counter()
+            result = method(*args, **kwargs)
+            counts[name] += 1
+            counts[f"{name}_s"] += time.perf_counter() - start
+            return result
+        return call
 
-    def __getattr__(self, name):
-        return getattr(self._engine, name)
-
-    def forward(self, inputs):
-        start = time.perf_counter()
-        out = self._engine.forward(inputs)
-        self.counts["forward"] += 1
-        self.counts["forward_s"] += time.perf_counter() - start
-        return out
-
-    def backward(self, cotangents):
-        start = time.perf_counter()
-        out = self._engine.backward(cotangents)
-        self.counts["backward"] += 1
-        self.counts["backward_s"] += time.perf_counter() - start
-        return out
+    engine.forward = counted("forward", engine.forward)
+    engine.backward = counted("backward", engine.backward)
+    return counts
 
 
 @dataclasses.dataclass
@@ -69,13 +62,14 @@ class AuthoringProblem:
 
     spec: AuthorSpec
     model: Any
-    engine: _CountingEngine
+    engine: Any
+    counts: dict
     param: BarParameterisation
     objective: AuthoringObjective
     puppet_steps: int
 
     def counter(self) -> dict:
-        return {k: v for k, v in self.engine.counts.items() if k in ("forward", "backward")}
+        return {k: v for k, v in self.counts.items() if k in ("forward", "backward")}
 
 
 def build_problem(spec: AuthorSpec, *, optimization_level: int = 2,
@@ -90,13 +84,14 @@ def build_problem(spec: AuthorSpec, *, optimization_level: int = 2,
         raise RuntimeError(f"authoring needs the gradient engine and JAX: {error}") from None
     model = MarionetteModel(spec.scene, optimization_level=optimization_level, requires_grad=True)
     puppet_steps = max(1, int(round(spec.duration / model.puppet_dt)))
-    engine = _CountingEngine(MarionetteGradient(model, puppet_steps, checkpoint_steps=checkpoint_steps))
+    engine = MarionetteGradient(model, puppet_steps, checkpoint_steps=checkpoint_steps)
+    counts = _count_passes(engine)
     param = BarParameterisation(spec, model, puppet_steps)
     scene_inputs = engine.scene_inputs()
     constants = {f.name: getattr(scene_inputs, f.name) for f in dataclasses.fields(scene_inputs)
                  if f.name not in ("top_q", "bar_q", "bar_qd")}
     objective = AuthoringObjective(spec, model, param, marionette_rollout(engine), constants)
-    return AuthoringProblem(spec=spec, model=model, engine=engine, param=param, objective=objective,
+    return AuthoringProblem(spec=spec, model=model, engine=engine, counts=counts, param=param, objective=objective,
                             puppet_steps=puppet_steps)
 
 
@@ -286,7 +281,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
         "loss_after": float(loss_after), "terms_before": result.history[0]["terms"],
         "terms_after": {k: float(v) for k, v in terms_after.items()},
         "keyframes_before": objective.keyframe_report(before), "keyframes_after": objective.keyframe_report(after),
-        "replay_gap": gap, "rollouts": dict(problem.engine.counts),
+        "replay_gap": gap, "rollouts": dict(problem.counts),
         "seconds": {"build": built - started, "solve": result.seconds, "total": time.perf_counter() - started},
         "knots": {name: {"t": tr.times.tolist(), "position": tr.positions.tolist(), "rotation": tr.rotations.tolist()}
                   for name, tr in param.trajectories(result.y).items()},
