@@ -24,7 +24,9 @@ import numpy as np
 DURATION = 1.5
 KEYFRAME_TIMES = (0.495, 0.99, 1.485)
 # The reference bar motion: offsets of the knots after t = 0 (hand: x, y, z [m]; main: y [m]).
-REFERENCE = {"hand": [[0.03, 0.05, 0.0], [-0.02, 0.08, 0.02], [0.0, 0.04, 0.0]], "main": [[0.02], [-0.01]]}
+# Inside the default device workspace (a PHANToM Omni's, +-8 x +-6 x +-3.5 cm around each
+# bar's start), so that the targets are reachable without leaving it.
+REFERENCE = {"hand": [[0.03, 0.04, 0.0], [-0.02, 0.05, 0.02], [0.0, 0.03, 0.0]], "main": [[0.02], [-0.01]]}
 TARGETS = [  # (time, points, bodies, joints) named at each keyframe
     (KEYFRAME_TIMES[0], ["hand_left", "hand_right"], [], []),
     (KEYFRAME_TIMES[1], ["hand_left"], [], ["elbow_left"]),
@@ -41,7 +43,7 @@ def keyframes_table(targets: list[dict] | None = None) -> dict:
         "bars": {"hand": {"knots": [0.0, 0.5, 1.0, 1.5], "free": ["x", "y", "z"]},
                  "main": {"knots": [0.0, 0.75, 1.5], "free": ["y"]}},
         "weights": {"smoothness": 0.01},
-        "solver": {"max_steps": 40},
+        "solver": {"max_steps": 60},
         "keyframes": targets or [{"t": t, "points": {n: [0.0, 0.5, 0.0] for n in p},
                                   "bodies": {n: [0.0, 0.5, 0.0] for n in b}, "joints": {n: [0.0] for n in j}}
                                  for t, p, b, j in TARGETS],
