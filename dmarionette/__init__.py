@@ -14,6 +14,9 @@ The public API; everything else is implementation::
 
 from .control_bar import BarTrajectory as BarTrajectory
 from .control_bar import ControlBar as ControlBar
+from .export_bvh import export_bvh as export_bvh
+from .export_common import read_marionette_trajectory as read_marionette_trajectory
+from .export_gltf import export_gltf as export_gltf
 from .marionette import MarionetteControl as MarionetteControl
 from .marionette import MarionetteModel as MarionetteModel
 from .marionette import MarionetteState as MarionetteState
@@ -58,7 +61,10 @@ __all__ = [
     "StringState",
     "StringTrajectory",
     "builtin_scenes",
+    "export_bvh",
+    "export_gltf",
     "load_scene",
+    "read_marionette_trajectory",
     "read_trajectory",
     "simulate_marionette",
     "simulate_strings",

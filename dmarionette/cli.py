@@ -4,7 +4,8 @@
 - ``dmarionette demo``: the same for the default scene (``hanging``);
 - ``dmarionette scenes``: list the built-in scenes;
 - ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop;
-- ``dmarionette bench accuracy``: what accuracy costs in time.
+- ``dmarionette bench accuracy``: what accuracy costs in time;
+- ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md).
 
 ``--help`` on every command.
 """
@@ -103,7 +104,46 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=Path("out") / "bench", help="output folder")
     bench.add_argument("--fast-compile", action="store_true",
                        help="puppet kernels without optimisation (timings then mean less)")
+    export = sub.add_parser("export", help="export the puppet motion of a trajectory to BVH and glTF",
+                            description="Write the puppet motion of a marionette trajectory file (from 'dmarionette "
+                                        "simulate') as OUT/motion.bvh (joint tree, metres, degrees) and/or OUT/motion.glb "
+                                        "(binary glTF 2.0: body meshes and an animation), for Blender "
+                                        "(docs/export.md). Prints the written files as JSON.")
+    export.add_argument("trajectory", type=Path, help="the trajectory.npz file")
+    export.add_argument("--format", choices=["bvh", "gltf", "all"], default="all",
+                        help="what to write (default: all)")
+    export.add_argument("--out", type=Path, default=None,
+                        help="output folder (default: the trajectory file's folder)")
+    export.add_argument("--fps", type=float, default=None,
+                        help="BVH frame rate (default: one BVH frame per trajectory frame)")
+    export.add_argument("--scene", default=None,
+                        help="the scene (name or TOML file) whose puppet the trajectory was simulated with "
+                             "(default: the scene the file names, else the default marionette)")
     return parser
+
+
+def _run_export(args: argparse.Namespace) -> int:
+    from .export_bvh import export_bvh
+    from .export_common import read_marionette_trajectory
+    from .export_gltf import export_gltf
+
+    trajectory = read_marionette_trajectory(args.trajectory)
+    trajectory.source = str(args.trajectory)
+    if args.scene is not None:
+        from .scene import load_scene
+
+        scene = load_scene(args.scene)
+        if scene.puppet is None:
+            raise ValueError(f"{scene.source}: --scene: this scene has no [puppet]; expected the marionette's scene")
+        trajectory.puppet = scene.puppet
+    out = args.out if args.out is not None else args.trajectory.parent
+    files = {}
+    if args.format in ("bvh", "all"):
+        files["bvh"] = str(export_bvh(trajectory, out / "motion.bvh", fps=args.fps))
+    if args.format in ("gltf", "all"):
+        files["gltf"] = str(export_gltf(trajectory, out / "motion.glb"))
+    print(json.dumps(files, indent=2))
+    return 0
 
 
 def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
@@ -244,6 +284,8 @@ def main(argv: list[str] | None = None) -> int:
             print(files["table"].read_text())
             print(json.dumps({k: str(v) for k, v in files.items()}))
             return 0
+        if args.command == "export":
+            return _run_export(args)
         if args.command == "demo":
             from .scene import DEFAULT_SCENE
 
