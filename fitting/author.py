@@ -9,7 +9,7 @@ rollout and the objective; :func:`author` solves it and writes everything
   initial knots;
 - ``trajectory.npz``: the replay of the authored scene by the simulator (what
   ``simulate`` writes), and its gap to the optimiser's own rollout;
-- ``motion.bvh`` and ``motion.gltf``: the puppet motion (``dmarionette.export_bvh`` /
+- ``motion.bvh`` and ``motion.glb`` (binary glTF): the puppet motion (``dmarionette.export_bvh`` /
   ``export_gltf``);
 - ``animation_before.gif`` / ``animation_after.gif``; ``convergence.png``;
 - ``summary.json``: per-keyframe errors before and after, the solver's history, timings.
@@ -208,7 +208,7 @@ def _export(trajectory, scene, out: Path) -> dict:
     except ImportError:
         files["gltf"] = "not written: dmarionette.export_gltf is not available"
     else:
-        files["gltf"] = str(export_gltf(trajectory, out / "motion.gltf", puppet=scene.puppet))
+        files["gltf"] = str(export_gltf(trajectory, out / "motion.glb"))
     return files
 
 
