@@ -281,6 +281,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
         "loss_after": float(loss_after), "terms_before": result.history[0]["terms"],
         "terms_after": {k: float(v) for k, v in terms_after.items()},
         "keyframes_before": objective.keyframe_report(before), "keyframes_after": objective.keyframe_report(after),
+        "limits_before": objective.limits_report(y0, before), "limits_after": objective.limits_report(result.y, after),
         "replay_gap": gap, "rollouts": dict(problem.counts),
         "seconds": {"build": built - started, "solve": result.seconds, "total": time.perf_counter() - started},
         "knots": {name: {"t": tr.times.tolist(), "position": tr.positions.tolist(), "rotation": tr.rotations.tolist()}

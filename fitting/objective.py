@@ -160,6 +160,23 @@ class AuthoringObjective:
         return jnp.concatenate([r.ravel() for r in self.residuals(y).values()])
 
     # ----------------------------------------------------------------- reports
+    def limits_report(self, y, outputs: dict) -> dict:
+        """Per authored bar: the largest device force ``force_scale |F|`` [N] and the largest
+        distance outside the workspace box [m] over the motion (NumPy)."""
+        report = {}
+        paths = self.param.bar_paths(y)
+        for a in self.param.authored:
+            force = np.asarray(outputs[self.feedback_output])[:, a["index"]]
+            entry = {"max_device_force_N": float(self.spec.force_scale * np.linalg.norm(force, axis=-1).max())}
+            if self.limits is not None:
+                lo, hi = self.boxes[a["name"]]
+                position = np.asarray(paths[a["name"]][0])
+                outside = np.maximum(position - hi, 0.0) + np.maximum(lo - position, 0.0)
+                entry["max_outside_workspace_m"] = float(outside.max())
+                entry["max_force_N"] = self.limits["max_force"]
+            report[a["name"]] = entry
+        return report
+
     def keyframe_report(self, outputs: dict) -> list[dict]:
         """Per keyframe: its time, the step time used, and errors per target (NumPy)."""
         key = {k: np.asarray(v) for k, v in self.keyframe_residuals(outputs).items()}
