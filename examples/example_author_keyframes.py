@@ -46,7 +46,7 @@ def keyframes_table(targets: list[dict] | None = None) -> dict:
         "bars": {"hand": {"knots": [0.0, 0.5, 1.0, 1.5], "free": ["x", "y", "z"]},
                  "main": {"knots": [0.0, 0.75, 1.5], "free": ["y"]}},
         "weights": {"smoothness": 0.01},
-        "solver": {"max_steps": 60},
+        "solver": {"max_steps": 40},
         "keyframes": targets or [{"t": t, "points": {n: [0.0, 0.5, 0.0] for n in p},
                                   "bodies": {n: [0.0, 0.5, 0.0] for n in b}, "joints": {n: [0.0] for n in j}}
                                  for t, p, b, j in TARGETS],
@@ -82,13 +82,19 @@ def objective_joint_offsets(problem) -> list[int]:
     return offsets
 
 
-def main(out: str | Path = "out/author_example", *, animation: bool = False, progress: bool = True) -> dict:
-    """Records the targets, writes ``OUT/keyframes.toml``, authors it; returns the summary."""
+def main(out: str | Path | None = None, *, animation: bool = False, progress: bool = True) -> dict:
+    """Records the targets, writes ``OUT/keyframes.toml``, authors it; returns the summary.
+
+    ``out`` defaults to a new temporary folder (the test's case); the script's default is
+    ``out/author_example``.
+    """
+    import tempfile
+
     import tomli_w
 
     from fitting import author, build_problem, keyframes_from_table, load_keyframes
 
-    out = Path(out)
+    out = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix="author_example_"))
     out.mkdir(parents=True, exist_ok=True)
     placeholder = keyframes_from_table(keyframes_table(), str(out / "keyframes.toml"))
     targets = reference_targets(build_problem(placeholder))
