@@ -100,8 +100,8 @@ def authored_scene_table(spec: AuthorSpec, trajectories: dict[str, BarTrajectory
                          description: str) -> dict:
     """The keyframes file's scene table with the authored bars' knots as their keyframes.
 
-    Relative file references (``[puppet] include``, ``trajectory_file``) are made absolute so
-    the table can be written anywhere.
+    Relative file references (a user's ``[puppet] include``, ``trajectory_file``) are made
+    absolute so the table can be written anywhere; the built-in puppet keeps its name.
     """
     table = copy.deepcopy(dict(spec.scene_table))
     folder = Path(spec.scene.source).parent
@@ -112,7 +112,9 @@ def authored_scene_table(spec: AuthorSpec, trajectories: dict[str, BarTrajectory
     puppet = table.get("puppet", {})
     if isinstance(puppet, dict) and "include" in puppet:
         path = folder / puppet["include"]
-        puppet["include"] = str((path if path.is_file() else SCENE_DIR / puppet["include"]).resolve())
+        if path.is_file() and path.resolve() != (SCENE_DIR / puppet["include"]).resolve():
+            puppet["include"] = str(path.resolve())  # a puppet file of the user's, next to the scene
+        # else: the built-in puppet file, which a scene anywhere finds by its name
     for bar_name, bar in table.get("bars", {}).items():
         if "trajectory_file" in bar and not Path(bar["trajectory_file"]).is_absolute():
             bar["trajectory_file"] = str((folder / bar["trajectory_file"]).resolve())
