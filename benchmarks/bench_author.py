@@ -18,7 +18,7 @@ with BFGS for the same problem, so the two costs can be compared.
 Usage::
 
     .venv/bin/python benchmarks/bench_author.py [--particles 50] [--max-steps 40] [--repeats 1]
-                                                [--compare-lm] [--out out/bench_author]
+                                                [--puppet-hz HZ] [--compare-lm] [--out out/bench_author]
 """
 
 from __future__ import annotations
@@ -46,10 +46,13 @@ def _rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def keyframes_table(particles: int, max_steps: int, device: str = "omni", targets=None) -> dict:
+def keyframes_table(particles: int, max_steps: int, device: str = "omni", targets=None,
+                    puppet_hz: float | None = None) -> dict:
+    head = {"scene": "hanging", "duration": 2.0, "particle_count": particles, "device": device, "force_scale": 0.2}
+    if puppet_hz is not None:
+        head["puppet_hz"] = puppet_hz
     return {
-        "author": {"scene": "hanging", "duration": 2.0, "particle_count": particles, "device": device,
-                   "force_scale": 0.2},
+        "author": head,
         "bars": {"hand": {"knots": [0.0, 0.5, 1.0, 1.5, 2.0], "free": ["x", "y", "z"]},
                  "main": {"knots": [0.0, 1.0, 2.0], "free": ["y"]}},
         "weights": {"smoothness": 0.01},
@@ -85,12 +88,14 @@ def run_once(args, out: Path) -> dict:
 
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    placeholder = keyframes_from_table(keyframes_table(args.particles, args.max_steps), str(out / "keyframes.toml"))
+    placeholder = keyframes_from_table(keyframes_table(args.particles, args.max_steps, puppet_hz=args.puppet_hz),
+                                       str(out / "keyframes.toml"))
     reference = build_problem(placeholder)
     targets = record_targets(reference)
     reference_s = time.perf_counter() - start
     path = out / "keyframes.toml"
-    path.write_text(tomli_w.dumps(keyframes_table(args.particles, args.max_steps, targets=targets)))
+    path.write_text(tomli_w.dumps(keyframes_table(args.particles, args.max_steps, targets=targets,
+                                                   puppet_hz=args.puppet_hz)))
     summary = author(load_keyframes(path), out, progress=not args.quiet, animation=False)
     result = {
         "reference_s": reference_s, "author_s": summary["seconds"],
@@ -113,7 +118,7 @@ def compare_lm(args, targets) -> dict:
     """BFGS and LM on the problem without the per-step device terms (short residual vector)."""
     from fitting import build_problem, keyframes_from_table, solve
 
-    table = keyframes_table(args.particles, args.max_steps, device="none", targets=targets)
+    table = keyframes_table(args.particles, args.max_steps, device="none", targets=targets, puppet_hz=args.puppet_hz)
     problem = build_problem(keyframes_from_table(table, "bench_author (device = none)"))
     rows = int(problem.objective.residual_vector(problem.param.initial()).size)
     report = {"residuals": rows}
@@ -133,6 +138,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, default=50, help="particles per string (default: the scene's 50)")
     parser.add_argument("--max-steps", type=int, default=40)
+    parser.add_argument("--puppet-hz", type=float, default=None,
+                        help="puppet rate (default: the scene's 30 Hz; the string rate 1000 couples them fully)")
     parser.add_argument("--lm-steps", type=int, default=8, help="Levenberg-Marquardt steps for --compare-lm")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--compare-lm", action="store_true")
@@ -148,7 +155,8 @@ def main() -> None:
     baseline = _rss_mib()
     runs = [run_once(args, args.out / f"run{i}") for i in range(args.repeats)]
     totals = [r["author_s"]["total"] + r["reference_s"] for r in runs]
-    print(json.dumps({"particles": args.particles, "max_steps": args.max_steps, "repeats": args.repeats,
+    print(json.dumps({"particles": args.particles, "max_steps": args.max_steps, "puppet_hz": args.puppet_hz,
+                      "repeats": args.repeats,
                       "cpu_affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
                       "load_average": os.getloadavg(), "median_total_s": statistics.median(totals),
                       "median_author_s": statistics.median(r["author_s"]["total"] for r in runs),

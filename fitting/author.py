@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -220,7 +221,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
     """Solves ``spec`` and writes its outputs to ``out``; returns the summary (also ``summary.json``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    say = (lambda line: print(line, flush=True)) if progress else (lambda line: None)
+    say = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else (lambda line: None)
     started = time.perf_counter()
     say(f"building the marionette for {spec.scene.name} (the first run compiles the kernels)")
     problem = build_problem(spec, optimization_level=optimization_level, checkpoint_steps=checkpoint_steps)

@@ -33,7 +33,8 @@ from dmarionette.scene_fields import (
     read_vec3,
 )
 
-__all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "Weights", "keyframes_from_table", "load_keyframes",
+__all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "Weights", "keyframes_from_table",
+           "load_keyframes",
            "BAR_DOFS", "DEVICES"]
 
 BAR_DOFS = ("x", "y", "z", "rx", "ry", "rz")
@@ -258,7 +259,8 @@ def _read_bars(table: Mapping[str, Any], where: str, scene: Scene, duration: flo
         if knots[-1] > duration:
             raise KeyframeError(w, "knots", knots, f"knot times within the duration [0, {duration}] s")
         free = entry.get("free", ["x", "y", "z"])
-        if not isinstance(free, list) or not free or any(f not in BAR_DOFS for f in free) or len(set(free)) != len(free):
+        ok = isinstance(free, list) and free and all(f in BAR_DOFS for f in free) and len(set(free)) == len(free)
+        if not ok:
             raise KeyframeError(w, "free", free, f"a non-empty list of distinct coordinates from {list(BAR_DOFS)}")
         bars.append(BarFreedom(name=name, knots=tuple(knots), free=tuple(d for d in BAR_DOFS if d in free)))
     return tuple(bars)

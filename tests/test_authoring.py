@@ -126,7 +126,8 @@ def test_keyframes_file_not_toml(tmp_path):
 
 
 def test_dmarionette_never_imports_fitting():
-    code = "import sys, dmarionette, dmarionette.cli; sys.exit(1 if 'fitting' in sys.modules or 'jax' in sys.modules else 0)"
+    code = ("import sys, dmarionette, dmarionette.cli; "
+            "sys.exit(1 if 'fitting' in sys.modules or 'jax' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code], cwd=ROOT).returncode == 0
 
 
@@ -158,10 +159,11 @@ def authored(tmp_path_factory):
                problem.objective.outputs({k: jnp.array(v) for k, v in REFERENCE.items()}).items()}
     steps = problem.objective.steps
     puppet = problem.model.puppet
-    table["keyframes"][0]["points"] = {"hand_left": outputs["point_pos"][steps[0], puppet.point_names.index("hand_left")].tolist()}
+    hand, torso = puppet.point_names.index("hand_left"), puppet.body_names.index("torso")
+    table["keyframes"][0]["points"] = {"hand_left": outputs["point_pos"][steps[0], hand].tolist()}
     elbow = int(problem.objective.cols["joint"][0])  # the left elbow's coordinate in joint_q
     table["keyframes"][1]["joints"] = {"elbow_left": [float(np.degrees(outputs["joint_q"][steps[1], elbow]))]}
-    table["keyframes"][2]["bodies"] = {"torso": outputs["body_pos"][steps[2], puppet.body_names.index("torso")].tolist()}
+    table["keyframes"][2]["bodies"] = {"torso": outputs["body_pos"][steps[2], torso].tolist()}
     path = folder / "kf.toml"
     path.write_text(tomli_w.dumps(table))
     out = folder / "out"
