@@ -140,7 +140,7 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=40)
     parser.add_argument("--puppet-hz", type=float, default=None,
                         help="puppet rate (default: the scene's 30 Hz; the string rate 1000 couples them fully)")
-    parser.add_argument("--lm-steps", type=int, default=8, help="Levenberg-Marquardt steps for --compare-lm")
+    parser.add_argument("--lm-steps", type=int, default=4, help="Levenberg-Marquardt steps for --compare-lm")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--compare-lm", action="store_true")
     parser.add_argument("--quiet", action="store_true")

@@ -208,12 +208,13 @@ class BarParameterisation:
                 for a in self.authored}
 
     def acceleration_residuals(self, y: dict[str, jnp.ndarray]) -> jnp.ndarray:
-        """``sqrt``-weighted accelerations of the authored bars: positions [m/s^2] and angles
-        [rad/s^2]; ``sum(r^2) = \\int (|a|^2 + |alpha|^2) dt`` (exact for the Hermite spline)."""
+        """``sqrt``-weighted accelerations of the authored bars' free coordinates: positions
+        [m/s^2] and angles [rad/s^2]; ``sum(r^2) = \\int (|a|^2 + |alpha|^2) dt`` (exact for the
+        Hermite spline). The held coordinates' accelerations are constants, left out."""
         values = self.knot_values(y)
         parts = []
         for a in self.authored:
             v = values[a["name"]]
-            v = jnp.concatenate([v[:, :3], jnp.radians(v[:, 3:])], axis=1)
+            v = jnp.concatenate([v[:, :3], jnp.radians(v[:, 3:])], axis=1)[:, a["free"]]
             parts.append(hermite_acceleration_residuals(a["knots"], v).ravel())
         return jnp.concatenate(parts)
