@@ -28,6 +28,11 @@ import numpy as np
 import optimistix as optx
 
 jax.config.update("jax_enable_x64", True)
+# With asynchronous dispatch on the CPU, a process pinned to one core hung after the jitted
+# solve, at the next eager call of the rollout's pure_callback (the main thread waiting on
+# XLA's in-flight semaphore, every worker idle; cf. jax-ml/jax#25861). Dispatching inline
+# avoids it; it must be set before JAX creates its CPU client.
+jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 __all__ = ["SolveResult", "solve"]
 
