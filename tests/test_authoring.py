@@ -142,6 +142,18 @@ def test_bad_keyframes_file_refused(tmp_path, changes, key, words):
         assert word in message, message
 
 
+def test_author_command_refuses_bad_file(tmp_path, capsys):
+    """The command prints the loader's message and exits 2, with no traceback."""
+    from dmarionette import cli
+
+    path = tmp_path / "bad.toml"
+    path.write_text(tomli_w.dumps(_table(**{"keyframes.1.t": 0.2})))
+    assert cli.main(["author", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and str(path) in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
 def test_keyframes_file_not_toml(tmp_path):
     path = tmp_path / "broken.toml"
     path.write_text("[author\nscene = 1\n")
