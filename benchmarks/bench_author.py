@@ -11,8 +11,7 @@ reference rollout, the solve with its JIT compilation, the simulator's replay an
 exports), rollout passes and their time, the keyframe errors, and the peak resident memory
 of the process (``ru_maxrss``; the baseline after importing JAX and Warp is given too).
 The process, with all its threads (Warp, XLA), is pinned to one CPU core
-(``os.sched_setaffinity``). (Limiting XLA to one thread with ``XLA_FLAGS`` as well made the
-eager ``pure_callback`` after the solve hang on this machine, so it is not done.)
+(``os.sched_setaffinity``).
 With ``--compare-lm`` the same problem without the per-step device terms is also solved
 with Levenberg-Marquardt (reverse-mode Jacobian: one backward pass per residual), and
 with BFGS for the same problem, so the two costs can be compared.
@@ -150,6 +149,8 @@ def main() -> None:
     import jax  # noqa: F401
     import warp as wp
 
+    wp.config.log_level = wp.LOG_WARNING  # stdout carries the JSON
+    wp.config.quiet = True
     wp.init()
     baseline = _rss_mib()
     runs = [run_once(args, args.out / f"run{i}") for i in range(args.repeats)]
