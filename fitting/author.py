@@ -174,11 +174,14 @@ def _convergence_plot(path: Path, history: list[dict], title: str) -> Path:
 
     steps = [h["step"] for h in history]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
-    a.semilogy(steps, [h["loss"] for h in history], "k-", label="loss")
+    losses = [h["loss"] for h in history]
+    a.semilogy(steps, losses, "k-", label="loss")
+    bottom = min(v for v in losses if v > 0) * 1e-3  # terms far below the loss are not shown
     for term in history[0]["terms"]:
-        values = [max(h["terms"][term], 1e-300) for h in history]
-        if max(values) > 1e-300:
+        values = [h["terms"][term] if h["terms"][term] > bottom else np.nan for h in history]
+        if not all(np.isnan(values)):
             a.semilogy(steps, values, "--", label=term)
+    a.set_ylim(bottom=bottom)
     a.set_xlabel("solver step")
     a.set_ylabel("loss (0.5 sum r^2)")
     a.legend(fontsize=8)
