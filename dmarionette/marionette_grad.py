@@ -244,7 +244,7 @@ class MarionetteGradient:
         }
         self._chunks = {}
         self._capture = bool(capture)
-        self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), capture=capture)
+        self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), self.checkpoint_steps, capture=capture)
         self._inputs: RolloutInputs | None = None
         self._checkpoints: list[Checkpoint] = []
 
@@ -383,6 +383,15 @@ class MarionetteGradient:
         grads["tie_damping"] = kd_grad
         grads["string_stiffness"] = s.string_stiffness.grad.numpy() * self._segments_per_string
         return RolloutInputs(**grads)
+
+    def memory(self) -> dict[str, int]:
+        """Bytes the engine holds for gradients: ``checkpoints`` (host, one per segment),
+        ``tape`` (the planned taped segments' arrays and gradients: one per segment length
+        used), ``outputs`` (the host outputs and input copies of the last forward)."""
+        checkpoints = sum(sum(a.nbytes for a in vars(c).values()) for c in self._checkpoints)
+        host = sum(np.asarray(getattr(self._inputs, k)).nbytes for k in INPUT_FIELDS) if self._inputs else 0
+        host += sum(int(np.prod(s)) * 8 for s in self.output_shapes.values())
+        return {"checkpoints": checkpoints, "tape": self._taped.nbytes, "outputs": host}
 
     def _parameter_arrays(self) -> list[wp.array]:
         s, pup = self.model.strings, self.model.puppet
