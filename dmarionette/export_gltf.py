@@ -16,10 +16,19 @@ Contents (documented for users in ``docs/export.md``):
   takes the short way round. Node rest transforms are frame 0.
 - **Units and axes**: metres, seconds; y up, the puppet faces +z: glTF's own conventions,
   so no conversion is needed (Blender's importer turns y up into its z up itself).
-- **Not exported**: the strings. A glTF node animates a whole mesh rigidly; moving string
-  vertices would need a morph target per frame and a weight track of frame-count length
-  per frame (quadratic in the length of the motion), so the strings are left out. Also
-  not exported: the ground, the chair, forces.
+- **Strings** (when the trajectory has ``particle_q`` and ``string_start``): one mesh of
+  line segments (glTF ``LINES``), a vertex per string particle, skinned to one joint node
+  per particle (``string_NAME_K``, under a node ``strings``) whose ``translation`` is
+  animated. Each vertex follows its joint with weight 1 and an inverse bind matrix that
+  undoes the joint's frame-0 position, so at every keyframe the vertices are the simulated
+  particles (rounded once to float32), and between keyframes they move linearly. The
+  ``strings`` node and the mesh node ``string_lines`` are scene roots beside ``marionette``
+  (glTF ignores a skinned mesh node's own transform). (A node animates a mesh
+  rigidly, and morph targets would need a weight track of frame-count length per frame:
+  quadratic in the length of the motion; a skin is linear.) Lines have no thickness:
+  Blender shows them as edges in the viewport (give them a *Skin* modifier or convert to a
+  curve with a bevel to render them).
+- **Not exported**: the ground, the chair, forces.
 
 The container is written here with NumPy and ``json`` (about 100 lines) rather than with
 a glTF library: the format is small (a 12-byte header, a JSON chunk and a binary chunk,
@@ -42,13 +51,15 @@ __all__ = ["box_mesh", "export_gltf", "sphere_mesh"]
 
 _FLOAT, _USHORT, _UINT = 5126, 5123, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
-_TYPES = {1: "SCALAR", 3: "VEC3", 4: "VEC4"}
+_TYPES = {1: "SCALAR", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
+_LINES, _TRIANGLES = 1, 4
 _GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 _SPHERE_RINGS, _SPHERE_SEGMENTS = 16, 32
 _MATERIALS = [  # name, base colour (linear RGBA)
     ("puppet", [0.62, 0.42, 0.25, 1.0]),
     ("head", [0.85, 0.70, 0.55, 1.0]),
     ("ball", [0.80, 0.10, 0.10, 1.0]),
+    ("string", [0.05, 0.05, 0.05, 1.0]),
 ]
 
 
@@ -111,6 +122,7 @@ class _GlbBuilder:
         data = np.ascontiguousarray(data)
         component = {np.dtype(np.float32): _FLOAT, np.dtype(np.uint16): _USHORT,
                      np.dtype(np.uint32): _UINT}[data.dtype]
+        data = data.reshape(len(data), -1) if data.ndim > 2 else data
         width = 1 if data.ndim == 1 else data.shape[1]
         view = {"buffer": 0, "byteOffset": len(self.blob), "byteLength": data.nbytes}
         if target is not None:
@@ -149,7 +161,7 @@ def _mesh(builder: _GlbBuilder, shape: str, size: tuple, material: int, name: st
         },
         "indices": builder.accessor(indices.astype(index_type), target=_ELEMENT_ARRAY_BUFFER),
         "material": material,
-        "mode": 4,
+        "mode": _TRIANGLES,
     }
     return {"name": name, "primitives": [primitive]}
 
@@ -177,22 +189,87 @@ def _bars(trajectory: Any, frames: int) -> list[tuple[str, np.ndarray, np.ndarra
     return [(str(n), pos[:, b], matrix_to_quat(rot[:, b])) for b, n in enumerate(names)]
 
 
-def export_gltf(trajectory: Any, path: str | Path) -> Path:
+def _strings(trajectory: Any, frames: int, where: str) -> list[tuple[str, np.ndarray]] | None:
+    """``(name, particle positions (F, n, 3))`` per string, or None when the trajectory has no strings."""
+    get = (lambda k: trajectory.get(k)) if isinstance(trajectory, dict) else (lambda k: getattr(trajectory, k, None))
+    q, start, names = get("particle_q"), get("string_start"), get("string_names")
+    if q is None or start is None:
+        return None
+    q = np.asarray(q, dtype=np.float64)
+    start = np.asarray(start).astype(np.int64)
+    count = len(start) - 1
+    names = [str(n) for n in names] if names is not None else [str(i) for i in range(count)]
+    if q.ndim != 3 or q.shape[0] != frames or q.shape[2] != 3:
+        raise ExportError(f"{where}: field 'particle_q': got shape {q.shape}; expected ({frames}, P, 3)")
+    if count < 1 or start[0] != 0 or start[-1] != q.shape[1] or np.any(np.diff(start) < 2) or len(names) != count:
+        raise ExportError(f"{where}: field 'string_start': got {start.tolist()}; expected increasing first-particle "
+                          f"indices from 0 to {q.shape[1]}, at least 2 particles a string, one per string name")
+    if not np.all(np.isfinite(q)):
+        raise ExportError(f"{where}: field 'particle_q': got non-finite values; expected finite positions [m]")
+    return [(names[s], q[:, start[s]:start[s + 1]]) for s in range(count)]
+
+
+def _add_strings(builder: _GlbBuilder, document: dict, strings: list[tuple[str, np.ndarray]]) -> list:
+    """The skinned line mesh of the strings; returns ``(node, positions (F, 3))`` tracks of its joints."""
+    nodes, meshes = document["nodes"], document["meshes"]
+    group = len(nodes)
+    nodes.append({"name": "strings", "children": []})
+    document["scenes"][0]["nodes"].append(group)
+    joints, tracks, indices, rest = [], [], [], []
+    for name, q in strings:
+        first = len(rest)
+        for k in range(q.shape[1]):
+            nodes.append({"name": f"string_{name}_{k}"})
+            nodes[group]["children"].append(len(nodes) - 1)
+            joints.append(len(nodes) - 1)
+            tracks.append((len(nodes) - 1, q[:, k], None))
+            rest.append(q[0, k])
+        indices += [i for k in range(first, len(rest) - 1) for i in (k, k + 1)]
+    rest32 = np.asarray(rest).astype(np.float32)
+    count = len(rest32)
+    bind = np.tile(np.eye(4, dtype=np.float32), (count, 1, 1))
+    bind[:, 3, :3] = -rest32   # glTF reads the 16 floats column-major: elements 12-14 are the translation
+    joint_ids = np.zeros((count, 4), dtype=np.uint16)
+    joint_ids[:, 0] = np.arange(count)
+    weights = np.zeros((count, 4), dtype=np.float32)
+    weights[:, 0] = 1.0
+    primitive = {
+        "attributes": {
+            "POSITION": builder.accessor(rest32, target=_ARRAY_BUFFER),
+            "JOINTS_0": builder.accessor(joint_ids, target=_ARRAY_BUFFER),
+            "WEIGHTS_0": builder.accessor(weights, target=_ARRAY_BUFFER),
+        },
+        "indices": builder.accessor(np.asarray(indices, dtype=np.uint16 if count < 65535 else np.uint32),
+                                    target=_ELEMENT_ARRAY_BUFFER),
+        "material": len(_MATERIALS) - 1,
+        "mode": _LINES,
+    }
+    meshes.append({"name": "strings", "primitives": [primitive]})
+    document.setdefault("skins", []).append({"name": "strings", "joints": joints, "skeleton": group,
+                                             "inverseBindMatrices": builder.accessor(bind)})
+    nodes.append({"name": "string_lines", "mesh": len(meshes) - 1, "skin": len(document["skins"]) - 1})
+    document["scenes"][0]["nodes"].append(len(nodes) - 1)
+    return tracks
+
+
+def export_gltf(trajectory: Any, path: str | Path, *, strings: bool = True) -> Path:
     """Writes the puppet motion of ``trajectory`` as a binary glTF 2.0 file (contents: module docstring).
 
     Args:
         trajectory: a :class:`~dmarionette.marionette_rollout.MarionetteTrajectory` (or the
             result of :func:`~dmarionette.export_common.read_marionette_trajectory`, or any
             object with ``frame_time``, ``body_pos``, ``body_rot``, ``body_names`` and
-            ``body_shape``; ``bar_names``, ``bar_pos`` and ``bar_rot`` are optional).
+            ``body_shape``; ``bar_names``, ``bar_pos`` and ``bar_rot``, and ``particle_q``,
+            ``string_start`` and ``string_names`` are optional).
         path: the ``.glb`` file to write; parent folders are created.
+        strings: write the strings (a skinned line mesh) when the trajectory has them.
 
     Returns:
         ``path``.
 
     Raises:
-        ExportError: a trajectory without body motion, malformed or non-finite fields,
-            frame times that collide in float32.
+        ExportError: a trajectory without body motion, malformed or non-finite fields
+            (string fields included), frame times that collide in float32.
     """
     path = Path(path)
     where = str(getattr(trajectory, "source", None) or "trajectory")
@@ -214,19 +291,7 @@ def export_gltf(trajectory: Any, path: str | Path) -> Path:
         nodes.append({"name": f"bar_{name}"})
         tracks.append((len(nodes) - 1, pos, rot))
 
-    time_accessor = builder.accessor(times)
-    samplers, channels = [], []
-    for node, pos, rot in tracks:
-        pos32 = pos.astype(np.float32)
-        rot = continuous_quats(rot)
-        rot32 = (rot / np.linalg.norm(rot, axis=-1, keepdims=True)).astype(np.float32)
-        nodes[node]["translation"] = [float(v) for v in pos32[0]]
-        nodes[node]["rotation"] = [float(v) for v in rot32[0]]
-        nodes[0]["children"].append(node)
-        for target, values in (("translation", pos32), ("rotation", rot32)):
-            samplers.append({"input": time_accessor, "output": builder.accessor(values), "interpolation": "LINEAR"})
-            channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": target}})
-
+    nodes[0]["children"] = [node for node, _, _ in tracks]
     document = {
         "asset": {"version": "2.0", "generator": "dmarionette export_gltf"},
         "scene": 0,
@@ -235,8 +300,26 @@ def export_gltf(trajectory: Any, path: str | Path) -> Path:
         "meshes": meshes,
         "materials": [{"name": n, "pbrMetallicRoughness": {"baseColorFactor": c, "metallicFactor": 0.0,
                                                             "roughnessFactor": 0.8}} for n, c in _MATERIALS],
-        "animations": [{"name": "marionette", "samplers": samplers, "channels": channels}],
     }
+    chains = _strings(trajectory, motion.frame_count, where) if strings else None
+    if chains:
+        tracks += _add_strings(builder, document, chains)
+
+    time_accessor = builder.accessor(times)
+    samplers, channels = [], []
+    for node, pos, rot in tracks:
+        pos32 = pos.astype(np.float32)
+        animated = [("translation", pos32)]
+        nodes[node]["translation"] = [float(v) for v in pos32[0]]
+        if rot is not None:
+            rot = continuous_quats(rot)
+            rot32 = (rot / np.linalg.norm(rot, axis=-1, keepdims=True)).astype(np.float32)
+            nodes[node]["rotation"] = [float(v) for v in rot32[0]]
+            animated.append(("rotation", rot32))
+        for target, values in animated:
+            samplers.append({"input": time_accessor, "output": builder.accessor(values), "interpolation": "LINEAR"})
+            channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": target}})
+    document["animations"] = [{"name": "marionette", "samplers": samplers, "channels": channels}]
     data = builder.glb(document)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(data)
