@@ -286,6 +286,9 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
         t = read_float(entry, "t", where)
         if not 0.0 < t <= duration:
             raise KeyframeError(where, "t", t, f"a time inside the motion, 0 < t <= duration ({duration} s)")
+        if round(t / puppet_step(scene)) == 0:
+            raise KeyframeError(where, "t", t, f"a time at least half a puppet step ({puppet_step(scene) / 2} s) "
+                                               "after the start: the start pose is not the bars' to change")
         if poses and t <= poses[-1].t:
             raise KeyframeError(where, "t", t, f"a time later than the previous keyframe's ({poses[-1].t} s): "
                                                "keyframes in time order")

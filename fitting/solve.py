@@ -44,7 +44,8 @@ class SolveResult:
     Attributes:
         y: the best knots found (the last accepted point).
         history: one dict per solver step: ``step``, ``loss`` (at the last accepted point),
-            ``terms`` (its parts), ``grad_norm`` (BFGS), ``accepted`` (steps so far),
+            ``terms`` (the loss's parts; for BFGS those of the accepted point before it, as
+            optimistix hands the aux back one step late), ``grad_norm`` (BFGS), ``accepted`` (steps so far),
             ``elapsed`` [s], ``forward``/``backward`` (rollout passes so far).
         converged: whether the solver's own termination test was met (else max_steps ran out).
         result: optimistix's result message.

@@ -117,6 +117,7 @@ def test_good_keyframes_file_loads(tmp_path):
     ({"keyframes.1.joints": {"elbw_left": [10.0]}}, "elbw_left", ["elbow_left", "neck"]),
     ({"keyframes.1.t": 0.2}, "t", ["previous keyframe", "time order"]),
     ({"keyframes.2.t": 1.5}, "t", ["duration"]),
+    ({"keyframes.0.t": 0.01}, "t", ["half a puppet step"]),
     ({"keyframes.1.joints": {"hip_left": [10.0]}}, "hip_left", ["2 angles"]),
     ({"keyframes.0.points": {"hand_left": [0.0, 0.4]}}, "hand_left", ["three numbers"]),
     ({"keyframes.0.points": {"hand_left": [0.0, math.nan, 0.0]}}, "hand_left", ["finite"]),
