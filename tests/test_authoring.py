@@ -143,6 +143,17 @@ def test_bad_keyframes_file_refused(tmp_path, changes, key, words):
         assert word in message, message
 
 
+def test_author_help(capsys):
+    from dmarionette import cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["author", "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    for option in ("--out", "--max-steps", "--method", "--checkpoint-steps", "--no-animation", "--no-export"):
+        assert option in out
+
+
 def test_author_command_refuses_bad_file(tmp_path, capsys):
     """The command prints the loader's message and exits 2, with no traceback."""
     from dmarionette import cli
