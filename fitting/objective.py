@@ -111,11 +111,7 @@ class AuthoringObjective:
     # ----------------------------------------------------------------- pieces
     def outputs(self, y) -> dict[str, jnp.ndarray]:
         """The rollout's outputs for knots ``y``."""
-        # fitting.rollout checks concrete inputs for NaN with bool(); inside a jit trace the
-        # check itself is traced, so a closure constant fails it. One traced operation makes
-        # the constants tracers there (the engine checks them), and leaves them concrete eagerly.
-        constants = {k: v + 0.0 for k, v in self.constants.items()}
-        return self.rollout({**constants, **self.param.rollout_inputs(y)})
+        return self.rollout({**self.constants, **self.param.rollout_inputs(y)})
 
     def keyframe_residuals(self, outputs: dict) -> dict[str, jnp.ndarray]:
         """Unweighted keyframe errors: points and bodies [m] ``(N, 3)``, joints [rad] ``(N,)``."""
