@@ -7,6 +7,8 @@
   (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time;
 - ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md).
+- ``dmarionette author KEYFRAMES``: bar motions that reach keyframe poses (docs/authoring.md;
+  needs the ``fitting`` extra, imported only by this command).
 
 ``--help`` on every command.
 """
@@ -144,7 +146,66 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--scene", default=None,
                         help="the scene (name or TOML file) whose puppet the trajectory was simulated with "
                              "(default: the scene the file names, else the default marionette)")
+    _add_author_parser(sub)
     return parser
+
+
+def _add_author_parser(sub) -> None:
+    author = sub.add_parser(
+        "author", help="keyframes -> bar motions that reach them (needs the fitting extra: jax, optimistix)",
+        description="Keyframe authoring (docs/authoring.md): find control-bar motions that make the puppet reach "
+                    "the poses of a keyframes file, by gradient-based optimisation through the whole simulation. "
+                    "Writes to OUT: authored_scene.toml (the optimised bars as keyframes; 'dmarionette simulate' "
+                    "and 'live' take it), initial_scene.toml, trajectory.npz (the simulator's replay), "
+                    "motion.bvh and motion.glb, animation_before.gif and animation_after.gif, convergence.png "
+                    "and summary.json (per-keyframe errors before and after, the solver history). Prints one "
+                    "line per solver step, then the summary's main numbers as JSON.")
+    author.add_argument("keyframes", type=Path, help="the keyframes TOML file")
+    author.add_argument("--out", type=Path, default=None, help="output folder (default: out/<keyframes file name>)")
+    author.add_argument("--max-steps", type=int, default=None,
+                        help="solver steps at most (default: the file's [solver] max_steps, else 60)")
+    author.add_argument("--method", choices=["bfgs", "lm", "gauss_newton"], default=None,
+                        help="bfgs: the scalar loss with reverse-mode gradients (default); lm / gauss_newton: the "
+                             "residual vector with a reverse-mode Jacobian (one backward pass per residual)")
+    author.add_argument("--checkpoint-steps", type=int, default=None,
+                        help="puppet steps per taped gradient segment (default: sqrt of the rollout's steps)")
+    author.add_argument("--no-animation", action="store_true", help="skip the before/after animations")
+    author.add_argument("--no-export", action="store_true", help="skip the BVH and glTF files")
+    author.add_argument("--fps", type=float, default=15.0, help="animation frames per second (default: 15)")
+    author.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    author.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def _run_author(args: argparse.Namespace) -> int:
+    # fitting (JAX, optimistix) is imported here only: dmarionette never imports it at import time.
+    try:
+        import jax  # noqa: F401
+        import optimistix  # noqa: F401
+        import tomli_w  # noqa: F401
+    except ImportError as error:
+        raise RuntimeError(f"'dmarionette author' needs the fitting extra ({error.name} is missing): "
+                           "pip install 'dmarionette[fitting]'") from None
+    from fitting.author import author
+    from fitting.keyframes import load_keyframes
+
+    if args.max_steps is not None and args.max_steps < 1:
+        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
+    if args.checkpoint_steps is not None and args.checkpoint_steps < 1:
+        raise ValueError(f"--checkpoint-steps: got {args.checkpoint_steps}; expected an integer >= 1")
+    if not args.fps > 0.0:
+        raise ValueError(f"--fps: got {args.fps}; expected a positive number")
+    spec = load_keyframes(args.keyframes)
+    out = args.out if args.out is not None else Path("out") / args.keyframes.stem
+    summary = author(spec, out, max_steps=args.max_steps, method=args.method, progress=not args.quiet,
+                     animation=not args.no_animation, exports=not args.no_export,
+                     optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
+                     fps=args.fps)
+    keys = ("loss_before", "loss_after", "steps", "converged", "replay_gap", "seconds", "files")
+    print(json.dumps({k: summary[k] for k in keys}
+                     | {"max_keyframe_error_m": max(e["max_position_error_m"] for e in summary["keyframes_after"]),
+                        "max_keyframe_error_deg": max(e["max_joint_error_deg"] for e in summary["keyframes_after"])},
+                     indent=2))
+    return 0
 
 
 def _run_export(args: argparse.Namespace) -> int:
@@ -362,6 +423,8 @@ def main(argv: list[str] | None = None) -> int:
             print(files["table"].read_text())
             print(json.dumps({k: str(v) for k, v in files.items()}))
             return 0
+        if args.command == "author":
+            return _run_author(args)
         if args.command == "export":
             return _run_export(args)
         if args.command == "demo":

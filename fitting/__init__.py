@@ -5,4 +5,18 @@ exposes a checkpointed marionette rollout (``dmarionette.marionette_grad``) to J
 custom VJP (docs/gradients.md).
 """
 
+# Keyframe authoring (docs/authoring.md).
+from .author import AuthoringProblem as AuthoringProblem
+from .author import author as author
+from .author import build_problem as build_problem
+from .bar_spline import BarParameterisation as BarParameterisation
+from .keyframes import AuthorSpec as AuthorSpec
+from .keyframes import KeyframeError as KeyframeError
+from .keyframes import keyframes_from_table as keyframes_from_table
+from .keyframes import load_keyframes as load_keyframes
+from .objective import AuthoringObjective as AuthoringObjective
 from .rollout import marionette_rollout as marionette_rollout
+from .solve import solve as solve
+
+__all__ = ["AuthorSpec", "AuthoringObjective", "AuthoringProblem", "BarParameterisation", "KeyframeError",
+           "author", "build_problem", "keyframes_from_table", "load_keyframes", "marionette_rollout", "solve"]
