@@ -190,9 +190,7 @@ def _bar_inputs(session: Session, scene: Scene, steps: int):
             position, rotation = _bar_from_device(session, bar.name, dt, steps)
             sources[bar.name] = "device poses"
         else:
-            raise ValueError(f"{session.path}: calibration needs the pose of bar {bar.name!r} at every string "
-                             f"step as an input: neither /bar/{bar.name}/pose nor /device/{bar.name}/sample is "
-                             f"in this session (it has {sorted(session.channels)})")
+            _refuse_missing_bar(session, bar.name)
         carried = [i for i, n in enumerate(names) if n in bar.attach]
         local = np.array([attach[bar.name][names[i]] for i in carried], dtype=np.float64).reshape(-1, 3)
         tops[:, carried] = position[:, None, :] + np.einsum("tij,sj->tsi", rotation, local)
@@ -206,6 +204,12 @@ def _bar_inputs(session: Session, scene: Scene, steps: int):
     return tops, bar_q, bar_qd, sources
 
 
+def _refuse_missing_bar(session: Session, bar: str) -> None:
+    raise ValueError(f"{session.path}: calibration needs the pose of bar {bar!r} at every string step as an "
+                     f"input: neither /bar/{bar}/pose nor /device/{bar}/sample is in this session (it has "
+                     f"{sorted(session.channels)})")
+
+
 def _last_time(session: Session, scene: Scene) -> float:
     """The last time every bar's input is known at [s]."""
     ends = []
@@ -217,7 +221,7 @@ def _last_time(session: Session, scene: Scene) -> float:
         elif len(sample):
             ends.append(float(np.max(sample)) + 1.0 / session.string_hz)
         else:
-            ends.append(0.0)
+            _refuse_missing_bar(session, bar.name)
     return min(ends) if ends else 0.0
 
 

@@ -86,7 +86,7 @@ def calibrated_scene_table(result: CalibrationResult) -> dict[str, Any]:
         entry.update(fitted[spec.name])
     info = table.setdefault("scene", {})
     info["description"] = (f"{info.get('description', '')} Calibrated from {result.data.path.name}: "
-                           f"{', '.join(result.labels)}.").strip()
+                           f"{len(result.labels)} constants ({result.solver}).").strip()
     return table
 
 
@@ -97,8 +97,8 @@ def write_calibrated_scene(result: CalibrationResult, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = (f"# Written by dmarionette calibrate from {result.data.path}.\n"
-              "# The session's scene with its puppet and bar motions inlined; the strings carry the fitted\n"
-              f"# constants ({', '.join(result.labels)}). Format: docs/scenes.md.\n")
+              "# The session's scene with its puppet and bar motions inlined; the strings carry the\n"
+              f"# {len(result.labels)} fitted constants (see calibration.json). Format: docs/scenes.md.\n")
     path.write_text(header + tomli_w.dumps(calibrated_scene_table(result)))
     return path
 
