@@ -134,16 +134,7 @@ def _rewrite(source: Path, target: Path, *, drop_topics=(), drop_times=None, kee
             for i, t in enumerate(channel["t"]):
                 if any(abs(t - d) < 1e-9 for d in drop_times.get(topic, ())) or (keep_until and t > keep_until):
                     continue
-                parts = topic.strip("/").split("/")
-                if parts[0] == "bar" and parts[2] == "pose":
-                    writer.write_bar_pose(parts[1], t, channel["position"][i], channel["rotation"][i])
-                elif parts[0] == "bar":
-                    writer.write_feedback(parts[1], t, channel["eq4"][i], channel["reaction"][i])
-                elif topic == "/strings/taut":
-                    writer.write_taut(t, channel["taut"][i])
-                elif topic == "/puppet/state":
-                    writer.write_puppet_state(t, channel["joint_q"][i], channel["body_pos"][i],
-                                              channel["body_rot"][i])
+                _copy_message(writer, topic, channel, i, t)
     return target
 
 
@@ -213,7 +204,7 @@ def test_command_writes_its_outputs(recorded, tmp_path, capsys):
 
     _, _, path = recorded
     out = tmp_path / "out"
-    code = main(["calibrate", str(path), "--targets", "feedback", "--params", "k", "--duration", "0.5",
+    code = main(["calibrate", str(path), "--targets", "feedback", "--params", "k", "--duration", "0.5", "--max-steps", "3",
                  "--noise-force", str(NOISE_FORCE), "--fast-compile", "--quiet", "--out", str(out)])
     assert code == 0
     printed = capsys.readouterr().out
@@ -225,3 +216,60 @@ def test_dmarionette_does_not_import_fitting():
     code = "import sys, dmarionette, dmarionette.cli; print('fitting' in sys.modules, 'jax' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
+
+
+def test_device_poses_through_the_mapping_stand_in_for_missing_bar_poses(recorded, tmp_path):
+    """A session with the main bar's device samples (and the mapping S, W) but no bar poses."""
+    from dmarionette.control_bar import euler_to_matrix
+    from dmarionette.hw import DeviceMapping
+    from fitting.calibration_data import device_mapping_record
+
+    _, _, path = recorded
+    source = read_session(path)
+    mapping = DeviceMapping.make(1.5, rotation=euler_to_matrix(np.array([0.0, 30.0, 0.0])),
+                                 translation=(0.0, 1.3, 0.0))
+    target = _rewrite(path, tmp_path / "device.mcap", drop_topics=["/bar/main/pose"])
+    pose = source.channels["/bar/main/pose"]
+    h = 1.0 / source.string_hz
+    with pytest.raises(ValueError, match=r"no_mapping\.mcap.*/bar/main/pose is absent.*'device_mapping' metadata"):
+        _with_device_samples(target, tmp_path / "no_mapping.mcap", pose, mapping, h, record=None)
+    _with_device_samples(target, tmp_path / "mapped.mcap", pose, mapping, h,
+                         record=device_mapping_record("main", mapping))
+    data = read_calibration_data(tmp_path / "mapped.mcap", "bodies")
+    reference = read_calibration_data(path, "bodies")
+    assert data.input_source == {"main": "device poses", "hand": "bar poses"}
+    np.testing.assert_allclose(data.top_q, reference.top_q, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(data.bar_q, reference.bar_q, rtol=0, atol=1e-12)
+
+
+def _with_device_samples(source: Path, target: Path, pose, mapping, h, record):
+    """Adds the device samples that, mapped by ``mapping``, give the recorded main-bar poses;
+    the sample at t = (k - 1) h drives the step ending at k h (as in the live loop)."""
+    from dmarionette.control_bar import euler_to_matrix
+    from dmarionette.hw import HapticSample
+    from dmarionette.hw.device import quat_from_matrix
+
+    session = read_session(source)
+    with SessionWriter(target, session.scene, session.scene_record["toml"]) as writer:
+        if record is not None:
+            writer.write_metadata("device_mapping", record)
+        for topic, channel in session.channels.items():
+            for i, t in enumerate(channel["t"]):
+                _copy_message(writer, topic, channel, i, t)
+        for position, angles, t in zip(pose["position"][1:], pose["rotation"][1:], pose["t"][1:]):
+            device_rotation = mapping.rotation.T @ euler_to_matrix(angles)
+            sample = HapticSample.make(t, mapping.position_to_device(position), quat_from_matrix(device_rotation))
+            writer.write_device_sample("main", sample, t=float(t) - h)
+    return read_calibration_data(target, "bodies")
+
+
+def _copy_message(writer, topic, channel, i, t):
+    parts = topic.strip("/").split("/")
+    if parts[0] == "bar" and parts[2] == "pose":
+        writer.write_bar_pose(parts[1], t, channel["position"][i], channel["rotation"][i])
+    elif parts[0] == "bar":
+        writer.write_feedback(parts[1], t, channel["eq4"][i], channel["reaction"][i])
+    elif topic == "/strings/taut":
+        writer.write_taut(t, channel["taut"][i])
+    elif topic == "/puppet/state":
+        writer.write_puppet_state(t, channel["joint_q"][i], channel["body_pos"][i], channel["body_rot"][i])
