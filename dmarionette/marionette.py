@@ -29,7 +29,7 @@ from .articulation import (
     build_articulation_model,
 )
 from .kernels.bar_feedback import eval_bar_feedback_kernel
-from .kernels.string_body_coupling import apply_string_forces_to_anchors, eval_tie_path
+from .kernels.string_body_coupling import apply_string_forces_to_anchors_kernel, eval_tie_path
 from .scene import Scene
 from .settings_check import check_marionette_settings
 from .string_model import StringControl, StringModel, StringState
@@ -52,9 +52,11 @@ class MarionetteModel:
         string_point: puppet point index each string is tied to (-1: none), ``(S,)``.
         spring_string: string index of each body spring, ``(N,)``.
         puppet_mass: total puppet mass [kg] (eq. 4's ``m``).
+        requires_grad: whether the strings' and puppet's fittable arrays (and the states
+            made from them) carry gradients, for taped rollouts (``marionette_grad``).
     """
 
-    def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None):
+    def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None, requires_grad: bool = False):
         if scene.puppet is None:
             raise ValueError(f"{scene.source}: a marionette needs a [puppet] table")
         if scene.precision != "float64":
@@ -62,6 +64,7 @@ class MarionetteModel:
                              "float64 only (the puppet solver is float64; float32 is available for strings alone)")
         check_marionette_settings(scene)  # settings measured not to work are refused, with the reason
         self.scene = scene
+        self.requires_grad = bool(requires_grad)
         self.device = wp.get_device(device)
         self.string_dt = scene.string_dt
         self.substeps = max(1, round(scene.string_hz / scene.puppet_hz))
@@ -79,7 +82,7 @@ class MarionetteModel:
         self.puppet = build_articulation_model(
             scene.puppet, ball=ball, contacts=contacts, joint_limits=e["joint_limits"], gravity=scene.gravity,
             springs=tuple((p, scene.strings[i].tie_stiffness, scene.strings[i].tie_damping) for i, p in tied),
-            device=str(self.device))
+            device=str(self.device), requires_grad=self.requires_grad)
         self.puppet_solver = SolverArticulation(self.puppet, optimization_level=optimization_level)
         # Where the tied points are in the initial pose: the strings start straight from bar to point.
         self.q_initial = initial_joint_q(self.puppet, scene)
@@ -93,7 +96,8 @@ class MarionetteModel:
                 spec = dataclasses.replace(spec, bottom=bottom, tie_point=bottom, length=length)
             specs.append(spec)
         self.strings = StringModel(specs, effects=scene.effects, gravity=scene.gravity,
-                                   ground_height=scene.ground_height, precision="float64", device=self.device)
+                                   ground_height=scene.ground_height, precision="float64", device=self.device,
+                                   requires_grad=self.requires_grad)
         self.string_solver = SolverStringImplicit(self.strings)
         self.bar_names = [b.name for b in scene.bars]
         bar_of = {s: i for i, b in enumerate(scene.bars) for s in b.attach}
@@ -321,7 +325,7 @@ class SolverMarionette:
         m = self.model
         if len(m.spring_string) == 0:
             return
-        wp.launch(apply_string_forces_to_anchors, dim=len(m.spring_string),
+        wp.launch(apply_string_forces_to_anchors_kernel(m.substeps), dim=len(m.spring_string),
                   inputs=[m.spring_string_wp, m.strings.string_tie_stiffness, state_out.tie_force,
                           self._tie_q, self._tie_qd, wp.float64(m.string_dt)],
                   outputs=[self._puppet_control.spring_anchor_pos, self._puppet_control.spring_anchor_vel],

@@ -1,6 +1,8 @@
 """fitting: optimisation on top of dmarionette (JAX + optimistix): keyframe authoring, calibration.
 
-This package may import ``dmarionette``; ``dmarionette`` never imports it. Its contents arrive
-with the differentiable-rollouts issue; the simulator's Warp-tape gradients it will wrap are
-tested in tests/test_string_gradients.py.
+This package may import ``dmarionette``; ``dmarionette`` never imports it. ``marionette_rollout``
+exposes a checkpointed marionette rollout (``dmarionette.marionette_grad``) to JAX with a
+custom VJP (docs/gradients.md).
 """
+
+from .rollout import marionette_rollout as marionette_rollout

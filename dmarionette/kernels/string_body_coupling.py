@@ -9,7 +9,7 @@ Between two puppet steps (``H = n h``: ``n`` string steps of ``h``):
   at every string step. The path is continuous from one puppet step to the next: starting
   it afresh at ``x_b(t0)`` would make the target jump by the last prediction error, and
   the light end particle would be kicked by ``k`` times that error;
-- strings -> body (``apply_string_forces_to_anchors``): the body receives the tie force
+- strings -> body (``apply_string_forces_to_anchors_kernel``): the body receives the tie force
   the strings actually produced, averaged over the ``n`` string steps, ``F``, and any
   deviation of the body from the predicted path is resisted by the tie's own stiffness
   and damping, treated implicitly by the puppet step:
@@ -28,6 +28,8 @@ With ``n = 1`` (the puppet at the string rate) this is a staggered coupling of t
 implicit integrators. The predicted path is first-order accurate in ``H``; the gap it
 causes at 30 Hz is measured by the tests against the fully coupled run.
 """
+
+import functools
 
 import warp as wp
 
@@ -67,29 +69,44 @@ def eval_tie_path(
         tie_target_out[s] = end
 
 
-@wp.kernel
-def apply_string_forces_to_anchors(
-    # Model:
-    spring_string: wp.array(dtype=wp.int32),
-    string_tie_stiffness: wp.array(dtype=wp.float64),
-    # State in:
-    tie_force: wp.array2d(dtype=wp.vec3d),
-    tie_q: wp.array2d(dtype=wp.vec3d),
-    tie_qd: wp.array2d(dtype=wp.vec3d),
-    dt: wp.float64,
-    # State out:
-    spring_anchor_pos: wp.array2d(dtype=wp.vec3d),
-    spring_anchor_vel: wp.array2d(dtype=wp.vec3d),
-):
-    """Anchor of body spring ``i`` at t0: the predicted end point plus the mean tie force over
-    k, moved back along the path velocity by the puppet step ``H = n dt``."""
-    i = wp.tid()
-    s = spring_string[i]
-    n = tie_force.shape[0]
-    mean = wp.vec3d()
-    for j in range(n):
-        mean += tie_force[j, s]
-    mean = mean / wp.float64(n)
-    velocity = tie_qd[n - 1, s]
-    spring_anchor_pos[0, i] = tie_q[n - 1, s] + mean / string_tie_stiffness[s] - (wp.float64(n) * dt) * velocity
-    spring_anchor_vel[0, i] = velocity
+@functools.cache
+def apply_string_forces_to_anchors_kernel(substeps: int):
+    """Builds ``apply_string_forces_to_anchors`` for ``n = substeps`` string steps per puppet step.
+
+    The mean over the ``n`` tie forces is a loop with a compile-time bound, unrolled even
+    past Warp's default ``max_unroll = 16`` (``n = 33`` at 1 kHz / 30 Hz): a dynamic loop is
+    not replayed in Warp's reverse pass, so the mean is zero there and ``dL/dk`` of the
+    ``F / k`` offset is lost (measured: a zero gradient of this kernel at n = 33, and
+    wrong-signed rollout gradients). The sum runs in the same order either way.
+    """
+    n = int(substeps)
+    last = n - 1
+
+    @wp.kernel(module="unique", module_options={"max_unroll": max(n, 16)})
+    def apply_string_forces_to_anchors(
+        # Model:
+        spring_string: wp.array(dtype=wp.int32),
+        string_tie_stiffness: wp.array(dtype=wp.float64),
+        # State in:
+        tie_force: wp.array2d(dtype=wp.vec3d),
+        tie_q: wp.array2d(dtype=wp.vec3d),
+        tie_qd: wp.array2d(dtype=wp.vec3d),
+        dt: wp.float64,
+        # State out:
+        spring_anchor_pos: wp.array2d(dtype=wp.vec3d),
+        spring_anchor_vel: wp.array2d(dtype=wp.vec3d),
+    ):
+        """Anchor of body spring ``i`` at t0: the predicted end point plus the mean tie force over
+        k, moved back along the path velocity by the puppet step ``H = n dt``."""
+        i = wp.tid()
+        s = spring_string[i]
+        mean = wp.vec3d()
+        for j in range(wp.static(n)):
+            mean += tie_force[j, s]
+        count = wp.float64(wp.static(float(n)))
+        mean = mean / count
+        velocity = tie_qd[wp.static(last), s]
+        spring_anchor_pos[0, i] = tie_q[wp.static(last), s] + mean / string_tie_stiffness[s] - (count * dt) * velocity
+        spring_anchor_vel[0, i] = velocity
+
+    return apply_string_forces_to_anchors

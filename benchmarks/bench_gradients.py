@@ -1,0 +1,126 @@
+"""Cost of checkpointed marionette gradients (``MarionetteGradient``): time and memory.
+
+Run:  python benchmarks/bench_gradients.py [--seconds 1 4 16] [--memory-seconds 60] [--repeats 3]
+
+The scene is ``hanging`` (6 strings x 50 particles, 12 bodies, ground contact on and
+smoothed, joint limits and feedback on) at the paper's rates (strings 1 kHz, puppet 30 Hz),
+with its swaying bars; the loss cotangents are ones on every output. Each rollout length
+runs in its own process (so that its peak memory is its own), on one core (the kernels are
+serial on the CPU). Reported per length, medians over ``--repeats``:
+
+- ``forward``: ``MarionetteGradient.forward`` (captured graphs of ``C`` puppet steps, the
+  checkpoints copied out, the outputs copied to the host);
+- ``backward``: ``MarionetteGradient.backward`` (per segment: the captured taped re-run,
+  the cotangent seeds written in, the captured reverse pass, the gradients read out);
+- ``backward, no capture``: the same with ``capture=False`` (every launch from Python), at
+  the shortest length only, to show what capture buys;
+- memory: the bytes the engine allocates for gradients (``engine.memory()``: the taped
+  segment's arrays and gradients, the checkpoints, the host outputs), and the process's
+  peak resident set (``ru_maxrss``) above its size after the model was built and the
+  kernels loaded (a coarser number: it includes Python objects of the tape and the graphs).
+
+The first run compiles the puppet kernels at -O2 (about a minute; cached afterwards).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING
+
+import dmarionette as dm  # noqa: E402
+from dmarionette.marionette import MarionetteModel  # noqa: E402
+from dmarionette.marionette_grad import MarionetteGradient  # noqa: E402
+
+MIB = 2**20
+
+
+def _rss_mib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize() / MIB
+
+
+def _peak_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def one(seconds: float, repeats: int, capture: bool) -> dict:
+    scene = dm.load_scene("hanging")
+    scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
+    model = MarionetteModel(scene, requires_grad=True)
+    steps = round(seconds / model.puppet_dt)
+    engine = MarionetteGradient(model, steps, capture=capture)
+    inputs = engine.scene_inputs()
+    cot = {k: np.ones(s) for k, s in engine.output_shapes.items()}
+    base = _rss_mib()
+    start = time.perf_counter()
+    engine.forward(inputs)
+    engine.backward(cot)  # plans the taped segments and captures their graphs
+    first = time.perf_counter() - start
+    forward, backward = [], []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        engine.forward(inputs)
+        forward.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        engine.backward(cot)
+        backward.append(time.perf_counter() - t)
+    mem = engine.memory()
+    return {"seconds": seconds, "puppet_steps": steps, "string_steps": engine.string_steps,
+            "checkpoint_steps": engine.checkpoint_steps, "segments": len(engine.segments), "capture": capture,
+            "forward_s": statistics.median(forward), "backward_s": statistics.median(backward),
+            "spread_backward": (max(backward) - min(backward)) / statistics.median(backward),
+            "first_s": first, "tape_mib": mem["tape"] / MIB, "checkpoints_mib": mem["checkpoints"] / MIB,
+            "outputs_mib": mem["outputs"] / MIB, "rss_above_model_mib": _peak_mib() - base}
+
+
+def _run(seconds: float, repeats: int, capture: bool = True) -> dict:
+    cmd = [sys.executable, __file__, "--one", str(seconds), "--repeats", str(repeats)]
+    if not capture:
+        cmd.append("--no-capture")
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seconds", type=float, nargs="+", default=[1.0, 4.0, 16.0])
+    p.add_argument("--memory-seconds", type=float, default=60.0, help="one longer rollout (0: skip)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--one", type=float, help=argparse.SUPPRESS)
+    p.add_argument("--no-capture", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.one is not None:
+        print(json.dumps(one(args.one, args.repeats, not args.no_capture)))
+        return
+    print(f"# {platform.processor() or platform.machine()}, warp {wp.__version__}, hanging scene 6 x 50, "
+          "1 kHz / 30 Hz, smoothed contact")
+    rows = [_run(s, args.repeats) for s in args.seconds]
+    if args.memory_seconds:
+        rows.append(_run(args.memory_seconds, 1))
+    rows.append(_run(min(args.seconds), args.repeats, capture=False))
+    print("| rollout | P | C | forward [s] | backward [s] | backward / forward | tape [MiB] | checkpoints [MiB] "
+          "| outputs [MiB] | peak RSS above model [MiB] |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        label = f"{r['seconds']:g} s" + ("" if r["capture"] else " (no capture)")
+        print(f"| {label} | {r['puppet_steps']} | {r['checkpoint_steps']} | {r['forward_s']:.3f} | "
+              f"{r['backward_s']:.3f} | {r['backward_s'] / r['forward_s']:.1f} | {r['tape_mib']:.1f} | "
+              f"{r['checkpoints_mib']:.2f} | {r['outputs_mib']:.1f} | {r['rss_above_model_mib']:.0f} |")
+    print("\nfirst backward (plans the segments, captures their graphs):",
+          ", ".join(f"{r['seconds']:g} s: {r['first_s']:.1f} s" for r in rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,287 @@
+"""Gradients of whole marionette rollouts (``MarionetteGradient``, ``fitting.marionette_rollout``).
+
+The problem: the ``hanging`` scene's puppet on its main bar (head, back and knee strings;
+the hand strings and hand bar are left out: with the hand bar still, the hands bounce on
+their strings and the bottom segments pass through slack, a kink of the step, see
+``string_terms.compute_string_spring``), 10 particles per string, the paper's rates
+(strings 1 kHz, puppet 30 Hz: 33 string steps per puppet step), a 1 s rollout (30 puppet
+steps, 990 string steps), joint limits off. The strings are shortened by ``F / k`` with
+``F = (6, 4, 4, 4) N`` so that they start under tension: then no segment goes slack and
+every string stays taut over the rollout (both checked below), and the loss is smooth over
+the finite-difference steps. Puppet kernels are compiled at ``optimization_level=0``.
+
+The loss is a fixed random linear function of every output. Each gradient is checked as
+directional derivatives ``g . u`` against central differences, Richardson-extrapolated
+from steps ``e`` and ``e/2`` (truncation ``O(e^4)``). The steps come from a sweep over
+``e = 1e-3 ... 1e-7`` of the input (no contact): for the bar inputs and the initial state
+(random directions) ``e = 1e-6`` m, m/s, rad agrees to 1e-9; for the string constants
+(one string at a time) the differences are rounding-limited at small steps (k_d: 1e-5 at
+``e = 1e-5 k_d``, 2e-4 at 1e-7) and agree to 1e-8 at ``e = 1e-3`` of the value, which is
+used. The tolerances (1e-5 without contact, 1e-3 with the smoothed contact) therefore test
+the gradient, not the differences.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import warp as wp
+
+import dmarionette as dm
+from dmarionette.marionette import MarionetteModel, SolverMarionette
+from dmarionette.marionette_grad import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient, RolloutInputs
+from dmarionette.marionette_rollout import simulate_marionette
+
+wp.config.log_level = wp.LOG_WARNING
+
+PUPPET_STEPS = 30           # 1 s at 30 Hz
+PRETENSION = (6.0, 4.0, 4.0, 4.0)  # N, head, back, knees
+CONTACT_GROUND = 0.075      # m: the feet come down on it after about 0.35 s
+
+
+def _scene(contact: bool):
+    scene = dm.load_scene("hanging")
+    keep = [i for i, s in enumerate(scene.strings) if not s.name.startswith("hand")]
+    strings = tuple(dataclasses.replace(scene.strings[i], particle_count=10) for i in keep)
+    effects = dict(scene.body_effects, body_ground=contact, joint_limits=False)
+    scene = dataclasses.replace(scene, strings=strings, string_body_points=tuple(scene.string_body_points[i] for i in keep),
+                                bars=scene.bars[:1], body_effects=effects, contact=dict(scene.contact, smooth=True),
+                                ground_height=CONTACT_GROUND if contact else scene.ground_height)
+    straight = MarionetteModel(scene, optimization_level=0)  # the string lengths bar -> body point
+    strings = tuple(dataclasses.replace(s, length=straight.strings.specs[i].length - PRETENSION[i] / s.stiffness)
+                    for i, s in enumerate(scene.strings))
+    return dataclasses.replace(scene, strings=strings)
+
+
+class Problem:
+    def __init__(self, contact: bool):
+        self.model = MarionetteModel(_scene(contact), optimization_level=0, requires_grad=True)
+        # 7 segments of 4 puppet steps and one of 2 (a shorter last segment is planned apart)
+        self.engine = MarionetteGradient(self.model, PUPPET_STEPS, checkpoint_steps=4)
+        self.inputs = self.engine.scene_inputs()
+        rng = np.random.default_rng(3)
+        self.weights = {k: rng.normal(size=s) / np.sqrt(np.prod(s)) for k, s in self.engine.output_shapes.items()}
+        self.outputs = self.engine.forward(self.inputs)
+        self.grads = self.engine.backward(self.weights)
+
+    def loss(self, inputs: RolloutInputs) -> float:
+        out = self.engine.forward(inputs)
+        return sum(float(np.sum(w * getattr(out, k))) for k, w in self.weights.items())
+
+    def fd(self, name: str, direction: np.ndarray, eps: float) -> float:
+        """Richardson-extrapolated central difference of the loss along ``direction`` of input ``name``."""
+        base = getattr(self.inputs, name)
+
+        def central(e):
+            plus = dataclasses.replace(self.inputs, **{name: base + e * direction})
+            minus = dataclasses.replace(self.inputs, **{name: base - e * direction})
+            return (self.loss(plus) - self.loss(minus)) / (2.0 * e)
+
+        return (4.0 * central(eps / 2.0) - central(eps)) / 3.0
+
+    def check(self, tolerance: float) -> dict[str, float]:
+        """Worst relative error per input group over its directions."""
+        rng = np.random.default_rng(5)
+        worst = {}
+        cases = []
+        for name in ("top_q", "bar_q", "bar_qd", "joint_q0", "joint_qd0"):
+            cases.append((name, rng.normal(size=self.engine.input_shapes[name]), 1e-6))
+        for name in ("tie_stiffness", "tie_damping", "string_stiffness"):
+            base = getattr(self.inputs, name)
+            for i in range(len(base)):
+                unit = np.zeros_like(base)
+                unit[i] = 1.0
+                cases.append((name, unit, 1e-3 * base[i]))
+        for name, direction, eps in cases:
+            analytic = float(np.sum(getattr(self.grads, name) * direction))
+            numeric = self.fd(name, direction, eps)
+            error = abs(analytic - numeric) / abs(numeric)
+            worst[name] = max(worst.get(name, 0.0), error)
+        self.engine.forward(self.inputs)  # leave the engine at the base inputs
+        print({k: f"{v:.1e}" for k, v in worst.items()})
+        assert max(worst.values()) <= tolerance, worst
+        return worst
+
+
+@pytest.fixture(scope="module")
+def smooth():
+    return Problem(contact=False)
+
+
+@pytest.fixture(scope="module")
+def contact():
+    return Problem(contact=True)
+
+
+def _string_margins(model: MarionetteModel) -> tuple[float, bool]:
+    """Smallest relative segment stretch ``(l - d) / d`` after any string step of the scene's
+    rollout (the first step starts from straight strings), and whether every string stayed taut."""
+    solver = SolverMarionette(model)
+    a, b, control = model.state(), model.state(), model.control()
+    start = model.strings.string_start_np
+    rest = model.strings.string_rest_length.numpy()
+    smallest, taut = np.inf, True
+    for p in range(PUPPET_STEPS):
+        control.set_bars(model, p * model.puppet_dt)
+        solver.begin_step(a, b)
+        for j in range(model.substeps):
+            solver.step_string(a, b, control, j)
+            q = (b.strings if j == model.substeps - 1 else solver._spare[j % 2]).particle_q.numpy()
+            for s in range(model.strings.string_count):
+                length = np.linalg.norm(np.diff(q[start[s]:start[s + 1]], axis=0), axis=1)
+                smallest = min(smallest, float(np.min((length - rest[s]) / rest[s])))
+        solver.end_step(a, b)
+        taut &= bool(np.all(b.string_taut.numpy() == 1))
+        a, b = b, a
+    return smallest, taut
+
+
+def test_the_strings_stay_taut_so_the_loss_is_smooth(smooth, contact):
+    """No segment passes through slack and no string goes slack (measured: >= 8e-4)."""
+    for problem in (smooth, contact):
+        problem.engine.forward(problem.engine.scene_inputs())
+        smallest, taut = _string_margins(problem.model)
+        print(f"smallest segment stretch {smallest:.2e}, taut {taut}")
+        assert taut
+        assert smallest > 1e-4
+
+
+def test_forward_equals_the_ordinary_rollout(smooth):
+    """For the scene's own inputs the engine's outputs are ``simulate_marionette``'s (same kernels)."""
+    e = smooth.engine
+    out = e.forward(e.scene_inputs())
+    m = smooth.model
+    ref = simulate_marionette(m, PUPPET_STEPS * m.puppet_dt, progress=False, frame_hz=1.0 / m.puppet_dt)
+    assert ref.frame_steps == m.substeps and len(ref.joint_q) == PUPPET_STEPS + 1
+    for name, want in (("joint_q", ref.joint_q), ("body_pos", ref.body_pos), ("body_rot", ref.body_rot),
+                       ("tie_force", ref.tie_force), ("bar_feedback", ref.bar_feedback),
+                       ("bar_reaction", ref.bar_reaction)):
+        got = getattr(out, name)
+        assert got.shape == want.shape, name
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12 * max(1.0, np.abs(want).max()), err_msg=name)
+    points = np.stack([m.eval_points(_puppet_at(m, q))[0] for q in ref.joint_q[[0, -1]]])
+    np.testing.assert_allclose(out.point_pos[[0, -1]], points, rtol=0.0, atol=1e-12)
+
+
+def _rotate(quat, v):
+    """Rotates vectors ``v`` (N, 3) by unit quaternions ``(x, y, z, w)`` (N, 4)."""
+    u, w = quat[:, :3], quat[:, 3:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def _puppet_at(model, q):
+    state = model.puppet.state()
+    state.joint_q.assign(q[None])
+    return state
+
+
+def test_gradients_without_contact_match_finite_differences(smooth):
+    smooth.check(1e-5)
+
+
+def test_gradients_with_smoothed_contact_match_finite_differences(contact):
+    """The feet come down on the ground (the smooth contact's force acts on them for the last
+    0.6 s: the lowest contact point sits within 4 softplus widths of the ground) and the
+    contact changes the motion; the gradients still match."""
+    m = contact.model
+    out = contact.engine.forward(contact.engine.scene_inputs())
+    cs = m.puppet_solver.contacts
+    body, local = cs.point_body.numpy(), cs.point_local.numpy()
+    lowest = np.array([np.min((pos[body] + _rotate(rot[body], local))[:, 1])
+                       for pos, rot in zip(out.body_pos, out.body_rot)])
+    delta = m.scene.contact["smooth_distance"]
+    assert np.all(lowest[-18:] - CONTACT_GROUND < 4.0 * delta), lowest
+    assert lowest[0] - CONTACT_GROUND > 0.015  # the feet start 2 cm above it
+    contact.check(1e-3)
+
+
+def test_checkpointing_does_not_change_the_gradient(smooth):
+    """``checkpoint_steps = puppet_steps`` (one taped segment) against 8 segments (7 of 4 steps, one of 2),
+    and against the default ``ceil(sqrt(30)) = 6`` (5 segments of 6)."""
+    assert len(smooth.engine.segments) == 8 and smooth.engine.segments[-1] == (28, 30)
+    default = MarionetteGradient(smooth.model, PUPPET_STEPS)
+    assert default.checkpoint_steps == 6 and len(default.segments) == 5
+    whole = MarionetteGradient(smooth.model, PUPPET_STEPS, checkpoint_steps=PUPPET_STEPS)
+    assert len(whole.segments) == 1
+    for engine in (whole, default):
+        engine.forward(smooth.inputs)
+        g = engine.backward(smooth.weights)
+        for name in INPUT_FIELDS:
+            want = getattr(smooth.grads, name)
+            np.testing.assert_allclose(getattr(g, name), want, rtol=0.0, atol=1e-12 * np.abs(want).max(),
+                                       err_msg=name)
+    smooth.engine.forward(smooth.inputs)
+
+
+def test_jax_wrapper_gradient_equals_the_engine(smooth):
+    import jax
+    import jax.numpy as jnp
+
+    from fitting import marionette_rollout
+
+    f = marionette_rollout(smooth.engine)
+    weights = {k: jnp.asarray(w) for k, w in smooth.weights.items()}
+
+    def loss(x):
+        out = f(x)
+        return sum(jnp.sum(w * out[k]) for k, w in weights.items())
+
+    x = {k: jnp.asarray(getattr(smooth.inputs, k)) for k in INPUT_FIELDS}
+    grads = jax.jit(jax.grad(loss))(x)
+    value, grads_vg = jax.value_and_grad(loss)(x)
+    for name in INPUT_FIELDS:
+        want = getattr(smooth.grads, name)
+        for got in (grads[name], grads_vg[name]):
+            np.testing.assert_allclose(np.asarray(got), want, rtol=0.0, atol=1e-12 * np.abs(want).max(),
+                                       err_msg=name)
+    np.testing.assert_allclose(float(value), smooth.loss(smooth.inputs), rtol=1e-12)
+    out, vjp = jax.vjp(f, x)
+    np.testing.assert_array_equal(np.asarray(out["joint_q"]), smooth.outputs.joint_q)
+    (pulled,) = vjp({k: jnp.asarray(w) for k, w in smooth.weights.items()})
+    np.testing.assert_allclose(np.asarray(pulled["tie_stiffness"]), smooth.grads.tie_stiffness, rtol=1e-12)
+
+
+def test_bad_inputs_are_refused(smooth):
+    e = smooth.engine
+    good = smooth.inputs
+    t, s = e.input_shapes["top_q"][:2]
+    with pytest.raises(ValueError, match=r"RolloutInputs.top_q: got shape \(989, 4, 3\); expected \(990, 4, 3\)"):
+        e.forward(dataclasses.replace(good, top_q=good.top_q[1:]))
+    bad = good.bar_qd.copy()
+    bad[7, 0, 1] = np.nan
+    with pytest.raises(ValueError, match=r"RolloutInputs.bar_qd: non-finite value nan at index \(7, 0, 1\)"):
+        e.forward(dataclasses.replace(good, bar_qd=bad))
+    with pytest.raises(ValueError, match=r"tie_stiffness\[2\] \(string 'knee_left'\): got -1.0; expected > 0"):
+        e.forward(dataclasses.replace(good, tie_stiffness=np.array([300.0, 300.0, -1.0, 300.0])))
+    with pytest.raises(ValueError, match=r"RolloutInputs.joint_qd0: got shape \(3,\)"):
+        e.forward(dataclasses.replace(good, joint_qd0=np.zeros(3)))
+    e.forward(good)
+    with pytest.raises(ValueError, match=r"cotangents: unknown output 'particle_q'"):
+        e.backward({"particle_q": np.zeros(3)})
+    with pytest.raises(ValueError, match=r"cotangents\['joint_q'\]: got shape \(30, 25\); expected \(31, 25\)"):
+        e.backward({"joint_q": np.zeros((30, 25))})
+    with pytest.raises(ValueError, match="without gradients"):
+        MarionetteGradient(MarionetteModel(smooth.model.scene, optimization_level=0), 3)
+    with pytest.raises(ValueError, match="checkpoint_steps: got 0"):
+        MarionetteGradient(smooth.model, 3, checkpoint_steps=0)
+
+    import jax
+    import jax.numpy as jnp
+
+    from fitting import marionette_rollout
+
+    f = marionette_rollout(e)
+    x = {k: jnp.asarray(getattr(good, k)) for k in INPUT_FIELDS}
+    with pytest.raises(ValueError, match=r"inputs\['bar_q'\]: got shape \(990, 2, 3\)"):
+        f({**x, "bar_q": jnp.zeros((t, 2, 3))})
+    with pytest.raises(ValueError, match=r"inputs\['tie_damping'\]: contains NaN"):
+        f({**x, "tie_damping": x["tie_damping"].at[1].set(jnp.nan)})
+    with pytest.raises(Exception, match=r"RolloutInputs.tie_damping: non-finite value nan at index \(1,\)"):
+        jax.jit(f)({**x, "tie_damping": x["tie_damping"].at[1].set(jnp.nan)})
+    with pytest.raises(ValueError, match=r"missing \['joint_q0'\]"):
+        f({k: v for k, v in x.items() if k != "joint_q0"})
+    assert set(OUTPUT_FIELDS) == set(f(x))
+    assert s == 4
