@@ -11,11 +11,10 @@ strings on each bar at the string rate (:mod:`fitting.calibration_data`). The ro
 Solvers (measured costs in docs/calibration.md):
 
 - ``"lm-fd"`` (default): Levenberg-Marquardt (``optimistix.LevenbergMarquardt``) on every
-  residual, with the Jacobian from forward sensitivities by central differences of the
-  rollout (``2 n`` forward rollouts per linearisation for ``n`` parameters, whatever the
-  number of residuals). It enters optimistix as a function with a custom VJP whose
-  backward pass multiplies by that Jacobian, so ``options={"jac": "bwd"}`` costs nothing
-  more.
+  residual, with the Jacobian from forward sensitivities by one-sided differences of the
+  rollout (``n + 1`` forward rollouts per linearisation for ``n`` parameters, whatever the
+  number of residuals). It enters optimistix as a function with a custom JVP ``J v``
+  (forward mode, optimistix's default ``jac="fwd"``).
 - ``"lm-bwd"``: Levenberg-Marquardt with the reverse-mode Jacobian (``jac="bwd"``: one
   backward pass of the rollout per residual), on a subsample of the residuals
   (``rows``, spread evenly over time and the targets).
@@ -40,6 +39,7 @@ SOLVERS = ("lm-fd", "lm-bwd", "bfgs")
 #: Input field of the rollout engine for each constant.
 ENGINE_FIELDS = {"k": "tie_stiffness", "k_d": "tie_damping", "k_s": "string_stiffness"}
 _FD_STEP = 1e-5  # central-difference step in log space (truncation ~1e-10, round-off ~1e-11 relative)
+_FD_STEP_ONE_SIDED = 1e-6  # one-sided step (truncation ~1e-6 relative, round-off ~1e-10)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,17 +226,29 @@ class CalibrationProblem:
         outputs = self.engine.forward(inputs)
         return np.asarray(self.residuals_from_outputs(dataclasses.asdict(outputs)))
 
-    def fd_jacobian(self, theta: np.ndarray, step: float = _FD_STEP) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals ``(m,)`` and their Jacobian ``(m, n)`` by central differences in log space
-        (``2 n + 1`` forward rollouts: the forward sensitivities, all residuals at once)."""
+    def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the
+        forward sensitivities by finite differences in log space, every residual at once).
+
+        ``central``: ``(r(t + h e_j) - r(t - h e_j)) / 2h`` with ``h = 1e-5`` (``2 n + 1``
+        rollouts; truncation ~1e-10, round-off ~1e-11 relative); else one-sided
+        ``(r(t + h e_j) - r(t)) / h`` with ``h = 1e-6`` (``n + 1`` rollouts; error ~1e-6
+        relative, which moves the Gauss-Newton steps, not the optimum they converge to).
+        """
         theta = np.asarray(theta, np.float64)
+        value = self.host_residuals(theta)
         jacobian = np.empty((self.residual_count, len(theta)))
+        step = _FD_STEP if central else _FD_STEP_ONE_SIDED
         for j in range(len(theta)):
-            up, down = theta.copy(), theta.copy()
+            up = theta.copy()
             up[j] += step
-            down[j] -= step
-            jacobian[:, j] = (self.host_residuals(up) - self.host_residuals(down)) / (2 * step)
-        return self.host_residuals(theta), jacobian
+            if central:
+                down = theta.copy()
+                down[j] -= step
+                jacobian[:, j] = (self.host_residuals(up) - self.host_residuals(down)) / (2 * step)
+            else:
+                jacobian[:, j] = (self.host_residuals(up) - value) / step
+        return value, jacobian
 
     def jax_residuals(self) -> Callable:
         """``r(theta, args)`` in JAX through the reverse-mode rollout wrapper (custom VJP)."""
@@ -254,8 +266,10 @@ class CalibrationProblem:
         return residuals
 
     def jax_fd_residuals(self) -> Callable:
-        """``r(theta, args)`` with a custom VJP that multiplies by :meth:`fd_jacobian` (computed
-        in the forward pass): reverse-mode Jacobians of it cost no more rollouts."""
+        """``r(theta, args)`` with a custom JVP ``J v``, ``J`` from :meth:`fd_jacobian` (one-sided,
+        computed once per linearisation): forward-mode Jacobians of it (``jax.linearize``,
+        ``jacfwd``) cost ``n + 1`` rollouts and no backward pass, and never build an ``(m, m)``
+        basis (a reverse-mode Jacobian would: one vector-Jacobian product per residual)."""
         import jax
         import jax.numpy as jnp
 
@@ -263,18 +277,18 @@ class CalibrationProblem:
         value_shape = jax.ShapeDtypeStruct((m,), jnp.float64)
         both = (value_shape, jax.ShapeDtypeStruct((m, n), jnp.float64))
 
-        @jax.custom_vjp
+        @jax.custom_jvp
         def residuals(theta):
-            return jax.pure_callback(lambda t: self.host_residuals(np.asarray(t)), value_shape, theta)
+            return jax.pure_callback(lambda t: self.host_residuals(np.asarray(t)), value_shape, theta,
+                                     vmap_method="sequential")
 
-        def forward(theta):
-            value, jacobian = jax.pure_callback(lambda t: self.fd_jacobian(np.asarray(t)), both, theta)
-            return value, jacobian
+        @residuals.defjvp
+        def residuals_jvp(primals, tangents):
+            (theta,), (direction,) = primals, tangents
+            value, jacobian = jax.pure_callback(lambda t: self.fd_jacobian(np.asarray(t), central=False), both,
+                                                theta, vmap_method="sequential")
+            return value, jacobian @ direction
 
-        def backward(jacobian, cotangent):
-            return (cotangent @ jacobian,)
-
-        residuals.defvjp(forward, backward)
         return lambda theta, args=None: residuals(theta)
 
     def subsample_rows(self, rows: int) -> np.ndarray:
