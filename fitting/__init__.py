@@ -6,3 +6,5 @@ custom VJP (docs/gradients.md).
 """
 
 from .rollout import marionette_rollout as marionette_rollout
+from .calibration_data import read_calibration_data as read_calibration_data
+from .calibration_fit import calibrate_session as calibrate_session

@@ -250,8 +250,11 @@ class CalibrationProblem:
                 jacobian[:, j] = (self.host_residuals(up) - value) / step
         return value, jacobian
 
-    def jax_residuals(self) -> Callable:
-        """``r(theta, args)`` in JAX through the reverse-mode rollout wrapper (custom VJP)."""
+    def jax_residuals(self) -> tuple[Callable, dict]:
+        """``(r, base)``: ``r(theta, base)`` in JAX through the reverse-mode rollout wrapper
+        (custom VJP), and ``base``, the rollout's fixed inputs (bars, initial state) as JAX
+        arrays. Pass ``base`` as the solver's ``args`` so that, under ``jit``, it is traced
+        like ``theta`` rather than closed over."""
         import jax.numpy as jnp
 
         from .rollout import marionette_rollout
@@ -259,11 +262,11 @@ class CalibrationProblem:
         rollout = marionette_rollout(self.engine)
         base = {f.name: jnp.asarray(getattr(self.base, f.name)) for f in dataclasses.fields(self.base)}
 
-        def residuals(theta, args=None):
+        def residuals(theta, base):
             outputs = rollout({**base, **self.constants(theta)})
             return self.residuals_from_outputs(outputs)
 
-        return residuals
+        return residuals, base
 
     def jax_fd_residuals(self) -> Callable:
         """``r(theta, args)`` with a custom JVP ``J v``, ``J`` from :meth:`fd_jacobian` (one-sided,

@@ -117,22 +117,22 @@ def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps
                                       options={"jac": "fwd"}, max_steps=int(max_steps), throw=False)
     elif solver == "lm-bwd":
         chosen = problem.subsample_rows(rows)
-        full = problem.jax_residuals()
+        full, base = problem.jax_residuals()
         index = jnp.asarray(chosen)
 
         def fn(theta, args):
-            return full(theta)[index]
+            return full(theta, args)[index]
 
-        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta0,
+        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta0, args=base,
                                       options={"jac": "bwd"}, max_steps=int(max_steps), throw=False)
     else:
-        full = problem.jax_residuals()
+        full, base = problem.jax_residuals()
 
         def fn(theta, args):
-            r = full(theta)
+            r = full(theta, args)
             return 0.5 * jnp.sum(r * r)
 
-        solution = optx.minimise(fn, optx.BFGS(rtol=rtol, atol=atol), theta0, max_steps=int(max_steps),
+        solution = optx.minimise(fn, optx.BFGS(rtol=rtol, atol=atol), theta0, args=base, max_steps=int(max_steps),
                                  throw=False)
     theta = np.asarray(solution.value, dtype=np.float64)
     converged = bool(solution.result == optx.RESULTS.successful)
@@ -158,11 +158,11 @@ def jacobian_at(problem: CalibrationProblem, theta: np.ndarray, method: str,
         import jax.numpy as jnp
 
         jax.config.update("jax_enable_x64", True)
-        full = problem.jax_residuals()
+        full, base = problem.jax_residuals()
         index = jnp.asarray(np.arange(problem.residual_count) if rows is None else rows)
 
         def fn(t):
-            r = full(t)[index]
+            r = full(t, base)[index]
             return r, r
 
         jacobian, residuals = jax.jacrev(fn, has_aux=True)(jnp.asarray(theta))
