@@ -128,9 +128,18 @@ def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps
     else:
         full, base = problem.jax_residuals()
 
-        def fn(theta, args):
+        def loss(theta, args):
             r = full(theta, args)
             return 0.5 * jnp.sum(r * r)
+
+        # BFGS starts from the identity as its inverse Hessian, so its first trial step is the raw
+        # gradient, here ~1e6 in log space (exp overflows). The loss is scaled so that its gradient
+        # at the start has norm 0.01: a first trial step of at most 1 % in any constant.
+        _, gradient = jax.value_and_grad(loss)(theta0, base)
+        scale = 0.01 / float(jnp.linalg.norm(gradient))
+
+        def fn(theta, args):
+            return scale * loss(theta, args)
 
         solution = optx.minimise(fn, optx.BFGS(rtol=rtol, atol=atol), theta0, args=base, max_steps=int(max_steps),
                                  throw=False)
