@@ -25,7 +25,6 @@ Solvers (measured costs in docs/calibration.md):
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
@@ -311,10 +310,6 @@ class CalibrationProblem:
     def target_slices(self) -> dict[str, tuple[int, int]]:
         """Residual index range of each target: ``{"bodies": (a, b), "feedback": (a, b)}``."""
         return dict(self._rows_of)
-
-    def run_seconds(self) -> Callable[[], float]:
-        start = time.perf_counter()
-        return lambda: time.perf_counter() - start
 
 
 def _array_module(value):

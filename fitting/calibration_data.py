@@ -24,7 +24,6 @@ message) or a non-finite value, or when it is too short for one puppet step.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -310,8 +309,6 @@ def scene_for_replay_or_device(session: Session) -> Scene:
     """:func:`scene_for_replay` when every bar has recorded poses; else the same with the
     device-driven bars left on the scene's own trajectory (their inputs come from the device
     samples; the scene's trajectory only places the strings' tops at t = 0)."""
-    import dataclasses as dc
-
     scene = session.scene
     missing = [b.name for b in scene.bars if len(session.channels.get(f"/bar/{b.name}/pose", {}).get("t", ())) == 0]
     if not missing:
@@ -321,11 +318,5 @@ def scene_for_replay_or_device(session: Session) -> Scene:
         trajectory = next(b.trajectory for b in scene.bars if b.name == bar)
         stand_in[f"/bar/{bar}/pose"] = {"t": np.array([0.0]), "position": trajectory.positions[:1],
                                         "rotation": trajectory.rotations[:1]}
-    return scene_for_replay(dc.replace(session, channels=stand_in))
+    return scene_for_replay(dataclasses.replace(session, channels=stand_in))
 
-
-def check_strings(data: CalibrationData, names: Sequence[str]) -> None:
-    """Refuses string names the session does not have (for parameter lists naming strings)."""
-    unknown = [n for n in names if n not in data.strings]
-    if unknown:
-        raise ValueError(f"{data.path}: strings {unknown} are not in this session (it has {data.strings})")

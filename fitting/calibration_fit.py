@@ -87,16 +87,24 @@ def _rms(residuals: Mapping[str, np.ndarray]) -> dict[str, float]:
     return {k: float(np.sqrt(np.mean(v**2))) for k, v in residuals.items()}
 
 
+#: The solvers' variable is ``u = (theta - theta_start) / STEP_UNIT``: one unit is a 1 % change of a
+#: constant, so one absolute tolerance can speak of constants and residuals alike (below).
+STEP_UNIT = 1e-2
+
+
 def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps: int = 50, rows: int = 96,
-                rtol: float = 1e-6, atol: float = 1e-6) -> dict[str, Any]:
+                atol: float = 1e-3, rtol: float = 0.0) -> dict[str, Any]:
     """Minimises ``0.5 |r|^2`` from ``problem.theta_start``; returns ``theta``, ``steps``,
     ``converged``, ``message``, ``rows`` (the residual indices the solver used, or None for
     all), ``forward_passes``, ``backward_passes``, ``seconds``.
 
-    The solvers stop when a step changes every log-constant by less than ``atol + rtol |theta|``
-    and the loss by less than ``atol + rtol |loss|`` (optimistix's Cauchy test); ``1e-6`` in
-    log space is a millionth of each constant, far below the standard errors (1e-4 and more
-    relative on the test problem).
+    Termination is optimistix's Cauchy test on the solver variable ``u`` (:data:`STEP_UNIT`) and
+    on what it minimises: a step must change every ``u`` by less than ``atol + rtol |u|`` and
+    (least squares) every scaled residual by less than ``atol + rtol |r|``, or (BFGS) the
+    loss by less than that. With ``atol = 1e-3``: every constant by less than 1e-5 of itself,
+    every residual by less than a thousandth of its noise scale. (The test is per residual, so
+    an absolute tolerance of 1e-6 on residuals of noise size 1 is never met: the solvers then
+    ran to ``max_steps``, 28-60 steps where 4-6 had converged the loss.)
     """
     import jax
     import jax.numpy as jnp
@@ -110,40 +118,49 @@ def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps
     before = dict(problem.counts)
     start = time.perf_counter()
     theta0 = jnp.asarray(problem.theta_start)
+    u0 = jnp.zeros_like(theta0)
+
+    def theta_of(u):
+        return theta0 + STEP_UNIT * u
+
     chosen = None
     if solver == "lm-fd":
-        fn = problem.jax_fd_residuals()
-        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta0,
+        residuals = problem.jax_fd_residuals()
+
+        def fn(u, args):
+            return residuals(theta_of(u))
+
+        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0,
                                       options={"jac": "fwd"}, max_steps=int(max_steps), throw=False)
     elif solver == "lm-bwd":
         chosen = problem.subsample_rows(rows)
         full, base = problem.jax_residuals()
         index = jnp.asarray(chosen)
 
-        def fn(theta, args):
-            return full(theta, args)[index]
+        def fn(u, args):
+            return full(theta_of(u), args)[index]
 
-        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), theta0, args=base,
+        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0, args=base,
                                       options={"jac": "bwd"}, max_steps=int(max_steps), throw=False)
     else:
         full, base = problem.jax_residuals()
 
-        def loss(theta, args):
-            r = full(theta, args)
+        def loss(u, args):
+            r = full(theta_of(u), args)
             return 0.5 * jnp.sum(r * r)
 
         # BFGS starts from the identity as its inverse Hessian, so its first trial step is the raw
-        # gradient, here ~1e6 in log space (exp overflows). The loss is scaled so that its gradient
-        # at the start has norm 0.01: a first trial step of at most 1 % in any constant.
-        _, gradient = jax.value_and_grad(loss)(theta0, base)
-        scale = 0.01 / float(jnp.linalg.norm(gradient))
+        # gradient, ~1e4 units here (exp overflows). The loss is scaled so that its gradient at the
+        # start has norm 1: a first trial step of 1 unit, 1 % in the constants.
+        _, gradient = jax.value_and_grad(loss)(u0, base)
+        scale = 1.0 / float(jnp.linalg.norm(gradient))
 
-        def fn(theta, args):
-            return scale * loss(theta, args)
+        def fn(u, args):
+            return scale * loss(u, args)
 
-        solution = optx.minimise(fn, optx.BFGS(rtol=rtol, atol=atol), theta0, args=base, max_steps=int(max_steps),
+        solution = optx.minimise(fn, optx.BFGS(rtol=rtol, atol=atol), u0, args=base, max_steps=int(max_steps),
                                  throw=False)
-    theta = np.asarray(solution.value, dtype=np.float64)
+    theta = np.asarray(theta_of(solution.value), dtype=np.float64)
     converged = bool(solution.result == optx.RESULTS.successful)
     message = "converged" if converged else f"not converged: {optx.RESULTS[solution.result]}"
     return {"theta": theta, "steps": int(solution.stats["num_steps"]), "converged": converged, "message": message,
