@@ -14,6 +14,8 @@ serial on the CPU). Reported per length, medians over ``--repeats``:
   the cotangent seeds written in, the captured reverse pass, the gradients read out);
 - ``backward, no capture``: the same with ``capture=False`` (every launch from Python), at
   the shortest length only, to show what capture buys;
+- ``backward / forward``: the median over the repeats of each backward's time over the
+  forward run just before it (adjacent in time, so that a changing machine load cancels);
 - memory: the bytes the engine allocates for gradients (``engine.memory()``: the taped
   segment's arrays and gradients, the checkpoints, the host outputs), and the process's
   peak resident set (``ru_maxrss``) above its size after the model was built and the
@@ -55,12 +57,12 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def one(seconds: float, repeats: int, capture: bool) -> dict:
+def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | None = None) -> dict:
     scene = dm.load_scene("hanging")
     scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
     model = MarionetteModel(scene, requires_grad=True)
     steps = round(seconds / model.puppet_dt)
-    engine = MarionetteGradient(model, steps, capture=capture)
+    engine = MarionetteGradient(model, steps, capture=capture, checkpoint_steps=checkpoint_steps)
     inputs = engine.scene_inputs()
     cot = {k: np.ones(s) for k, s in engine.output_shapes.items()}
     base = _rss_mib()
@@ -80,15 +82,18 @@ def one(seconds: float, repeats: int, capture: bool) -> dict:
     return {"seconds": seconds, "puppet_steps": steps, "string_steps": engine.string_steps,
             "checkpoint_steps": engine.checkpoint_steps, "segments": len(engine.segments), "capture": capture,
             "forward_s": statistics.median(forward), "backward_s": statistics.median(backward),
+            "ratio": statistics.median(b / f for f, b in zip(forward, backward)),
             "spread_backward": (max(backward) - min(backward)) / statistics.median(backward),
             "first_s": first, "tape_mib": mem["tape"] / MIB, "checkpoints_mib": mem["checkpoints"] / MIB,
             "outputs_mib": mem["outputs"] / MIB, "rss_above_model_mib": _peak_mib() - base}
 
 
-def _run(seconds: float, repeats: int, capture: bool = True) -> dict:
+def _run(seconds: float, repeats: int, capture: bool = True, checkpoint_steps: int | None = None) -> dict:
     cmd = [sys.executable, __file__, "--one", str(seconds), "--repeats", str(repeats)]
     if not capture:
         cmd.append("--no-capture")
+    if checkpoint_steps:
+        cmd += ["--checkpoint-steps", str(checkpoint_steps)]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -100,15 +105,22 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--one", type=float, help=argparse.SUPPRESS)
     p.add_argument("--no-capture", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--checkpoint-steps", type=int, nargs="*", default=[],
+                   help="also run every length with these segment lengths C (besides the default sqrt(P))")
     args = p.parse_args()
     if args.one is not None:
-        print(json.dumps(one(args.one, args.repeats, not args.no_capture)))
+        c = args.checkpoint_steps[0] if args.checkpoint_steps else None
+        print(json.dumps(one(args.one, args.repeats, not args.no_capture, c)))
         return
     print(f"# {platform.processor() or platform.machine()}, warp {wp.__version__}, hanging scene 6 x 50, "
           "1 kHz / 30 Hz, smoothed contact")
-    rows = [_run(s, args.repeats) for s in args.seconds]
+    rows = []
+    for s in args.seconds:
+        rows.append(_run(s, args.repeats))
+        rows += [_run(s, args.repeats, checkpoint_steps=c) for c in args.checkpoint_steps]
     if args.memory_seconds:
         rows.append(_run(args.memory_seconds, 1))
+        rows += [_run(args.memory_seconds, 1, checkpoint_steps=c) for c in args.checkpoint_steps]
     rows.append(_run(min(args.seconds), args.repeats, capture=False))
     print("| rollout | P | C | forward [s] | backward [s] | backward / forward | tape [MiB] | checkpoints [MiB] "
           "| outputs [MiB] | peak RSS above model [MiB] |")
@@ -116,7 +128,7 @@ def main() -> None:
     for r in rows:
         label = f"{r['seconds']:g} s" + ("" if r["capture"] else " (no capture)")
         print(f"| {label} | {r['puppet_steps']} | {r['checkpoint_steps']} | {r['forward_s']:.3f} | "
-              f"{r['backward_s']:.3f} | {r['backward_s'] / r['forward_s']:.1f} | {r['tape_mib']:.1f} | "
+              f"{r['backward_s']:.3f} | {r['ratio']:.1f} | {r['tape_mib']:.1f} | "
               f"{r['checkpoints_mib']:.2f} | {r['outputs_mib']:.1f} | {r['rss_above_model_mib']:.0f} |")
     print("\nfirst backward (plans the segments, captures their graphs):",
           ", ".join(f"{r['seconds']:g} s: {r['first_s']:.1f} s" for r in rows))

@@ -221,6 +221,7 @@ class MarionetteGradient:
         m = model
         self.segments = [(a, min(a + self.checkpoint_steps, self.puppet_steps))
                          for a in range(0, self.puppet_steps, self.checkpoint_steps)]
+        self._keep_only_differentiated_gradients()
         self.solver = SolverMarionette(m)
         self.state = m.state()
         self.spare = m.state()
@@ -244,7 +245,7 @@ class MarionetteGradient:
         }
         self._chunks = {}
         self._capture = bool(capture)
-        self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), capture=capture)
+        self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), self.checkpoint_steps, capture=capture)
         self._inputs: RolloutInputs | None = None
         self._checkpoints: list[Checkpoint] = []
 
@@ -392,6 +393,17 @@ class MarionetteGradient:
         host = sum(np.asarray(getattr(self._inputs, k)).nbytes for k in INPUT_FIELDS) if self._inputs else 0
         host += sum(int(np.prod(s)) * 8 for s in self.output_shapes.values())
         return {"checkpoints": checkpoints, "tape": self._taped.nbytes, "outputs": host}
+
+    def _keep_only_differentiated_gradients(self) -> None:
+        """Drops the gradients of the model arrays no input maps to (masses, rest lengths,
+        drag, ground and joint constants...): every adjoint kernel would otherwise
+        accumulate into them too, atomically, at every string step (measured: the segment
+        springs' reverse pass cost 6x their forward with them, 2.7x without)."""
+        kept = {id(a) for a in self._parameter_arrays()}
+        for owner in (self.model.strings, self.model.puppet):
+            for value in vars(owner).values():
+                if isinstance(value, wp.array) and value.requires_grad and id(value) not in kept:
+                    value.requires_grad = False
 
     def _parameter_arrays(self) -> list[wp.array]:
         s, pup = self.model.strings, self.model.puppet

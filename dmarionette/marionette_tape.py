@@ -10,11 +10,12 @@ tie force and taut flags straight into rows of the step's ``(n, S)`` output arra
 copies), and the tied points are evaluated on a shallow copy of the puppet state with its
 own body-pose arrays (the puppet step evaluates its input state's body poses again).
 
-All arrays of a ``K``-step segment are allocated once (a :class:`_Plan`) and reused by
-every segment of that length: the forward launches on the tape and the reverse pass are
-then captured as two Warp graphs (CPU or CUDA) and replayed per segment, with the
-checkpoint, the inputs and the cotangent seeds written into the planned arrays in place
-between the replays. Without capture the same launches run one by one.
+The arrays of a ``C``-step segment are allocated once (a :class:`_Plan`) and reused by
+every segment (a shorter last one uses its first steps): for each segment length the
+forward launches on the tape and the reverse pass are captured as two Warp graphs (CPU
+or CUDA) and replayed per segment, with the checkpoint, the inputs and the cotangent
+seeds written into the planned arrays in place between the replays. Without capture the
+same launches run one by one.
 
 The forward values are those of ``SolverMarionette`` (same kernels, same order), which
 :meth:`TapedSegment.backward` checks: the taped re-run must end exactly where the untaped
@@ -79,7 +80,6 @@ class _Plan:
             self.controls.append(c)
             self.steps_arrays.append(self._step_arrays(m, n, s, p, nb, npt))
         self.final_points = self._points_arrays(nb, npt)
-        self.graphs = None
 
     def zeros(self, shape, dtype, grad=True) -> wp.array:
         a = wp.zeros(shape, dtype=dtype, requires_grad=grad, device=self.device)
@@ -153,20 +153,24 @@ class TapedSegment:
         model: the ``MarionetteModel`` (``requires_grad=True``).
         solver: the ``SolverMarionette`` of the untaped forward (its feedback kernel is reused).
         parameters: the model arrays whose gradients the engine accumulates over segments.
+        steps: the longest segment (puppet steps); one set of arrays of that length serves
+            every segment (a shorter last one uses its first steps).
         capture: replay each segment length's taped forward and reverse pass as Warp graphs.
     """
 
-    def __init__(self, model, solver, parameters: list[wp.array], capture: bool = True):
+    def __init__(self, model, solver, parameters: list[wp.array], steps: int, capture: bool = True):
         self.model = model
         self.solver = solver
         self.parameters = parameters
+        self.steps = int(steps)
         self.capture = bool(capture)
-        self._plans: dict[int, _Plan] = {}
+        self._plan: _Plan | None = None
+        self._graphs: dict[tuple[int, bool], tuple] = {}
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the planned segments (arrays and gradients; not the graphs' own records)."""
-        return sum(plan.nbytes for plan, _ in self._plans.values())
+        """Bytes of the planned segment's arrays and gradients (not the graphs' own records)."""
+        return self._plan.nbytes if self._plan is not None else 0
 
     # ------------------------------------------------------------------ the taped step
     def _points(self, puppet_state, arrays: dict):
@@ -225,17 +229,17 @@ class TapedSegment:
                       outputs=[puppet_control.spring_anchor_pos, puppet_control.spring_anchor_vel], device=m.device)
         m.puppet_solver.step(state_in.puppet, state_out.puppet, puppet_control, m.puppet_dt)
 
-    def _forward(self, plan: _Plan, last: bool, tape, clear: list[wp.array]) -> None:
-        """The segment's launches on ``tape``; then the gradient buffers ``clear`` zeroed."""
+    def _forward(self, plan: _Plan, steps: int, last: bool, tape, clear: list[wp.array]) -> None:
+        """The launches of a ``steps``-long segment on ``tape``; then the gradient buffers ``clear`` zeroed."""
         with tape:
-            for k in range(plan.steps):
+            for k in range(steps):
                 self._step(plan.states[k], plan.states[k + 1], plan.controls[k], plan.steps_arrays[k], tape)
             if last:
-                self._points(plan.states[-1].puppet, plan.final_points)
+                self._points(plan.states[steps].puppet, plan.final_points)
         for g in clear:
             g.zero_()
 
-    def _residue(self, plan: _Plan, last: bool) -> list[wp.array]:
+    def _residue(self, plan: _Plan, steps: int, last: bool) -> list[wp.array]:
         """The gradient buffers a reverse pass leaves non-zero.
 
         Warp's adjoint of a plain array store reads the element's gradient and zeroes it, so
@@ -247,7 +251,7 @@ class TapedSegment:
         """
         saved = [a.grad.numpy().copy() for a in self.parameters]
         warm = wp.Tape()
-        self._forward(plan, last, warm, plan.grads)
+        self._forward(plan, steps, last, warm, plan.grads)
         for g in plan.grads:
             upload_values(g, np.ones(g.numpy().shape))
         warm.backward()
@@ -258,21 +262,25 @@ class TapedSegment:
             upload_values(a.grad, g)
         return residue
 
-    def _plan(self, steps: int, last: bool) -> tuple[_Plan, wp.Tape]:
+    def _prepare(self, steps: int, last: bool):
+        """The planned arrays, and the captured graphs of a ``(steps, last)`` segment (None
+        without capture)."""
+        if self._plan is None:
+            self._plan = _Plan(self.model, self.steps)
+        plan = self._plan
+        if not self.capture:
+            return plan, None
         key = (steps, last)
-        if key not in self._plans:
-            plan = _Plan(self.model, steps)
+        if key not in self._graphs:
+            # The eager pass of _residue also loads every module before capture begins.
+            clear = self._residue(plan, steps, last)
             tape = wp.Tape()
-            if self.capture:
-                # The eager pass of _residue also loads every module before capture begins.
-                plan.clear = self._residue(plan, last)
-                with wp.ScopedCapture(device=self.model.device) as forward:
-                    self._forward(plan, last, tape, plan.clear)
-                with wp.ScopedCapture(device=self.model.device) as reverse:
-                    tape.backward()
-                plan.graphs = (forward.graph, reverse.graph)
-            self._plans[key] = (plan, tape)
-        return self._plans[key]
+            with wp.ScopedCapture(device=self.model.device) as forward:
+                self._forward(plan, steps, last, tape, clear)
+            with wp.ScopedCapture(device=self.model.device) as reverse:
+                tape.backward()
+            self._graphs[key] = (forward.graph, reverse.graph, tape)
+        return plan, self._graphs[key]
 
     # ------------------------------------------------------------------ reverse pass
     def backward(self, checkpoint, inputs, a: int, b: int, *, last: bool, cotangents: dict,
@@ -295,23 +303,26 @@ class TapedSegment:
         m = self.model
         n = m.substeps
         steps = b - a
-        plan, tape = self._plan(steps, last)
-        states = plan.states
+        if steps > self.steps:
+            raise ValueError(f"segment {a}..{b}: {steps} puppet steps; planned for at most {self.steps}")
+        plan, graphs = self._prepare(steps, last)
+        states = plan.states[:steps + 1]
+        controls = plan.controls[:steps]
         checkpoint.load(states[0])
-        for k, control in enumerate(plan.controls):
+        for k, control in enumerate(controls):
             rows = slice((a + k) * n, (a + k + 1) * n)
             upload_values(control.top_q, inputs.top_q[rows])
             upload_values(control.bar_q, inputs.bar_q[rows])
             upload_values(control.bar_qd, inputs.bar_qd[rows])
-        if plan.graphs is not None:
-            wp.capture_launch(plan.graphs[0])
+        if graphs is not None:
+            wp.capture_launch(graphs[0])
         else:
             tape = wp.Tape()  # not reset(): that would clear the parameters' accumulated gradients
-            self._forward(plan, last, tape, plan.grads)
+            self._forward(plan, steps, last, tape, plan.grads)
         if expected_end is not None:
             _check_rerun(expected_end, states[-1], a, b)
         # Seed: the per-step outputs of this segment, then the state adjoint from the next one.
-        records = list(plan.steps_arrays) + ([plan.final_points] if last else [])
+        records = list(plan.steps_arrays[:steps]) + ([plan.final_points] if last else [])
         for k, arrays in enumerate(records):
             p = a + k
             if "joint_q" in cotangents:
@@ -329,11 +340,11 @@ class TapedSegment:
                     _add_grad(getattr(states[k + 1], name), cotangents[name][rows])
         if adjoint_end is not None:
             adjoint_end.seed(states[-1])
-        if plan.graphs is not None:
-            wp.capture_launch(plan.graphs[1])
+        if graphs is not None:
+            wp.capture_launch(graphs[1])
         else:
             tape.backward()
-        for k, control in enumerate(plan.controls):
+        for k, control in enumerate(controls):
             rows = slice((a + k) * n, (a + k + 1) * n)
             grads["top_q"][rows] += control.top_q.grad.numpy()
             grads["bar_q"][rows] += control.bar_q.grad.numpy()

@@ -73,7 +73,7 @@ def marionette_rollout(engine: MarionetteGradient) -> Callable[[dict[str, jax.Ar
             if v.shape != in_specs[k].shape:
                 raise ValueError(f"marionette rollout inputs[{k!r}]: got shape {v.shape}; "
                                  f"expected {in_specs[k].shape}")
-            if not isinstance(v, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(v))):
+            if not isinstance(inputs[k], jax.core.Tracer) and not np.all(np.isfinite(np.asarray(inputs[k]))):
                 # concrete values are checked here; traced ones (under jit) by the engine, whose
                 # ValueError then reaches the caller wrapped in JAX's runtime error
                 raise ValueError(f"marionette rollout inputs[{k!r}]: contains NaN or infinity; expected finite values")
