@@ -6,8 +6,10 @@
 - ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop
   (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time;
-- ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md).
+- ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md);
 - ``dmarionette author KEYFRAMES``: bar motions that reach keyframe poses (docs/authoring.md;
+  needs the ``fitting`` extra, imported only by this command);
+- ``dmarionette calibrate SESSION``: fit string constants to a recorded session (docs/calibration.md;
   needs the ``fitting`` extra, imported only by this command).
 
 ``--help`` on every command.
@@ -147,6 +149,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="the scene (name or TOML file) whose puppet the trajectory was simulated with "
                              "(default: the scene the file names, else the default marionette)")
     _add_author_parser(sub)
+    _add_calibrate_parser(sub)
     return parser
 
 
@@ -228,6 +231,89 @@ def _run_export(args: argparse.Namespace) -> int:
         files["bvh"] = str(export_bvh(trajectory, out / "motion.bvh", fps=args.fps))
     if args.format in ("gltf", "all"):
         files["gltf"] = str(export_gltf(trajectory, out / "motion.glb"))
+    print(json.dumps(files, indent=2))
+    return 0
+
+
+def _add_calibrate_parser(sub) -> None:
+    calibrate = sub.add_parser(
+        "calibrate", help="fit the strings' constants (eq. 2 k, k_d per string) to a recorded session",
+        description="Fit string constants to a recorded session (docs/calibration.md): the recorded bar poses "
+                    "drive the simulation, the recorded body centres and/or feedback forces are the targets. "
+                    "Prints the fitted values with standard errors (Gauss-Newton) and the residuals before and "
+                    "after; writes OUT/calibration.json, OUT/calibration.png and OUT/calibrated.toml (a scene "
+                    "with the fitted constants, for 'dmarionette simulate'). Needs the 'fitting' extra.")
+    calibrate.add_argument("session", type=Path, help="the .mcap session file")
+    calibrate.add_argument("--targets", choices=["bodies", "feedback", "both"], default="bodies",
+                           help="fit the recorded body centres (default), the bars' feedback (exact reaction), "
+                                "or both")
+    calibrate.add_argument("--params", default="k,k_d",
+                           help="constants to fit, comma-separated: k, k_d (eq. 2, per tied string), k_s (string "
+                                "stiffness); ':shared' fits one value for every string (default: k,k_d)")
+    calibrate.add_argument("--out", type=Path, default=None, help="output folder (default: out/calibrate/<session>)")
+    calibrate.add_argument("--max-steps", type=int, default=50, help="solver steps at most (default: 50)")
+    calibrate.add_argument("--solver", choices=["lm-fd", "lm-bwd", "bfgs"], default="lm-fd",
+                           help="lm-fd: Levenberg-Marquardt, Jacobian by central differences of the rollout "
+                                "(default, cheapest); lm-bwd: reverse-mode Jacobian on --rows residuals; bfgs: "
+                                "BFGS on the loss with its reverse-mode gradient")
+    calibrate.add_argument("--start", default=None,
+                           help="start values, e.g. 'k=250,k_d=2.5' (default: the session scene's constants)")
+    calibrate.add_argument("--noise-position", type=float, default=1e-3,
+                           help="noise scale of a body coordinate [m] (default 1e-3)")
+    calibrate.add_argument("--noise-force", type=float, default=1e-2,
+                           help="noise scale of a force component [N] (default 1e-2)")
+    calibrate.add_argument("--known-noise", action="store_true",
+                           help="the noise scales are the true standard deviations (else the residual variance "
+                                "is estimated per target)")
+    calibrate.add_argument("--duration", type=float, default=None, help="use only the first S seconds")
+    calibrate.add_argument("--rows", type=int, default=96, help="residuals kept by --solver lm-bwd (default 96)")
+    calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
+    calibrate.add_argument("--quiet", action="store_true", help="no progress display")
+
+
+def _run_calibrate(args: argparse.Namespace) -> int:
+    try:  # the fitting extra (JAX, optimistix) is imported only here
+        from fitting.calibration_fit import calibrate_session
+        from fitting.calibration_report import format_table, write_outputs
+    except ImportError as error:
+        raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
+                           "pip install 'dmarionette[fitting]'") from None
+    start = None
+    if args.start:
+        start = {}
+        for item in args.start.split(","):
+            name, _, value = item.partition("=")
+            try:
+                start[name.strip()] = float(value)
+            except ValueError:
+                raise ValueError(f"--start: {item!r}: expected NAME=VALUE, e.g. k=250,k_d=2.5") from None
+    if args.max_steps < 1:
+        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
+    out = args.out if args.out is not None else Path("out") / "calibrate" / args.session.stem
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        print(f"calibrating {args.session} (the first run compiles the puppet kernels)", file=sys.stderr)
+        bar = tqdm(unit=" rollouts", desc="start", file=sys.stderr)
+
+    def progress(stage: str, count: int) -> None:
+        bar.set_description(stage, refresh=False)
+        bar.update(count - bar.n)
+
+    try:
+        result = calibrate_session(args.session, targets=args.targets, params=args.params, solver=args.solver,
+                                   max_steps=args.max_steps, start=start, noise_position=args.noise_position,
+                                   noise_force=args.noise_force, known_noise=args.known_noise,
+                                   duration=args.duration, rows=args.rows,
+                                   optimization_level=0 if args.fast_compile else 2,
+                                   progress=progress if bar is not None else None)
+    finally:
+        if bar is not None:
+            bar.close()
+    files = write_outputs(result, out, plot=not args.no_picture)
+    print(format_table(result))
     print(json.dumps(files, indent=2))
     return 0
 
@@ -414,6 +500,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.command == "replay":
             return _run_replay(args)
+        if args.command == "calibrate":
+            return _run_calibrate(args)
         if args.command == "bench":
             from .accuracy import run_sweep, write_outputs
 

@@ -18,5 +18,10 @@ from .objective import AuthoringObjective as AuthoringObjective
 from .rollout import marionette_rollout as marionette_rollout
 from .solve import solve as solve
 
+# Calibration (docs/calibration.md).
+from .calibration_data import read_calibration_data as read_calibration_data
+from .calibration_fit import calibrate_session as calibrate_session
+
 __all__ = ["AuthorSpec", "AuthoringObjective", "AuthoringProblem", "BarParameterisation", "KeyframeError",
-           "author", "build_problem", "keyframes_from_table", "load_keyframes", "marionette_rollout", "solve"]
+           "author", "build_problem", "calibrate_session", "keyframes_from_table", "load_keyframes",
+           "marionette_rollout", "read_calibration_data", "solve"]

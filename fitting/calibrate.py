@@ -1,0 +1,326 @@
+"""Calibration: fit string constants (eq. 2 ``k``, ``k_d`` per string, optionally ``k_s``) to a
+recorded session (docs/calibration.md).
+
+The parameters are the logarithms of the constants (so they stay positive), one per string
+or one shared by every string. The residuals are ``(simulated - recorded) / noise scale``
+for the chosen targets: body centres at the puppet rate and/or the exact reaction of the
+strings on each bar at the string rate (:mod:`fitting.calibration_data`). The rollout is
+:class:`dmarionette.marionette_grad.MarionetteGradient`, whose gradients come from Warp's tape
+(reverse mode only), exposed to JAX by :func:`fitting.rollout.marionette_rollout`.
+
+Solvers (measured costs in docs/calibration.md):
+
+- ``"lm-fd"`` (default): Levenberg-Marquardt (``optimistix.LevenbergMarquardt``) on every
+  residual, with the Jacobian from forward sensitivities by one-sided differences of the
+  rollout (``n + 1`` forward rollouts per linearisation for ``n`` parameters, whatever the
+  number of residuals). It enters optimistix as a function with a custom JVP ``J v``
+  (forward mode, optimistix's default ``jac="fwd"``).
+- ``"lm-bwd"``: Levenberg-Marquardt with the reverse-mode Jacobian (``jac="bwd"``: one
+  backward pass of the rollout per residual), on a subsample of the residuals
+  (``rows``, spread evenly over time and the targets).
+- ``"bfgs"``: BFGS (``optimistix.BFGS``) on the scalar loss ``0.5 |r|^2`` over every residual,
+  with its reverse-mode gradient (one forward and one backward pass per evaluation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+
+from .calibration_data import CalibrationData
+from .synthetic_session import SPEC_FIELDS
+
+__all__ = ["SOLVERS", "CalibrationProblem", "Parameter", "parse_parameters"]
+
+SOLVERS = ("lm-fd", "lm-bwd", "bfgs")
+#: Input field of the rollout engine for each constant.
+ENGINE_FIELDS = {"k": "tie_stiffness", "k_d": "tie_damping", "k_s": "string_stiffness"}
+_FD_STEP = 1e-5  # central-difference step in log space (truncation ~1e-10, round-off ~1e-11 relative)
+_FD_STEP_ONE_SIDED = 1e-6  # one-sided step (truncation ~1e-6 relative, round-off ~1e-10)
+
+
+@dataclasses.dataclass(frozen=True)
+class Parameter:
+    """One fitted constant: ``name`` (``k``, ``k_d``, ``k_s``) of the strings ``strings``
+    (indices; one parameter shared by them when ``shared``, else one per string)."""
+
+    name: str
+    shared: bool
+    strings: tuple[int, ...]
+
+    def labels(self, string_names: Sequence[str]) -> list[str]:
+        if self.shared:
+            return [f"{self.name}[shared]"]
+        return [f"{self.name}[{string_names[i]}]" for i in self.strings]
+
+    @property
+    def size(self) -> int:
+        return 1 if self.shared else len(self.strings)
+
+
+def parse_parameters(text: str | Sequence[str], data: CalibrationData) -> list[Parameter]:
+    """Parses ``"k,k_d"`` or ``"k,k_d,k_s:shared"``: constants fitted per string, or shared.
+
+    ``k`` and ``k_d`` (eq. 2) apply to the strings tied to a body point; ``k_s`` (the whole
+    string's stiffness) to every string.
+
+    Raises:
+        ValueError: an unknown constant, an unknown suffix, or a constant named twice.
+    """
+    items = [s.strip() for s in (text.split(",") if isinstance(text, str) else text) if s.strip()]
+    if not items:
+        raise ValueError(f"--params: got {text!r}; expected a comma-separated list of {sorted(ENGINE_FIELDS)}, "
+                         "each optionally ':shared' (e.g. 'k,k_d' or 'k,k_d,k_s:shared')")
+    tied = tuple(i for i, p in enumerate(data.scene.string_body_points) if p is not None)
+    params, seen = [], set()
+    for item in items:
+        name, _, mode = item.partition(":")
+        if name not in ENGINE_FIELDS:
+            raise ValueError(f"--params: unknown constant {name!r} in {text!r}; expected some of "
+                             f"{sorted(ENGINE_FIELDS)} (k, k_d: eq. 2 tie stiffness and damping; k_s: string "
+                             "stiffness)")
+        if mode not in ("", "shared", "per-string"):
+            raise ValueError(f"--params: {item!r}: expected '{name}', '{name}:shared' or '{name}:per-string'")
+        if name in seen:
+            raise ValueError(f"--params: {name!r} named twice in {text!r}")
+        seen.add(name)
+        strings = tied if name in ("k", "k_d") else tuple(range(len(data.scene.strings)))
+        if not strings:
+            raise ValueError(f"{data.path}: no string is tied to a body point, so {name!r} has no effect")
+        params.append(Parameter(name, mode == "shared", strings))
+    return params
+
+
+class CalibrationProblem:
+    """The residuals of a session as a function of the log-constants, and their Jacobians.
+
+    Args:
+        data: the session's inputs and targets.
+        params: the fitted constants (:func:`parse_parameters`).
+        start: start values by constant name: a scalar or one value per string ``(S,)``
+            (default: the constants the session's scene has).
+        noise_position: noise scale of a body-centre coordinate [m] (divides its residuals).
+        noise_force: noise scale of a reaction component [N].
+        optimization_level: Warp optimisation of the puppet kernels (0 compiles fast).
+        checkpoint_steps: puppet steps per taped segment of the gradient engine.
+    """
+
+    def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
+                 start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
+                 noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None):
+        from dmarionette.marionette import MarionetteModel
+        from dmarionette.marionette_grad import MarionetteGradient
+
+        for label, value in (("noise_position", noise_position), ("noise_force", noise_force)):
+            if not (np.isfinite(value) and value > 0.0):
+                raise ValueError(f"{label}: got {value}; expected a positive noise scale")
+        self.data = data
+        self.params = list(params)
+        self.noise = {"bodies": float(noise_position), "feedback": float(noise_force)}
+        try:
+            self.model = MarionetteModel(data.scene, optimization_level=optimization_level, requires_grad=True)
+        except ValueError as error:
+            raise ValueError(f"{data.path}: the session's scene cannot be simulated for calibration: {error}") \
+                from None
+        self.engine = MarionetteGradient(self.model, data.puppet_steps, checkpoint_steps=checkpoint_steps)
+        self.counts = {"forward": 0, "backward": 0}
+        self.on_forward: Callable[[int], None] | None = None
+        self._wrap_engine()
+        base = self.engine.scene_inputs()
+        base.top_q, base.bar_q, base.bar_qd = data.top_q, data.bar_q, data.bar_qd
+        self.base = base
+        self.string_names = [s.name for s in data.scene.strings]
+        self.labels = [label for p in self.params for label in p.labels(self.string_names)]
+        self.theta_start = self._start_theta(start or {})
+        self._rows_of = self._target_layout()
+
+    # ------------------------------------------------------------------ parameters
+    def _wrap_engine(self) -> None:
+        forward, backward = self.engine.forward, self.engine.backward
+
+        def counted_forward(inputs):
+            self.counts["forward"] += 1
+            if self.on_forward is not None:
+                self.on_forward(self.counts["forward"])
+            return forward(inputs)
+
+        def counted_backward(cotangents):
+            self.counts["backward"] += 1
+            return backward(cotangents)
+
+        self.engine.forward, self.engine.backward = counted_forward, counted_backward
+
+    def _start_theta(self, start: Mapping[str, float | Sequence[float]]) -> np.ndarray:
+        unknown = sorted(set(start) - {p.name for p in self.params})
+        if unknown:
+            raise ValueError(f"start values for {unknown}, which are not fitted (fitted: "
+                             f"{[p.name for p in self.params]})")
+        theta = []
+        for p in self.params:
+            scene_values = np.array([getattr(s, SPEC_FIELDS[p.name]) for s in self.data.scene.strings], float)
+            values = np.broadcast_to(np.asarray(start.get(p.name, scene_values), float), (len(scene_values),))
+            chosen = values[list(p.strings)]
+            if not np.all(np.isfinite(chosen) & (chosen > 0.0)):
+                raise ValueError(f"start value of {p.name}: got {chosen.tolist()}; expected positive numbers")
+            theta.append(np.log([np.exp(np.mean(np.log(chosen)))] if p.shared else chosen))
+        return np.concatenate(theta)
+
+    def constants(self, theta) -> dict[str, np.ndarray]:
+        """The engine's per-string constant arrays ``(S,)`` for log-parameters ``theta`` (numpy or JAX)."""
+        xp = _array_module(theta)
+        out, offset = {}, 0
+        for p in self.params:
+            field = ENGINE_FIELDS[p.name]
+            values = xp.asarray(getattr(self.base, field), dtype=xp.float64)
+            block = xp.exp(theta[offset:offset + p.size])
+            index = np.array(p.strings)
+            block = xp.broadcast_to(block, (len(index),))
+            values = values.at[index].set(block) if xp is not np else _set(values, index, block)
+            out[field] = values
+            offset += p.size
+        return out
+
+    def values(self, theta) -> np.ndarray:
+        """The fitted constants themselves, ``exp(theta)`` [N/m or N s/m]."""
+        return np.exp(np.asarray(theta, dtype=np.float64))
+
+    # ------------------------------------------------------------------ residuals
+    def _target_layout(self) -> dict[str, tuple[int, int]]:
+        """Where each target's residuals sit in the residual vector: name -> (start, stop)."""
+        d, layout, offset = self.data, {}, 0
+        names = self.model.puppet.body_names
+        missing = [b for b in d.bodies if b not in names]
+        if missing and d.body_pos is not None:
+            raise ValueError(f"{d.path}: bodies {missing} of the session are not in the simulated puppet {names}")
+        self._body_index = np.array([names.index(b) for b in d.bodies]) if d.body_pos is not None else None
+        if d.body_pos is not None:
+            size = d.puppet_steps * len(d.bodies) * 3
+            layout["bodies"] = (offset, offset + size)
+            offset += size
+        if d.bar_reaction is not None:
+            size = d.step_count * len(d.bars) * 3
+            layout["feedback"] = (offset, offset + size)
+            offset += size
+        self.residual_count = offset
+        return layout
+
+    def residuals_from_outputs(self, outputs: Mapping[str, object]):
+        """Scaled residuals from rollout outputs (a dict of arrays, numpy or JAX), ``(m,)``."""
+        d = self.data
+        xp = _array_module(outputs["body_pos"])
+        parts = []
+        if d.body_pos is not None:
+            simulated = outputs["body_pos"][1:, self._body_index]
+            parts.append(((simulated - d.body_pos[1:]) / self.noise["bodies"]).reshape(-1))
+        if d.bar_reaction is not None:
+            simulated = outputs["bar_reaction"][:, :len(d.bars)]
+            parts.append(((simulated - d.bar_reaction) / self.noise["feedback"]).reshape(-1))
+        return xp.concatenate(parts)
+
+    def host_residuals(self, theta: np.ndarray) -> np.ndarray:
+        """Residuals ``(m,)`` at ``theta`` from one forward rollout (numpy, no JAX)."""
+        inputs = dataclasses.replace(self.base, **self.constants(np.asarray(theta, np.float64)))
+        outputs = self.engine.forward(inputs)
+        return np.asarray(self.residuals_from_outputs(dataclasses.asdict(outputs)))
+
+    def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the
+        forward sensitivities by finite differences in log space, every residual at once).
+
+        ``central``: ``(r(t + h e_j) - r(t - h e_j)) / 2h`` with ``h = 1e-5`` (``2 n + 1``
+        rollouts; truncation ~1e-10, round-off ~1e-11 relative); else one-sided
+        ``(r(t + h e_j) - r(t)) / h`` with ``h = 1e-6`` (``n + 1`` rollouts; error ~1e-6
+        relative, which moves the Gauss-Newton steps, not the optimum they converge to).
+        """
+        theta = np.asarray(theta, np.float64)
+        value = self.host_residuals(theta)
+        jacobian = np.empty((self.residual_count, len(theta)))
+        step = _FD_STEP if central else _FD_STEP_ONE_SIDED
+        for j in range(len(theta)):
+            up = theta.copy()
+            up[j] += step
+            if central:
+                down = theta.copy()
+                down[j] -= step
+                jacobian[:, j] = (self.host_residuals(up) - self.host_residuals(down)) / (2 * step)
+            else:
+                jacobian[:, j] = (self.host_residuals(up) - value) / step
+        return value, jacobian
+
+    def jax_residuals(self) -> tuple[Callable, dict]:
+        """``(r, base)``: ``r(theta, base)`` in JAX through the reverse-mode rollout wrapper
+        (custom VJP), and ``base``, the rollout's fixed inputs (bars, initial state) as JAX
+        arrays. Pass ``base`` as the solver's ``args`` so that, under ``jit``, it is traced
+        like ``theta`` rather than closed over."""
+        import jax.numpy as jnp
+
+        from .rollout import marionette_rollout
+
+        rollout = marionette_rollout(self.engine)
+        base = {f.name: jnp.asarray(getattr(self.base, f.name)) for f in dataclasses.fields(self.base)}
+
+        def residuals(theta, base):
+            outputs = rollout({**base, **self.constants(theta)})
+            return self.residuals_from_outputs(outputs)
+
+        return residuals, base
+
+    def jax_fd_residuals(self) -> Callable:
+        """``r(theta, args)`` with a custom JVP ``J v``, ``J`` from :meth:`fd_jacobian` (one-sided,
+        computed once per linearisation): forward-mode Jacobians of it (``jax.linearize``,
+        ``jacfwd``) cost ``n + 1`` rollouts and no backward pass, and never build an ``(m, m)``
+        basis (a reverse-mode Jacobian would: one vector-Jacobian product per residual)."""
+        import jax
+        import jax.numpy as jnp
+
+        m, n = self.residual_count, len(self.theta_start)
+        value_shape = jax.ShapeDtypeStruct((m,), jnp.float64)
+        both = (value_shape, jax.ShapeDtypeStruct((m, n), jnp.float64))
+
+        @jax.custom_jvp
+        def residuals(theta):
+            return jax.pure_callback(lambda t: self.host_residuals(np.asarray(t)), value_shape, theta,
+                                     vmap_method="sequential")
+
+        @residuals.defjvp
+        def residuals_jvp(primals, tangents):
+            (theta,), (direction,) = primals, tangents
+            value, jacobian = jax.pure_callback(lambda t: self.fd_jacobian(np.asarray(t), central=False), both,
+                                                theta, vmap_method="sequential")
+            return value, jacobian @ direction
+
+        return lambda theta, args=None: residuals(theta)
+
+    def subsample_rows(self, rows: int) -> np.ndarray:
+        """About ``rows`` residual indices spread evenly over time for each target (in proportion
+        to its size), every coordinate of a chosen frame or step kept together."""
+        d = self.data
+        picked = []
+        total = self.residual_count
+        for target, (a, b) in self._rows_of.items():
+            per = 3 * (len(d.bodies) if target == "bodies" else len(d.bars))
+            times = (b - a) // per
+            want = max(1, round(rows * (b - a) / total / per))
+            chosen = np.unique(np.linspace(0, times - 1, min(want, times)).round().astype(int))
+            picked.append((a + chosen[:, None] * per + np.arange(per)[None, :]).reshape(-1))
+        return np.concatenate(picked)
+
+    def target_slices(self) -> dict[str, tuple[int, int]]:
+        """Residual index range of each target: ``{"bodies": (a, b), "feedback": (a, b)}``."""
+        return dict(self._rows_of)
+
+
+def _array_module(value):
+    if isinstance(value, np.ndarray) or np.isscalar(value):
+        return np
+    import jax.numpy as jnp
+
+    return jnp
+
+
+def _set(values: np.ndarray, index: np.ndarray, block: np.ndarray) -> np.ndarray:
+    values = np.array(values, dtype=np.float64)
+    values[index] = block
+    return values

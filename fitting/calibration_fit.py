@@ -1,0 +1,266 @@
+"""Running a calibration: the solver, the residuals before and after, the uncertainty.
+
+:func:`calibrate_session` reads a session, fits the chosen constants with one of
+:data:`fitting.calibrate.SOLVERS` and returns a :class:`CalibrationResult`;
+:mod:`fitting.calibration_report` writes it out (table, JSON, plot, scene file).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .calibrate import SOLVERS, CalibrationProblem, parse_parameters
+from .calibration_data import CalibrationData, read_calibration_data
+from .uncertainty import GaussNewtonUncertainty, gauss_newton_uncertainty
+
+__all__ = ["CalibrationResult", "calibrate_session", "fit_problem"]
+
+
+@dataclasses.dataclass
+class CalibrationResult:
+    """What a calibration found.
+
+    Attributes:
+        data: the session's inputs and targets.
+        labels: parameter labels, ``"k[head]"``, ``"k_s[shared]"``, ``(n,)``.
+        start, fitted: the constants before and after [N/m, N s/m], ``(n,)``.
+        uncertainty: the Gauss-Newton covariance and standard errors at the optimum.
+        rms_before, rms_after: RMS residual per target in its unit (``"bodies"`` [m],
+            ``"feedback"`` [N]).
+        residuals_before, residuals_after: unscaled residual vectors per target (body
+            ``(P, bodies, 3)`` [m], feedback ``(T, B, 3)`` [N]).
+        solver: the solver's name; ``solver_steps``; ``converged`` (optimistix's result);
+            ``message``.
+        jacobian: how the uncertainty's Jacobian was computed: ``method`` (``"fd"``: central
+            differences, ``"bwd"``: reverse mode), ``rows``, ``forward_passes``,
+            ``backward_passes``, ``seconds``.
+        cost: rollouts and seconds of the fit alone: ``forward_passes``, ``backward_passes``,
+            ``seconds``; and of the whole run (``total_seconds``).
+        noise: the noise scales used (``bodies`` [m], ``feedback`` [N]); ``known_noise``.
+    """
+
+    data: CalibrationData
+    parameters: list
+    labels: list[str]
+    start: np.ndarray
+    fitted: np.ndarray
+    uncertainty: GaussNewtonUncertainty
+    rms_before: dict[str, float]
+    rms_after: dict[str, float]
+    residuals_before: dict[str, np.ndarray]
+    residuals_after: dict[str, np.ndarray]
+    solver: str
+    solver_steps: int
+    converged: bool
+    message: str
+    jacobian: dict[str, Any]
+    cost: dict[str, Any]
+    noise: dict[str, float]
+    known_noise: bool
+    theta: np.ndarray
+
+    def table(self) -> list[dict[str, Any]]:
+        """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
+        u = self.uncertainty
+        return [{"label": label, "start": float(s), "fitted": float(f), "standard_error": float(e),
+                 "relative_error": float(r)}
+                for label, s, f, e, r in zip(self.labels, self.start, self.fitted, u.standard_error,
+                                              u.relative_error)]
+
+
+def _unscaled(problem: CalibrationProblem, residuals: np.ndarray) -> dict[str, np.ndarray]:
+    d, out = problem.data, {}
+    for target, (a, b) in problem.target_slices().items():
+        shape = (d.puppet_steps, len(d.bodies), 3) if target == "bodies" else (d.step_count, len(d.bars), 3)
+        out[target] = residuals[a:b].reshape(shape) * problem.noise[target]
+    return out
+
+
+def _rms(residuals: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """RMS over every coordinate of each target."""
+    return {k: float(np.sqrt(np.mean(v**2))) for k, v in residuals.items()}
+
+
+#: The solvers' variable is ``u = (theta - theta_start) / STEP_UNIT``: one unit is a 1 % change of a
+#: constant, so one absolute tolerance can speak of constants and residuals alike (below).
+STEP_UNIT = 1e-2
+
+
+def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps: int = 50, rows: int = 96,
+                atol: float = 1e-3, rtol: float = 0.0) -> dict[str, Any]:
+    """Minimises ``0.5 |r|^2`` from ``problem.theta_start``; returns ``theta``, ``steps``,
+    ``converged``, ``message``, ``rows`` (the residual indices the solver used, or None for
+    all), ``forward_passes``, ``backward_passes``, ``seconds``.
+
+    Termination is optimistix's Cauchy test on the solver variable ``u`` (:data:`STEP_UNIT`) and
+    on what it minimises: a step must change every ``u`` by less than ``atol + rtol |u|`` and
+    (least squares) every scaled residual by less than ``atol + rtol |r|``, or (BFGS) the
+    loss by less than that. With ``atol = 1e-3``: every constant by less than 1e-5 of itself,
+    every residual by less than a thousandth of its noise scale. (The test is per residual, so
+    an absolute tolerance of 1e-6 on residuals of noise size 1 is never met: the solvers then
+    ran to ``max_steps``, 28-60 steps where 4-6 had converged the loss.)
+    """
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    jax.config.update("jax_enable_x64", True)
+    if solver not in SOLVERS:
+        raise ValueError(f"solver: got {solver!r}; expected one of {list(SOLVERS)}")
+    if not (isinstance(max_steps, (int, np.integer)) and max_steps >= 1):
+        raise ValueError(f"max_steps: got {max_steps!r}; expected an integer >= 1")
+    before = dict(problem.counts)
+    start = time.perf_counter()
+    theta0 = jnp.asarray(problem.theta_start)
+    u0 = jnp.zeros_like(theta0)
+
+    def theta_of(u):
+        return theta0 + STEP_UNIT * u
+
+    chosen = None
+    if solver == "lm-fd":
+        residuals = problem.jax_fd_residuals()
+
+        def fn(u, args):
+            return residuals(theta_of(u))
+
+        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0,
+                                      options={"jac": "fwd"}, max_steps=int(max_steps), throw=False)
+    elif solver == "lm-bwd":
+        chosen = problem.subsample_rows(rows)
+        full, base = problem.jax_residuals()
+        index = jnp.asarray(chosen)
+
+        def fn(u, args):
+            return full(theta_of(u), args)[index]
+
+        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0, args=base,
+                                      options={"jac": "bwd"}, max_steps=int(max_steps), throw=False)
+    else:
+        full, base = problem.jax_residuals()
+
+        def loss(u, args):
+            r = full(theta_of(u), args)
+            return 0.5 * jnp.sum(r * r)
+
+        # BFGS starts from the identity as its inverse Hessian, so its first trial step is the raw
+        # gradient, ~1e4 units here (exp overflows). The loss is scaled so that its gradient at the
+        # start has norm 1: a first trial step of 1 unit, 1 % in the constants.
+        _, gradient = jax.value_and_grad(loss)(u0, base)
+        scale = 1.0 / float(jnp.linalg.norm(gradient))
+
+        def fn(u, args):
+            return scale * loss(u, args)
+
+        solution = optx.minimise(fn, optx.BFGS(rtol=rtol, atol=atol), u0, args=base, max_steps=int(max_steps),
+                                 throw=False)
+    theta = np.asarray(theta_of(solution.value), dtype=np.float64)
+    converged = bool(solution.result == optx.RESULTS.successful)
+    message = "converged" if converged else f"not converged: {optx.RESULTS[solution.result]}"
+    return {"theta": theta, "steps": int(solution.stats["num_steps"]), "converged": converged, "message": message,
+            "rows": chosen, "forward_passes": problem.counts["forward"] - before["forward"],
+            "backward_passes": problem.counts["backward"] - before["backward"],
+            "seconds": time.perf_counter() - start}
+
+
+def jacobian_at(problem: CalibrationProblem, theta: np.ndarray, method: str,
+                rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Residuals and Jacobian at ``theta`` (all rows, or ``rows``), by central differences
+    (``"fd"``) or reverse mode (``"bwd"``: one backward pass per row); returns them with the cost."""
+    before = dict(problem.counts)
+    start = time.perf_counter()
+    if method == "fd":
+        residuals, jacobian = problem.fd_jacobian(theta)
+        if rows is not None:
+            residuals, jacobian = residuals[rows], jacobian[rows]
+    elif method == "bwd":
+        import jax
+        import jax.numpy as jnp
+
+        jax.config.update("jax_enable_x64", True)
+        full, base = problem.jax_residuals()
+        index = jnp.asarray(np.arange(problem.residual_count) if rows is None else rows)
+
+        def fn(t):
+            r = full(t, base)[index]
+            return r, r
+
+        jacobian, residuals = jax.jacrev(fn, has_aux=True)(jnp.asarray(theta))
+        residuals, jacobian = np.asarray(residuals), np.asarray(jacobian)
+    else:
+        raise ValueError(f"jacobian: got {method!r}; expected 'fd' or 'bwd'")
+    cost = {"method": method, "rows": int(len(residuals)),
+            "forward_passes": problem.counts["forward"] - before["forward"],
+            "backward_passes": problem.counts["backward"] - before["backward"],
+            "seconds": time.perf_counter() - start}
+    return residuals, jacobian, cost
+
+
+def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str | Sequence[str] = "k,k_d",
+                      solver: str = "lm-fd", max_steps: int = 50, start: Mapping[str, Any] | None = None,
+                      noise_position: float = 1e-3, noise_force: float = 1e-2, known_noise: bool = False,
+                      duration: float | None = None, rows: int = 96, jacobian: str | None = None,
+                      optimization_level: int = 2, checkpoint_steps: int | None = None,
+                      progress=None, data: CalibrationData | None = None) -> CalibrationResult:
+    """Fits string constants to a recorded session.
+
+    Args:
+        path: the ``.mcap`` session.
+        targets: ``"bodies"``, ``"feedback"`` or ``"both"`` (:func:`read_calibration_data`).
+        params: the constants to fit (:func:`fitting.calibrate.parse_parameters`).
+        solver: ``"lm-fd"``, ``"lm-bwd"`` or ``"bfgs"`` (module doc of :mod:`fitting.calibrate`).
+        max_steps: solver steps at most.
+        start: start values by constant (default: the session scene's constants).
+        noise_position, noise_force: noise scales [m], [N] dividing the residuals.
+        known_noise: the noise scales are the true standard deviations (else the residuals'
+            variance per target is estimated at the optimum).
+        duration: use only the first ``duration`` seconds.
+        rows: residuals kept by ``lm-bwd`` (one backward pass each per solver step).
+        jacobian: how the uncertainty's Jacobian is computed: ``"fd"`` or ``"bwd"`` (default:
+            ``"bwd"`` on the solver's rows for ``lm-bwd``, else ``"fd"`` on every row).
+        optimization_level: Warp optimisation of the puppet kernels.
+        checkpoint_steps: puppet steps per taped segment.
+        progress: called as ``progress(stage, forward_passes)`` while it runs (a progress display).
+        data: the session already read (else read from ``path``).
+    """
+    total = time.perf_counter()
+    data = read_calibration_data(path, targets, duration=duration) if data is None else data
+    parameters = parse_parameters(params, data)
+    problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
+                                 noise_force=noise_force, optimization_level=optimization_level,
+                                 checkpoint_steps=checkpoint_steps)
+    stage = {"name": "start"}
+    if progress is not None:
+        problem.on_forward = lambda count: progress(stage["name"], count)
+    r0 = problem.host_residuals(problem.theta_start)
+    stage["name"] = "fit"
+    fit = fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows)
+    theta = fit["theta"]
+    stage["name"] = "uncertainty"
+    method = jacobian or ("bwd" if solver == "lm-bwd" else "fd")
+    used = fit["rows"] if solver == "lm-bwd" else None
+    residuals, jac, jac_cost = jacobian_at(problem, theta, method, used)
+    slices = problem.target_slices()
+    if used is None:
+        rows_of = {t: np.arange(a, b) for t, (a, b) in slices.items()}
+    else:
+        rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in slices.items()}
+    uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise)
+    stage["name"] = "residuals"
+    r1 = problem.host_residuals(theta)
+    before, after = _unscaled(problem, r0), _unscaled(problem, r1)
+    return CalibrationResult(
+        data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
+        fitted=problem.values(theta), uncertainty=uncertainty, rms_before=_rms(before), rms_after=_rms(after),
+        residuals_before=before, residuals_after=after, solver=solver, solver_steps=fit["steps"],
+        converged=fit["converged"], message=fit["message"], jacobian=jac_cost,
+        cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
+              "seconds": fit["seconds"], "total_seconds": time.perf_counter() - total,
+              "residual_count": problem.residual_count},
+        noise=dict(problem.noise), known_noise=known_noise, theta=theta)

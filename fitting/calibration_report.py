@@ -1,0 +1,166 @@
+"""Writing a calibration's results: the table, ``calibration.json``, ``calibration.png`` and the
+fitted constants as a scene file (``calibrated.toml``) that ``dmarionette simulate`` loads."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .calibration_fit import CalibrationResult
+from .synthetic_session import SPEC_FIELDS
+
+__all__ = ["calibrated_scene_table", "format_table", "result_summary", "write_calibrated_scene", "write_outputs"]
+
+_UNITS = {"k": "N/m", "k_d": "N s/m", "k_s": "N/m"}
+_RMS_UNITS = {"bodies": "m", "feedback": "N"}
+# StringSpec fields a [[strings]] table may hold (docs/scenes.md): the recorded constants go back in.
+_STRING_KEYS = ("particle_count", "mass", "load_mass", "stiffness", "internal_friction", "air_drag",
+                "ground_stiffness", "ground_absorption", "ground_friction", "tie_stiffness", "tie_damping",
+                "taut_fraction")
+
+
+def format_table(result: CalibrationResult) -> str:
+    """The fitted constants as a text table (what ``dmarionette calibrate`` prints)."""
+    lines = [f"{'constant':<22} {'start':>12} {'fitted':>12} {'std. error':>12} {'rel.':>9}  unit"]
+    for row in result.table():
+        unit = _UNITS[row["label"].split("[")[0]]
+        lines.append(f"{row['label']:<22} {row['start']:>12.5g} {row['fitted']:>12.6g} "
+                     f"{row['standard_error']:>12.3g} {100 * row['relative_error']:>8.3f}%  {unit}")
+    lines.append("")
+    for target in result.rms_before:
+        lines.append(f"RMS residual, {target:<8}: {result.rms_before[target]:.4g} -> {result.rms_after[target]:.4g} "
+                     f"{_RMS_UNITS[target]}")
+    u = result.uncertainty
+    lines.append(f"solver {result.solver}: {result.solver_steps} steps, {result.message}; "
+                 f"{result.cost['forward_passes']} forward and {result.cost['backward_passes']} backward rollouts, "
+                 f"{result.cost['seconds']:.1f} s")
+    lines.append(f"uncertainty: Jacobian by {'central differences' if result.jacobian['method'] == 'fd' else 'reverse mode'}"
+                 f" ({result.jacobian['rows']} residuals, {result.jacobian['forward_passes']} forward and "
+                 f"{result.jacobian['backward_passes']} backward rollouts), cond(J^T J) = {u.condition_number:.3g}")
+    return "\n".join(lines)
+
+
+def result_summary(result: CalibrationResult) -> dict[str, Any]:
+    """A JSON-ready summary (``calibration.json``)."""
+    u, d = result.uncertainty, result.data
+    return {
+        "session": str(d.path), "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
+        "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
+        "constants": result.table(),
+        "units": {label: _UNITS[label.split("[")[0]] for label in result.labels},
+        "rms_before": result.rms_before, "rms_after": result.rms_after, "rms_units": _RMS_UNITS,
+        "solver": {"name": result.solver, "steps": result.solver_steps, "converged": result.converged,
+                   "message": result.message, **result.cost},
+        "uncertainty": {"jacobian": result.jacobian, "condition_number": u.condition_number,
+                        "noise_variance": u.noise_variance, "known_noise": result.known_noise,
+                        "noise_scales": result.noise, "residual_count": u.residual_count,
+                        "correlation": u.correlation.tolist(), "covariance_log": u.covariance.tolist()},
+    }
+
+
+def calibrated_scene_table(result: CalibrationResult) -> dict[str, Any]:
+    """The session's scene (self-contained: puppet and bar motions inlined) with its recorded
+    string constants and the fitted ones, as a TOML table."""
+    record = result.data.session.scene_record
+    table = json.loads(record["table_json"]) if "table_json" in record else tomllib.loads(record["toml"])
+    scene = result.data.scene
+    fitted: dict[str, dict[str, float]] = {s.name: {} for s in scene.strings}
+    offset = 0
+    for p in result.parameters:
+        block = result.fitted[offset:offset + p.size]
+        for j, i in enumerate(p.strings):
+            fitted[scene.strings[i].name][SPEC_FIELDS[p.name]] = float(block[0 if p.shared else j])
+        offset += p.size
+    by_name = {s.name: s for s in scene.strings}
+    for entry in table.get("strings", []):
+        spec = by_name.get(entry.get("name"))
+        if spec is None:
+            continue
+        for key in _STRING_KEYS:  # the constants the session ran with (they may differ from its TOML)
+            value = getattr(spec, key)
+            entry[key] = int(value) if key == "particle_count" else float(value)
+        entry.update(fitted[spec.name])
+    info = table.setdefault("scene", {})
+    info["description"] = (f"{info.get('description', '')} Calibrated from {result.data.path.name}: "
+                           f"{len(result.labels)} constants ({result.solver}).").strip()
+    return table
+
+
+def write_calibrated_scene(result: CalibrationResult, path: str | Path) -> Path:
+    """Writes :func:`calibrated_scene_table` as TOML; ``dmarionette simulate PATH`` loads it."""
+    import tomli_w
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = (f"# Written by dmarionette calibrate from {result.data.path}.\n"
+              "# The session's scene with its puppet and bar motions inlined; the strings carry the\n"
+              f"# {len(result.labels)} fitted constants (see calibration.json). Format: docs/scenes.md.\n")
+    path.write_text(header + tomli_w.dumps(calibrated_scene_table(result)))
+    return path
+
+
+def write_plot(result: CalibrationResult, path: str | Path) -> Path:
+    """``calibration.png``: RMS residual over time before and after, and the constants (start,
+    fitted with 2 standard errors)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = result.data
+    names = sorted({label.split("[")[0] for label in result.labels}, key=["k", "k_d", "k_s"].index)
+    targets = list(result.rms_before)
+    fig, axes = plt.subplots(2, max(len(targets), len(names)), figsize=(6 * max(len(targets), len(names)), 7),
+                             squeeze=False)
+    for c, target in enumerate(targets):
+        ax = axes[0, c]
+        times = d.frame_time[1:] if target == "bodies" else d.step_time
+        scale, unit = (1e3, "mm") if target == "bodies" else (1.0, "N")
+        for label, residuals, style in (("before", result.residuals_before, "C3"),
+                                        ("after", result.residuals_after, "C0")):
+            rms = np.sqrt(np.mean(residuals[target] ** 2, axis=(1, 2))) * scale
+            ax.plot(times, rms, style, lw=1, label=f"{label} (RMS {getattr(result, f'rms_{label}')[target] * scale:.3g} {unit})")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(f"RMS residual [{unit}]")
+        ax.set_yscale("log")
+        ax.set_title("body centres" if target == "bodies" else "bar reaction")
+        ax.legend(fontsize=8)
+    for c in range(len(targets), axes.shape[1]):
+        axes[0, c].axis("off")
+    for c, name in enumerate(names):
+        ax = axes[1, c]
+        rows = [i for i, label in enumerate(result.labels) if label.split("[")[0] == name]
+        x = np.arange(len(rows))
+        ax.plot(x, result.start[rows], "x", color="C3", label="start")
+        ax.errorbar(x, result.fitted[rows], yerr=2 * result.uncertainty.standard_error[rows], fmt="o", color="C0",
+                    capsize=3, label="fitted ± 2 s.e.")
+        ax.set_xticks(x, [result.labels[i].split("[")[1].rstrip("]") for i in rows], rotation=30, fontsize=8)
+        ax.set_ylabel(f"{name} [{_UNITS[name]}]")
+        ax.legend(fontsize=8)
+    for c in range(len(names), axes.shape[1]):
+        axes[1, c].axis("off")
+    fig.suptitle(f"calibration of {d.path.name}: {result.solver}, {result.solver_steps} steps")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def write_outputs(result: CalibrationResult, out: str | Path, *, plot: bool = True) -> dict[str, str]:
+    """Writes ``calibration.json``, ``calibrated.toml`` and ``calibration.png`` into ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"scene": str(write_calibrated_scene(result, out / "calibrated.toml"))}
+    if plot:
+        files["plot"] = str(write_plot(result, out / "calibration.png"))
+    summary = result_summary(result)
+    summary["files"] = {**files, "summary": str(out / "calibration.json")}
+    (out / "calibration.json").write_text(json.dumps(summary, indent=2) + "\n")
+    files["summary"] = str(out / "calibration.json")
+    return files
+
