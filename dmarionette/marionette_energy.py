@@ -68,6 +68,7 @@ import numpy as np
 import warp as wp
 
 from .kernels.string_terms import string_terms
+from .rotations import quat_to_matrix
 from .string_model import StringModel, string_energy
 
 __all__ = [
@@ -180,22 +181,6 @@ def install_bar_work_meter(model) -> BarWorkMeter:
     return meter
 
 
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices from Warp quaternions ``(x, y, z, w)``, ``(..., 4) -> (..., 3, 3)``."""
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    r = np.empty(q.shape[:-1] + (3, 3))
-    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    r[..., 0, 1] = 2 * (x * y - z * w)
-    r[..., 0, 2] = 2 * (x * z + y * w)
-    r[..., 1, 0] = 2 * (x * y + z * w)
-    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    r[..., 1, 2] = 2 * (y * z - x * w)
-    r[..., 2, 0] = 2 * (x * z - y * w)
-    r[..., 2, 1] = 2 * (y * z + x * w)
-    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
-
-
 def puppet_contact_depths(model, body_pos: np.ndarray, body_rot: np.ndarray) -> dict[str, np.ndarray]:
     """Penetration [m] of every contact candidate (box corners, spheres) of a marionette's puppet.
 
@@ -211,7 +196,7 @@ def puppet_contact_depths(model, body_pos: np.ndarray, body_rot: np.ndarray) -> 
     body = contacts.point_body.numpy()
     local = contacts.point_local.numpy()
     radius = contacts.point_radius.numpy()
-    rot = _quat_matrix(np.asarray(body_rot, dtype=np.float64))
+    rot = quat_to_matrix(np.asarray(body_rot, dtype=np.float64))
     centre = np.asarray(body_pos)[body] + np.einsum("nij,nj->ni", rot[body], local)
     out = {"ground": radius - (centre[:, 1] - model.scene.ground_height)}
     if model.scene.chair is not None:
@@ -268,7 +253,7 @@ def puppet_energy(model, state) -> dict[str, float]:
     w = state.puppet.body_w.numpy()[0].copy()
     mass = puppet.body_mass.numpy()
     inertia = puppet.body_inertia.numpy()
-    r = _quat_matrix(rot)
+    r = quat_to_matrix(rot)
     w_body = np.einsum("nji,nj->ni", r, w)  # R^T w
     kinetic = 0.5 * float(np.sum(mass * np.sum(v**2, axis=1)) + np.sum(inertia * w_body**2))
     g = np.asarray(model.scene.gravity, dtype=np.float64)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .marionette_rollout import MarionetteTrajectory
+from .rotations import quat_to_matrix
 
 __all__ = ["render_marionette_animation"]
 
@@ -19,21 +20,11 @@ _BOX_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-
 _BOX_EDGES = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
 
 
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a Warp quaternion ``(x, y, z, w)``."""
-    x, y, z, w = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def _segments(trajectory: MarionetteTrajectory, f: int) -> list[np.ndarray]:
     """World-space line segments of the puppet's bodies at frame ``f``: box edges, sphere rings."""
     segments = []
     for b, (shape, size) in enumerate(trajectory.body_shape):
-        rotation = _quat_matrix(trajectory.body_rot[f, b])
+        rotation = quat_to_matrix(trajectory.body_rot[f, b])
         centre = trajectory.body_pos[f, b]
         if shape == "box":
             corners = centre + (_BOX_CORNERS * 0.5 * np.asarray(size)) @ rotation.T
