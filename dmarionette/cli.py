@@ -267,8 +267,6 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
     from .marionette_rollout import simulate_marionette
     from .trajectory_file import summarize_marionette, write_marionette_trajectory
 
-    if args.precision == "float32":
-        raise ValueError(f"{scene.source}: a marionette runs in float64 (the puppet solver is float64 only)")
     if not args.quiet:
         print("building the marionette (the first run compiles the puppet kernels)", file=sys.stderr)
     model = MarionetteModel(scene, optimization_level=0 if args.fast_compile else 2)
