@@ -121,7 +121,8 @@ def _parser() -> argparse.ArgumentParser:
     replay.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     bench = sub.add_parser("bench", help="measure what accuracy costs in time",
                            description="Benchmarks. 'accuracy': sweep particles per string, string step, "
-                                       "puppet rate and contact model against a refined reference; writes "
+                                       "puppet rate, float32/float64 strings, tension-only springs and contact "
+                                       "model against a refined reference; writes "
                                        "OUT/accuracy.csv, accuracy.png (Pareto plot) and accuracy.md.")
     bench.add_argument("what", choices=["accuracy"], help="the benchmark to run")
     bench.add_argument("--grid", choices=["full", "reduced"], default="full",
