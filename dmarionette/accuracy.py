@@ -256,8 +256,8 @@ def write_outputs(rows: Sequence[dict], summary: dict, out: Path) -> dict[str, P
                 value = {"particles": f"{r['particles']} p", "particles @ 1 kHz puppet": f"{r['particles']} p",
                          "string_step": f"{1e3 / r['string_hz']:g} ms",
                          "puppet_hz": f"{r['puppet_hz']:g} Hz", "contact": r["contact"],
-                         "precision": f"{r['precision']}, {r['puppet_hz']:g} Hz",
-                         "springs": f"tension-only, {r['precision']}"}[knob]
+                         "precision": "f32" if r["precision"] == "float32" else "f64",
+                         "springs": "t-only" + (" f32" if r["precision"] == "float32" else "")}[knob]
                 ax.annotate(value, (r["wall_s_per_sim_s"], r["body_rms_m"] * 1e3), fontsize=7,
                             xytext=(4, 3), textcoords="offset points")
     front = _pareto(rows)
