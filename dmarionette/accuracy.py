@@ -13,7 +13,12 @@ strings and puppet at 4 kHz) is compared with ``R2`` (200 particles, 8 kHz); the
 reported as the reference's own error and must be well below the errors of the sweep.
 
 Knobs, one at a time around the paper's settings (50 particles, strings 1 kHz, puppet 30 Hz,
-float64, hard contact): particles per string, string step, puppet rate, the contact model.
+float64, printed springs, hard contact): particles per string, string step, puppet rate, the
+strings' precision (float32 strings under the float64 puppet, at the paper's settings and
+with the puppet at the string rate), the solver variant ``[effects] tension_only`` (segment
+springs that do not push; allowed only with the puppet at the string rate, so swept there),
+and the contact model. The reference uses the printed springs, so a tension-only row's error
+also holds how much that variant changes the motion itself.
 """
 
 from __future__ import annotations
@@ -32,7 +37,8 @@ from .scene import Scene, load_scene
 
 __all__ = ["Setting", "accuracy_scene", "run_sweep", "sweep_settings", "write_outputs"]
 
-PAPER = {"particles": 50, "string_hz": 1000.0, "puppet_hz": 30.0, "contact": "hard"}
+PAPER = {"particles": 50, "string_hz": 1000.0, "puppet_hz": 30.0, "contact": "hard", "precision": "float64",
+         "springs": "printed"}
 GRID_HZ = 20.0
 
 
@@ -45,13 +51,21 @@ class Setting:
     string_hz: float = PAPER["string_hz"]
     puppet_hz: float = PAPER["puppet_hz"]
     contact: str = PAPER["contact"]
+    #: The strings' float type (``[solver] precision``; the puppet is float64 either way).
+    precision: str = PAPER["precision"]
+    #: ``"printed"`` (the paper's spring) or ``"tension_only"`` (``[effects] tension_only``).
+    springs: str = PAPER["springs"]
 
     @property
     def is_paper(self) -> bool:
-        return (self.particles, self.string_hz, self.puppet_hz, self.contact) == tuple(PAPER.values())
+        return (self.particles, self.string_hz, self.puppet_hz, self.contact, self.precision,
+                self.springs) == tuple(PAPER.values())
 
     def label(self) -> str:
-        return f"{self.particles} p, strings {self.string_hz:g} Hz, puppet {self.puppet_hz:g} Hz, {self.contact}"
+        extras = "".join(f", {value}" for value, default in ((self.precision, PAPER["precision"]),
+                                                              (self.springs, PAPER["springs"])) if value != default)
+        return (f"{self.particles} p, strings {self.string_hz:g} Hz, puppet {self.puppet_hz:g} Hz, "
+                f"{self.contact}{extras}")
 
 
 def accuracy_scene(seconds: float) -> Scene:
@@ -71,13 +85,21 @@ def sweep_settings(grid: str = "full") -> list[Setting]:
     if grid == "reduced":
         return [Setting("particles", particles=50), Setting("puppet_hz", puppet_hz=62.5),
                 Setting("puppet_hz", puppet_hz=250.0)] + [
-            Setting("particles @ 1 kHz puppet", particles=n, puppet_hz=1000.0) for n in (5, 20)]
+            Setting("particles @ 1 kHz puppet", particles=n, puppet_hz=1000.0) for n in (5, 20)] + [
+            # Each beside a float64 printed-spring row above with the same other settings.
+            Setting("precision", precision="float32"),
+            Setting("springs", particles=20, puppet_hz=1000.0, springs="tension_only")]
     settings = [Setting("particles", particles=n) for n in (5, 10, 25, 50, 100, 200)]
     # At 30 Hz the puppet step dominates the error; with the puppet at the string rate the
     # strings' own resolution shows.
     settings += [Setting("particles @ 1 kHz puppet", particles=n, puppet_hz=1000.0) for n in (5, 10, 25, 50, 100)]
     settings += [Setting("string_step", string_hz=hz, puppet_hz=min(30.0, hz)) for hz in (500.0, 2000.0, 4000.0)]
     settings += [Setting("puppet_hz", puppet_hz=hz) for hz in (62.5, 125.0, 250.0, 500.0, 1000.0)]
+    # Float32 strings beside the float64 rows "particles" 50 and "particles @ 1 kHz puppet" 50.
+    settings += [Setting("precision", precision="float32", puppet_hz=hz) for hz in (30.0, 1000.0)]
+    # Tension-only springs need the puppet at the string rate (settings_check).
+    settings += [Setting("springs", puppet_hz=1000.0, springs="tension_only", precision=p)
+                 for p in ("float64", "float32")]
     settings += [Setting("contact", contact="smooth")]
     return settings
 
@@ -85,8 +107,9 @@ def sweep_settings(grid: str = "full") -> list[Setting]:
 def _scene_for(base: Scene, setting: Setting) -> Scene:
     strings = tuple(dataclasses.replace(s, particle_count=setting.particles) for s in base.strings)
     contact = dict(base.contact, smooth=setting.contact == "smooth")
+    effects = dataclasses.replace(base.effects, tension_only=setting.springs == "tension_only")
     return dataclasses.replace(base, strings=strings, string_hz=setting.string_hz, puppet_hz=setting.puppet_hz,
-                               contact=contact)
+                               contact=contact, precision=setting.precision, effects=effects)
 
 
 def _on_grid(trajectory: MarionetteTrajectory, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,23 +143,36 @@ def run_sweep(seconds: float = 3.0, grid: str = "full", optimization_level: int 
         return _on_grid(trajectory, times[times <= trajectory.frame_time[-1]]), float(np.median(walls)) / simulated
 
     coarse = grid == "reduced"
-    r1 = Setting("reference", particles=50 if coarse else 100, string_hz=2000.0 if coarse else 4000.0,
-                 puppet_hz=2000.0 if coarse else 4000.0)
-    r2 = Setting("reference", particles=100 if coarse else 200, string_hz=4000.0 if coarse else 8000.0,
-                 puppet_hz=4000.0 if coarse else 8000.0)
-    progress(f"reference R1: {r1.label()}")
-    reference, _ = simulate(r1, timed=False)
-    progress(f"reference R2: {r2.label()}")
-    finer, _ = simulate(r2, timed=False)
-    gap = _errors(finer, reference)
-    summary = {"R1": r1.label(), "R2": r2.label(), "R1_vs_R2_body_rms_m": gap[0], "R1_vs_R2_feedback_rms_N": gap[1]}
+    settings = sweep_settings(grid)
+    # One reference per spring model: a tension-only row is compared with a tension-only
+    # reference, so that its error is the numerical error of its settings; how much the variant
+    # changes the motion itself is reported apart (``tension_only_vs_printed_*``).
+    references, summary = {}, {}
+    for springs in dict.fromkeys(["printed"] + [s.springs for s in settings]):
+        r1 = Setting("reference", particles=50 if coarse else 100, string_hz=2000.0 if coarse else 4000.0,
+                     puppet_hz=2000.0 if coarse else 4000.0, springs=springs)
+        r2 = Setting("reference", particles=100 if coarse else 200, string_hz=4000.0 if coarse else 8000.0,
+                     puppet_hz=4000.0 if coarse else 8000.0, springs=springs)
+        progress(f"reference R1: {r1.label()}")
+        references[springs], _ = simulate(r1, timed=False)
+        progress(f"reference R2: {r2.label()}")
+        finer, _ = simulate(r2, timed=False)
+        gap = _errors(finer, references[springs])
+        prefix = "" if springs == "printed" else f"{springs}_"
+        summary.update({f"{prefix}R1": r1.label(), f"{prefix}R2": r2.label(),
+                        f"{prefix}R1_vs_R2_body_rms_m": gap[0], f"{prefix}R1_vs_R2_feedback_rms_N": gap[1]})
+    if "tension_only" in references:
+        effect = _errors(references["tension_only"], references["printed"])
+        summary.update({"tension_only_vs_printed_body_rms_m": effect[0],
+                        "tension_only_vs_printed_feedback_rms_N": effect[1]})
     rows = []
-    for setting in sweep_settings(grid):
+    for setting in settings:
         progress(f"{setting.knob}: {setting.label()}")
         run, cost = simulate(setting, timed=True)
-        body, feedback = _errors(run, reference)
+        body, feedback = _errors(run, references[setting.springs])
         rows.append({"knob": setting.knob, "particles": setting.particles, "string_hz": setting.string_hz,
-                     "puppet_hz": setting.puppet_hz, "precision": "float64", "contact": setting.contact,
+                     "puppet_hz": setting.puppet_hz, "precision": setting.precision,
+                     "springs": setting.springs, "contact": setting.contact,
                      "paper": setting.is_paper, "body_rms_m": body, "feedback_rms_N": feedback,
                      "wall_s_per_sim_s": cost})
     return rows, summary
@@ -151,6 +187,18 @@ def _pareto(rows: Sequence[dict]) -> list[dict]:
     return front
 
 
+def _float32_twins(rows: Sequence[dict]) -> list[tuple[dict, dict]]:
+    """Pairs (float32 row, float64 row with the same particles, rates, springs and contact)."""
+    same = ("particles", "string_hz", "puppet_hz", "springs", "contact")
+    pairs = []
+    for row in rows:
+        if row["precision"] == "float32":
+            twin = [r for r in rows if r["precision"] == "float64" and all(r[k] == row[k] for k in same)]
+            if twin:
+                pairs.append((row, twin[0]))
+    return pairs
+
+
 def write_outputs(rows: Sequence[dict], summary: dict, out: Path) -> dict[str, Path]:
     """Writes ``accuracy.csv``, ``accuracy.png`` (Pareto plot) and ``accuracy.md`` into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -163,13 +211,32 @@ def write_outputs(rows: Sequence[dict], summary: dict, out: Path) -> dict[str, P
         f"Reference R1 ({summary['R1']}) vs. R2 ({summary['R2']}): body RMS "
         f"{summary['R1_vs_R2_body_rms_m'] * 1e3:.3f} mm, feedback RMS {summary['R1_vs_R2_feedback_rms_N']:.4f} N.",
         "",
-        "| knob | particles | strings Hz | puppet Hz | contact | body RMS [mm] | feedback RMS [N] | wall s / sim s |",
-        "|---|---:|---:|---:|---|---:|---:|---:|",
+    ]
+    if "tension_only_R1" in summary:
+        lines += [
+            f"Tension-only rows are compared with their own reference, R1 ({summary['tension_only_R1']}); vs. R2 "
+            f"({summary['tension_only_R2']}): body RMS {summary['tension_only_R1_vs_R2_body_rms_m'] * 1e3:.3f} mm, "
+            f"feedback RMS {summary['tension_only_R1_vs_R2_feedback_rms_N']:.4f} N. The variant itself moves the "
+            f"puppet by {summary['tension_only_vs_printed_body_rms_m'] * 1e3:.3f} mm body RMS "
+            f"({summary['tension_only_vs_printed_feedback_rms_N']:.4f} N feedback RMS) from the printed-spring "
+            "reference: a change of model, not an error.",
+            "",
+        ]
+    twins = _float32_twins(rows)
+    if twins:
+        worst = max(abs(a["body_rms_m"] - b["body_rms_m"]) for a, b in twins)
+        lines += [f"Float32 strings change the body RMS error by at most {worst * 1e9:.1f} nm from the float64 row "
+                  f"with the same other settings ({len(twins)} pairs), below the table's 1 µm resolution.", ""]
+    lines += [
+        "| knob | particles | strings Hz | puppet Hz | precision | springs | contact | body RMS [mm] "
+        "| feedback RMS [N] | wall s / sim s |",
+        "|---|---:|---:|---:|---|---|---|---:|---:|---:|",
     ]
     for r in rows:
         mark = " **(paper)**" if r["paper"] else ""
-        lines.append(f"| {r['knob']}{mark} | {r['particles']} | {r['string_hz']:g} | {r['puppet_hz']:g} | {r['contact']} "
-                     f"| {r['body_rms_m'] * 1e3:.3f} | {r['feedback_rms_N']:.3f} | {r['wall_s_per_sim_s']:.4f} |")
+        lines.append(f"| {r['knob']}{mark} | {r['particles']} | {r['string_hz']:g} | {r['puppet_hz']:g} "
+                     f"| {r['precision']} | {r['springs']} | {r['contact']} | {r['body_rms_m'] * 1e3:.3f} "
+                     f"| {r['feedback_rms_N']:.3f} | {r['wall_s_per_sim_s']:.4f} |")
     files["table"].write_text("\n".join(lines) + "\n")
 
     import matplotlib
@@ -179,7 +246,7 @@ def write_outputs(rows: Sequence[dict], summary: dict, out: Path) -> dict[str, P
 
     fig, ax = plt.subplots(figsize=(8, 5.5))
     markers = {"particles": "o", "particles @ 1 kHz puppet": "v", "string_step": "s", "puppet_hz": "^",
-               "contact": "D"}
+               "precision": "P", "springs": "X", "contact": "D"}
     for knob, marker in markers.items():
         chosen = [r for r in rows if r["knob"] == knob]
         if chosen:
@@ -188,7 +255,9 @@ def write_outputs(rows: Sequence[dict], summary: dict, out: Path) -> dict[str, P
             for r in chosen:
                 value = {"particles": f"{r['particles']} p", "particles @ 1 kHz puppet": f"{r['particles']} p",
                          "string_step": f"{1e3 / r['string_hz']:g} ms",
-                         "puppet_hz": f"{r['puppet_hz']:g} Hz", "contact": r["contact"]}[knob]
+                         "puppet_hz": f"{r['puppet_hz']:g} Hz", "contact": r["contact"],
+                         "precision": "f32" if r["precision"] == "float32" else "f64",
+                         "springs": "t-only" + (" f32" if r["precision"] == "float32" else "")}[knob]
                 ax.annotate(value, (r["wall_s_per_sim_s"], r["body_rms_m"] * 1e3), fontsize=7,
                             xytext=(4, 3), textcoords="offset points")
     front = _pareto(rows)

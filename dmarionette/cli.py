@@ -123,7 +123,8 @@ def _parser() -> argparse.ArgumentParser:
     replay.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     bench = sub.add_parser("bench", help="measure what accuracy costs in time",
                            description="Benchmarks. 'accuracy': sweep particles per string, string step, "
-                                       "puppet rate and contact model against a refined reference; writes "
+                                       "puppet rate, float32/float64 strings, tension-only springs and contact "
+                                       "model against a refined reference; writes "
                                        "OUT/accuracy.csv, accuracy.png (Pareto plot) and accuracy.md.")
     bench.add_argument("what", choices=["accuracy"], help="the benchmark to run")
     bench.add_argument("--grid", choices=["full", "reduced"], default="full",
@@ -353,8 +354,6 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
     from .marionette_rollout import simulate_marionette
     from .trajectory_file import summarize_marionette, write_marionette_trajectory
 
-    if args.precision == "float32":
-        raise ValueError(f"{scene.source}: a marionette runs in float64 (the puppet solver is float64 only)")
     if not args.quiet:
         print("building the marionette (the first run compiles the puppet kernels)", file=sys.stderr)
     model = MarionetteModel(scene, optimization_level=0 if args.fast_compile else 2)

@@ -114,9 +114,9 @@ class LiveMarionette:
         return self.tick * self.model.string_dt
 
     def latest_particle_q(self) -> np.ndarray:
-        """Host view of the string particles after the latest tick [m], ``(P, 3)`` (do not keep it:
-        the next ticks overwrite it)."""
-        return self._particle_after[(self.tick - 1) % self.model.substeps]
+        """Host view of the string particles after the latest tick [m], ``(P, 3)`` float64 (do not
+        keep it: the next ticks overwrite it). Float32 strings give a float64 copy instead."""
+        return np.asarray(self._particle_after[(self.tick - 1) % self.model.substeps], dtype=np.float64)
 
     def latest_string_taut(self) -> np.ndarray:
         """Host view of the taut flags after the latest tick, ``(S,)``."""

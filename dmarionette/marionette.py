@@ -11,12 +11,22 @@ One puppet step of ``H = n h`` (``n = round(string_hz / puppet_hz)`` string step
     step puppet                 implicit puppet step with the eq. 2 springs
 
 See :mod:`dmarionette.kernels.string_body_coupling` for how forces and positions cross
-between the two rates. Strings and puppet are both float64 here.
+between the two rates.
+
+Precision: the puppet is float64 (its solver is float64 only). The strings follow the
+scene's ``[solver] precision``: float64 by default, or float32, in which case the string
+model, solver and state are float32 and :class:`SolverMarionette` converts what crosses
+(``kernels/precision_boundary``): the bar tops and the tie path into float32 string
+controls, the tie force out into the float64 :class:`MarionetteState` arrays (the bar
+feedback kernel widens its own inputs). Everything outside the strings (the
+``MarionetteState`` and ``MarionetteControl`` arrays, rollouts, live loop, sessions,
+energy) stays float64 either way; a float64 marionette launches no conversion.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -29,6 +39,7 @@ from .articulation import (
     build_articulation_model,
 )
 from .kernels.bar_feedback import eval_bar_feedback_kernel
+from .kernels.precision_boundary import convert_vec3
 from .kernels.string_body_coupling import apply_string_forces_to_anchors_kernel, eval_tie_path
 from .scene import Scene
 from .settings_check import check_marionette_settings
@@ -44,7 +55,11 @@ class MarionetteModel:
 
     Attributes:
         scene: the scene it was built from.
-        strings: the :class:`StringModel` (float64).
+        strings: the :class:`StringModel`, in the scene's ``[solver] precision``.
+        precision: ``"float64"`` or ``"float32"``: the strings' float type (the puppet is float64).
+        string_tie_stiffness: eq. 2 ``k`` of each string as float64 for the puppet side (the
+            anchor offset ``F / k``) [N/m], ``(S,)``: the strings' own array in float64 (so
+            fitted values and gradients are shared), a float64 copy of it in float32.
         puppet: the :class:`ArticulationModel` (springs: one per tied string, in string order).
         substeps: string steps per puppet step ``n``; ``puppet_dt = n * string_dt``.
         string_dt, puppet_dt: [s].
@@ -59,12 +74,13 @@ class MarionetteModel:
     def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None, requires_grad: bool = False):
         if scene.puppet is None:
             raise ValueError(f"{scene.source}: a marionette needs a [puppet] table")
-        if scene.precision != "float64":
-            raise ValueError(f"{scene.source}: [solver] precision = {scene.precision!r}: a marionette runs in "
-                             "float64 only (the puppet solver is float64; float32 is available for strings alone)")
+        if requires_grad and scene.precision != "float64":
+            raise ValueError(f"{scene.source}: [solver] precision = {scene.precision!r}: gradients of a "
+                             "marionette are float64 only; use precision = \"float64\" for fitting")
         check_marionette_settings(scene)  # settings measured not to work are refused, with the reason
         self.scene = scene
         self.requires_grad = bool(requires_grad)
+        self.precision = scene.precision
         self.device = wp.get_device(device)
         self.string_dt = scene.string_dt
         self.substeps = max(1, round(scene.string_hz / scene.puppet_hz))
@@ -96,7 +112,7 @@ class MarionetteModel:
                 spec = dataclasses.replace(spec, bottom=bottom, tie_point=bottom, length=length)
             specs.append(spec)
         self.strings = StringModel(specs, effects=scene.effects, gravity=scene.gravity,
-                                   ground_height=scene.ground_height, precision="float64", device=self.device,
+                                   ground_height=scene.ground_height, precision=self.precision, device=self.device,
                                    requires_grad=self.requires_grad)
         self.string_solver = SolverStringImplicit(self.strings)
         self.bar_names = [b.name for b in scene.bars]
@@ -110,6 +126,8 @@ class MarionetteModel:
             self.string_bar_wp = wp.array(self.string_bar, dtype=wp.int32)
             self.string_point_wp = wp.array(self.string_point, dtype=wp.int32)
             self.spring_string_wp = wp.array(self.spring_string, dtype=wp.int32)
+            self.string_tie_stiffness = self.strings.string_tie_stiffness if self.precision == "float64" \
+                else wp.array([s.tie_stiffness for s in specs], dtype=wp.float64)
 
     def _initial_puppet_state(self) -> ArticulationState:
         state = self.puppet.state()
@@ -237,26 +255,35 @@ class SolverMarionette:
     def __init__(self, model: MarionetteModel):
         self.model = model
         m = model
-        self._feedback = eval_bar_feedback_kernel(wp.float64, m.scene.effects.internal_friction,
-                                                  m.scene.effects.tension_only) \
+        self._feedback = eval_bar_feedback_kernel(m.strings.scalar, m.scene.effects.internal_friction,
+                                                  m.scene.effects.tension_only, bar_scalar=wp.float64) \
             if m.scene.body_effects["feedback"] and m.bar_count else None
         self._spare = (m.strings.state(), m.strings.state())
         n_points = len(m.puppet.point_names)
+        n, s = m.substeps, m.strings.string_count
         with wp.ScopedDevice(m.device):
             self._point_q = wp.zeros((1, n_points), dtype=wp.vec3d)
             self._point_qd = wp.zeros((1, n_points), dtype=wp.vec3d)
-            self._tie_q = wp.zeros((m.substeps, m.strings.string_count), dtype=wp.vec3d)
-            self._tie_qd = wp.zeros((m.substeps, m.strings.string_count), dtype=wp.vec3d)
+            self._tie_q = wp.zeros((n, s), dtype=wp.vec3d)
+            self._tie_qd = wp.zeros((n, s), dtype=wp.vec3d)
+            # Float32 strings: their own controls, converted from the float64 ones (module doc).
+            self._narrow = None if m.precision == "float64" else SimpleNamespace(
+                top_q=wp.zeros((n, s), dtype=m.strings.vec3), tie_q=wp.zeros((n, s), dtype=m.strings.vec3),
+                tie_qd=wp.zeros((n, s), dtype=m.strings.vec3))
         self._puppet_control = m.puppet.control()
         self._string_control_cache = {}
 
     def _string_controls(self, control: MarionetteControl) -> list[StringControl]:
-        """The controls of the n string steps: views of ``control``'s buffers and the tie path,
-        made once per control (the cache holds the control, so its id stays unique)."""
+        """The controls of the n string steps: views of ``control``'s buffers and the tie path
+        (float32 strings: of their own float32 copies), made once per control (the cache holds
+        the control, so its id stays unique)."""
         key = id(control)
         if key not in self._string_control_cache:
-            views = [StringControl(control.top_q[j], self._tie_q[j], self._tie_qd[j])
-                     for j in range(self.model.substeps)]
+            if self._narrow is None:
+                top_q, tie_q, tie_qd = control.top_q, self._tie_q, self._tie_qd
+            else:
+                top_q, tie_q, tie_qd = self._narrow.top_q, self._narrow.tie_q, self._narrow.tie_qd
+            views = [StringControl(top_q[j], tie_q[j], tie_qd[j]) for j in range(self.model.substeps)]
             self._string_control_cache[key] = (control, views)
         return self._string_control_cache[key][1]
 
@@ -276,6 +303,8 @@ class SolverMarionette:
         """Passes before the string steps (a live loop runs them at the first tick of a puppet step)."""
         self.eval_body_points(state_in)                 # tied body points at t0
         self.eval_tie_path(state_in, state_out)         # the strings' tie targets over the step
+        if self._narrow is not None:
+            self.apply_tie_path_to_strings()            # float64 -> float32 string controls
         if self._feedback is not None:
             state_out.bar_feedback.zero_()
             state_out.bar_reaction.zero_()
@@ -287,8 +316,13 @@ class SolverMarionette:
         m = self.model
         previous = state_in.strings if j == 0 else self._spare[(j - 1) % 2]
         nxt = state_out.strings if j == m.substeps - 1 else self._spare[j % 2]
+        if self._narrow is not None:
+            convert_vec3(control.top_q[j], self._narrow.top_q[j], m.device)  # bar tops -> float32
         m.string_solver.step(previous, nxt, self._string_controls(control)[j], m.string_dt)
-        wp.copy(state_out.tie_force[j], nxt.tie_force)
+        if self._narrow is None:
+            wp.copy(state_out.tie_force[j], nxt.tie_force)
+        else:
+            convert_vec3(nxt.tie_force, state_out.tie_force[j], m.device)  # float32 -> float64 tie force
         wp.copy(state_out.string_taut[j], nxt.string_taut)
         if self._feedback is not None:
             self.eval_bar_feedback(nxt, control, state_out, j)
@@ -309,6 +343,12 @@ class SolverMarionette:
                           wp.float64(m.string_dt)],
                   outputs=[self._tie_q, self._tie_qd, state_out.tie_target], device=m.device)
 
+    def apply_tie_path_to_strings(self) -> None:
+        """Float32 strings: the tie path (float64, from the puppet) into their float32 controls."""
+        m = self.model
+        convert_vec3(self._tie_q, self._narrow.tie_q, m.device)
+        convert_vec3(self._tie_qd, self._narrow.tie_qd, m.device)
+
     def eval_bar_feedback(self, strings: StringState, control: MarionetteControl, state_out: MarionetteState,
                           j: int) -> None:
         m = self.model
@@ -327,7 +367,7 @@ class SolverMarionette:
         if len(m.spring_string) == 0:
             return
         wp.launch(apply_string_forces_to_anchors_kernel(m.substeps), dim=len(m.spring_string),
-                  inputs=[m.spring_string_wp, m.strings.string_tie_stiffness, state_out.tie_force,
+                  inputs=[m.spring_string_wp, m.string_tie_stiffness, state_out.tie_force,
                           self._tie_q, self._tie_qd, wp.float64(m.string_dt)],
                   outputs=[self._puppet_control.spring_anchor_pos, self._puppet_control.spring_anchor_vel],
                   device=m.device)

@@ -206,6 +206,10 @@ class MarionetteGradient:
 
     def __init__(self, model: MarionetteModel, puppet_steps: int, *, checkpoint_steps: int | None = None,
                  capture: bool = True):
+        if getattr(model, "precision", "float64") != "float64":
+            raise ValueError(f"{model.scene.source}: [solver] precision = {model.precision!r}: MarionetteGradient "
+                             "needs a float64 marionette (gradients are float64: the puppet, the tape and the "
+                             "strings' adjoints); use precision = \"float64\" for fitting")
         if not getattr(model, "requires_grad", False):
             raise ValueError("MarionetteGradient: the model was built without gradients; build it with "
                              "MarionetteModel(scene, requires_grad=True)")

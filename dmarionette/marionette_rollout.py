@@ -138,7 +138,8 @@ class MarionetteRollout:
 
 def _frame(model: MarionetteModel, state: MarionetteState) -> tuple[np.ndarray, ...]:
     model.puppet_solver.eval_kinematics(state.puppet)
-    return (state.strings.particle_q.numpy().copy(), state.puppet.joint_q.numpy()[0].copy(),
+    # String particles as float64 on the host whatever the strings' precision (a copy either way).
+    return (state.strings.particle_q.numpy().astype(np.float64), state.puppet.joint_q.numpy()[0].copy(),
             state.puppet.body_pos.numpy()[0].copy(), state.puppet.body_rot.numpy()[0].copy())
 
 

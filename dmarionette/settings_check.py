@@ -1,7 +1,7 @@
 """Refuses settings the simulator cannot run, with a clear message.
 
 :func:`check_marionette_settings` is meant to be called where a marionette is built
-(``MarionetteModel.__init__``, after the float32 check); :func:`check_string_settings`
+(``MarionetteModel.__init__``); :func:`check_string_settings`
 where strings are built from a scene (``Scene.build_string_model``, or at the end of
 ``scene_from_table``). Every refusal comes from a measurement in ``tests/test_hard_cases*.py``:
 

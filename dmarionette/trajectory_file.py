@@ -100,6 +100,7 @@ def write_marionette_trajectory(path: str | Path, trajectory, scene: Scene) -> P
         "string_dt": trajectory.string_dt,
         "puppet_dt": trajectory.puppet_dt,
         "frame_steps": trajectory.frame_steps,
+        "precision": scene.precision,
         "effects": {**{k: bool(v) for k, v in vars(scene.effects).items()}, **scene.body_effects},
         "body_shape": [[shape, list(size)] for shape, size in trajectory.body_shape],
     }

@@ -201,7 +201,3 @@ def test_simulate_writes_an_animation_with_the_expected_frames(tmp_path):
     data = dm.read_trajectory(out / "trajectory.npz")
     assert data["metadata"]["kind"] == "marionette" and data["body_pos"].shape == (32, 12, 3)
 
-
-def test_a_float32_marionette_is_refused_clearly(hanging):
-    with pytest.raises(ValueError, match="float64 only"):
-        MarionetteModel(dataclasses.replace(hanging, precision="float32"), optimization_level=0)

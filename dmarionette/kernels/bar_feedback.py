@@ -22,13 +22,29 @@ import warp as wp
 from .string_terms import string_terms
 
 
+def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool = False, bar_scalar=None):
+    """Builds ``eval_bar_feedback`` for the strings' float type ``scalar`` (internal friction in
+    the reaction or not; the segment spring of ``StringEffects.tension_only``).
+
+    ``bar_scalar`` is the float type of the bar side (the control ``bar_q``/``bar_qd``, the
+    eq. 4 constants and the two outputs); ``None`` means ``scalar``. Float32 strings under a
+    float64 marionette use ``bar_scalar=wp.float64``: the kernel reads the float32 particles,
+    widens them (exactly) and evaluates eq. 4 in float64; the exact reaction is evaluated in
+    the strings' type, as the string step evaluates the same spring, and widened before it
+    is summed. That is the precision boundary for the feedback, in the kernel that reads
+    both sides (``kernels/precision_boundary`` converts the rest).
+    """
+    return _eval_bar_feedback_kernel(scalar, bool(internal_friction), bool(tension_only),
+                                     scalar if bar_scalar is None else bar_scalar)
+
+
 @functools.cache
-def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool = False):
-    """Builds ``eval_bar_feedback`` for a float type (internal friction in the reaction or not;
-    the segment spring of ``StringEffects.tension_only``)."""
+def _eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool, bar_scalar):
     t = string_terms(scalar, tension_only)
     vec3 = t.vec3
+    bar_vec3 = vec3 if bar_scalar is scalar else wp.types.vector(3, bar_scalar)
     FRICTION = internal_friction
+    WIDEN = bar_scalar is not scalar
 
     @wp.kernel(module="unique")
     def eval_bar_feedback(
@@ -38,19 +54,19 @@ def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool
         string_stiffness: wp.array(dtype=scalar),
         string_rest_length: wp.array(dtype=scalar),
         string_internal_friction: wp.array(dtype=scalar),
-        feedback_stiffness: scalar,
-        feedback_damping: scalar,
-        puppet_weight: vec3,
+        feedback_stiffness: bar_scalar,
+        feedback_damping: bar_scalar,
+        puppet_weight: bar_vec3,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
         string_taut: wp.array(dtype=wp.int32),
         # Control:
-        bar_q: wp.array(dtype=vec3),
-        bar_qd: wp.array(dtype=vec3),
+        bar_q: wp.array(dtype=bar_vec3),
+        bar_qd: wp.array(dtype=bar_vec3),
         # State out:
-        bar_feedback: wp.array(dtype=vec3),
-        bar_reaction: wp.array(dtype=vec3),
+        bar_feedback: wp.array(dtype=bar_vec3),
+        bar_reaction: wp.array(dtype=bar_vec3),
     ):
         s = wp.tid()
         bar = string_bar[s]
@@ -59,11 +75,18 @@ def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool
         first = string_start[s]
         last = string_start[s + 1] - 1
         if string_taut[s] == 1:
-            f = (
-                -feedback_stiffness * (bar_q[bar] - particle_q[last])
-                + puppet_weight
-                - feedback_damping * (bar_qd[bar] - particle_qd[last])
-            )
+            if wp.static(WIDEN):
+                f = (
+                    -feedback_stiffness * (bar_q[bar] - bar_vec3(particle_q[last]))
+                    + puppet_weight
+                    - feedback_damping * (bar_qd[bar] - bar_vec3(particle_qd[last]))
+                )
+            else:
+                f = (
+                    -feedback_stiffness * (bar_q[bar] - particle_q[last])
+                    + puppet_weight
+                    - feedback_damping * (bar_qd[bar] - particle_qd[last])
+                )
             wp.atomic_add(bar_feedback, bar, f)
         reaction, _k, _taut = t.compute_string_spring(
             particle_q[first], particle_q[first + 1], string_stiffness[s], string_rest_length[s]
@@ -73,6 +96,9 @@ def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool
                 particle_qd[first], particle_qd[first + 1], string_internal_friction[s]
             )
             reaction += f_f
-        wp.atomic_add(bar_reaction, bar, reaction)
+        if wp.static(WIDEN):
+            wp.atomic_add(bar_reaction, bar, bar_vec3(reaction))
+        else:
+            wp.atomic_add(bar_reaction, bar, reaction)
 
     return eval_bar_feedback
