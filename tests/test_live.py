@@ -115,7 +115,7 @@ def test_servo_loop_with_the_physics_over_shared_memory(model):
 
 
 def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
-    from dmarionette.live import fifo_allowed
+    from dmarionette.live_setup import fifo_allowed
 
     stats, summary = run_live(model, duration=0.2, physics="auto", optimization_level=0)
     assert summary["physics_mode"] == ("shm" if fifo_allowed() else "thread")
@@ -127,7 +127,7 @@ def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
 def test_tabulated_simulated_device_follows_the_trajectory():
     """Linear interpolation of a 2 kHz table: exact at the table's times, within the interpolation
     error bound h^2/8 max|x''| in between (h = 0.5 ms)."""
-    from dmarionette.live import SIMULATED_TABLE_HZ, make_device
+    from dmarionette.live_setup import SIMULATED_TABLE_HZ, make_device
 
     scene = dm.load_scene("hanging")
     trajectory = scene.bars[0].trajectory

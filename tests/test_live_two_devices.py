@@ -12,7 +12,8 @@ import dmarionette as dm
 from dmarionette.hw import DeviceMapping, HapticSample, SafetyConfig, ServoLoop
 from dmarionette.hw.device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError, HapticDeviceSpec
 from dmarionette.hw.simulated import HapticDeviceSimulated
-from dmarionette.live import LiveMarionette, bar_mapping, make_device, make_physics_step, run_live
+from dmarionette.live import LiveMarionette, make_physics_step, run_live
+from dmarionette.live_setup import bar_mapping, make_device
 from dmarionette.marionette import MarionetteModel
 from dmarionette.marionette_rollout import simulate_marionette
 

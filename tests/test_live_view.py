@@ -14,7 +14,8 @@ import warp as wp
 
 import dmarionette as dm
 from dmarionette.hw import HapticDeviceSimulated, HapticSample
-from dmarionette.live import LiveMarionette, make_device, make_physics_step, run_live
+from dmarionette.live import LiveMarionette, make_physics_step, run_live
+from dmarionette.live_setup import make_device
 from dmarionette.live_view import (
     SLACK_RGB,
     TAUT_RGB,
