@@ -350,7 +350,7 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
     elif mode == "process":
         from .live_process import PhysicsProcess
 
-        physics = PhysicsProcess(scene.source, bar, duration, feedback=feedback, force_scale=force_scale,
+        physics = PhysicsProcess(scene.source, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
                                  optimization_level=optimization_level,
                                  record_path=None if record is None else str(record))
 
@@ -359,7 +359,7 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
                 physics.last_force = value  # the child records what was actually sent
                 peaks[0] = max(peaks[0], float(np.linalg.norm(value)))
 
-        device_step = mapping.wrap(physics.step)
+        device_step = physics.step  # device frame both ways: the child maps (and records device samples)
         handlers = [on_device]
     else:
         live = LiveMarionette(model)
