@@ -246,8 +246,9 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
 
     The child processes build the model from the scene's file with ``optimization_level``.
     ``record``: an MCAP file path for the session, or None. ``on_start``: called just before
-    the servo loop starts, with ``{"physics": mode, "physics_pid": pid}`` (the pid of the
-    process that steps the marionette and writes the recording). ``servo_options`` go to
+    the servo loop starts, with ``{"physics": mode, "physics_pid": pid, "stop": callable}`` (the pid
+    of the process that steps the marionette and writes the recording; ``stop()``, from any thread,
+    ends the session after the current tick, as the end of ``duration`` would). ``servo_options`` go to
     :class:`dmarionette.hw.ServoLoop`.
     ``device``: a name (:func:`~dmarionette.live_setup.make_device`) or a device object (its frame: the world shifted to
     the bar's start, as for ``simulated``).
@@ -264,10 +265,12 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
     :class:`~dmarionette.live_view.LiveViewHeadless`), or None. It gets snapshots at its rate
     from the physics thread, so it needs ``physics`` ``"thread"`` (or ``"auto"``, which then is
     ``"thread"``); ``"process"`` or ``"shm"`` with a view raise ValueError before anything is
-    built. When the (first) device is a :class:`~dmarionette.hw.HapticDeviceSimulated`,
-    ``drag(position, rotation)`` (world frame) moves it
-    (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`); the force-sent arrow is the first
-    device's.
+    built. Each device that is a :class:`~dmarionette.hw.HapticDeviceSimulated` gets a
+    ``drag(position, rotation)`` (world frame, through its own mapping) that moves it
+    (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`): ``view.connect_device(drag)`` for one
+    device, ``view.connect_devices([drag or None per device])`` for several (the view's geometry
+    then names the devices' bars, ``LiveViewGeometry.from_model(model, bars)``); the snapshots
+    carry every device's force sent (world frame), one row per device.
 
     Returns:
         ``(servo statistics, summary dict)``. With several devices the summary's ``device``,
@@ -315,13 +318,24 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
         from .hw import HapticDeviceSimulated
         from .live_view import LiveViewPublisher
 
-        publisher = LiveViewPublisher(view.buffer, view.rate_hz, force_to_world=mapping.force_to_world)
+        publisher = LiveViewPublisher(view.buffer, view.rate_hz, force_to_world=[m.force_to_world for m in mappings]
+                                      if several else mapping.force_to_world)
 
-        def drag(position_world, rotation_world) -> None:
-            haptic.drag_to(mapping.position_to_device(position_world), mapping.rotation.T @ rotation_world)
-            publisher.dragged = True
+        def make_drag(h: AbstractHapticDevice, m) -> Callable[[np.ndarray, np.ndarray], None] | None:
+            if not isinstance(h, HapticDeviceSimulated):
+                return None
 
-        view.connect_device(drag if isinstance(haptic, HapticDeviceSimulated) else None)
+            def drag(position_world, rotation_world) -> None:  # the view's pose, through this device's mapping
+                h.drag_to(m.position_to_device(position_world), m.rotation.T @ rotation_world)
+                publisher.dragged = True
+
+            return drag
+
+        drags = [make_drag(h, m) for h, m in zip(haptics, mappings)]
+        if several:
+            view.connect_devices(drags)
+        else:
+            view.connect_device(drags[0])
     if mode == "shm":
         from .hw.shm_link import SharedMemoryPhysics
         from .live_process import LivePhysicsFactory
@@ -382,8 +396,8 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
             def on_device(kind: str, value) -> None:
                 if kind == "force":
                     peaks[i] = max(peaks[i], float(np.linalg.norm(value)))
-                    if i == 0 and publisher is not None:
-                        publisher.force_sent = value
+                    if publisher is not None:
+                        publisher.set_force_sent(i, value)
                 if writer is not None:
                     with lock:
                         if kind == "sample":
@@ -409,7 +423,7 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
         loop = ServoLoop(proxies if several else proxies[0], device_step, rate_hz=scene.string_hz, **servo_options)
         if on_start is not None:
             pid = {"shm": lambda: physics_link.pid, "process": lambda: physics.pid}.get(mode, os.getpid)()
-            on_start({"physics": mode, "physics_pid": pid})
+            on_start({"physics": mode, "physics_pid": pid, "stop": loop.request_stop})
         stats = loop.run(duration)
     finally:
         for h in haptics:  # ServoLoop.run closed them (motors off); again in case it never started

@@ -356,7 +356,7 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
                                                                               "view": view})
             session.start()
             _wait(lambda: view.frames_sent >= 2, 60, "the first snapshots")
-            assert not view._gizmo.visible
+            assert not view._gizmos[0].visible
             client.send(vm.TransformControlsUpdateMessage(name="/drag/main", wxyz=(1.0, 0.0, 0.0, 0.0),
                                                           position=(0.3, 0.3, 0.3)))
             session.join(timeout=120)
@@ -366,3 +366,103 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
         finally:
             client.close()
     assert not device.is_open
+
+
+def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
+    from dmarionette.hw.device import quat_from_matrix
+
+    """Two simulated devices, one per bar (the hand's with workspace scale 2): each bar has its own
+    gizmo (``/drag/main``, ``/drag/hand``); dragging one moves that device only, through its own
+    mapping (device position = (target - bar start) / S), and its bar follows; the snapshots and
+    the browser's arrows carry each device's own force sent, on its own bar.
+
+    The session runs until the test stops it (``on_start``'s ``stop``), so a busy machine only
+    makes it slower, never too short for the drags."""
+    bars, scales = ["main", "hand"], [1.0, 2.0]
+    idx = [model.bar_names.index(b) for b in bars]
+    geometry = LiveViewGeometry.from_model(model, bars)
+    assert geometry.device_bars == tuple(idx) and geometry.driven_bar == idx[0]
+    starts = [np.array(model.scene.bars[i].trajectory.positions[0], dtype=np.float64) for i in idx]
+    devices = [make_device("simulated", model.scene, b, trajectory_offset=p, workspace_scale=s)
+               for b, p, s in zip(bars, starts, scales)]
+    view = LiveViewServer(geometry, host="127.0.0.1", port=0, rate_hz=40.0)
+    client = ViewClient(view.url)
+    out, started = {}, threading.Event()
+
+    def on_start(info):
+        out["stop"] = info["stop"]
+        started.set()
+
+    def session():
+        try:
+            out["result"] = run_live(model, device=devices, bar=bars, workspace_scale=scales, duration=600.0,
+                                     view=view, on_start=on_start)
+        except BaseException as error:  # re-raised below
+            out["error"] = error
+            started.set()
+
+    thread = threading.Thread(target=session)
+    try:
+        _wait(lambda: client.updates("/strings", "points"), 10, "the scene to reach the client")
+        thread.start()
+        assert started.wait(120) and "error" not in out, out.get("error")
+        _wait(lambda: view.frames_sent >= 2, 60, "the first snapshots")
+        assert all(g.visible for g in view._gizmos)
+        targets = {}
+        for k in (1, 0):  # the hand first: the main device must not move with it
+            gizmo = f"/drag/{bars[k]}"
+            _wait(lambda: client.poses(gizmo, "position"), 10, f"{gizmo}'s position")
+            p0 = np.array(client.poses(gizmo, "position")[-1][1])
+            # (viser sends an orientation only when it changes: the hand's stays the identity)
+            q0 = tuple(float(x) for x in quat_from_matrix(view.last_sent.bar_rot[idx[k]]))
+            # On its own bar (which may have moved on a little since; the bars are 0.16 m apart).
+            assert np.linalg.norm(p0 - view.last_sent.bar_pos[idx[k]]) < 0.01
+            targets[k] = p0 + np.array([0.04, -0.02, 0.03]) * (k + 1)
+            client.send(vm.TransformControlsDragStartMessage(name=gizmo))
+            client.send(vm.TransformControlsUpdateMessage(name=gizmo, wxyz=q0, position=tuple(map(float, targets[k]))))
+            client.send(vm.TransformControlsDragEndMessage(name=gizmo))
+            expected = (targets[k] - starts[k]) / scales[k]
+            _wait(lambda: devices[k].last_read is not None and
+                  np.linalg.norm(devices[k].last_read.position - expected) < 1e-6, 30, f"device {k} to follow")
+            if k == 1:
+                assert devices[1].dragged and not devices[0].dragged
+            _wait(lambda: np.linalg.norm(view.buffer.latest().bar_pos[idx[k]] - targets[k]) < 1e-6, 30,
+                  f"bar {bars[k]} to follow")
+        assert devices[0].dragged
+        out["stop"]()
+        thread.join(timeout=120)
+        assert not thread.is_alive()
+        if "error" in out:
+            raise out["error"]
+        stats, summary = out["result"]
+        assert stats.stop_reason == "stopped" and summary["bar"] == bars
+        last = view.buffer.latest()
+        assert last.dragged and last.forces_sent().shape == (2, 3)
+        for k in (0, 1):  # each row is a force that device was sent (the mappings do not rotate)
+            np.testing.assert_allclose(last.bar_pos[idx[k]], targets[k], atol=1e-6)
+            sent = devices[k].force_log()[1]
+            assert any(np.array_equal(last.forces_sent()[k], f) for f in sent), k
+        assert not np.array_equal(last.forces_sent()[0], last.forces_sent()[1])
+        # The browser's arrows: a reaction per bar, then each device's force sent, on its own bar.
+        _wait(lambda: view.last_sent is last, 10, "the view to send the last snapshot")
+        n_bar = len(geometry.bar_names)
+
+        def arrows_shown():
+            updates = client.updates("/forces", "points")
+            if not updates:
+                return False
+            arrows = np.asarray(updates[-1][1]).reshape(-1, 2, 3)
+            return arrows.shape[0] == n_bar + 2 and np.allclose(
+                arrows[n_bar:, 1] - arrows[n_bar:, 0], view.arrow_scale * last.forces_sent(), atol=1e-6) \
+                and np.allclose(arrows[n_bar:, 0], last.bar_pos[idx], atol=1e-6)
+
+        _wait(arrows_shown, 10, "the browser to show both force-sent arrows")
+    finally:
+        if "stop" in out:
+            out["stop"]()
+        view.close()
+        thread.join(timeout=120)
+        client.close()
+    for device in devices:
+        assert not device.is_open and device.close_count == 1
+        np.testing.assert_array_equal(device.force_log()[1][-1], np.zeros(3))
