@@ -34,32 +34,45 @@ def assert_motors_off(dev):
 
 
 def test_loop_runs_physics_and_ramps_in():
+    """Forces ramp in over ``ramp_time`` (0.1 s) of the loop's clock: each tick writes
+    ``smoothstep(t / 0.1)`` times the answer, full from 0.1 s on, never decreasing.
+
+    The physics is computed in the tick (:class:`servo_checks.InTickLink`): no thread, so no
+    watchdog trip can restart the ramp on a loaded machine, and the loop runs until 20 ticks
+    past the ramp (counted, not timed). Each write is bounded by the ramp at the tick's loop time
+    (below: the filter reads the clock after it) and at the write's device time (above: the
+    device opened before the loop's clock started)."""
     dev = HapticDeviceSimulated(circle)
     seen = []
 
     def step(sample, t):
         seen.append((t, sample.time, sample.position.copy()))
+        if sum(s[0] >= 0.1 for s in seen) == 20:
+            loop.request_stop()
         return np.array([0.0, 1.0, 0.0])
 
-    # A generous watchdog: on a loaded machine a 2 ms scheduling hiccup of the physics
-    # thread is a (correct) trip, which would restart the ramp this test looks at.
-    safety = SafetyConfig(ramp_time=0.1, continuous_time_constant=0.0, watchdog_timeout=0.004)
-    stats = run_servo_loop(dev, step, duration=0.3, safety=safety)
-    assert stats.stop_reason == "duration" and stats.tick_count > 0 and stats.duration >= 0.3
-    if stats.watchdog_trips:
-        pytest.skip(f"the machine was too loaded to test the ramp: {stats.summary()}")
+    loop = ServoLoop(dev, InTickLink(step), safety=SafetyConfig(ramp_time=0.1, continuous_time_constant=0.0))
+    stats = loop.run(duration=30.0)
+    assert stats.stop_reason == "stopped" and stats.tick_count == len(seen)
     t_loop = np.array([s[0] for s in seen])
     assert np.all(np.diff(t_loop) > 0)
-    np.testing.assert_allclose(seen[-1][2], circle(seen[-1][1]))
+    for _, t_device, position in seen:
+        np.testing.assert_array_equal(position, circle(t_device))
     times, forces = dev.force_log()
-    # Never above the ramp at the write's device time: the device opened before the loop's clock
-    # started, so its clock is ahead of the loop's and smoothstep(t_device / 0.1) >= the factor used.
-    x = np.clip(times / 0.1, 0.0, 1.0)
-    assert np.all(forces[:, 1] <= x * x * (3.0 - 2.0 * x) + 1e-12)
-    late = forces[(times > 0.15) & (times < 0.28)]
-    np.testing.assert_allclose(late, np.tile([0.0, 1.0, 0.0], (len(late), 1)))
-    ramp = forces[times < 0.1, 1]
-    assert np.all(np.diff(ramp) >= -1e-12)
+    n = len(seen)
+    ticks = forces[:n]  # one write per tick, then the motors-off zeros
+    np.testing.assert_array_equal(forces[n:], np.zeros((len(forces) - n, 3)))
+
+    def smoothstep(t):
+        x = np.clip(t / 0.1, 0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)
+
+    np.testing.assert_array_equal(ticks[:, [0, 2]], np.zeros((n, 2)))
+    assert np.all(ticks[:, 1] >= smoothstep(t_loop) - 1e-12)
+    assert np.all(ticks[:, 1] <= smoothstep(times[:n]) + 1e-12)
+    assert np.all(np.diff(ticks[:, 1]) >= 0.0)
+    np.testing.assert_array_equal(ticks[t_loop >= 0.1, 1], 1.0)
+    assert np.count_nonzero(t_loop >= 0.1) == 20
     assert_motors_off(dev)
     assert len(stats.lateness) == stats.tick_count
     print(stats.summary())

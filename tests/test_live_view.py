@@ -170,17 +170,18 @@ def test_headless_picture_colours_strings_by_taut_flag(model, tmp_path):
 
 
 def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model):
-    """Two seconds of the servo loop with the simulated device and the browser view:
+    """The servo loop with the simulated device and the browser view, until the test stops it:
 
-    - the view sends snapshots at its rate (counted, loosely: at least a quarter of
-      rate x duration), and what the browser last received equals the last snapshot published;
+    - the view sends snapshots (counted: several; the rate it keeps is measured in
+      benchmarks/bench_live_view.py, not asserted), and what the browser last received equals
+      the last snapshot published;
     - a drag of the gizmo, sent by the websocket client as a browser sends it, moves the
       simulated device (its reads reach the dragged pose, device frame = world - bar start),
       then the bar and its string tops follow;
     - at the end the motors are off (last force written is zero, the device closed once), and
       closing the view stops its thread and its server (the port refuses connections).
     """
-    duration, rate = 2.0, 40.0
+    rate = 40.0
     geometry = LiveViewGeometry.from_model(model, "main")
     start = np.array(model.scene.bars[0].trajectory.positions[0], dtype=np.float64)
     device = make_device("simulated", model.scene, "main", trajectory_offset=start)
@@ -189,9 +190,10 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     client = ViewClient(view.url)
     out = {}
 
-    def session():
+    def session():  # runs until stopped below: a busy machine cannot end it before the drag
         try:
-            out["result"] = run_live(model, device=device, duration=duration, view=view)
+            out["result"] = run_live(model, device=device, duration=600.0, view=view,
+                                     on_start=lambda info: out.setdefault("stop", info["stop"]))
         except BaseException as error:  # re-raised below
             out["error"] = error
 
@@ -199,7 +201,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     try:
         _wait(lambda: client.updates("/strings", "points"), 10, "the scene to reach the client")
         thread.start()
-        _wait(lambda: view.frames_sent >= 5, 60, "the first snapshots")
+        _wait(lambda: view.frames_sent >= 5, 120, "the first snapshots")
         gizmo = "/drag/main"
         _wait(lambda: client.poses(gizmo, "position") and client.poses(gizmo, "wxyz"), 10, "the gizmo pose")
         assert not device.dragged
@@ -219,6 +221,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         np.testing.assert_allclose(device.last_read.orientation, q0, atol=1e-9)
         # ... and the bar follows the device.
         _wait(lambda: np.linalg.norm(view.buffer.latest().bar_pos[0] - target) < 1e-6, 10, "the bar to follow")
+        out["stop"]()
         thread.join(timeout=120)
         assert not thread.is_alive()
         if "error" in out:
@@ -230,8 +233,8 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         for s_name, local in model.scene.bars[0].attach.items():
             np.testing.assert_allclose(last.particle_q[geometry.string_start[names.index(s_name)]],
                                        last.bar_pos[0] + last.bar_rot[0] @ np.array(local), atol=1e-12)
-        # Update counts, loosely (the loop may fall behind on a loaded machine; never a timing assert).
-        minimum = int(0.25 * rate * duration)
+        # Update counts, not rates (the loop may fall behind on a loaded machine; never a timing assert).
+        minimum = 5
         assert summary["view_snapshots"] == view.buffer.published >= minimum
         _wait(lambda: view.last_sent is last, 10, "the view to send the last snapshot")
         assert view.frames_sent >= minimum
@@ -248,6 +251,8 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         print(f"view: {view.frames_sent} frames sent, {len(arrival)} received, "
               f"{(len(arrival) - 1) / (arrival[-1] - arrival[0]):.1f} Hz at the client; {stats.summary()}")
     finally:
+        if "stop" in out:
+            out["stop"]()
         view.close()
         thread.join(timeout=120)
     # Clean shutdown: motors off, server stopped.
@@ -256,7 +261,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     # The arrow's force is one the device was sent (the mapping's rotation is the identity here).
     assert any(np.array_equal(last.force_sent, f) for f in forces[:-1])
     assert device.close_count == 1 and not device.is_open
-    assert stats.stop_reason == "duration"
+    assert stats.stop_reason == "stopped"
     assert not view.is_running
     _wait(lambda: client.closed.is_set(), 10, "the client to see the server close")
     with socket.socket() as probe:
@@ -276,7 +281,7 @@ def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys, monkeypatch):
     captured = capsys.readouterr()
     assert "live view: http://127.0.0.1:" in captured.err
     summary = json.loads(captured.out[captured.out.index("{"):])
-    assert summary["view_snapshots"] >= 5
+    assert summary["view_snapshots"] >= 2  # a count, not a rate (benchmarks/bench_live_view.py measures that)
 
     picture = tmp_path / "last.png"
     assert main(["live", "--duration", "0.3", "--fast-compile", "--snapshot", str(picture)]) == 0
@@ -352,13 +357,18 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
         client = ViewClient(view.url)
         try:
             _wait(lambda: client.updates("/strings", "points"), 10, "the scene to reach the client")
-            session = threading.Thread(target=run_live, args=(model,), kwargs={"device": device, "duration": 0.6,
-                                                                              "view": view})
+            stop = {}
+            session = threading.Thread(target=run_live, args=(model,), kwargs={
+                "device": device, "duration": 600.0, "view": view,
+                "on_start": lambda info: stop.setdefault("stop", info["stop"])})  # stopped below
             session.start()
-            _wait(lambda: view.frames_sent >= 2, 60, "the first snapshots")
+            _wait(lambda: view.frames_sent >= 2, 120, "the first snapshots")
             assert not view._gizmos[0].visible
             client.send(vm.TransformControlsUpdateMessage(name="/drag/main", wxyz=(1.0, 0.0, 0.0, 0.0),
                                                           position=(0.3, 0.3, 0.3)))
+            seen = view.frames_sent
+            _wait(lambda: view.frames_sent >= seen + 2, 120, "snapshots after the drag")
+            stop["stop"]()
             session.join(timeout=120)
             last = view.buffer.latest()
             assert not last.dragged
