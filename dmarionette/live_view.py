@@ -383,7 +383,7 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
             ax.annotate("", xy=(tail[axis] + force[axis], tail[1] + force[1]), xytext=(tail[axis], tail[1]),
                         arrowprops={"arrowstyle": "->", "color": "royalblue", "lw": 1.5})
     fig.suptitle(f"{title}   t = {snapshot.t:.3f} s\nstrings: dark taut, orange slack; arrows: red = reaction on "
-                 f"each bar, blue = force sent to the device ({arrow_scale:g} m/N)", fontsize=9)
+                 f"each bar, blue = force sent to each device ({arrow_scale:g} m/N)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
