@@ -243,11 +243,14 @@ class LiveViewPublisher:
         if self._views is None:  # host views of the (fixed) state buffers, made once
             self._views = (live.state.puppet.body_pos.numpy(), live.state.puppet.body_rot.numpy())
         body_pos, body_rot = self._views
-        rows = np.array(self.force_sent, dtype=np.float64).reshape(-1, 3)  # a copy: the servo thread writes on
-        force = np.array([row if to_world is None else to_world(row)
-                          for row, to_world in zip(rows, self._force_to_world)])
-        if not self._several:
-            force = force[0]
+        if self._several:
+            rows = np.array(self.force_sent, dtype=np.float64)  # a copy: the servo thread writes on
+            force = np.array([row if to_world is None else to_world(row)
+                              for row, to_world in zip(rows, self._force_to_world)])
+        else:
+            force = np.asarray(self.force_sent, dtype=np.float64)
+            if self._force_to_world[0] is not None:
+                force = self._force_to_world[0](force)
         self.buffer.publish(LiveSnapshot(
             sequence=self.buffer.published + 1, t=live.time, wall_time=now,
             particle_q=live.latest_particle_q().copy(), body_pos=body_pos[0].copy(),
