@@ -444,7 +444,7 @@ def _run_live(args: argparse.Namespace) -> int:
         print(f"live: servo loop starting at CLOCK_MONOTONIC {time.monotonic():.6f} s; physics: {info['physics']} "
               f"(pid {info['physics_pid']}){record}", file=sys.stderr, flush=True)
 
-    geometry = LiveViewGeometry.from_model(model, bars[0])  # the first device's bar: drag handle, force arrow
+    geometry = LiveViewGeometry.from_model(model, bars)  # every device's bar: a drag handle, a force-sent arrow
     view = None
     if args.view == "browser" and geometry is not None:
         from .live_view_viser import LiveViewServer

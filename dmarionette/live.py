@@ -4,7 +4,7 @@
 puppet every ``n`` calls: the passes of one puppet step are captured as ``n`` Warp graphs,
 one per string-step index, so a tick costs one graph replay and a little host work.
 
-:func:`bar_driver` turns a haptic device's samples into a bar's pose: the device tip sits
+:func:`make_physics_step` turns a haptic device's samples into a bar's pose: the device tip sits
 at the bar's centre (paper §3.1) and is mapped to the world by ``P' = S W P`` (eq. 3,
 :class:`dmarionette.hw.mapping.DeviceMapping`); the force sent back is the driven bar's
 feedback, through ``W``'s rotation only, then the servo loop's safety filter.
@@ -13,6 +13,9 @@ Several devices may drive several bars (the paper's two Omnis, one per bar): eac
 own mapping (its origin at its bar's start), feels its own bar's force and has its own
 safety filter, all in the same servo ticks (:class:`dmarionette.hw.ServoLoop` with a sequence
 of devices); this runs in the ``"thread"`` physics mode.
+
+:func:`run_live` runs a session; the pieces it is set up from (devices by name, their
+mappings, the physics mode) are in :mod:`dmarionette.live_setup`.
 """
 
 from __future__ import annotations
@@ -20,30 +23,22 @@ from __future__ import annotations
 import dataclasses
 import os
 import threading
-import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
 import warp as wp
 
-from .hw.device import AbstractHapticDevice, HapticDeviceError, HapticDeviceSpec, HapticSample
+from .hw.device import AbstractHapticDevice
+from .live_setup import (DEFAULT_PHYSICS, PHYSICS_MODES, SIMULATED_TABLE_HZ, RecordingDevice, bar_mapping,
+                         fifo_allowed, make_device, resolve_physics)
 from .live_view import scripted_rotations
 from .marionette import MarionetteModel, SolverMarionette, bar_inputs
 
-__all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "LiveMarionette", "LiveTick", "bar_mapping", "make_device",
-           "make_physics_step", "resolve_physics", "run_live"]
+# The session set-up (devices, mappings, physics modes) lives in dmarionette.live_setup; its
+# public names are re-exported here, where callers have always found them.
+__all__ = ["DEFAULT_PHYSICS", "PHYSICS_MODES", "SIMULATED_TABLE_HZ", "LiveMarionette", "LiveTick", "bar_mapping",
+           "fifo_allowed", "make_device", "make_physics_step", "resolve_physics", "run_live"]
 
-PHYSICS_MODES = ("thread", "process", "shm")
-"""Where the marionette runs during live puppetry: the servo loop's worker thread, a child
-process over a pipe, or a child process over shared memory (see ``docs/hardware.md``)."""
-DEFAULT_PHYSICS = "auto"
-"""Chosen by measurement (``benchmarks/bench_live.py``, docs/hardware.md "Live timing"): ``"auto"``
-is ``"shm"`` where SCHED_FIFO is allowed (it kept 99.7-100 % of the ticks fresh under a load
-average of 6 on 2 CPUs) and ``"thread"`` where it is not (there, ``"shm"`` without real-time
-priority kept fewer ticks than the worker thread: 15-45 % against 55-68 %). With a live view
-(or any ``view``) ``"auto"`` is ``"thread"``: the view reads the physics' snapshots in memory."""
-SIMULATED_TABLE_HZ = 2000.0
-"""Rate [Hz] at which :func:`make_device` tabulates the simulated device's trajectory."""
 
 
 @dataclasses.dataclass
@@ -224,185 +219,6 @@ def _matrix_to_euler_deg(r: np.ndarray) -> np.ndarray:
     return np.degrees([rx, ry, rz])
 
 
-class _RecordingDevice(AbstractHapticDevice):
-    """A device that records what it reads and the forces actually sent (after the safety filter)."""
-
-    def __init__(self, device: AbstractHapticDevice, record: Callable[[str, object], None], label: str | None = None):
-        self._device = device
-        self._record = record
-        self._label = label  # with several devices: which one, put in front of its errors
-        self._read_at: float | None = None
-        self.latencies: list[float] = []  # read -> next force written [s]
-
-    @property
-    def spec(self) -> HapticDeviceSpec:
-        return self._device.spec
-
-    @property
-    def is_open(self) -> bool:
-        return self._device.is_open
-
-    def open(self) -> None:
-        self._device.open()
-
-    def close(self) -> None:
-        self._device.close()
-
-    def read(self) -> HapticSample:
-        self._read_at = time.perf_counter()
-        try:
-            sample = self._device.read()
-        except HapticDeviceError as error:
-            self._raise_labelled(error)
-        self._record("sample", sample)
-        return sample
-
-    def write_force(self, force) -> None:
-        try:
-            self._device.write_force(force)
-        except HapticDeviceError as error:
-            self._raise_labelled(error)
-        if self._read_at is not None:
-            self.latencies.append(time.perf_counter() - self._read_at)
-            self._read_at = None
-        self._record("force", np.asarray(force, dtype=np.float64))
-
-
-    def _raise_labelled(self, error: HapticDeviceError):
-        """Re-raises ``error`` with the device's label in front (several devices: which one failed)."""
-        labelled = None
-        if self._label is not None:
-            try:
-                labelled = type(error)(f"{self._label}: {error}")
-            except TypeError:  # an error class with another constructor: raised as it is
-                labelled = None
-        if labelled is None:
-            raise error
-        raise labelled from error
-
-
-def fifo_allowed() -> bool:
-    """Whether this process may use SCHED_FIFO: tried on the calling thread, then put back."""
-    try:
-        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-        os.sched_setscheduler(0, policy, param)
-        return True
-    except (AttributeError, OSError):
-        return False
-
-
-def make_device(name: str, scene, bar: str, *, trajectory_offset: np.ndarray, session=None,
-                duration: float | None = None, workspace_scale: float = 1.0) -> AbstractHapticDevice:
-    """A device by name: ``simulated`` follows the scene's trajectory of ``bar`` (device frame =
-    world frame shifted by ``trajectory_offset`` and divided by ``workspace_scale``, so that
-    through ``P' = S W P`` with the device origin at ``trajectory_offset`` the bar moves as in
-    the scene, whatever the scale); ``replay`` plays the device stream of the recorded
-    ``session`` (an MCAP file); the others open real hardware.
-
-    With ``duration`` [s] the simulated device's trajectory is tabulated beforehand at
-    :data:`SIMULATED_TABLE_HZ` for ``duration`` + 1 s, positions interpolated linearly and the
-    rotation taken from the table entry at or before the read, then held after the end. A
-    spline evaluation per read costs ~160 µs (measured), which a real device's read does not,
-    and which would otherwise count in the servo tick and the device-to-force latency.
-    """
-    from . import hw
-
-    if name == "replay":
-        from .session import read_session
-
-        recorded = read_session(session, load_scene=False)
-        topic = f"/device/{bar}/sample"
-        recorded.require([topic], "--device replay")
-        channel = recorded.channels[topic]
-        return hw.HapticDeviceReplay(channel["device_time"] if "device_time" in channel else channel["t"],
-                                     channel["position"], channel["orientation"], channel["buttons"])
-    if name == "simulated":
-        trajectory = scene.bars[[b.name for b in scene.bars].index(bar)].trajectory
-
-        if duration is None:
-            def pose(t: float):
-                position, _, rotation = trajectory.pose(np.array([t]))
-                return (position[0] - trajectory_offset) / workspace_scale, rotation[0]
-        else:
-            table_t = np.arange(int(np.ceil((duration + 1.0) * SIMULATED_TABLE_HZ)) + 1) / SIMULATED_TABLE_HZ
-            table_p, _, table_r = trajectory.pose(table_t)
-            table_p = (table_p - trajectory_offset) / workspace_scale
-            last = len(table_t) - 1
-
-            def pose(t: float):
-                x = min(max(t * SIMULATED_TABLE_HZ, 0.0), float(last))
-                i = min(int(x), last - 1)
-                w = x - i
-                return (1.0 - w) * table_p[i] + w * table_p[i + 1], table_r[i if w < 1.0 else i + 1]
-
-        return hw.HapticDeviceSimulated(trajectory=pose)
-    if name == "openhaptics":
-        return hw.HapticDeviceOpenHaptics()
-    if name == "falcon":
-        return hw.HapticDeviceFalcon()
-    if name == "spacemouse":
-        return hw.HapticDeviceSpaceMouse()
-    raise ValueError(f"device: got {name!r}; expected one of simulated, replay, openhaptics, falcon, spacemouse")
-
-
-def resolve_physics(physics: str | None, *, process: bool = False, realtime: bool = True,
-                    view: bool = False, devices: int = 1) -> str:
-    """The physics mode a live session runs in (:data:`PHYSICS_MODES`), checked before anything is built.
-
-    Args:
-        physics: ``"auto"``, one of :data:`PHYSICS_MODES`, or None (:data:`DEFAULT_PHYSICS`, or
-            ``"process"`` when ``process``).
-        process: the older spelling of ``physics="process"`` (``--own-process``).
-        realtime: whether real-time priority may be asked for (``"auto"`` picks ``"shm"`` only then).
-        view: whether a live view (or a ``--snapshot``) reads the physics' snapshots: ``"auto"`` is
-            then ``"thread"``, and ``"process"``/``"shm"`` are refused.
-        devices: how many devices drive bars. With two or more, ``"auto"`` is ``"thread"`` and
-            ``"process"``/``"shm"`` are refused: their child-process protocols carry one device's
-            sample and force per tick (see docs/hardware.md "Two devices").
-
-    Raises:
-        ValueError: an unknown mode, or a child-process mode together with a view or several devices.
-    """
-    mode = physics if physics is not None else ("process" if process else DEFAULT_PHYSICS)
-    if mode == "auto":
-        if view or devices > 1:
-            return "thread"
-        return "shm" if realtime and fifo_allowed() else "thread"
-    if mode not in PHYSICS_MODES:
-        raise ValueError(f"--physics: got {mode!r}; expected auto or one of {', '.join(PHYSICS_MODES)}")
-    if view and mode != "thread":
-        spelled = "--own-process" if physics is None else f"--physics {mode}"
-        raise ValueError(f"{spelled}: a live view (--view browser or --snapshot) needs the physics in this process "
-                         f"(it reads the physics' snapshots in memory): drop {spelled} (auto and thread run it in "
-                         f"the servo loop's worker thread), or drop the view")
-    if devices > 1 and mode != "thread":
-        spelled = "--own-process" if physics is None else f"--physics {mode}"
-        raise ValueError(f"{spelled}: {devices} devices run with the physics in the servo loop's worker thread only "
-                         f"(--physics thread or auto); the {mode} mode's child process exchanges one device's "
-                         f"sample and force per tick")
-    return mode
-
-
-def bar_mapping(model: MarionetteModel, bar: str, workspace_scale: float = 1.0):
-    """The mapping ``P' = S W P`` (eq. 3) of a device driving ``bar``: its origin at the bar's start.
-
-    ``S`` is ``workspace_scale`` (uniform, > 0), ``W`` the translation by the bar's start divided
-    by ``S`` (``W`` = the start itself would put the origin at ``S`` times the start). A device
-    displacement ``d`` moves the bar by ``S d``; forces come back unscaled, so a world stiffness
-    ``k`` is felt as ``S k`` (:meth:`~dmarionette.hw.DeviceMapping.stiffness_to_device`).
-
-    Returns:
-        a :class:`dmarionette.hw.DeviceMapping`.
-    """
-    from .hw import DeviceMapping
-
-    if bar not in model.bar_names:
-        raise ValueError(f"--bar: got {bar!r}; expected one of {model.bar_names}")
-    if not (np.isfinite(workspace_scale) and workspace_scale > 0.0):
-        raise ValueError(f"--workspace-scale: got {workspace_scale}; expected a finite number > 0")
-    start = np.array(model.scene.bars[model.bar_names.index(bar)].trajectory.positions[0], dtype=np.float64)
-    return DeviceMapping.make(float(workspace_scale), translation=start / float(workspace_scale))
 
 
 def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Sequence = "simulated",
@@ -416,8 +232,8 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
     ``workspace_scale``, ``W`` a translation (by the bar's start divided by ``S``) putting the
     device origin at the bar's start. A device displacement ``d`` moves the bar by ``S d``, so a
     world stiffness ``k`` is felt as ``S k`` (:meth:`~dmarionette.hw.DeviceMapping.stiffness_to_device`;
-    the force itself is not scaled). Where the marionette runs is ``physics`` (:data:`PHYSICS_MODES` or ``"auto"``;
-    :data:`DEFAULT_PHYSICS` when None, ``"process"`` when ``process=True``, the older spelling):
+    the force itself is not scaled). Where the marionette runs is ``physics`` (:data:`~dmarionette.live_setup.PHYSICS_MODES` or ``"auto"``;
+    :data:`~dmarionette.live_setup.DEFAULT_PHYSICS` when None, ``"process"`` when ``process=True``, the older spelling):
 
     * ``"thread"``: ``model`` itself, in the servo loop's worker thread;
     * ``"process"``: a child process over a pipe (:mod:`dmarionette.live_process`);
@@ -430,10 +246,11 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
 
     The child processes build the model from the scene's file with ``optimization_level``.
     ``record``: an MCAP file path for the session, or None. ``on_start``: called just before
-    the servo loop starts, with ``{"physics": mode, "physics_pid": pid}`` (the pid of the
-    process that steps the marionette and writes the recording). ``servo_options`` go to
+    the servo loop starts, with ``{"physics": mode, "physics_pid": pid, "stop": callable}`` (the pid
+    of the process that steps the marionette and writes the recording; ``stop()``, from any thread,
+    ends the session after the current tick, as the end of ``duration`` would). ``servo_options`` go to
     :class:`dmarionette.hw.ServoLoop`.
-    ``device``: a name (:func:`make_device`) or a device object (its frame: the world shifted to
+    ``device``: a name (:func:`~dmarionette.live_setup.make_device`) or a device object (its frame: the world shifted to
     the bar's start, as for ``simulated``).
 
     Several devices: ``device`` a list (names or objects) and ``bar`` a list of as many distinct
@@ -448,10 +265,12 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
     :class:`~dmarionette.live_view.LiveViewHeadless`), or None. It gets snapshots at its rate
     from the physics thread, so it needs ``physics`` ``"thread"`` (or ``"auto"``, which then is
     ``"thread"``); ``"process"`` or ``"shm"`` with a view raise ValueError before anything is
-    built. When the (first) device is a :class:`~dmarionette.hw.HapticDeviceSimulated`,
-    ``drag(position, rotation)`` (world frame) moves it
-    (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`); the force-sent arrow is the first
-    device's.
+    built. Each device that is a :class:`~dmarionette.hw.HapticDeviceSimulated` gets a
+    ``drag(position, rotation)`` (world frame, through its own mapping) that moves it
+    (:meth:`~dmarionette.hw.HapticDeviceSimulated.drag_to`): ``view.connect_device(drag)`` for one
+    device, ``view.connect_devices([drag or None per device])`` for several (the view's geometry
+    then names the devices' bars, ``LiveViewGeometry.from_model(model, bars)``); the snapshots
+    carry every device's force sent (world frame), one row per device.
 
     Returns:
         ``(servo statistics, summary dict)``. With several devices the summary's ``device``,
@@ -499,13 +318,24 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
         from .hw import HapticDeviceSimulated
         from .live_view import LiveViewPublisher
 
-        publisher = LiveViewPublisher(view.buffer, view.rate_hz, force_to_world=mapping.force_to_world)
+        publisher = LiveViewPublisher(view.buffer, view.rate_hz, force_to_world=[m.force_to_world for m in mappings]
+                                      if several else mapping.force_to_world)
 
-        def drag(position_world, rotation_world) -> None:
-            haptic.drag_to(mapping.position_to_device(position_world), mapping.rotation.T @ rotation_world)
-            publisher.dragged = True
+        def make_drag(h: AbstractHapticDevice, m) -> Callable[[np.ndarray, np.ndarray], None] | None:
+            if not isinstance(h, HapticDeviceSimulated):
+                return None
 
-        view.connect_device(drag if isinstance(haptic, HapticDeviceSimulated) else None)
+            def drag(position_world, rotation_world) -> None:  # the view's pose, through this device's mapping
+                h.drag_to(m.position_to_device(position_world), m.rotation.T @ rotation_world)
+                publisher.dragged = True
+
+            return drag
+
+        drags = [make_drag(h, m) for h, m in zip(haptics, mappings)]
+        if several:
+            view.connect_devices(drags)
+        else:
+            view.connect_device(drags[0])
     if mode == "shm":
         from .hw.shm_link import SharedMemoryPhysics
         from .live_process import LivePhysicsFactory
@@ -534,7 +364,7 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
     elif mode == "process":
         from .live_process import PhysicsProcess
 
-        physics = PhysicsProcess(scene.source, bar, duration, feedback=feedback, force_scale=force_scale,
+        physics = PhysicsProcess(scene.source, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
                                  optimization_level=optimization_level,
                                  record_path=None if record is None else str(record))
 
@@ -543,7 +373,7 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
                 physics.last_force = value  # the child records what was actually sent
                 peaks[0] = max(peaks[0], float(np.linalg.norm(value)))
 
-        device_step = mapping.wrap(physics.step)
+        device_step = physics.step  # device frame both ways: the child maps (and records device samples)
         handlers = [on_device]
     else:
         live = LiveMarionette(model)
@@ -566,8 +396,8 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
             def on_device(kind: str, value) -> None:
                 if kind == "force":
                     peaks[i] = max(peaks[i], float(np.linalg.norm(value)))
-                    if i == 0 and publisher is not None:
-                        publisher.force_sent = value
+                    if publisher is not None:
+                        publisher.set_force_sent(i, value)
                 if writer is not None:
                     with lock:
                         if kind == "sample":
@@ -587,13 +417,13 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
                                        force_scale=force_scale, on_tick=on_tick if writer is not None else None,
                                        view=publisher)
         device_step = DeviceMapping.wrap_many(mappings, world_step) if several else mapping.wrap(world_step)
-    proxies = [_RecordingDevice(h, handler, label=f"device {i} ({n}, bar {b!r})" if several else None)
+    proxies = [RecordingDevice(h, handler, label=f"device {i} ({n}, bar {b!r})" if several else None)
                for i, (h, handler, n, b) in enumerate(zip(haptics, handlers, device_names, bars))]
     try:
         loop = ServoLoop(proxies if several else proxies[0], device_step, rate_hz=scene.string_hz, **servo_options)
         if on_start is not None:
             pid = {"shm": lambda: physics_link.pid, "process": lambda: physics.pid}.get(mode, os.getpid)()
-            on_start({"physics": mode, "physics_pid": pid})
+            on_start({"physics": mode, "physics_pid": pid, "stop": loop.request_stop})
         stats = loop.run(duration)
     finally:
         for h in haptics:  # ServoLoop.run closed them (motors off); again in case it never started

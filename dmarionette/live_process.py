@@ -16,9 +16,16 @@ than the worker thread (926-1112 vs 1408-1969 string steps in 2 s over four runs
 is not the default. The shared-memory mode (``--physics shm``, :mod:`dmarionette.hw.shm_link`)
 has no wake-ups and is the default where real-time priority is allowed (docs/hardware.md).
 
-Messages (pickled tuples): parent -> child ``(position (3,), rotation (3, 3), t, last force
-sent (3,))`` or ``None`` to stop; child -> parent the world force ``(3,)``, or at the end a
-summary dict; on start the child answers ``("ready", info)`` or ``("error", text)``.
+Both children work in the device frame: they map each device sample to the world with the
+driven bar's mapping (eq. 3), step the marionette and return the force through ``W``'s
+rotation, and they record the device samples and the forces sent as the device gave and got
+them (device frame, as the worker-thread mode does and ``docs/session.md`` says).
+
+Messages (pickled tuples): parent -> child ``(sample time, position (3,), orientation
+quaternion (4,), buttons, t, last force sent (3,))``, the device's sample as it read it
+(device frame, its own clock) and the loop time, or ``None`` to stop; child -> parent the device-frame
+force ``(3,)``, or at the end a summary dict; on start the child answers ``("ready", info)`` or
+``("error", text)``.
 """
 
 from __future__ import annotations
@@ -109,9 +116,9 @@ class _LivePhysics:
                 "simulated_seconds": round(live.time, 4), "physics_cpu_seconds": round(time.process_time(), 3)}
 
 
-def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str, force_scale: float,
+def _physics_main(conn, scene_ref: str, bar: str, duration: float, mapping, feedback: str, force_scale: float,
                   optimization_level: int, record_path: str | None) -> None:
-    """The child: builds the live marionette, then answers one force per sample."""
+    """The child: builds the live marionette, then answers one device-frame force per device-frame sample."""
     try:
         import warp as wp
 
@@ -131,8 +138,8 @@ def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str
             from .session import SessionWriter
 
             writer = SessionWriter(record_path, scene, Path(scene.source).read_text())
-        step = make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
-                                 on_tick=_recorder(writer, model, live, bar) if writer else None)
+        step = mapping.wrap(make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
+                                              on_tick=_recorder(writer, model, live, bar) if writer else None))
         # Kernels compile and graphs are captured above, before the parent's loop starts.
     except Exception as error:  # reported to the parent, which raises it with context
         conn.send(("error", f"{type(error).__name__}: {error}"))
@@ -143,10 +150,10 @@ def _physics_main(conn, scene_ref: str, bar: str, duration: float, feedback: str
             message = conn.recv()
             if message is None:
                 break
-            position, rotation, t, last_force = message
+            sample_time, position, orientation, buttons, t, last_force = message
             if writer is not None and last_force is not None:
                 writer.write_force(bar, live.time, last_force)
-            sample = HapticSample.make(time=t, position=position, orientation=rotation)
+            sample = HapticSample(sample_time, position, orientation, buttons)  # as the device gave it
             if writer is not None:
                 writer.write_device_sample(bar, sample, t=live.time)
             conn.send(np.asarray(step(sample, t), dtype=np.float64))
@@ -164,24 +171,26 @@ def _recorder(writer, model, live, bar):
 
 
 class PhysicsProcess:
-    """The live marionette in a child process; ``step(sample_world, t) -> force_world``.
+    """The live marionette in a child process; ``step(sample_device, t) -> force_device``.
 
     Args:
         scene_ref: a built-in scene name or a scene file path (the child loads it).
         bar, duration, feedback, force_scale: as for :func:`dmarionette.live.make_physics_step`.
+        mapping: the driven bar's device-to-world mapping (a
+            :class:`~dmarionette.hw.DeviceMapping`); the child maps samples and forces with it.
         optimization_level: puppet kernel optimisation (compiled kernels are cached on disk).
         record_path: write the session (MCAP) from the child, or None.
         start_timeout: seconds to wait for the child to build the model.
     """
 
-    def __init__(self, scene_ref: str, bar: str, duration: float, *, feedback: str = "reaction",
+    def __init__(self, scene_ref: str, bar: str, duration: float, mapping, *, feedback: str = "reaction",
                  force_scale: float = 1.0, optimization_level: int = 2, record_path: str | None = None,
                  start_timeout: float = 300.0):
         context = mp.get_context("spawn")
         self._conn, child = context.Pipe()
         self._process = context.Process(
             target=_physics_main, name="dmarionette-physics", daemon=True,
-            args=(child, scene_ref, bar, duration, feedback, force_scale, optimization_level, record_path))
+            args=(child, scene_ref, bar, duration, mapping, feedback, force_scale, optimization_level, record_path))
         self._process.start()
         if not self._conn.poll(start_timeout):
             self._process.kill()
@@ -196,8 +205,10 @@ class PhysicsProcess:
         self.summary: dict[str, Any] = {}
 
     def step(self, sample, t: float) -> np.ndarray:
-        """Sends a world-frame sample, returns the world-frame force (blocks without holding the GIL)."""
-        self._conn.send((np.asarray(sample.position), sample.rotation, float(t), self.last_force))
+        """Sends a device-frame sample, returns the device-frame force (blocks without holding the GIL)."""
+        self._conn.send((float(sample.time), np.asarray(sample.position, dtype=np.float64),
+                         np.asarray(sample.orientation, dtype=np.float64), int(sample.buttons), float(t),
+                         self.last_force))
         return self._conn.recv()
 
     def close(self) -> dict[str, Any]:

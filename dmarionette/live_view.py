@@ -22,7 +22,7 @@ import abc
 import dataclasses
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import final
 
@@ -64,9 +64,12 @@ class LiveViewGeometry:
         string_start: First particle of each string and the particle count at the end, shape (S + 1,).
         bar_names: Control bars, shape (B,).
         bar_attach: Per bar, its strings' attach points in the bar frame [m], shape (k, 3) each.
-        driven_bar: Index of the bar the device drives.
+        driven_bar: Index of the bar the (first) device drives.
         ground_height: Height of the ground [m] (y up).
         chair: ``(centre (3,), half extents (3,))`` [m] of the chair, or None.
+        driven_bars: Indices of the bars the devices drive, in device order (``driven_bar`` first);
+            each gets a drag handle (simulated devices) and a force-sent arrow. Empty means
+            ``(driven_bar,)``: use :attr:`device_bars`.
     """
 
     body_names: tuple
@@ -78,21 +81,32 @@ class LiveViewGeometry:
     driven_bar: int
     ground_height: float
     chair: tuple | None
+    driven_bars: tuple = ()
+
+    @property
+    def device_bars(self) -> tuple:
+        """Indices of the device-driven bars, one per device in device order."""
+        return tuple(self.driven_bars) or (self.driven_bar,)
 
     @staticmethod
-    def from_model(model, driven_bar: str) -> LiveViewGeometry:
-        """The geometry of a :class:`~dmarionette.marionette.MarionetteModel` whose ``driven_bar`` a device drives."""
+    def from_model(model, driven_bar: str | Sequence[str]) -> LiveViewGeometry:
+        """The geometry of a :class:`~dmarionette.marionette.MarionetteModel` whose ``driven_bar`` a
+        device drives, or whose bars ``driven_bar`` (a sequence, one per device) the devices drive."""
         scene = model.scene
-        if driven_bar not in model.bar_names:
-            raise ValueError(f"driven bar: got {driven_bar!r}; expected one of {model.bar_names}")
+        names = [driven_bar] if isinstance(driven_bar, str) else list(driven_bar)
+        for name in names:
+            if name not in model.bar_names:
+                raise ValueError(f"driven bar: got {name!r}; expected one of {model.bar_names}")
+        if not names or len(set(names)) != len(names):
+            raise ValueError(f"driven bars: got {names}; expected distinct bars, one per device")
         return LiveViewGeometry(
             body_names=tuple(model.puppet.body_names), body_shape=tuple(model.puppet.body_shape),
             string_names=tuple(model.strings.string_names), string_start=model.strings.string_start_np.copy(),
             bar_names=tuple(model.bar_names),
             bar_attach=tuple(np.array(list(bar.attach.values()), dtype=np.float64).reshape(-1, 3)
                              for bar in scene.bars),
-            driven_bar=model.bar_names.index(driven_bar), ground_height=float(scene.ground_height),
-            chair=scene.chair)
+            driven_bar=model.bar_names.index(names[0]), ground_height=float(scene.ground_height),
+            chair=scene.chair, driven_bars=tuple(model.bar_names.index(name) for name in names))
 
     def string_segments(self) -> np.ndarray:
         """Particle index pairs of every string segment, shape (P - S, 2)."""
@@ -121,7 +135,8 @@ class LiveSnapshot:
         string_taut: Taut flag per string after the latest string step, shape (S,).
         bar_reaction: The strings' pull on each bar [N], shape (B, 3).
         force_sent: The force last written to the device, after the safety filter, in the world
-            frame [N], shape (3,) (zero before the first write).
+            frame [N], shape (3,) (zero before the first write); with several devices one row per
+            device, in device order, shape (D, 3) (:meth:`forces_sent` gives (D, 3) either way).
         dragged: True once the view has taken the device over (its drag is the device's input).
     """
 
@@ -137,6 +152,10 @@ class LiveSnapshot:
     bar_reaction: np.ndarray
     force_sent: np.ndarray
     dragged: bool = False
+
+    def forces_sent(self) -> np.ndarray:
+        """The forces last written to the devices [N], world frame, one row per device, shape (D, 3)."""
+        return np.asarray(self.force_sent, dtype=np.float64).reshape(-1, 3)
 
 
 class SnapshotBuffer:
@@ -180,7 +199,8 @@ class LiveViewPublisher:
         buffer: Where the snapshots go.
         rate_hz: Snapshots per second of wall time [Hz].
         force_to_world: Maps the device-frame force written to the device to the world
-            (``DeviceMapping.force_to_world``); identity when None.
+            (``DeviceMapping.force_to_world``); identity when None. Several devices: a sequence,
+            one per device; snapshots then carry one force-sent row per device.
     """
 
     def __init__(self, buffer: SnapshotBuffer, rate_hz: float = 40.0, force_to_world=None) -> None:
@@ -188,13 +208,22 @@ class LiveViewPublisher:
             raise ValueError(f"view rate: got {rate_hz!r} Hz; expected a finite rate > 0")
         self.buffer = buffer
         self.period = 1.0 / float(rate_hz)
-        self._force_to_world = force_to_world
+        self._several = isinstance(force_to_world, (list, tuple))
+        self._force_to_world = list(force_to_world) if self._several else [force_to_world]
         self._next = 0.0
-        self.force_sent = np.zeros(3)
-        """The force last written to the device [N], device frame (set by the servo thread)."""
+        self.force_sent = np.zeros((len(self._force_to_world), 3)) if self._several else np.zeros(3)
+        """The force last written to the device [N], device frame (set by the servo thread); with
+        several devices one row per device (:meth:`set_force_sent`)."""
         self.dragged = False
         """Set when the view takes the device over."""
         self._views = None
+
+    def set_force_sent(self, device: int, force) -> None:
+        """The force last written to device ``device`` [N], device frame (servo thread)."""
+        if self._several:
+            self.force_sent[device] = force
+        else:
+            self.force_sent = force
 
     def due(self) -> bool:
         """True when a snapshot should be taken now (one clock read)."""
@@ -214,9 +243,14 @@ class LiveViewPublisher:
         if self._views is None:  # host views of the (fixed) state buffers, made once
             self._views = (live.state.puppet.body_pos.numpy(), live.state.puppet.body_rot.numpy())
         body_pos, body_rot = self._views
-        force = np.asarray(self.force_sent, dtype=np.float64)
-        if self._force_to_world is not None:
-            force = self._force_to_world(force)
+        if self._several:
+            rows = np.array(self.force_sent, dtype=np.float64)  # a copy: the servo thread writes on
+            force = np.array([row if to_world is None else to_world(row)
+                              for row, to_world in zip(rows, self._force_to_world)])
+        else:
+            force = np.asarray(self.force_sent, dtype=np.float64)
+            if self._force_to_world[0] is not None:
+                force = self._force_to_world[0](force)
         self.buffer.publish(LiveSnapshot(
             sequence=self.buffer.published + 1, t=live.time, wall_time=now,
             particle_q=live.latest_particle_q().copy(), body_pos=body_pos[0].copy(),
@@ -241,6 +275,11 @@ class AbstractLiveView(abc.ABC):
     def connect_device(self, drag: Callable[[np.ndarray, np.ndarray], None] | None) -> None:
         """What a drag in the view calls, ``drag(position [m] (3,), rotation (3, 3))`` in the world
         frame, or None when the device cannot be moved by the view."""
+
+    def connect_devices(self, drags: Sequence[Callable[[np.ndarray, np.ndarray], None] | None]) -> None:
+        """Several devices: ``drags[i]`` is what a drag of device ``i``'s bar (``geometry.device_bars[i]``)
+        calls, or None. A view that handles one device only connects the first."""
+        self.connect_device(drags[0] if drags else None)
 
     @abc.abstractmethod
     def close(self) -> None:
@@ -342,11 +381,12 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
             tail, force = snapshot.bar_pos[b], arrow_scale * snapshot.bar_reaction[b]
             ax.annotate("", xy=(tail[axis] + force[axis], tail[1] + force[1]), xytext=(tail[axis], tail[1]),
                         arrowprops={"arrowstyle": "->", "color": "crimson", "lw": 1.5})
-        tail, force = snapshot.bar_pos[geometry.driven_bar], arrow_scale * snapshot.force_sent
-        ax.annotate("", xy=(tail[axis] + force[axis], tail[1] + force[1]), xytext=(tail[axis], tail[1]),
-                    arrowprops={"arrowstyle": "->", "color": "royalblue", "lw": 1.5})
+        for b, sent in zip(geometry.device_bars, snapshot.forces_sent()):
+            tail, force = snapshot.bar_pos[b], arrow_scale * sent
+            ax.annotate("", xy=(tail[axis] + force[axis], tail[1] + force[1]), xytext=(tail[axis], tail[1]),
+                        arrowprops={"arrowstyle": "->", "color": "royalblue", "lw": 1.5})
     fig.suptitle(f"{title}   t = {snapshot.t:.3f} s\nstrings: dark taut, orange slack; arrows: red = reaction on "
-                 f"each bar, blue = force sent to the device ({arrow_scale:g} m/N)", fontsize=9)
+                 f"each bar, blue = force sent to each device ({arrow_scale:g} m/N)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

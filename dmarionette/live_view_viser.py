@@ -7,10 +7,12 @@ spheres, strings and their colours, bars, arrows, the drag handle), so one frame
 small websocket messages whatever the number of bodies. It never touches the simulation
 state, and the physics never waits for it.
 
-For a simulated device the driven bar carries a transform gizmo: dragging it (arrows move,
-rings rotate) calls the ``drag`` callback given by :func:`dmarionette.live.run_live`, which
-hands the pose to the device (:meth:`dmarionette.hw.HapticDeviceSimulated.drag_to`); the
-bar then follows the device like any device-driven bar. Other devices: no gizmo.
+For a simulated device the driven bar carries a transform gizmo (``/drag/BAR``): dragging it
+(arrows move, rings rotate) calls the ``drag`` callback given by
+:func:`dmarionette.live.run_live`, which hands the pose to the device
+(:meth:`dmarionette.hw.HapticDeviceSimulated.drag_to`); the bar then follows the device like
+any device-driven bar. Other devices: no gizmo. With two devices (one per bar) each
+device-driven bar has its own gizmo, moving its own device, and its own force-sent arrow.
 
 Needs the ``view`` extra: ``pip install 'dmarionette[view]'``.
 """
@@ -21,7 +23,7 @@ import contextlib
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import final
 
 import numpy as np
@@ -106,8 +108,8 @@ class LiveViewServer(AbstractLiveView):
         """Wall time spent in :meth:`update` so far [s] (the view thread's work per frame, summed)."""
         self.last_sent: LiveSnapshot | None = None
         """The last snapshot sent (what the scene shows)."""
-        self._drag: Callable[[np.ndarray, np.ndarray], None] | None = None
-        self._dragging = False
+        self._drags: list[Callable[[np.ndarray, np.ndarray], None] | None] = []
+        self._dragging: set[int] = set()  # devices whose gizmo the mouse holds
         self._stop = threading.Event()
         if not (np.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"view rate: got {rate_hz!r} Hz; expected a finite rate > 0")
@@ -170,34 +172,50 @@ class LiveViewServer(AbstractLiveView):
         self._bar_segments = [(b, k) for b, attach in enumerate(g.bar_attach) for k in range(len(attach))]
         self._bar_node = scene.add_line_segments(
             "/bars", np.zeros((len(self._bar_segments), 2, 3), np.float32), BAR_RGB, thickness=0.012)
-        arrow_colors = np.array([REACTION_RGB] * len(g.bar_names) + [SENT_RGB], dtype=np.uint8)
+        devices = g.device_bars
+        # One reaction arrow per bar, then one force-sent arrow per device (on its bar).
+        arrow_colors = np.array([REACTION_RGB] * len(g.bar_names) + [SENT_RGB] * len(devices), dtype=np.uint8)
         self._arrow_node = scene.add_arrows(
-            "/forces", np.zeros((len(g.bar_names) + 1, 2, 3), np.float32), arrow_colors,
+            "/forces", np.zeros((len(g.bar_names) + len(devices), 2, 3), np.float32), arrow_colors,
             shaft_radius=0.004, head_radius=0.01, head_length=0.02)
-        self._gizmo = scene.add_transform_controls(
-            f"/drag/{g.bar_names[g.driven_bar]}", scale=0.18, depth_test=False, visible=False)
-        self._gizmo.on_update(self._on_gizmo)
+        self._gizmos = []
+        for i, b in enumerate(devices):
+            gizmo = scene.add_transform_controls(f"/drag/{g.bar_names[b]}", scale=0.18, depth_test=False,
+                                                 visible=False)
+            gizmo.on_update(lambda event, i=i: self._on_gizmo(i, event))
+            self._gizmos.append(gizmo)
+        self._drags = [None] * len(devices)
         self._status = self._server.gui.add_markdown("waiting for the first snapshot")
         self._server.gui.add_markdown(
             "**Strings:** dark = taut, orange = slack. **Arrows** "
             f"({self.arrow_scale:g} m/N): red = the strings' pull on each bar, blue = the force sent to the "
-            "device (after the safety filter). With the simulated device, drag the gizmo on the driven bar "
-            "(arrows move it, rings turn it): the device follows the mouse from then on.")
+            "device (after the safety filter), one per device. With a simulated device, drag the gizmo on "
+            "its bar (arrows move it, rings turn it): the device follows the mouse from then on.")
 
     def connect_device(self, drag: Callable[[np.ndarray, np.ndarray], None] | None) -> None:
-        """Sets what a drag of the driven bar calls: ``drag(position [m] (3,), rotation (3, 3))``
-        in the world frame, from viser's callback thread; None hides the gizmo."""
-        self._drag = drag
-        self._gizmo.visible = drag is not None
+        """Sets what a drag of the (first) driven bar calls: ``drag(position [m] (3,), rotation
+        (3, 3))`` in the world frame, from viser's callback thread; None hides the gizmo."""
+        self.connect_devices([drag] + [None] * (len(self._gizmos) - 1))
 
-    def _on_gizmo(self, event) -> None:
+    def connect_devices(self, drags: Sequence[Callable[[np.ndarray, np.ndarray], None] | None]) -> None:
+        """Sets what a drag of each device's bar calls (``drags[i]`` for ``geometry.device_bars[i]``,
+        as :meth:`connect_device`); None hides that bar's gizmo."""
+        if len(drags) != len(self._gizmos):
+            raise ValueError(f"connect_devices: got {len(drags)} drag callbacks for {len(self._gizmos)} "
+                             f"device-driven bars {[self.geometry.bar_names[b] for b in self.geometry.device_bars]}")
+        self._drags = list(drags)
+        for gizmo, drag in zip(self._gizmos, drags):
+            gizmo.visible = drag is not None
+
+    def _on_gizmo(self, device: int, event) -> None:
         if event.phase == "start":
-            self._dragging = True
+            self._dragging.add(device)
         elif event.phase == "end":
-            self._dragging = False
+            self._dragging.discard(device)
         target = event.target
-        if self._drag is not None and event.phase in ("start", "update"):
-            self._drag(np.array(target.position, dtype=np.float64), matrix_from_quat(target.wxyz))
+        drag = self._drags[device]
+        if drag is not None and event.phase in ("start", "update"):
+            drag(np.array(target.position, dtype=np.float64), matrix_from_quat(target.wxyz))
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -222,17 +240,20 @@ class LiveViewServer(AbstractLiveView):
             self._bar_node.points = np.array([
                 [snapshot.bar_pos[b], snapshot.bar_pos[b] + snapshot.bar_rot[b] @ g.bar_attach[b][k]]
                 for b, k in self._bar_segments])
-            tails = np.concatenate([snapshot.bar_pos, snapshot.bar_pos[g.driven_bar][None]])
-            forces = np.concatenate([snapshot.bar_reaction, snapshot.force_sent[None]])
+            devices = list(g.device_bars)
+            sent = snapshot.forces_sent()
+            tails = np.concatenate([snapshot.bar_pos, snapshot.bar_pos[devices]])
+            forces = np.concatenate([snapshot.bar_reaction, sent])
             self._arrow_node.points = np.stack([tails, tails + self.arrow_scale * forces], axis=1)
-            if not self._dragging:
-                self._gizmo.position = snapshot.bar_pos[g.driven_bar]
-                self._gizmo.wxyz = quat_from_matrix(snapshot.bar_rot[g.driven_bar])
+            for i, (gizmo, b) in enumerate(zip(self._gizmos, devices)):
+                if i not in self._dragging:  # the mouse holds it: do not pull it back
+                    gizmo.position = snapshot.bar_pos[b]
+                    gizmo.wxyz = quat_from_matrix(snapshot.bar_rot[b])
             if snapshot.sequence % 10 == 1:
                 taut = int(np.count_nonzero(snapshot.string_taut))
                 self._status.content = (
                     f"t = {snapshot.t:.2f} s · {taut}/{len(g.string_names)} strings taut · "
-                    f"|force sent| {np.linalg.norm(snapshot.force_sent):.2f} N" +
+                    "|force sent| " + ", ".join(f"{np.linalg.norm(f):.2f}" for f in sent) + " N" +
                     (" · **bar dragged**" if snapshot.dragged else ""))
         self.last_sent = snapshot
         self.frames_sent += 1

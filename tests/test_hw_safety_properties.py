@@ -11,7 +11,9 @@
 The 5 ms deadline needs the servo thread to get a CPU on time; on a loaded machine that
 takes the real-time priority the loop asks for. Always asserted: the zero comes at the first
 tick the watchdog may act (counted in ticks, load-independent). The 5 ms wall-clock bound is
-asserted when SCHED_FIFO was granted (as root here) and reported otherwise.
+asserted when SCHED_FIFO was granted (as root here) and the servo thread kept its ticks
+around the fault, and reported otherwise (``tests/servo_checks.py``). The loops run for a
+number of physics answers, not of seconds, so a busy machine cannot leave a run without ticks.
 """
 
 import math
@@ -28,6 +30,7 @@ from dmarionette.hw.mapping import DeviceMapping
 from dmarionette.hw.safety import ForceSafetyFilter, SafetyConfig
 from dmarionette.hw.servo import ServoLoop
 from dmarionette.hw.simulated import HapticDeviceSimulated
+from servo_checks import assert_zero_within
 
 FAST = settings(max_examples=300, deadline=None, database=None)
 LOOP = settings(max_examples=10, deadline=None, database=None,
@@ -60,6 +63,13 @@ def safety_configs(draw, spec):
 rotations = st.tuples(*[st.floats(-1.0, 1.0)] * 4).filter(lambda q: sum(x * x for x in q) > 1e-3)
 
 
+def unit(v):
+    """``v / |v|``, exact for subnormal ``v`` too: scaled by a power of two first (no rounding), so
+    ``|v|`` is not itself a subnormal with a few bits left (a 2e-313 N force gave 1 - 2e-11)."""
+    v = np.ldexp(v, -int(np.frexp(np.abs(v).max())[1]))
+    return v / math.hypot(*v)
+
+
 def limit_of(spec, config):
     return spec.max_force if config.max_force is None else config.max_force
 
@@ -90,8 +100,7 @@ def test_filter_output_is_finite_within_limits_and_in_the_asked_direction(data, 
         if not np.all(np.isfinite(asked)):
             np.testing.assert_array_equal(out, np.zeros(3))
         elif n > 0.0:  # a positive multiple of ramp * asked (direction kept)
-            scaled = ramp * asked
-            assert float((out / n) @ (scaled / math.hypot(*scaled))) > 1.0 - 1e-12  # unit vectors: no underflow
+            assert float(unit(out) @ unit(ramp * asked)) > 1.0 - 1e-12
         tau = config.continuous_time_constant
         if tau > 0.0:  # the running average of |F| stays within the continuous rating
             step_dt = 0.0 if last_t is None else t - last_t
@@ -99,6 +108,30 @@ def test_filter_output_is_finite_within_limits_and_in_the_asked_direction(data, 
             average += a * (n - average)
             assert average <= spec.max_continuous_force * (1 + 1e-9) + 1e-12
         last_t = t
+
+
+@pytest.mark.parametrize("force, limit", [
+    ((0.0, 0.0, 6.744849348730062e51), 1.26684781366206e-262),  # limit / |F| subnormal: came out above the limit
+    ((0.0, -0.5, 0.5), 1e-323),  # a subnormal limit: came out 20 % off the direction, 40 % above the limit
+    ((3.0, -4.0, 12.0), 1e-300),  # the smallest limit still written with its direction
+])
+def test_clamping_to_a_tiny_limit_keeps_the_limit_and_the_direction(force, limit):
+    """The two examples hypothesis found (test above, 30000 examples, seed 1): a force clamped to a
+    tiny limit stays within it and points where asked, or is zero below TINY_FORCE_LIMIT."""
+    from dmarionette.hw.safety import TINY_FORCE_LIMIT, clamp_force
+
+    spec = HapticDeviceSpec("drawn", max_force=2.0, max_continuous_force=0.0, workspace_min=(-0.1, -0.1, -0.1),
+                            workspace_max=(0.1, 0.1, 0.1))
+    filt = ForceSafetyFilter(spec, SafetyConfig(ramp_time=0.0, max_force=limit, continuous_time_constant=0.0))
+    f = np.array(force)
+    for out in (filt(f, 0.0), clamp_force(f, limit)):
+        n = math.hypot(*out)
+        assert n <= limit * (1 + 1e-12)
+        if limit < TINY_FORCE_LIMIT:
+            np.testing.assert_array_equal(out, np.zeros(3))
+        else:
+            assert n == pytest.approx(limit, rel=1e-12)
+            assert float(unit(out) @ unit(f)) > 1.0 - 1e-12
 
 
 @pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # inf * 0 in the rotation
@@ -114,15 +147,20 @@ def test_no_force_written_by_the_loop_exceeds_the_device_limit(data, rotation, f
     dev = HapticDeviceSimulated(spec=spec)  # keeps every force written
     mapping = DeviceMapping.make(1.0, rotation=np.array(rotation) / np.linalg.norm(rotation))
     calls = [0]
+    answers = max(len(forces), 20)
 
     def world_step(sample, t):
         calls[0] += 1
+        if calls[0] == answers:
+            loop.request_stop()
         return np.array(forces[calls[0] % len(forces)])
 
+    loop = ServoLoop(dev, mapping.wrap(world_step), safety=config)
     with np.errstate(all="ignore"):
-        stats = ServoLoop(dev, mapping.wrap(world_step), safety=config).run(duration=0.06)
+        stats = loop.run(duration=30.0)  # stopped after `answers` physics answers
     times, written = dev.force_log()
-    assert stats.tick_count > 10 and len(written) >= stats.tick_count
+    assert stats.stop_reason == "stopped" and stats.tick_count >= answers
+    assert len(written) >= stats.tick_count
     assert np.all(np.isfinite(written))
     assert np.all(np.linalg.norm(written, axis=1) <= limit * (1 + 1e-12) + 1e-300)
     np.testing.assert_array_equal(written[-1], np.zeros(3))
@@ -133,11 +171,15 @@ def test_no_force_written_by_the_loop_exceeds_the_device_limit(data, rotation, f
 @LOOP
 def test_a_stalled_or_nonfinite_physics_gets_zero_force_within_5ms(kind, onset, length, magnitude, ramp):
     dev = HapticDeviceSimulated()
-    state = {"onset": None}
+    state = {"onset": None, "answers_after": 0}
     lock = threading.Lock()
 
     def step(sample, t):
         now = dev.time()
+        if state["onset"] is not None and now >= state["onset"] + length:
+            state["answers_after"] += 1  # the fault is over: 10 answers later the run ends
+            if state["answers_after"] == 10:
+                loop.request_stop()
         if t > onset and state["onset"] is None:
             state["onset"] = now
             if kind == "sleep":
@@ -151,19 +193,17 @@ def test_a_stalled_or_nonfinite_physics_gets_zero_force_within_5ms(kind, onset, 
         return [magnitude, 0.0, 0.0]
 
     safety = SafetyConfig(ramp_time=ramp, continuous_time_constant=0.0, rearm_ramp_time=0.01)
-    stats = ServoLoop(dev, step, safety=safety, realtime_priority=10).run(duration=onset + length + 0.03)
+    loop = ServoLoop(dev, step, safety=safety, realtime_priority=10)
+    stats = loop.run(duration=30.0)  # stopped by the step, whatever the load
+    assert stats.stop_reason == "stopped"
     times, forces = dev.force_log()
     start = state["onset"]
-    after = times > start
-    zero = times[after & np.all(forces == 0.0, axis=1)]
-    reaction = zero[0] - start
-    print(f"{kind}: zero {reaction * 1e3:.2f} ms after onset; {stats.summary()}")
-    # The first tick the watchdog may act: a NaN at once (<= 1 tick: the answer is taken at the
-    # next tick), a stall once the request is 2 ms old (<= 4 ticks).
-    assert np.count_nonzero(after & (times < zero[0])) <= (1 if kind in ("nan", "inf") else 4)
-    if stats.realtime:
-        assert reaction < 0.005
-    held = forces[(times > start + 0.005) & (times < start + length - 0.002)]
+    # The first tick the watchdog may act: a stall once the request is 2 ms old (<= 4 ticks); a
+    # NaN the tick its answer is taken (the next tick when the physics thread hands it over on
+    # time; a physics thread held up before handing it over is a stall: <= 4 ticks again). The
+    # tick-exact NaN case is tests/test_hw_servo.py::test_nonfinite_force_goes_to_zero.
+    first_zero, _ = assert_zero_within(times, forces, start, 4, stats)
+    held = forces[(times >= first_zero) & (times < start + length)]  # nothing finite is answered before
     np.testing.assert_array_equal(held, np.zeros_like(held))  # zero for as long as it lasts
     assert stats.watchdog_trips >= 1 and np.all(np.isfinite(forces))
 

@@ -18,6 +18,37 @@ def model():
     return MarionetteModel(dm.load_scene("hanging"), optimization_level=0)
 
 
+def assert_the_loop_ran(model, stats, summary, duration):
+    """What a live run must show whatever the load (how many ticks kept time is measured in
+    benchmarks/bench_live.py, not asserted): the loop ran to its duration on its own clock, no
+    tick started before its deadline, the physics answered, and the string steps the physics ran
+    agree with the loop's ticks: each was asked for by one tick (one request at a time), and each
+    fresh force came from one of them."""
+    assert stats.stop_reason == "duration" and stats.duration >= duration
+    assert stats.tick_count > 0 and len(stats.lateness) == stats.tick_count and np.all(stats.lateness >= 0.0)
+    fresh = stats.tick_count - stats.stale_ticks
+    assert fresh >= 1, stats.summary()
+    assert fresh <= summary["string_steps"] <= stats.tick_count, (summary, stats.summary())
+    assert summary["puppet_steps"] == summary["string_steps"] // model.substeps
+    assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+
+
+def assert_device_frame_samples(model, session, duration):
+    """``/device/main/sample`` holds what the simulated device read, in its own frame: the scene's
+    trajectory shifted to the bar's start (``make_device``), bit for bit at each sample's
+    ``device_time``, not the world-frame bar position."""
+    from dmarionette.live_setup import make_device
+    from dmarionette.session import read_session
+
+    samples = read_session(session, load_scene=False).channels["/device/main/sample"]
+    start = np.array(model.scene.bars[0].trajectory.positions[0], dtype=np.float64)
+    device = make_device("simulated", model.scene, "main", trajectory_offset=start, duration=duration)
+    expected = np.array([device._trajectory(t)[0] for t in samples["device_time"]])
+    assert len(expected) > 0 and np.all(np.diff(samples["device_time"]) > 0)
+    np.testing.assert_array_equal(samples["position"], expected)
+    assert np.linalg.norm(samples["position"], axis=1).max() < 0.1 < np.linalg.norm(start)  # not the world frame
+
+
 def test_tick_by_tick_reproduces_the_offline_simulation(model):
     """Driven by the scene's own bar motion, 30 puppet steps tick by tick equal the captured rollout."""
     live = LiveMarionette(model)
@@ -34,25 +65,30 @@ def test_tick_by_tick_reproduces_the_offline_simulation(model):
     np.testing.assert_allclose(live.state.puppet.joint_q.numpy()[0], offline.joint_q[-1], rtol=0, atol=1e-12)
 
 
-def test_servo_loop_runs_the_marionette_within_the_device_limits(model):
-    """Half a second through the real servo loop with the simulated device.
+def test_servo_loop_runs_the_marionette_within_the_device_limits(model, tmp_path):
+    """Half a second through the real servo loop with the simulated device, recorded.
 
     Whether the physics keeps every 1 kHz deadline in a thread of this process depends on the
     machine (it is measured, not asserted: see the README); what must hold is that the loop
-    runs, stays finite, and never sends more than the device's limit.
+    runs, its ticks and the physics' steps agree, it never sends more than the device's limit,
+    and the device samples are recorded in the device frame.
     """
-    stats, summary = run_live(model, duration=0.5, force_scale=1.0, physics="thread")
-    assert stats.tick_count >= 400
-    assert summary["string_steps"] > 0 and summary["physics"] == "servo worker thread"
-    assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+    session = tmp_path / "thread.mcap"
+    stats, summary = run_live(model, duration=0.5, force_scale=1.0, physics="thread", record=session)
+    assert_the_loop_ran(model, stats, summary, 0.5)
+    assert summary["physics"] == "servo worker thread"
+    assert_device_frame_samples(model, session, 0.5)
 
 
-def test_servo_loop_with_the_physics_in_its_own_process(model):
-    """The same through a child process (spawned: it loads the scene and the cached kernels)."""
-    stats, summary = run_live(model, duration=0.5, force_scale=1.0, process=True, optimization_level=0)
-    assert stats.tick_count >= 400
-    assert summary["string_steps"] > 0 and summary["physics"] == "own process"
-    assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+def test_servo_loop_with_the_physics_in_its_own_process(model, tmp_path):
+    """The same through a child process over a pipe (spawned: it loads the scene and the cached
+    kernels). The child records the device samples in the device frame, as the other modes do."""
+    session = tmp_path / "process.mcap"
+    stats, summary = run_live(model, duration=0.5, force_scale=1.0, process=True, optimization_level=0,
+                              record=session)
+    assert_the_loop_ran(model, stats, summary, 0.5)
+    assert summary["physics"] == "own process"
+    assert_device_frame_samples(model, session, 0.5)
 
 
 def test_live_refuses_a_scene_without_bars(tmp_path, capsys):
@@ -104,18 +140,20 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
     assert '"device": "replay"' in capsys.readouterr().out
 
 
-def test_servo_loop_with_the_physics_over_shared_memory(model):
+def test_servo_loop_with_the_physics_over_shared_memory(model, tmp_path):
     """The same through the shared-memory child (spawned: it loads the scene and the cached kernels).
     Its scheduling (SCHED_FIFO, CPUs) or the refusal is in the statistics' notes."""
-    stats, summary = run_live(model, duration=0.5, force_scale=1.0, physics="shm", optimization_level=0)
-    assert stats.tick_count >= 400
-    assert summary["string_steps"] > 0 and summary["physics"] == "own process, shared memory"
-    assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+    session = tmp_path / "shm.mcap"
+    stats, summary = run_live(model, duration=0.5, force_scale=1.0, physics="shm", optimization_level=0,
+                              record=session)
+    assert_the_loop_ran(model, stats, summary, 0.5)
+    assert summary["physics"] == "own process, shared memory"
+    assert_device_frame_samples(model, session, 0.5)
     assert any("physics process" in n for n in stats.notes) and "shared memory" in stats.summary()
 
 
 def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
-    from dmarionette.live import fifo_allowed
+    from dmarionette.live_setup import fifo_allowed
 
     stats, summary = run_live(model, duration=0.2, physics="auto", optimization_level=0)
     assert summary["physics_mode"] == ("shm" if fifo_allowed() else "thread")
@@ -127,7 +165,7 @@ def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
 def test_tabulated_simulated_device_follows_the_trajectory():
     """Linear interpolation of a 2 kHz table: exact at the table's times, within the interpolation
     error bound h^2/8 max|x''| in between (h = 0.5 ms)."""
-    from dmarionette.live import SIMULATED_TABLE_HZ, make_device
+    from dmarionette.live_setup import SIMULATED_TABLE_HZ, make_device
 
     scene = dm.load_scene("hanging")
     trajectory = scene.bars[0].trajectory

@@ -14,7 +14,8 @@ import warp as wp
 
 import dmarionette as dm
 from dmarionette.hw import HapticDeviceSimulated, HapticSample
-from dmarionette.live import LiveMarionette, make_device, make_physics_step, run_live
+from dmarionette.live import LiveMarionette, make_physics_step, run_live
+from dmarionette.live_setup import make_device
 from dmarionette.live_view import (
     SLACK_RGB,
     TAUT_RGB,
@@ -169,17 +170,18 @@ def test_headless_picture_colours_strings_by_taut_flag(model, tmp_path):
 
 
 def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model):
-    """Two seconds of the servo loop with the simulated device and the browser view:
+    """The servo loop with the simulated device and the browser view, until the test stops it:
 
-    - the view sends snapshots at its rate (counted, loosely: at least a quarter of
-      rate x duration), and what the browser last received equals the last snapshot published;
+    - the view sends snapshots (counted: several; the rate it keeps is measured in
+      benchmarks/bench_live_view.py, not asserted), and what the browser last received equals
+      the last snapshot published;
     - a drag of the gizmo, sent by the websocket client as a browser sends it, moves the
       simulated device (its reads reach the dragged pose, device frame = world - bar start),
       then the bar and its string tops follow;
     - at the end the motors are off (last force written is zero, the device closed once), and
       closing the view stops its thread and its server (the port refuses connections).
     """
-    duration, rate = 2.0, 40.0
+    rate = 40.0
     geometry = LiveViewGeometry.from_model(model, "main")
     start = np.array(model.scene.bars[0].trajectory.positions[0], dtype=np.float64)
     device = make_device("simulated", model.scene, "main", trajectory_offset=start)
@@ -188,9 +190,10 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     client = ViewClient(view.url)
     out = {}
 
-    def session():
+    def session():  # runs until stopped below: a busy machine cannot end it before the drag
         try:
-            out["result"] = run_live(model, device=device, duration=duration, view=view)
+            out["result"] = run_live(model, device=device, duration=600.0, view=view,
+                                     on_start=lambda info: out.setdefault("stop", info["stop"]))
         except BaseException as error:  # re-raised below
             out["error"] = error
 
@@ -198,7 +201,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     try:
         _wait(lambda: client.updates("/strings", "points"), 10, "the scene to reach the client")
         thread.start()
-        _wait(lambda: view.frames_sent >= 5, 60, "the first snapshots")
+        _wait(lambda: view.frames_sent >= 5, 120, "the first snapshots")
         gizmo = "/drag/main"
         _wait(lambda: client.poses(gizmo, "position") and client.poses(gizmo, "wxyz"), 10, "the gizmo pose")
         assert not device.dragged
@@ -218,6 +221,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         np.testing.assert_allclose(device.last_read.orientation, q0, atol=1e-9)
         # ... and the bar follows the device.
         _wait(lambda: np.linalg.norm(view.buffer.latest().bar_pos[0] - target) < 1e-6, 10, "the bar to follow")
+        out["stop"]()
         thread.join(timeout=120)
         assert not thread.is_alive()
         if "error" in out:
@@ -229,8 +233,8 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         for s_name, local in model.scene.bars[0].attach.items():
             np.testing.assert_allclose(last.particle_q[geometry.string_start[names.index(s_name)]],
                                        last.bar_pos[0] + last.bar_rot[0] @ np.array(local), atol=1e-12)
-        # Update counts, loosely (the loop may fall behind on a loaded machine; never a timing assert).
-        minimum = int(0.25 * rate * duration)
+        # Update counts, not rates (the loop may fall behind on a loaded machine; never a timing assert).
+        minimum = 5
         assert summary["view_snapshots"] == view.buffer.published >= minimum
         _wait(lambda: view.last_sent is last, 10, "the view to send the last snapshot")
         assert view.frames_sent >= minimum
@@ -247,6 +251,8 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         print(f"view: {view.frames_sent} frames sent, {len(arrival)} received, "
               f"{(len(arrival) - 1) / (arrival[-1] - arrival[0]):.1f} Hz at the client; {stats.summary()}")
     finally:
+        if "stop" in out:
+            out["stop"]()
         view.close()
         thread.join(timeout=120)
     # Clean shutdown: motors off, server stopped.
@@ -255,7 +261,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
     # The arrow's force is one the device was sent (the mapping's rotation is the identity here).
     assert any(np.array_equal(last.force_sent, f) for f in forces[:-1])
     assert device.close_count == 1 and not device.is_open
-    assert stats.stop_reason == "duration"
+    assert stats.stop_reason == "stopped"
     assert not view.is_running
     _wait(lambda: client.closed.is_set(), 10, "the client to see the server close")
     with socket.socket() as probe:
@@ -275,7 +281,7 @@ def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys, monkeypatch):
     captured = capsys.readouterr()
     assert "live view: http://127.0.0.1:" in captured.err
     summary = json.loads(captured.out[captured.out.index("{"):])
-    assert summary["view_snapshots"] >= 5
+    assert summary["view_snapshots"] >= 2  # a count, not a rate (benchmarks/bench_live_view.py measures that)
 
     picture = tmp_path / "last.png"
     assert main(["live", "--duration", "0.3", "--fast-compile", "--snapshot", str(picture)]) == 0
@@ -351,13 +357,18 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
         client = ViewClient(view.url)
         try:
             _wait(lambda: client.updates("/strings", "points"), 10, "the scene to reach the client")
-            session = threading.Thread(target=run_live, args=(model,), kwargs={"device": device, "duration": 0.6,
-                                                                              "view": view})
+            stop = {}
+            session = threading.Thread(target=run_live, args=(model,), kwargs={
+                "device": device, "duration": 600.0, "view": view,
+                "on_start": lambda info: stop.setdefault("stop", info["stop"])})  # stopped below
             session.start()
-            _wait(lambda: view.frames_sent >= 2, 60, "the first snapshots")
-            assert not view._gizmo.visible
+            _wait(lambda: view.frames_sent >= 2, 120, "the first snapshots")
+            assert not view._gizmos[0].visible
             client.send(vm.TransformControlsUpdateMessage(name="/drag/main", wxyz=(1.0, 0.0, 0.0, 0.0),
                                                           position=(0.3, 0.3, 0.3)))
+            seen = view.frames_sent
+            _wait(lambda: view.frames_sent >= seen + 2, 120, "snapshots after the drag")
+            stop["stop"]()
             session.join(timeout=120)
             last = view.buffer.latest()
             assert not last.dragged
@@ -365,3 +376,103 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
         finally:
             client.close()
     assert not device.is_open
+
+
+def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
+    from dmarionette.hw.device import quat_from_matrix
+
+    """Two simulated devices, one per bar (the hand's with workspace scale 2): each bar has its own
+    gizmo (``/drag/main``, ``/drag/hand``); dragging one moves that device only, through its own
+    mapping (device position = (target - bar start) / S), and its bar follows; the snapshots and
+    the browser's arrows carry each device's own force sent, on its own bar.
+
+    The session runs until the test stops it (``on_start``'s ``stop``), so a busy machine only
+    makes it slower, never too short for the drags."""
+    bars, scales = ["main", "hand"], [1.0, 2.0]
+    idx = [model.bar_names.index(b) for b in bars]
+    geometry = LiveViewGeometry.from_model(model, bars)
+    assert geometry.device_bars == tuple(idx) and geometry.driven_bar == idx[0]
+    starts = [np.array(model.scene.bars[i].trajectory.positions[0], dtype=np.float64) for i in idx]
+    devices = [make_device("simulated", model.scene, b, trajectory_offset=p, workspace_scale=s)
+               for b, p, s in zip(bars, starts, scales)]
+    view = LiveViewServer(geometry, host="127.0.0.1", port=0, rate_hz=40.0)
+    client = ViewClient(view.url)
+    out, started = {}, threading.Event()
+
+    def on_start(info):
+        out["stop"] = info["stop"]
+        started.set()
+
+    def session():
+        try:
+            out["result"] = run_live(model, device=devices, bar=bars, workspace_scale=scales, duration=600.0,
+                                     view=view, on_start=on_start)
+        except BaseException as error:  # re-raised below
+            out["error"] = error
+            started.set()
+
+    thread = threading.Thread(target=session)
+    try:
+        _wait(lambda: client.updates("/strings", "points"), 10, "the scene to reach the client")
+        thread.start()
+        assert started.wait(120) and "error" not in out, out.get("error")
+        _wait(lambda: view.frames_sent >= 2, 60, "the first snapshots")
+        assert all(g.visible for g in view._gizmos)
+        targets = {}
+        for k in (1, 0):  # the hand first: the main device must not move with it
+            gizmo = f"/drag/{bars[k]}"
+            _wait(lambda: client.poses(gizmo, "position"), 10, f"{gizmo}'s position")
+            p0 = np.array(client.poses(gizmo, "position")[-1][1])
+            # (viser sends an orientation only when it changes: the hand's stays the identity)
+            q0 = tuple(float(x) for x in quat_from_matrix(view.last_sent.bar_rot[idx[k]]))
+            # On its own bar (which may have moved on a little since; the bars are 0.16 m apart).
+            assert np.linalg.norm(p0 - view.last_sent.bar_pos[idx[k]]) < 0.01
+            targets[k] = p0 + np.array([0.04, -0.02, 0.03]) * (k + 1)
+            client.send(vm.TransformControlsDragStartMessage(name=gizmo))
+            client.send(vm.TransformControlsUpdateMessage(name=gizmo, wxyz=q0, position=tuple(map(float, targets[k]))))
+            client.send(vm.TransformControlsDragEndMessage(name=gizmo))
+            expected = (targets[k] - starts[k]) / scales[k]
+            _wait(lambda: devices[k].last_read is not None and
+                  np.linalg.norm(devices[k].last_read.position - expected) < 1e-6, 30, f"device {k} to follow")
+            if k == 1:
+                assert devices[1].dragged and not devices[0].dragged
+            _wait(lambda: np.linalg.norm(view.buffer.latest().bar_pos[idx[k]] - targets[k]) < 1e-6, 30,
+                  f"bar {bars[k]} to follow")
+        assert devices[0].dragged
+        out["stop"]()
+        thread.join(timeout=120)
+        assert not thread.is_alive()
+        if "error" in out:
+            raise out["error"]
+        stats, summary = out["result"]
+        assert stats.stop_reason == "stopped" and summary["bar"] == bars
+        last = view.buffer.latest()
+        assert last.dragged and last.forces_sent().shape == (2, 3)
+        for k in (0, 1):  # each row is a force that device was sent (the mappings do not rotate)
+            np.testing.assert_allclose(last.bar_pos[idx[k]], targets[k], atol=1e-6)
+            sent = devices[k].force_log()[1]
+            assert any(np.array_equal(last.forces_sent()[k], f) for f in sent), k
+        assert not np.array_equal(last.forces_sent()[0], last.forces_sent()[1])
+        # The browser's arrows: a reaction per bar, then each device's force sent, on its own bar.
+        _wait(lambda: view.last_sent is last, 10, "the view to send the last snapshot")
+        n_bar = len(geometry.bar_names)
+
+        def arrows_shown():
+            updates = client.updates("/forces", "points")
+            if not updates:
+                return False
+            arrows = np.asarray(updates[-1][1]).reshape(-1, 2, 3)
+            return arrows.shape[0] == n_bar + 2 and np.allclose(
+                arrows[n_bar:, 1] - arrows[n_bar:, 0], view.arrow_scale * last.forces_sent(), atol=1e-6) \
+                and np.allclose(arrows[n_bar:, 0], last.bar_pos[idx], atol=1e-6)
+
+        _wait(arrows_shown, 10, "the browser to show both force-sent arrows")
+    finally:
+        if "stop" in out:
+            out["stop"]()
+        view.close()
+        thread.join(timeout=120)
+        client.close()
+    for device in devices:
+        assert not device.is_open and device.close_count == 1
+        np.testing.assert_array_equal(device.force_log()[1][-1], np.zeros(3))
