@@ -103,14 +103,7 @@ class SolverStringImplicit:
             # The active set, unrecorded (segments taut at the start or at the end of the step),
             # in arrays of this step's own (the recorded pass reads the flags again backwards) ...
             ws = StringWorkspace.allocate(m, requires_grad=False)
-            runtime = wp._src.context.runtime
-            runtime.tape = None
-            try:
-                self.eval_string_spring(state_in, forced, ws)
-                self.eval_string_system(state_in, control, h, ws)
-                self.solve_string_system_active(state_in, control, h, ws)
-            finally:
-                runtime.tape = tape
+            self.eval_active_set(state_in, control, h, ws)
             forced = ws.segment_active
             # ... then the recorded step with that active set.
             ws = StringWorkspace.allocate(m, requires_grad=True)
@@ -126,6 +119,19 @@ class SolverStringImplicit:
             self.solve_string_system(ws, tape)  # block Thomas (with the active set found above)
         self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
         self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
+
+    def eval_active_set(self, state_in, control, h, ws: StringWorkspace) -> None:
+        """Tension-only springs: the active set of a step from ``state_in`` (segments taut at
+        the start or at the end of the step) into ``ws.segment_active``, and that step's
+        ``ws.particle_dv``; never recorded, even under a tape (``ws`` needs no gradients)."""
+        runtime = wp._src.context.runtime
+        tape, runtime.tape = runtime.tape, None
+        try:
+            self.eval_string_spring(state_in, self._none_forced, ws)
+            self.eval_string_system(state_in, control, h, ws)
+            self.solve_string_system_active(state_in, control, h, ws)
+        finally:
+            runtime.tape = tape
 
     def eval_string_spring(self, state_in, forced, ws: StringWorkspace) -> None:
         m = self.model
