@@ -46,6 +46,7 @@ class StringWorkspace:
     scratch_c: wp.array
     scratch_d: wp.array
     scratch_rhs_bar: wp.array
+    scratch_inverse: wp.array  # pivot inverses of a recorded solve, read by its adjoint
 
     @classmethod
     def allocate(cls, model: StringModel, requires_grad: bool) -> StringWorkspace:
@@ -66,6 +67,7 @@ class StringWorkspace:
                 scratch_c=zeros(model.mat33, False),
                 scratch_d=zeros(model.vec3, False),
                 scratch_rhs_bar=zeros(model.vec3, False),
+                scratch_inverse=zeros(model.mat33, False),
             )
 
 
@@ -171,7 +173,7 @@ class SolverStringImplicit:
             inputs=[m.string_start, m.string_rest_length, state_in.particle_q, state_in.particle_qd,
                     ws.segment_jacobian_active, control.top_q, h],
             outputs=[ws.segment_active, ws.system_diag, ws.system_upper, ws.system_rhs,
-                     ws.scratch_c, ws.scratch_d, ws.particle_dv],
+                     ws.scratch_c, ws.scratch_d, ws.scratch_inverse, ws.particle_dv],
             device=m.device,
             record_tape=False,
         )
@@ -181,8 +183,8 @@ class SolverStringImplicit:
         wp.launch(
             self._solve,
             dim=m.string_count,
-            inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
-            outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv],
+            inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs, int(tape is not None)],
+            outputs=[ws.scratch_c, ws.scratch_d, ws.scratch_inverse, ws.particle_dv],
             device=m.device,
             record_tape=False,
         )
@@ -190,12 +192,14 @@ class SolverStringImplicit:
             return
 
         def backward():
+            # Reads the factorisation the solve above kept in ws (scratch_inverse, scratch_c).
             wp.launch(
                 self._solve_adjoint,
                 dim=m.string_count,
-                inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.particle_dv, ws.particle_dv.grad],
+                inputs=[m.string_start, ws.system_upper, ws.scratch_inverse, ws.scratch_c, ws.particle_dv,
+                        ws.particle_dv.grad],
                 outputs=[
-                    ws.scratch_c, ws.scratch_d, ws.scratch_rhs_bar,
+                    ws.scratch_d, ws.scratch_rhs_bar,
                     ws.system_diag.grad, ws.system_upper.grad, ws.system_rhs.grad,
                 ],
                 device=m.device,

@@ -20,7 +20,10 @@ does not replay correctly, so the solve has a hand-written adjoint instead:
 for ``A x = b`` with ``A`` symmetric, ``b_bar = A^{-1} x_bar`` (the same solve) and
 ``A_bar = -b_bar x^T``, restricted to the stored blocks: ``diag_bar_j = -b_bar_j x_j^T`` and
 ``upper_bar_j = -(b_bar_j x_{j+1}^T + x_j b_bar_{j+1}^T)`` (``A_{j,j+1}`` also stands, transposed,
-at ``(j+1, j)``).
+at ``(j+1, j)``). The recorded forward solve (``keep = 1``) stores its pivot inverses (and
+``C'``), so the adjoint's solve is substitutions only (``compute_block_thomas_factored``):
+the workspace of a recorded step must not be reused before its adjoint has run (each step
+under a tape has its own).
 """
 
 
@@ -47,20 +50,54 @@ def solve_string_system_kernels(scalar):
         rhs: wp.array(dtype=vec3),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
+        pivot_inverse: wp.array(dtype=mat33),
+        keep: int,
         solution: wp.array(dtype=vec3),
     ):
+        """Factorises and solves chain ``s``; ``keep != 0`` also stores the pivot inverses
+        ``(A_jj - L_j C'_{j-1})^{-1}`` in ``pivot_inverse`` (``scratch_c`` holds ``C'``)."""
         start = string_start[s]
         last = string_start[s + 1] - 1
         # Forward elimination over the free particles start+1 .. last.
         inv = wp.inverse(system_diag[start + 1])
+        if keep != 0:
+            pivot_inverse[start + 1] = inv
         scratch_c[start + 1] = inv * system_upper[start + 1]
         scratch_d[start + 1] = inv * rhs[start + 1]
         for p in range(start + 2, last + 1):
             lower = wp.transpose(system_upper[p - 1])
             inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
+            if keep != 0:
+                pivot_inverse[p] = inv
             scratch_c[p] = inv * system_upper[p]
             scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
         # Back substitution.
+        solution[last] = scratch_d[last]
+        for i in range(last - start - 1):
+            p = last - 1 - i
+            solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
+        solution[start] = vec3(scalar(0.0))
+
+    @wp.func
+    def compute_block_thomas_factored(
+        string_start: wp.array(dtype=wp.int32),
+        s: int,
+        system_upper: wp.array(dtype=mat33),
+        pivot_inverse: wp.array(dtype=mat33),
+        scratch_c: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+        scratch_d: wp.array(dtype=vec3),
+        solution: wp.array(dtype=vec3),
+    ):
+        """``compute_block_thomas`` for another right-hand side of a factorised chain: the
+        pivot inverses and ``C'`` a ``keep`` solve stored (the same operations on the same
+        values, so the same bits as a fresh solve)."""
+        start = string_start[s]
+        last = string_start[s + 1] - 1
+        scratch_d[start + 1] = pivot_inverse[start + 1] * rhs[start + 1]
+        for p in range(start + 2, last + 1):
+            lower = wp.transpose(system_upper[p - 1])
+            scratch_d[p] = pivot_inverse[p] * (rhs[p] - lower * scratch_d[p - 1])
         solution[last] = scratch_d[last]
         for i in range(last - start - 1):
             p = last - 1 - i
@@ -75,14 +112,18 @@ def solve_string_system_kernels(scalar):
         system_diag: wp.array(dtype=mat33),
         system_upper: wp.array(dtype=mat33),
         system_rhs: wp.array(dtype=vec3),
+        keep: int,
         # State out:
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
+        pivot_inverse: wp.array(dtype=mat33),
         particle_dv: wp.array(dtype=vec3),
     ):
+        """``keep != 0`` (under a tape) stores the factorisation for the adjoint."""
         s = wp.tid()
         compute_block_thomas(
-            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, pivot_inverse, keep,
+            particle_dv,
         )
 
     @wp.func
@@ -151,11 +192,13 @@ def solve_string_system_kernels(scalar):
         # State out:
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
+        scratch_inverse: wp.array(dtype=mat33),
         particle_dv: wp.array(dtype=vec3),
     ):
         s = wp.tid()
         compute_block_thomas(
-            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, scratch_inverse, 0,
+            particle_dv,
         )
         for _pass in range(MAX_ACTIVE_SET_PASSES):
             added = eval_segment_activation(
@@ -165,20 +208,21 @@ def solve_string_system_kernels(scalar):
             if added == 0:
                 break
             compute_block_thomas(
-                string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+                string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, scratch_inverse, 0,
+                particle_dv,
             )
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve_string_system_adjoint(
         # Model:
         string_start: wp.array(dtype=wp.int32),
-        # State in:
-        system_diag: wp.array(dtype=mat33),
+        # State in (the forward solve's, stored with keep = 1):
         system_upper: wp.array(dtype=mat33),
+        pivot_inverse: wp.array(dtype=mat33),
+        scratch_c: wp.array(dtype=mat33),
         particle_dv: wp.array(dtype=vec3),
         particle_dv_grad: wp.array(dtype=vec3),
         # State out:
-        scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
         scratch_rhs_bar: wp.array(dtype=vec3),
         system_diag_grad: wp.array(dtype=mat33),
@@ -188,8 +232,9 @@ def solve_string_system_kernels(scalar):
         s = wp.tid()
         start = string_start[s]
         last = string_start[s + 1] - 1
-        compute_block_thomas(
-            string_start, s, system_diag, system_upper, particle_dv_grad, scratch_c, scratch_d, scratch_rhs_bar
+        # b_bar = A^{-1} x_bar with the forward's factorisation (no re-factorising).
+        compute_block_thomas_factored(
+            string_start, s, system_upper, pivot_inverse, scratch_c, particle_dv_grad, scratch_d, scratch_rhs_bar
         )
         for p in range(start + 1, last + 1):
             b_bar = scratch_rhs_bar[p]
