@@ -87,7 +87,8 @@ class SolverStringImplicit:
         self._tension_only = model.effects.tension_only
         self._eval_spring = eval_string_spring_kernel(model.scalar, self._tension_only)
         self._eval_system = eval_string_system_kernel(model.scalar, model.effects.as_tuple())
-        self._solve, self._solve_active, self._solve_adjoint = solve_string_system_kernels(model.scalar)
+        (self._solve, self._solve_active, self._solve_recorded,
+         self._solve_adjoint) = solve_string_system_kernels(model.scalar)
         self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
         self._workspace = StringWorkspace.allocate(model, requires_grad=False)
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
@@ -173,26 +174,34 @@ class SolverStringImplicit:
             inputs=[m.string_start, m.string_rest_length, state_in.particle_q, state_in.particle_qd,
                     ws.segment_jacobian_active, control.top_q, h],
             outputs=[ws.segment_active, ws.system_diag, ws.system_upper, ws.system_rhs,
-                     ws.scratch_c, ws.scratch_d, ws.scratch_inverse, ws.particle_dv],
+                     ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
             record_tape=False,
         )
 
     def solve_string_system(self, ws: StringWorkspace, tape) -> None:
         m = self.model
+        if tape is None:
+            wp.launch(
+                self._solve,
+                dim=m.string_count,
+                inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
+                outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv],
+                device=m.device,
+            )
+            return
+        # Under a tape: the same solve keeping its factorisation for the adjoint below.
         wp.launch(
-            self._solve,
+            self._solve_recorded,
             dim=m.string_count,
-            inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs, int(tape is not None)],
-            outputs=[ws.scratch_c, ws.scratch_d, ws.scratch_inverse, ws.particle_dv],
+            inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
+            outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
             record_tape=False,
         )
-        if tape is None:
-            return
 
         def backward():
-            # Reads the factorisation the solve above kept in ws (scratch_inverse, scratch_c).
+            # Reads the factorisation the recorded solve kept in ws (scratch_inverse, scratch_c).
             wp.launch(
                 self._solve_adjoint,
                 dim=m.string_count,
