@@ -26,10 +26,10 @@ What is differentiated, and the mapping to the kernels' constants:
 - ``string_stiffness`` is the scene's whole-string stiffness ``k`` [N/m] (``[[strings]]
   stiffness``); the kernels use the per-segment ``k_s = k (n - 1)`` (``string_model``),
   so ``dL/dk = (n - 1) dL/dk_s``.
-- ``joint_q0``/``joint_qd0`` start the puppet; the strings always start from the scene's
-  rest state (straight from bar to body point, at rest) with the tie targets at the
-  scene's rest tie points, so a ``joint_q0`` away from the rest pose pulls the ties
-  towards the new pose over the first puppet step.
+- ``joint_q0``/``joint_qd0`` start the puppet, ``particle_q0``/``particle_qd0`` the strings
+  (default: the scene's rest state, straight from bar to body point, at rest); the tie
+  targets start at the scene's rest tie points, so a ``joint_q0`` away from the rest pose
+  pulls the ties towards the new pose over the first puppet step.
 
 Not differentiable (discontinuous; keep the loss away from them): the taut flag of a
 string (eq. 4's feedback switches on and off with it), the slack clamp of a segment's
@@ -49,7 +49,8 @@ from .marionette import MarionetteControl, MarionetteModel, SolverMarionette, ba
 from .marionette_tape import TapedSegment
 from .string_rollout import upload_values
 
-__all__ = ["INPUT_FIELDS", "OUTPUT_FIELDS", "MarionetteGradient", "RolloutInputs", "RolloutOutputs"]
+__all__ = ["INPUT_FIELDS", "OPTIONAL_INPUT_FIELDS", "OUTPUT_FIELDS", "MarionetteGradient", "RolloutInputs",
+           "RolloutOutputs"]
 
 
 @dataclasses.dataclass
@@ -68,6 +69,11 @@ class RolloutInputs:
             ``> 0`` (the kernels' per-segment ``k_s = k (n - 1)``).
         joint_q0: initial puppet coordinates, ``(q_count,)`` (``articulation`` layout).
         joint_qd0: initial puppet velocities, ``(qd_count,)``.
+        particle_q0: initial string particle positions [m], ``(particles, 3)`` (the strings'
+            particles in ``model.strings`` order); None: the scene's rest state (straight from
+            bar to body point). The top particle of each string follows its bar from the first
+            step on.
+        particle_qd0: initial string particle velocities [m/s], ``(particles, 3)``; None: at rest.
     """
 
     top_q: np.ndarray
@@ -78,6 +84,8 @@ class RolloutInputs:
     string_stiffness: np.ndarray
     joint_q0: np.ndarray
     joint_qd0: np.ndarray
+    particle_q0: np.ndarray | None = None
+    particle_qd0: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -107,6 +115,8 @@ class RolloutOutputs:
 
 
 INPUT_FIELDS = tuple(f.name for f in dataclasses.fields(RolloutInputs))
+# Inputs that may be left out (None): they then take the scene's rest state (``MarionetteGradient.default_inputs``).
+OPTIONAL_INPUT_FIELDS = tuple(f.name for f in dataclasses.fields(RolloutInputs) if f.default is None)
 OUTPUT_FIELDS = tuple(f.name for f in dataclasses.fields(RolloutOutputs))
 
 
@@ -213,12 +223,6 @@ class MarionetteGradient:
         if not getattr(model, "requires_grad", False):
             raise ValueError("MarionetteGradient: the model was built without gradients; build it with "
                              "MarionetteModel(scene, requires_grad=True)")
-        if model.strings.effects.tension_only:
-            # The taped segments replay the printed spring's passes; the tension-only springs'
-            # active-set pass (string_solver.py) is not yet part of them.
-            raise ValueError(f"{model.scene.source}: [effects] tension_only = true: gradients through "
-                             "tension-only strings are not supported yet; use the printed spring "
-                             "(tension_only = false) for fitting")
         if not (isinstance(puppet_steps, (int, np.integer)) and puppet_steps >= 1):
             raise ValueError(f"puppet_steps: got {puppet_steps!r}; expected an integer >= 1")
         if checkpoint_steps is None:
@@ -247,7 +251,8 @@ class MarionetteGradient:
             "top_q": (t, s.string_count, 3), "bar_q": (t, b, 3), "bar_qd": (t, b, 3),
             "tie_stiffness": (s.string_count,), "tie_damping": (s.string_count,),
             "string_stiffness": (s.string_count,), "joint_q0": (m.puppet.q_count,),
-            "joint_qd0": (m.puppet.qd_count,),
+            "joint_qd0": (m.puppet.qd_count,), "particle_q0": (s.particle_count, 3),
+            "particle_qd0": (s.particle_count, 3),
         }
         self.output_shapes = {
             "joint_q": (p + 1, m.puppet.q_count), "point_pos": (p + 1, len(m.puppet.point_names), 3),
@@ -261,6 +266,12 @@ class MarionetteGradient:
         self._checkpoints: list[Checkpoint] = []
 
     # ------------------------------------------------------------------ inputs
+    @property
+    def default_inputs(self) -> dict[str, np.ndarray]:
+        """The values the optional inputs (``OPTIONAL_INPUT_FIELDS``) take when None: the
+        strings' rest state (straight from bar to body point, at rest)."""
+        return {"particle_q0": self._rest.particle_q.copy(), "particle_qd0": self._rest.particle_qd.copy()}
+
     def scene_inputs(self, t0: float = 0.0) -> RolloutInputs:
         """The scene's own inputs: its bar trajectories from ``t0`` [s], its constants, its rest state."""
         m = self.model
@@ -269,14 +280,18 @@ class MarionetteGradient:
         k, k_d, k_s = (c.copy() for c in self._scene_constants)
         return RolloutInputs(top_q=top_q, bar_q=bar_q, bar_qd=bar_qd, tie_stiffness=k, tie_damping=k_d,
                              string_stiffness=k_s, joint_q0=m.q_initial.copy(),
-                             joint_qd0=np.zeros(m.puppet.qd_count))
+                             joint_qd0=np.zeros(m.puppet.qd_count), **self.default_inputs)
 
     def check_inputs(self, inputs: RolloutInputs) -> RolloutInputs:
         """Validated float64 copies of ``inputs`` (raises ``ValueError`` naming the field)."""
         if not isinstance(inputs, RolloutInputs):
             raise TypeError(f"inputs: got {type(inputs).__name__}; expected a RolloutInputs")
         values = {}
+        defaults = self.default_inputs
         for name in INPUT_FIELDS:
+            if name in defaults and getattr(inputs, name) is None:
+                values[name] = defaults[name]
+                continue
             values[name] = _checked(f"RolloutInputs.{name}", getattr(inputs, name), self.input_shapes[name])
         tied = self.model.string_point >= 0
         names = self.model.strings.string_names
@@ -304,7 +319,7 @@ class MarionetteGradient:
 
     def _start_state(self, inputs: RolloutInputs) -> Checkpoint:
         r = self._rest
-        return Checkpoint(r.particle_q.copy(), r.particle_qd.copy(), inputs.joint_q0[None].copy(),
+        return Checkpoint(inputs.particle_q0.copy(), inputs.particle_qd0.copy(), inputs.joint_q0[None].copy(),
                           inputs.joint_qd0[None].copy(), r.tie_target.copy())
 
     # ------------------------------------------------------------------ forward
@@ -386,6 +401,8 @@ class MarionetteGradient:
                                            grads=grads, expected_end=end)
         grads["joint_q0"] = adjoint.joint_q[0]
         grads["joint_qd0"] = adjoint.joint_qd[0]
+        grads["particle_q0"] = adjoint.particle_q
+        grads["particle_qd0"] = adjoint.particle_qd
         s, pup = m.strings, m.puppet
         k_grad = s.string_tie_stiffness.grad.numpy().copy()
         kd_grad = s.string_tie_damping.grad.numpy().copy()

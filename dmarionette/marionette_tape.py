@@ -5,7 +5,9 @@ tie path; ``n`` string steps with feedback; end: anchors and the puppet step) fo
 puppet steps with one array for every quantity a step writes. ``SolverMarionette`` reuses
 scratch buffers from step to step (the tie path, the tied points, the string states
 between substeps, the puppet control); on a tape an array written after it was read gives
-silently wrong gradients, so none of them is reused here. The string substeps write their
+silently wrong gradients, so none of them is reused here. Tension-only strings take the
+active set of each string step from an unrecorded pass into a workspace of the step's own
+(as ``SolverStringImplicit.step`` does under a tape), then record the passes with it. The string substeps write their
 tie force and taut flags straight into rows of the step's ``(n, S)`` output arrays (no
 copies), and the tied points are evaluated on a shallow copy of the puppet state with its
 own body-pose arrays (the puppet step evaluates its input state's body poses again).
@@ -117,6 +119,15 @@ class _Plan:
             self._track(ws)
             workspaces.append(ws)
         arrays["workspaces"] = workspaces
+        if m.strings.effects.tension_only:
+            # The active-set pass of each string step, unrecorded (no gradients); its
+            # segment_active is the recorded pass's forced set, read again backwards.
+            actives = []
+            for _ in range(n):
+                ws = StringWorkspace.allocate(m.strings, requires_grad=False)
+                self._track(ws)
+                actives.append(ws)
+            arrays["active_workspaces"] = actives
         control = m.puppet.control(requires_grad=True)
         self._track(control)
         arrays["puppet_control"] = control
@@ -206,10 +217,19 @@ class TapedSegment:
             nxt = _Strings(q, qd, state_out.tie_force[j], state_out.string_taut[j])
             control_j = StringControl(control.top_q[j], tie_q[j], tie_qd[j])
             ws = arrays["workspaces"][j]
-            # SolverStringImplicit.step's five passes, with this step's own workspace.
-            solver.eval_string_spring(previous, solver._none_forced, ws)  # printed spring: no forced set
+            # SolverStringImplicit.step's passes under a tape, with this step's own workspaces.
+            forced = solver._none_forced  # the printed spring: every segment active
+            if "active_workspaces" in arrays:
+                # Tension-only: the active set found by an unrecorded pass, then the recorded
+                # passes with it held fixed (the gradient of the step away from its kinks).
+                active = arrays["active_workspaces"][j]
+                solver.eval_active_set(previous, control_j, h, active)
+                forced = active.segment_active
+            solver.eval_string_spring(previous, forced, ws)
             solver.eval_string_system(previous, control_j, h, ws)
             solver.solve_string_system(ws, tape)
+            if "active_workspaces" in arrays:
+                _copy_unrecorded(ws.particle_dv, active.particle_dv)
             solver.integrate_string(previous, nxt, control_j, h, ws)
             solver.eval_string_tie_force(nxt, control_j)
             if feedback is not None:
@@ -350,6 +370,26 @@ class TapedSegment:
             grads["bar_q"][rows] += control.bar_q.grad.numpy()
             grads["bar_qd"][rows] += control.bar_qd.grad.numpy()
         return StateAdjoint(states[0])
+
+
+def _copy_unrecorded(dest: wp.array, src: wp.array) -> None:
+    """``dest <- src`` off the tape.
+
+    Used for the tension-only step's ``dv``: deliberately, the taped step integrates the
+    active-set pass's ``dv`` (which is the untaped solver's, bit for bit) rather than the
+    recorded solve's. Where a segment snaps taut in the step, the untaped solve adds its
+    block to the already assembled system in place and solves again, while the recorded
+    pass assembles the system with it from scratch: the same system up to the order of
+    the sums, so the two ``dv`` differ by rounding. With the copy the taped re-run ends
+    exactly where the untaped forward did (``_check_rerun``); the recorded adjoint uses
+    the recorded system with this ``dv``, which changes the gradient by rounding only.
+    """
+    runtime = wp._src.context.runtime
+    tape, runtime.tape = runtime.tape, None
+    try:
+        wp.copy(dest, src)
+    finally:
+        runtime.tape = tape
 
 
 def _check_rerun(expected, state, a: int, b: int) -> None:

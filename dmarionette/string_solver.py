@@ -46,6 +46,7 @@ class StringWorkspace:
     scratch_c: wp.array
     scratch_d: wp.array
     scratch_rhs_bar: wp.array
+    scratch_inverse: wp.array  # pivot inverses of a recorded solve, read by its adjoint
 
     @classmethod
     def allocate(cls, model: StringModel, requires_grad: bool) -> StringWorkspace:
@@ -66,6 +67,7 @@ class StringWorkspace:
                 scratch_c=zeros(model.mat33, False),
                 scratch_d=zeros(model.vec3, False),
                 scratch_rhs_bar=zeros(model.vec3, False),
+                scratch_inverse=zeros(model.mat33, False),
             )
 
 
@@ -85,7 +87,8 @@ class SolverStringImplicit:
         self._tension_only = model.effects.tension_only
         self._eval_spring = eval_string_spring_kernel(model.scalar, self._tension_only)
         self._eval_system = eval_string_system_kernel(model.scalar, model.effects.as_tuple())
-        self._solve, self._solve_active, self._solve_adjoint = solve_string_system_kernels(model.scalar)
+        (self._solve, self._solve_active, self._solve_recorded,
+         self._solve_adjoint) = solve_string_system_kernels(model.scalar)
         self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
         self._workspace = StringWorkspace.allocate(model, requires_grad=False)
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
@@ -103,14 +106,7 @@ class SolverStringImplicit:
             # The active set, unrecorded (segments taut at the start or at the end of the step),
             # in arrays of this step's own (the recorded pass reads the flags again backwards) ...
             ws = StringWorkspace.allocate(m, requires_grad=False)
-            runtime = wp._src.context.runtime
-            runtime.tape = None
-            try:
-                self.eval_string_spring(state_in, forced, ws)
-                self.eval_string_system(state_in, control, h, ws)
-                self.solve_string_system_active(state_in, control, h, ws)
-            finally:
-                runtime.tape = tape
+            self.eval_active_set(state_in, control, h, ws)
             forced = ws.segment_active
             # ... then the recorded step with that active set.
             ws = StringWorkspace.allocate(m, requires_grad=True)
@@ -126,6 +122,19 @@ class SolverStringImplicit:
             self.solve_string_system(ws, tape)  # block Thomas (with the active set found above)
         self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
         self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
+
+    def eval_active_set(self, state_in, control, h, ws: StringWorkspace) -> None:
+        """Tension-only springs: the active set of a step from ``state_in`` (segments taut at
+        the start or at the end of the step) into ``ws.segment_active``, and that step's
+        ``ws.particle_dv``; never recorded, even under a tape (``ws`` needs no gradients)."""
+        runtime = wp._src.context.runtime
+        tape, runtime.tape = runtime.tape, None
+        try:
+            self.eval_string_spring(state_in, self._none_forced, ws)
+            self.eval_string_system(state_in, control, h, ws)
+            self.solve_string_system_active(state_in, control, h, ws)
+        finally:
+            runtime.tape = tape
 
     def eval_string_spring(self, state_in, forced, ws: StringWorkspace) -> None:
         m = self.model
@@ -172,24 +181,34 @@ class SolverStringImplicit:
 
     def solve_string_system(self, ws: StringWorkspace, tape) -> None:
         m = self.model
+        if tape is None:
+            wp.launch(
+                self._solve,
+                dim=m.string_count,
+                inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
+                outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv],
+                device=m.device,
+            )
+            return
+        # Under a tape: the same solve keeping its factorisation for the adjoint below.
         wp.launch(
-            self._solve,
+            self._solve_recorded,
             dim=m.string_count,
             inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
-            outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv],
+            outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
             record_tape=False,
         )
-        if tape is None:
-            return
 
         def backward():
+            # Reads the factorisation the recorded solve kept in ws (scratch_inverse, scratch_c).
             wp.launch(
                 self._solve_adjoint,
                 dim=m.string_count,
-                inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.particle_dv, ws.particle_dv.grad],
+                inputs=[m.string_start, ws.system_upper, ws.scratch_inverse, ws.scratch_c, ws.particle_dv,
+                        ws.particle_dv.grad],
                 outputs=[
-                    ws.scratch_c, ws.scratch_d, ws.scratch_rhs_bar,
+                    ws.scratch_d, ws.scratch_rhs_bar,
                     ws.system_diag.grad, ws.system_upper.grad, ws.system_rhs.grad,
                 ],
                 device=m.device,

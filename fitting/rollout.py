@@ -7,6 +7,10 @@ the reverse pass run the Warp engine on the host through ``jax.pure_callback``, 
 works under ``jax.jit``, ``jax.grad``, ``jax.value_and_grad`` and ``jax.vjp`` (reverse mode
 only: Warp's tape has no forward mode, so ``jax.jvp``/``jax.jacfwd`` are refused by JAX).
 
+The optional inputs (``OPTIONAL_INPUT_FIELDS``: the strings' initial state) may be left out
+of the dictionary: they then take the engine's ``default_inputs`` (the scene's rest state),
+as constants.
+
 The reverse pass gets the inputs as its residual: if the engine's last forward pass was
 for other inputs (two rollouts in one program), it runs the forward again first.
 """
@@ -19,7 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmarionette.marionette_grad import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient, RolloutInputs
+from dmarionette.marionette_grad import (INPUT_FIELDS, OPTIONAL_INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient,
+                                         RolloutInputs)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -34,13 +39,15 @@ def marionette_rollout(engine: MarionetteGradient) -> Callable[[dict[str, jax.Ar
 
     Returns:
         ``f(inputs) -> outputs``: ``inputs`` has every ``RolloutInputs`` field (float64, the
-        engine's ``input_shapes``); ``outputs`` every ``RolloutOutputs`` field (``output_shapes``).
+        engine's ``input_shapes``; the ``OPTIONAL_INPUT_FIELDS`` may be left out);
+        ``outputs`` every ``RolloutOutputs`` field (``output_shapes``).
     """
     if not isinstance(engine, MarionetteGradient):
         raise TypeError(f"marionette_rollout: got {type(engine).__name__}; expected a MarionetteGradient")
     in_specs = {k: jax.ShapeDtypeStruct(engine.input_shapes[k], jnp.float64) for k in INPUT_FIELDS}
     out_specs = {k: jax.ShapeDtypeStruct(engine.output_shapes[k], jnp.float64) for k in OUTPUT_FIELDS}
     last = {"inputs": None}
+    defaults = {k: jnp.asarray(v) for k, v in engine.default_inputs.items()}
 
     def run_forward(values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         inputs = RolloutInputs(**{k: np.asarray(values[k], dtype=np.float64) for k in INPUT_FIELDS})
@@ -62,11 +69,12 @@ def marionette_rollout(engine: MarionetteGradient) -> Callable[[dict[str, jax.Ar
         if not isinstance(inputs, dict):
             raise TypeError(f"marionette rollout: inputs must be a dict of {list(INPUT_FIELDS)}; "
                             f"got {type(inputs).__name__}")
+        inputs = {**{k: defaults[k] for k in OPTIONAL_INPUT_FIELDS if k not in inputs}, **inputs}
         missing = [k for k in INPUT_FIELDS if k not in inputs]
         extra = [k for k in inputs if k not in INPUT_FIELDS]
         if missing or extra:
             raise ValueError(f"marionette rollout inputs: missing {missing}, unknown {extra}; "
-                             f"expected exactly {list(INPUT_FIELDS)}")
+                             f"expected exactly {list(INPUT_FIELDS)} (optional: {list(OPTIONAL_INPUT_FIELDS)})")
         values = {}
         for k in INPUT_FIELDS:
             v = jnp.asarray(inputs[k], dtype=jnp.float64)

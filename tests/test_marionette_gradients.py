@@ -13,8 +13,14 @@ the finite-difference steps. Puppet kernels are compiled at ``optimization_level
 The loss is a fixed random linear function of every output. Each gradient is checked as
 directional derivatives ``g . u`` against central differences, Richardson-extrapolated
 from steps ``e`` and ``e/2`` (truncation ``O(e^4)``). The steps come from a sweep over
-``e = 1e-3 ... 1e-7`` of the input (no contact): for the bar inputs and the initial state
-(random directions) ``e = 1e-6`` m, m/s, rad agrees to 1e-9; for the string constants
+``e = 1e-3 ... 1e-7`` of the input (no contact): for the bar inputs and the puppet's initial
+state (random directions) ``e = 1e-6`` m, m/s, rad agrees to 1e-9; for the strings' initial
+particle positions and velocities (three random directions each) ``e = 1e-5`` m (agrees
+to 1e-8 here, 2e-9 in ``test_tension_only_gradients.py``; at 1e-3 m a segment's 0.1 mm
+pre-stretch is undone and the differences are off by 0.3 at the string rate) and
+``e = 1e-2`` m/s (the velocities' effect on the loss is small, so their differences are
+rounding-limited: with the puppet at the string rate one direction's derivative is 1e-4 of
+the others' and agrees to 1e-4 at 1e-3 m/s, 4e-6 at 1e-2; the others to 2e-8); for the string constants
 (one string at a time) the differences are rounding-limited at small steps (k_d: 1e-5 at
 ``e = 1e-5 k_d``, 2e-4 at 1e-7) and agree to 1e-8 at ``e = 1e-3`` of the value, which is
 used. The tolerances (1e-5 without contact, 1e-3 with the smoothed contact) therefore test
@@ -31,7 +37,8 @@ import warp as wp
 
 import dmarionette as dm
 from dmarionette.marionette import MarionetteModel, SolverMarionette
-from dmarionette.marionette_grad import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient, RolloutInputs
+from dmarionette.marionette_grad import (INPUT_FIELDS, OPTIONAL_INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient,
+                                         RolloutInputs)
 from dmarionette.marionette_rollout import simulate_marionette
 
 wp.config.log_level = wp.LOG_WARNING
@@ -56,10 +63,11 @@ def _scene(contact: bool):
 
 
 class Problem:
-    def __init__(self, contact: bool):
-        self.model = MarionetteModel(_scene(contact), optimization_level=0, requires_grad=True)
+    def __init__(self, contact: bool, scene=None, puppet_steps: int = PUPPET_STEPS, checkpoint_steps: int = 4):
+        scene = _scene(contact) if scene is None else scene
+        self.model = MarionetteModel(scene, optimization_level=0, requires_grad=True)
         # 7 segments of 4 puppet steps and one of 2 (a shorter last segment is planned apart)
-        self.engine = MarionetteGradient(self.model, PUPPET_STEPS, checkpoint_steps=4)
+        self.engine = MarionetteGradient(self.model, puppet_steps, checkpoint_steps=checkpoint_steps)
         self.inputs = self.engine.scene_inputs()
         rng = np.random.default_rng(3)
         self.weights = {k: rng.normal(size=s) / np.sqrt(np.prod(s)) for k, s in self.engine.output_shapes.items()}
@@ -88,6 +96,9 @@ class Problem:
         cases = []
         for name in ("top_q", "bar_q", "bar_qd", "joint_q0", "joint_qd0"):
             cases.append((name, rng.normal(size=self.engine.input_shapes[name]), 1e-6))
+        for name, eps in (("particle_q0", 1e-5), ("particle_qd0", 1e-2)):  # the strings' initial state
+            for _ in range(3):
+                cases.append((name, rng.normal(size=self.engine.input_shapes[name]), eps))
         for name in ("tie_stiffness", "tie_damping", "string_stiffness"):
             base = getattr(self.inputs, name)
             for i in range(len(base)):
@@ -115,7 +126,7 @@ def contact():
     return Problem(contact=True)
 
 
-def _string_margins(model: MarionetteModel) -> tuple[float, bool]:
+def _string_margins(model: MarionetteModel, puppet_steps: int = PUPPET_STEPS) -> tuple[float, bool]:
     """Smallest relative segment stretch ``(l - d) / d`` after any string step of the scene's
     rollout (the first step starts from straight strings), and whether every string stayed taut."""
     solver = SolverMarionette(model)
@@ -123,7 +134,7 @@ def _string_margins(model: MarionetteModel) -> tuple[float, bool]:
     start = model.strings.string_start_np
     rest = model.strings.string_rest_length.numpy()
     smallest, taut = np.inf, True
-    for p in range(PUPPET_STEPS):
+    for p in range(puppet_steps):
         control.set_bars(model, p * model.puppet_dt)
         solver.begin_step(a, b)
         for j in range(model.substeps):
@@ -285,6 +296,12 @@ def test_bad_inputs_are_refused(smooth):
         e.forward(dataclasses.replace(good, tie_stiffness=np.array([300.0, 300.0, -1.0, 300.0])))
     with pytest.raises(ValueError, match=r"RolloutInputs.joint_qd0: got shape \(3,\)"):
         e.forward(dataclasses.replace(good, joint_qd0=np.zeros(3)))
+    with pytest.raises(ValueError, match=r"RolloutInputs.particle_q0: got shape \(39, 3\); expected \(40, 3\)"):
+        e.forward(dataclasses.replace(good, particle_q0=good.particle_q0[1:]))
+    # The strings' initial state left out (None, as callers written before it was an input): the rest state.
+    legacy = RolloutInputs(*(getattr(good, k) for k in INPUT_FIELDS[:8]))
+    assert legacy.particle_q0 is None and legacy.particle_qd0 is None
+    np.testing.assert_array_equal(e.forward(legacy).joint_q, smooth.outputs.joint_q)
     e.forward(good)
     with pytest.raises(ValueError, match=r"cotangents: unknown output 'particle_q'"):
         e.backward({"particle_q": np.zeros(3)})
@@ -310,5 +327,7 @@ def test_bad_inputs_are_refused(smooth):
         jax.jit(f)({**x, "tie_damping": x["tie_damping"].at[1].set(jnp.nan)})
     with pytest.raises(ValueError, match=r"missing \['joint_q0'\]"):
         f({k: v for k, v in x.items() if k != "joint_q0"})
+    without = f({k: v for k, v in x.items() if k not in OPTIONAL_INPUT_FIELDS})  # the rest state
+    np.testing.assert_array_equal(np.asarray(without["joint_q"]), smooth.outputs.joint_q)
     assert set(OUTPUT_FIELDS) == set(f(x))
     assert s == 4
