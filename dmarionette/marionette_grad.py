@@ -366,6 +366,11 @@ class MarionetteGradient:
         self._final = Checkpoint.of(self.state)
         return RolloutOutputs(**out)
 
+    @property
+    def last_inputs(self) -> RolloutInputs | None:
+        """The inputs of the last :meth:`forward` (what :meth:`backward` differentiates), or None."""
+        return self._inputs
+
     # ------------------------------------------------------------------ backward
     def backward(self, cotangents: dict[str, np.ndarray]) -> RolloutInputs:
         """Gradients of ``L`` with respect to the inputs of the last :meth:`forward`.

@@ -46,21 +46,23 @@ def marionette_rollout(engine: MarionetteGradient) -> Callable[[dict[str, jax.Ar
         raise TypeError(f"marionette_rollout: got {type(engine).__name__}; expected a MarionetteGradient")
     in_specs = {k: jax.ShapeDtypeStruct(engine.input_shapes[k], jnp.float64) for k in INPUT_FIELDS}
     out_specs = {k: jax.ShapeDtypeStruct(engine.output_shapes[k], jnp.float64) for k in OUTPUT_FIELDS}
-    last = {"inputs": None}
     defaults = {k: jnp.asarray(v) for k, v in engine.default_inputs.items()}
 
     def run_forward(values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         inputs = RolloutInputs(**{k: np.asarray(values[k], dtype=np.float64) for k in INPUT_FIELDS})
         outputs = engine.forward(inputs)
-        last["inputs"] = {k: np.array(getattr(inputs, k)) for k in INPUT_FIELDS}
         return {k: getattr(outputs, k) for k in OUTPUT_FIELDS}
 
     def host_forward(values):
         return run_forward(values)
 
     def host_backward(values, cotangents):
-        previous = last["inputs"]
-        if previous is None or any(not np.array_equal(previous[k], np.asarray(values[k])) for k in INPUT_FIELDS):
+        # The engine differentiates its own last forward pass, which may have been for other
+        # inputs (another rollout in the program, or a direct engine.forward call): then run
+        # the forward pass again for these.
+        previous = engine.last_inputs
+        if previous is None or any(not np.array_equal(getattr(previous, k), np.asarray(values[k]))
+                                   for k in INPUT_FIELDS):
             run_forward(values)
         grads = engine.backward({k: np.asarray(v, dtype=np.float64) for k, v in cotangents.items()})
         return {k: getattr(grads, k) for k in INPUT_FIELDS}

@@ -267,6 +267,12 @@ def test_jax_wrapper_gradient_equals_the_engine(smooth):
     np.testing.assert_array_equal(np.asarray(out["joint_q"]), smooth.outputs.joint_q)
     (pulled,) = vjp({k: jnp.asarray(w) for k, w in smooth.weights.items()})
     np.testing.assert_allclose(np.asarray(pulled["tie_stiffness"]), smooth.grads.tie_stiffness, rtol=1e-12)
+    # A direct engine.forward for other inputs between the wrapped forward and its reverse pass:
+    # the wrapper must notice and differentiate its own inputs again.
+    other = dataclasses.replace(smooth.inputs, tie_stiffness=1.1 * smooth.inputs.tie_stiffness)
+    smooth.engine.forward(other)
+    (pulled,) = vjp({k: jnp.asarray(w) for k, w in smooth.weights.items()})
+    np.testing.assert_allclose(np.asarray(pulled["tie_stiffness"]), smooth.grads.tie_stiffness, rtol=1e-12)
 
     # A reverse-mode Jacobian (Gauss-Newton's): three residuals w.r.t. the tie stiffnesses, the
     # other inputs closed over (concrete arrays inside a jit).
