@@ -294,3 +294,11 @@ def test_objective_gradient_matches_finite_differences(authored):
     minus = float(loss({"hand": y["hand"] - h * direction["hand"]}))
     numeric = (plus - minus) / (2 * h)
     assert abs(analytic - numeric) <= 1e-5 * abs(numeric), (analytic, numeric)
+
+
+def test_the_shipped_keyframes_file_loads():
+    """examples/keyframes_three_poses.toml (the README's example) is a valid keyframes file."""
+    from fitting.keyframes import load_keyframes
+
+    spec = load_keyframes(Path(__file__).parent.parent / "examples" / "keyframes_three_poses.toml")
+    assert [k.t for k in spec.keyframes] == [0.495, 0.99, 1.485]
