@@ -110,6 +110,7 @@ class LiveViewServer(AbstractLiveView):
         """The last snapshot sent (what the scene shows)."""
         self._drags: list[Callable[[np.ndarray, np.ndarray], None] | None] = []
         self._dragging: set[int] = set()  # devices whose gizmo the mouse holds
+        self._gizmo_lock = threading.Lock()  # the dragged set and the view thread's gizmo writes
         self._stop = threading.Event()
         if not (np.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"view rate: got {rate_hz!r} Hz; expected a finite rate > 0")
@@ -182,7 +183,7 @@ class LiveViewServer(AbstractLiveView):
         for i, b in enumerate(devices):
             gizmo = scene.add_transform_controls(f"/drag/{g.bar_names[b]}", scale=0.18, depth_test=False,
                                                  visible=False)
-            gizmo.on_update(lambda event, i=i: self._on_gizmo(i, event))
+            gizmo.on_update(self._gizmo_callback(i))
             self._gizmos.append(gizmo)
         self._drags = [None] * len(devices)
         self._status = self._server.gui.add_markdown("waiting for the first snapshot")
@@ -207,15 +208,29 @@ class LiveViewServer(AbstractLiveView):
         for gizmo, drag in zip(self._gizmos, drags):
             gizmo.visible = drag is not None
 
+    def _gizmo_callback(self, device: int):
+        # A coroutine: viser awaits it in its message loop, in message order, right after it has
+        # set the gizmo's pose from the message. A plain function would run later in viser's
+        # thread pool, possibly out of order (an update before its start) and after the view
+        # thread had put the gizmo back on the bar, so the drag read the bar's pose (seen once:
+        # a dragged device that never moved).
+        async def on_update(event) -> None:
+            self._on_gizmo(device, event)
+
+        return on_update
+
     def _on_gizmo(self, device: int, event) -> None:
-        if event.phase == "start":
-            self._dragging.add(device)
-        elif event.phase == "end":
-            self._dragging.discard(device)
-        target = event.target
-        drag = self._drags[device]
-        if drag is not None and event.phase in ("start", "update"):
-            drag(np.array(target.position, dtype=np.float64), matrix_from_quat(target.wxyz))
+        # Under the gizmo lock: once "start" has marked the gizmo dragged, no write of the view
+        # thread (which holds the lock while it moves the gizmos) can overwrite the dragged pose.
+        with self._gizmo_lock:
+            if event.phase == "start":
+                self._dragging.add(device)
+            elif event.phase == "end":
+                self._dragging.discard(device)
+            target = event.target
+            drag = self._drags[device]
+            if drag is not None and event.phase in ("start", "update"):
+                drag(np.array(target.position, dtype=np.float64), matrix_from_quat(target.wxyz))
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -245,10 +260,11 @@ class LiveViewServer(AbstractLiveView):
             tails = np.concatenate([snapshot.bar_pos, snapshot.bar_pos[devices]])
             forces = np.concatenate([snapshot.bar_reaction, sent])
             self._arrow_node.points = np.stack([tails, tails + self.arrow_scale * forces], axis=1)
-            for i, (gizmo, b) in enumerate(zip(self._gizmos, devices)):
-                if i not in self._dragging:  # the mouse holds it: do not pull it back
-                    gizmo.position = snapshot.bar_pos[b]
-                    gizmo.wxyz = quat_from_matrix(snapshot.bar_rot[b])
+            with self._gizmo_lock:
+                for i, (gizmo, b) in enumerate(zip(self._gizmos, devices)):
+                    if i not in self._dragging:  # the mouse holds it: do not pull it back
+                        gizmo.position = snapshot.bar_pos[b]
+                        gizmo.wxyz = quat_from_matrix(snapshot.bar_rot[b])
             if snapshot.sequence % 10 == 1:
                 taut = int(np.count_nonzero(snapshot.string_taut))
                 self._status.content = (
