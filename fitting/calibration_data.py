@@ -7,7 +7,8 @@ attach point (``bar_attach`` in the metadata) moved by the bar's pose, ``x + R(a
 A bar without recorded poses may instead be driven by its device samples
 (``/device/BAR/sample``) mapped by ``P' = S W P`` (eq. 3): that needs the mapping, a
 ``"device_mapping"`` metadata record (``bar``, ``scale`` and ``device_to_world``, 4x4 each,
-see :func:`device_mapping_record`); the live loop uses the sample read at t = (k - 1) h for
+see :func:`device_mapping_record`) or the ``"live"`` record that ``dmarionette live`` writes
+(its ``devices``, each with ``bar``, ``S`` and ``W``); the live loop uses the sample read at t = (k - 1) h for
 the string step ending at t = k h, and so does this reader.
 
 **Targets**, as chosen: the recorded body centres at the puppet rate (``/puppet/state``
@@ -140,24 +141,38 @@ def _bar_from_poses(session: Session, bar: str, times: np.ndarray, dt: float, st
     return position, euler_to_matrix(rotation)
 
 
+def _device_mapping(session: Session, bar: str):
+    """``(record name, S, W)`` of the device that drove ``bar``, or ``(None, None, None)``: from a
+    ``"device_mapping"`` record, or from the ``"live"`` record ``dmarionette live`` writes (one
+    entry per device, with its bar, ``S`` and ``W``)."""
+    record = session.extra_metadata.get("device_mapping")
+    if isinstance(record, dict) and record.get("bar") == bar and {"scale", "device_to_world"} <= set(record):
+        return "device_mapping", record["scale"], record["device_to_world"]
+    live = session.extra_metadata.get("live")
+    devices = live.get("devices") if isinstance(live, dict) else None
+    for device in devices if isinstance(devices, list) else []:
+        if isinstance(device, dict) and device.get("bar") == bar and {"S", "W"} <= set(device):
+            return "live", device["S"], device["W"]
+    return None, None, None
+
+
 def _bar_from_device(session: Session, bar: str, dt: float, steps: int):
     """Bar centres and rotations at the string steps from the device samples through ``S W``."""
     from dmarionette.hw.mapping import DeviceMapping
 
     path, topic = session.path, f"/device/{bar}/sample"
-    record = session.extra_metadata.get("device_mapping")
-    if record is None or record.get("bar") != bar:
+    name, scale, device_to_world = _device_mapping(session, bar)
+    if name is None:
         raise ValueError(f"{path}: calibration needs the pose of bar {bar!r} at every string step: channel "
                          f"/bar/{bar}/pose is absent, and its device samples ({topic}) cannot stand in without "
                          f"the mapping P' = S W P (a 'device_mapping' metadata record with bar = {bar!r}, "
-                         f"'scale' and 'device_to_world'); metadata records found: "
-                         f"{sorted(session.extra_metadata)}")
+                         f"'scale' and 'device_to_world', or the 'live' record that dmarionette live writes); "
+                         f"metadata records found: {sorted(session.extra_metadata)}")
     try:
-        mapping = DeviceMapping(np.asarray(record["scale"], dtype=float),
-                                np.asarray(record["device_to_world"], dtype=float))
-    except (KeyError, TypeError, ValueError) as error:
-        raise ValueError(f"{path}: metadata record 'device_mapping': {error}; expected 'scale' and "
-                         "'device_to_world', 4x4 matrices (DeviceMapping)") from None
+        mapping = DeviceMapping(np.asarray(scale, dtype=float), np.asarray(device_to_world, dtype=float))
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: metadata record {name!r}, bar {bar!r}: {error}; expected 4x4 matrices S and W "
+                         "(DeviceMapping)") from None
     channel = session.channels[topic]
     # The sample read at t = (k - 1) h drives the string step that ends at t = k h (live.py).
     rows = _grid_rows(path, topic, channel["t"], dt, 0, steps - 1, "a device sample at the start of every "

@@ -235,14 +235,19 @@ def test_device_poses_through_the_mapping_stand_in_for_missing_bar_poses(recorde
         _with_device_samples(target, tmp_path / "no_mapping.mcap", pose, mapping, h, record=None)
     _with_device_samples(target, tmp_path / "mapped.mcap", pose, mapping, h,
                          record=device_mapping_record("main", mapping))
-    data = read_calibration_data(tmp_path / "mapped.mcap", "bodies")
+    # The same mapping as dmarionette live records it (its "live" record, one entry per device).
+    live_record = {"devices": [{"bar": "main", "device": "simulated", "workspace_scale": 1.5,
+                                "S": mapping.scale.tolist(), "W": mapping.device_to_world.tolist()}]}
+    _with_device_samples(target, tmp_path / "live.mcap", pose, mapping, h, record=live_record, name="live")
     reference = read_calibration_data(path, "bodies")
-    assert data.input_source == {"main": "device poses", "hand": "bar poses"}
-    np.testing.assert_allclose(data.top_q, reference.top_q, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(data.bar_q, reference.bar_q, rtol=0, atol=1e-12)
+    for mapped in ("mapped.mcap", "live.mcap"):
+        data = read_calibration_data(tmp_path / mapped, "bodies")
+        assert data.input_source == {"main": "device poses", "hand": "bar poses"}
+        np.testing.assert_allclose(data.top_q, reference.top_q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(data.bar_q, reference.bar_q, rtol=0, atol=1e-12)
 
 
-def _with_device_samples(source: Path, target: Path, pose, mapping, h, record):
+def _with_device_samples(source: Path, target: Path, pose, mapping, h, record, name="device_mapping"):
     """Adds the device samples that, mapped by ``mapping``, give the recorded main-bar poses;
     the sample at t = (k - 1) h drives the step ending at k h (as in the live loop)."""
     from dmarionette.control_bar import euler_to_matrix
@@ -252,7 +257,7 @@ def _with_device_samples(source: Path, target: Path, pose, mapping, h, record):
     session = read_session(source)
     with SessionWriter(target, session.scene, session.scene_record["toml"]) as writer:
         if record is not None:
-            writer.write_metadata("device_mapping", record)
+            writer.write_metadata(name, record)
         for topic, channel in session.channels.items():
             for i, t in enumerate(channel["t"]):
                 _copy_message(writer, topic, channel, i, t)
