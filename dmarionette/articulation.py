@@ -353,9 +353,14 @@ class SolverArticulation:
         self.contacts = ContactSet(model)
 
     def step(self, state_in: ArticulationState, state_out: ArticulationState,
-             control: ArticulationControl, dt: float) -> None:
+             control: ArticulationControl, dt: float, *, point_loads=None) -> None:
         """Advances ``state_in`` by ``dt`` [s] into ``state_out`` (fills ``state_in``'s
         derived body fields on the way; use one state per step when recording a tape).
+
+        ``point_loads``, if given, replaces the model's point springs: a callable
+        ``point_loads(state_in, h_implicit)`` that adds its forces to ``state_in.body_wrench``
+        and its ``h D + h^2 K`` blocks to ``state_in.body_stiffness`` (the marionette's
+        trial step, ``kernels/string_body_coupling``); ``control``'s spring anchors are then unused.
 
         Raises:
             ValueError: ``dt`` negative or not finite, ``state_in is state_out``, or
@@ -366,7 +371,10 @@ class SolverArticulation:
         hi = h if self.implicit else wp.float64(0.0)
         self.eval_kinematics(state_in)                             # body poses and velocities
         self._eval_external_forces(state_in, control)              # applied wrenches; resets h D + h^2 K
-        self._eval_point_springs(state_in, control, hi)            # strings pull on bodies (eq. 2)
+        if point_loads is None:
+            self._eval_point_springs(state_in, control, hi)        # strings pull on bodies (eq. 2)
+        else:
+            point_loads(state_in, hi)                              # the caller's loads instead
         self.contacts.eval(state_in, hi)                           # ground / chair / ball penalties
         self._solve_dynamics(state_in, state_out, control, h, hi)  # (M + h D + h^2 K) qdd = tau
         self._integrate(state_in, state_out, h)                    # q' = q (+) h qd'

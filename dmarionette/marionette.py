@@ -4,6 +4,8 @@ One puppet step of ``H = n h`` (``n = round(string_hz / puppet_hz)`` string step
 ``n = 1`` runs the puppet at the string rate) is a short list of named passes::
 
     eval_body_points            tied body points: positions and velocities at t0
+    predict_body_points         a trial puppet step under the strings' linearised pull: where the
+                                tied points will be at t0 + H
     eval_tie_path               the strings' tie targets over the n string steps (body -> strings)
     n x  step strings           backward Euler, bottoms tied by eq. 2 to the path
          eval_bar_feedback      eq. 4 and the exact reaction, per bar, every string step
@@ -25,6 +27,7 @@ energy) stays float64 either way; a float64 marionette launches no conversion.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from types import SimpleNamespace
 
@@ -40,7 +43,11 @@ from .articulation import (
 )
 from .kernels.bar_feedback import eval_bar_feedback_kernel
 from .kernels.precision_boundary import convert_vec3
-from .kernels.string_body_coupling import apply_string_forces_to_anchors_kernel, eval_tie_path
+from .kernels.string_body_coupling import (
+    apply_string_forces_to_anchors_kernel,
+    eval_string_response_kernel,
+    eval_tie_path,
+)
 from .scene import Scene
 from .settings_check import check_marionette_settings
 from .string_model import StringControl, StringModel, StringState
@@ -264,6 +271,8 @@ class SolverMarionette:
         with wp.ScopedDevice(m.device):
             self._point_q = wp.zeros((1, n_points), dtype=wp.vec3d)
             self._point_qd = wp.zeros((1, n_points), dtype=wp.vec3d)
+            self._point_end = wp.zeros((1, n_points), dtype=wp.vec3d)
+            self._point_end_qd = wp.zeros((1, n_points), dtype=wp.vec3d)
             self._tie_q = wp.zeros((n, s), dtype=wp.vec3d)
             self._tie_qd = wp.zeros((n, s), dtype=wp.vec3d)
             # Float32 strings: their own controls, converted from the float64 ones (module doc).
@@ -272,6 +281,10 @@ class SolverMarionette:
                 tie_qd=wp.zeros((n, s), dtype=m.strings.vec3))
         self._puppet_control = m.puppet.control()
         self._string_control_cache = {}
+        self._response = eval_string_response_kernel(m.strings.scalar, m.scene.effects.internal_friction)
+        self._trial = m.puppet.state()              # the trial step's end state
+        self._trial_fields = trial_fields(m.puppet)  # its input's body fields (state_in's stay untouched)
+        self._trial_views = {}
 
     def _string_controls(self, control: MarionetteControl) -> list[StringControl]:
         """The controls of the n string steps: views of ``control``'s buffers and the tie path
@@ -302,6 +315,7 @@ class SolverMarionette:
     def begin_step(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
         """Passes before the string steps (a live loop runs them at the first tick of a puppet step)."""
         self.eval_body_points(state_in)                 # tied body points at t0
+        self.predict_body_points(state_in)              # trial puppet step: the tied points at t0 + H
         self.eval_tie_path(state_in, state_out)         # the strings' tie targets over the step
         if self._narrow is not None:
             self.apply_tie_path_to_strings()            # float64 -> float32 string controls
@@ -336,11 +350,22 @@ class SolverMarionette:
         self.model.puppet_solver.eval_kinematics(state_in.puppet)
         self.model.puppet_solver.eval_points(state_in.puppet, self._point_q, self._point_qd)
 
+    def predict_body_points(self, state_in: MarionetteState) -> None:
+        """Trial puppet step under the strings' linearised pull (``string_body_coupling``); its
+        tied points at ``t0 + H`` into ``_point_end``."""
+        m = self.model
+        key = id(state_in.puppet)
+        if key not in self._trial_views:
+            self._trial_views[key] = (state_in.puppet, trial_view(state_in.puppet, self._trial_fields))
+        view = self._trial_views[key][1]
+        predict_puppet_step(m, self._response, view, state_in.strings, state_in.tie_target, self._trial, self._puppet_control)
+        m.puppet_solver.eval_kinematics(self._trial)
+        m.puppet_solver.eval_points(self._trial, self._point_end, self._point_end_qd)
+
     def eval_tie_path(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
         m = self.model
         wp.launch(eval_tie_path, dim=(m.substeps, m.strings.string_count),
-                  inputs=[m.string_point_wp, self._point_q, self._point_qd, state_in.tie_target,
-                          wp.float64(m.string_dt)],
+                  inputs=[m.string_point_wp, self._point_end, state_in.tie_target, wp.float64(m.string_dt)],
                   outputs=[self._tie_q, self._tie_qd, state_out.tie_target], device=m.device)
 
     def apply_tie_path_to_strings(self) -> None:
@@ -375,3 +400,43 @@ class SolverMarionette:
     def step_puppet(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
         m = self.model
         m.puppet_solver.step(state_in.puppet, state_out.puppet, self._puppet_control, m.puppet_dt)
+
+
+TRIAL_FIELDS = ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness", "spring_force")
+
+
+def trial_fields(puppet_model, requires_grad: bool = False) -> dict[str, wp.array]:
+    """Arrays for the body fields a trial step writes into its input state (``TRIAL_FIELDS``)."""
+    scratch = puppet_model.state(requires_grad=requires_grad)
+    return {name: getattr(scratch, name) for name in TRIAL_FIELDS}
+
+
+def trial_view(puppet_state: ArticulationState, fields: dict[str, wp.array]) -> ArticulationState:
+    """``puppet_state`` with its own ``fields``: the trial step reads its coordinates and writes
+    its body fields elsewhere (the real step, and a tape, see them untouched)."""
+    view = copy.copy(puppet_state)
+    for name, array in fields.items():
+        setattr(view, name, array)
+    return view
+
+
+def predict_puppet_step(model: MarionetteModel, response, view: ArticulationState, strings: StringState,
+                        tie_target: wp.array, trial_out: ArticulationState, control) -> None:
+    """The trial puppet step of ``string_body_coupling``: ``view`` (the step's input, see
+    :func:`trial_view`) into ``trial_out``, each tied string replaced by its linearised pull
+    (``response``: an ``eval_string_response_kernel``)."""
+    m = model
+    s = m.strings
+
+    def string_loads(state, h):
+        if len(m.spring_string) == 0:
+            return
+        wp.launch(response, dim=(state.world_count, len(m.spring_string)),
+                  inputs=[m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp, s.string_start,
+                          s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_tie_damping, s.string_taut_distance,
+                          s.string_internal_friction,
+                          state.body_pos, state.body_rot, state.body_w, state.body_v,
+                          strings.particle_q, strings.particle_qd, tie_target, h],
+                  outputs=[state.body_wrench, state.body_stiffness], device=m.device)
+
+    m.puppet_solver.step(view, trial_out, control, m.puppet_dt, point_loads=string_loads)

@@ -1,7 +1,7 @@
 """Segments of a marionette rollout on a ``wp.Tape``, and their reverse pass.
 
-:class:`TapedSegment` replays ``SolverMarionette.step``'s passes (begin: body points and
-tie path; ``n`` string steps with feedback; end: anchors and the puppet step) for ``K``
+:class:`TapedSegment` replays ``SolverMarionette.step``'s passes (begin: body points, the
+trial puppet step and the tie path; ``n`` string steps with feedback; end: anchors and the puppet step) for ``K``
 puppet steps with one array for every quantity a step writes. ``SolverMarionette`` reuses
 scratch buffers from step to step (the tie path, the tied points, the string states
 between substeps, the puppet control); on a tape an array written after it was read gives
@@ -27,11 +27,13 @@ run did.
 from __future__ import annotations
 
 import copy
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
 from .kernels.string_body_coupling import apply_string_forces_to_anchors_kernel, eval_tie_path
+from .marionette import predict_puppet_step, trial_fields, trial_view
 from .string_model import StringControl
 from .string_rollout import upload_values
 from .string_solver import StringWorkspace
@@ -131,6 +133,14 @@ class _Plan:
         control = m.puppet.control(requires_grad=True)
         self._track(control)
         arrays["puppet_control"] = control
+        # The trial step (string_body_coupling): its input's body fields, its end state, its points.
+        fields = trial_fields(m.puppet, requires_grad=True)
+        self._track(SimpleNamespace(**fields))
+        arrays["trial_fields"] = fields
+        trial = m.puppet.state(requires_grad=True)
+        self._track(trial)
+        arrays["trial"] = trial
+        arrays["point_end"], arrays["point_end_qd"] = z((1, npt), wp.vec3d), z((1, npt), wp.vec3d)
         return arrays
 
 
@@ -199,10 +209,14 @@ class TapedSegment:
         m = self.model
         n, s = m.substeps, m.strings.string_count
         self._points(state_in.puppet, arrays)
+        trial = arrays["trial"]
+        predict_puppet_step(m, self.solver._response, trial_view(state_in.puppet, arrays["trial_fields"]),
+                            state_in.strings, state_in.tie_target, trial, arrays["puppet_control"])
+        m.puppet_solver.eval_kinematics(trial)
+        m.puppet_solver.eval_points(trial, arrays["point_end"], arrays["point_end_qd"])
         tie_q, tie_qd = arrays["tie_q"], arrays["tie_qd"]
         wp.launch(eval_tie_path, dim=(n, s),
-                  inputs=[m.string_point_wp, arrays["point_q"], arrays["point_qd"], state_in.tie_target,
-                          wp.float64(m.string_dt)],
+                  inputs=[m.string_point_wp, arrays["point_end"], state_in.tie_target, wp.float64(m.string_dt)],
                   outputs=[tie_q, tie_qd, state_out.tie_target], device=m.device)
         previous = state_in.strings
         feedback = self.solver._feedback

@@ -2,13 +2,26 @@
 
 Between two puppet steps (``H = n h``: ``n`` string steps of ``h``):
 
+- prediction (``eval_string_response``, in a trial puppet step): the puppet takes a trial
+  step of ``H`` from ``t0`` in which each tied string is replaced by its linearisation as
+  its tie sees it, ``f = F0 - K (x - x0) - C (v - v0)``, implicit (the trial step's
+  linearised backward Euler). ``F0 = k (x_last - x_t)`` is the pull of the tie's spring now
+  (``x_last`` the string's last particle, ``x_t`` the tie target, where the strings are
+  tied); ``K = k_ax u u^T + (T / L) (I - u u^T)``: along the string (``u`` from the body
+  point to the top particle, ``L`` apart) the tie and the whole string in series,
+  ``k_ax = k k_string / (k + k_string)``, while the string is taut (the §3.2 distance
+  test); across it, the geometric stiffness of a straight string under its tension ``T``
+  (that of its last segment; 0 when slack); ``C`` the whole string's internal friction (paper term 2 acts on
+  every relative velocity, so it is isotropic) in series with the tie, whose spring over
+  one step acts like a damper ``k H``. Everything else is the real step's: gravity, joint
+  limits, contacts, joint damping. The trial's tied points at ``t0 + H`` are the
+  prediction ``x_p``;
 - body -> strings (``eval_tie_path``): the tie target of each string moves in a straight
   line, at constant velocity, from where it was at ``t0`` (the end of the previous path)
-  to where the body point's position and velocity at ``t0`` predict it at ``t0 + H``,
-  ``x_p = x_b(t0) + H v_b(t0)``; the strings treat the tie implicitly against that path
-  at every string step. The path is continuous from one puppet step to the next: starting
-  it afresh at ``x_b(t0)`` would make the target jump by the last prediction error, and
-  the light end particle would be kicked by ``k`` times that error;
+  to ``x_p``; the strings treat the tie implicitly against that path at every string
+  step. The path is continuous from one puppet step to the next: starting it afresh at
+  ``x_b(t0)`` would make the target jump by the last prediction error, and the light end
+  particle would be kicked by ``k`` times that error;
 - strings -> body (``apply_string_forces_to_anchors_kernel``): the body receives the tie force
   the strings actually produced, averaged over the ``n`` string steps, ``F``, and any
   deviation of the body from the predicted path is resisted by the tie's own stiffness
@@ -24,29 +37,115 @@ Handing the body the string's *end particle* as the anchor instead would tie the
 its own extrapolation: the light end particle only tracks the predicted path, and the
 string's pull would reach the body only through the tie's small stretch.
 
-With ``n = 1`` (the puppet at the string rate) this is a staggered coupling of two
-implicit integrators. The predicted path is first-order accurate in ``H``; the gap it
-causes at 30 Hz is measured by the tests against the fully coupled run.
+**Why a trial step** (the paper runs the two rates asynchronously and says nothing of how
+they meet; this is ours). The earlier predictor, ``x_p = x_b(t0) + H v_b(t0)``, ignores
+every acceleration within the step: when a joint limit stopped a tied limb within a
+33 ms step, the strings had already been dragged up to ``H |v|`` along a path the body
+never took and the stiff tie pulled the body after it; the string and tie springs stored
+that energy and handed it back (+1.14 J with a shoulder thrown at 20 rad/s into its limit
+at 30 Hz, when the motion had 0.17 J). The trial step sees the limit (whose activation
+looks ahead, ``articulation_codegen._limits``) and the strings' pull, so the path is where
+the body goes: that case now loses energy like the 1 kHz reference, and the body points
+stay within 2 mm (RMS) of it instead of 74 mm (``tests/test_hard_cases_puppet.py``).
+Each part of the linear model is there because the hard cases diverged without it:
+``F0`` against the tie target, not the body point (``k (x_last - x_b)`` holds the
+prediction error times the stiff ``k``, explicit in the trial), no tie damping in ``F0``
+and the strings' friction implicit (``C H / m`` is 1 to 7 for a 25 g hand at 30 Hz with
+the default and 10x strings: explicit, the hands' swing grew sixfold per step), the
+geometric stiffness across the string (the tie's ``k`` there, or a stiffness from the
+previous step's force without ``K``, stopped the arms' swing dead or diverged). The cost
+is one more puppet step per puppet step (its kernels are the real step's).
 
-**Known limit: the coupling is not passive when the prediction is badly wrong.** The
-prediction ignores every acceleration within the step. When a joint limit (or a contact)
-stops a tied limb within a 33 ms step, the strings have already been dragged up to
-``H |v|`` along a path the body never takes, and the stiff tie pulls the body towards it;
-the string and tie springs store that energy and hand it back: +1.14 J with a shoulder
-thrown at 20 rad/s into its limit at 30 Hz (the motion had 0.17 J), none at 100 Hz and
-above (``tests/test_hard_cases_puppet.py``, a strict expected failure). The gain is the
-energy of a prediction error ``~ H dv`` in springs of stiffness ``k``, so it falls fast
-with ``H``; it also needs a tie force that changes within the step, which is why
-tension-only strings (whose tie force switches off when they go slack) are refused under
-a slower puppet (``settings_check``). A trial puppet step under the previous step's tie
-forces, as the predictor, was tried: it removes the thrown joint's gain but is explicit in
-the strings (``k H^2 / M`` = 0.7 at 30 Hz with the default strings, 7 with 10x stiffer
-ones, which diverged), so it was not kept.
+With ``n = 1`` (the puppet at the string rate) this is a staggered coupling of two
+implicit integrators with the same trial step. The gap the coupling leaves at 30 Hz is
+measured by the tests and ``dmarionette bench accuracy`` against the fully coupled run.
 """
 
 import functools
 
 import warp as wp
+
+from .articulation_forces import compute_point_state
+from .articulation_math import compute_point_inertia, compute_point_wrench, spatial6, spatial66
+
+
+@functools.cache
+def eval_string_response_kernel(scalar, internal_friction: bool):
+    """Builds ``eval_string_response`` for strings of float type ``scalar`` (float32 strings are
+    widened to float64 as they are read; the puppet side is float64), with the strings'
+    internal friction compiled in or out."""
+    vec3 = wp.types.vector(3, scalar)
+    FRICTION = bool(internal_friction)
+
+    @wp.kernel(module="unique")
+    def eval_string_response(
+        # Model:
+        spring_body: wp.array(dtype=wp.int32),
+        spring_point: wp.array(dtype=wp.vec3d),
+        spring_string: wp.array(dtype=wp.int32),
+        string_start: wp.array(dtype=wp.int32),
+        string_stiffness: wp.array(dtype=scalar),
+        string_rest_length: wp.array(dtype=scalar),
+        string_tie_stiffness: wp.array(dtype=scalar),
+        string_tie_damping: wp.array(dtype=scalar),
+        string_taut_distance: wp.array(dtype=scalar),
+        string_internal_friction: wp.array(dtype=scalar),
+        # State in:
+        body_pos: wp.array2d(dtype=wp.vec3d),
+        body_rot: wp.array2d(dtype=wp.quatd),
+        body_w: wp.array2d(dtype=wp.vec3d),
+        body_v: wp.array2d(dtype=wp.vec3d),
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        tie_target: wp.array(dtype=wp.vec3d),
+        h: wp.float64,
+        # State out:
+        body_wrench: wp.array2d(dtype=spatial6),
+        body_stiffness: wp.array2d(dtype=spatial66),
+    ):
+        """The trial step's load of tied string ``i``: ``f = F0 - K (x - x0)``, implicit (module doc).
+
+        ``F0 = k (x_last - x0) + k_d (v_last - v0)`` (eq. 2 against the body point now);
+        ``K = k_ax u u^T + T / L (I - u u^T)`` with ``u`` from the body point to the string's
+        top particle, ``L`` their distance, ``T`` the tension of the string's last segment
+        (``k_s`` times its stretch, 0 if slack) and ``k_ax`` the tie and the whole string
+        (``k_s / segments``) in series while the string is taut; ``C`` the whole string's
+        friction in series with ``k h``. The linearised backward-Euler force ``F0 - h K v``
+        goes to the wrench, ``h^2 K + h C`` to the system matrix.
+        """
+        w, i = wp.tid()
+        b = spring_body[i]
+        s = spring_string[i]
+        x, v = compute_point_state(body_pos[w, b], body_rot[w, b], body_w[w, b], body_v[w, b], spring_point[i])
+        first = string_start[s]
+        last = string_start[s + 1] - 1
+        k = wp.float64(string_tie_stiffness[s])
+        force = k * (wp.vec3d(particle_q[last]) - tie_target[s])
+        along = wp.vec3d(particle_q[first]) - x
+        length = wp.length(along)
+        zero = wp.float64(0.0)
+        eye = wp.identity(3, dtype=wp.float64)
+        stiffness = wp.mat33d()
+        if length > zero:
+            u = along / length
+            uu = wp.outer(u, u)
+            segment = wp.length(wp.vec3d(particle_q[last]) - wp.vec3d(particle_q[last - 1]))
+            tension = wp.max(wp.float64(string_stiffness[s]) * (segment - wp.float64(string_rest_length[s])), zero)
+            stiffness = (tension / length) * (eye - uu)
+            if wp.length(wp.vec3d(particle_q[last]) - wp.vec3d(particle_q[first])) > wp.float64(string_taut_distance[s]):
+                whole = wp.float64(string_stiffness[s]) / wp.float64(last - first)
+                stiffness = stiffness + (k * whole / (k + whole)) * uu
+        damping = wp.float64(0.0)
+        if wp.static(FRICTION):
+            # The whole string's friction in series with the tie, whose spring over one step acts
+            # like a damper k h: 1 / c = 1 / c_string + 1 / (k h) (a cut tie transmits nothing).
+            whole_friction = wp.float64(string_internal_friction[s]) / wp.float64(last - first)
+            damping = whole_friction * (k * h) / (whole_friction + k * h)
+        f = force - h * (stiffness * v)
+        wp.atomic_add(body_wrench, w, b, compute_point_wrench(x, f))
+        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(x, (h * h) * stiffness + (h * damping) * eye))
+
+    return eval_string_response
 
 
 @wp.kernel
@@ -54,8 +153,7 @@ def eval_tie_path(
     # Model:
     string_point: wp.array(dtype=wp.int32),
     # State in:
-    point_q: wp.array2d(dtype=wp.vec3d),
-    point_qd: wp.array2d(dtype=wp.vec3d),
+    point_end: wp.array2d(dtype=wp.vec3d),
     tie_target: wp.array(dtype=wp.vec3d),
     # Control:
     dt: wp.float64,
@@ -64,7 +162,7 @@ def eval_tie_path(
     tie_qd: wp.array2d(dtype=wp.vec3d),
     tie_target_out: wp.array(dtype=wp.vec3d),
 ):
-    """tie_q[j, s]: from tie_target[s] to x_b + H v_b in n equal steps (zero if untied)."""
+    """tie_q[j, s]: from tie_target[s] to the trial step's end point in n equal steps (zero if untied)."""
     j, s = wp.tid()
     p = string_point[s]
     if p < 0:
@@ -76,7 +174,7 @@ def eval_tie_path(
     n = tie_q.shape[0]
     horizon = wp.float64(n) * dt
     start = tie_target[s]
-    end = point_q[0, p] + horizon * point_qd[0, p]
+    end = point_end[0, p]
     velocity = (end - start) / horizon
     tie_q[j, s] = start + (wp.float64(j + 1) * dt) * velocity
     tie_qd[j, s] = velocity
