@@ -12,41 +12,39 @@ where strings are built from a scene (``Scene.build_string_model``, or at the en
   ``apply_string_forces_to_anchors``), so ``k = 0`` gives ``0 / 0 = NaN`` and the whole
   puppet becomes NaN on the first step (measured). A string that should not pull is
   left untied (no ``body_point``).
-- **a long puppet step under several string steps**: with ``n > 1`` string steps per
-  puppet step, the strings follow a tie path extrapolated over the puppet step; with the
-  default constants the energy of the motion (kinetic, gravity, strings, ties: see
-  ``tests/test_hard_cases.py``) stays below the bars' work at 25 Hz and above, and grows
-  beyond it below (measured with the ``hanging`` scene's sway at string_hz = 1000, largest
-  excess over 6 s: -0.013 J at 25 Hz, +0.002 J at 20 Hz, +0.026 J at 15 Hz, +0.040 J at
-  10 Hz, +0.064 J at 5 Hz, +135 J and a joint 5.4 rad past its limit at 1 Hz). So
-  ``puppet_hz >= 25`` is required when ``string_hz / puppet_hz`` rounds to more than 1.
+- (**no longer refused: a long puppet step under several string steps.** With the tie path
+  extrapolated as ``x + H v`` the energy of the motion grew below 25 Hz (+0.002 J at 20 Hz
+  up to +135 J at 1 Hz, the ``hanging`` sway at string_hz = 1000), so ``puppet_hz >= 25``
+  was required with ``n > 1``. With the path from a trial puppet step
+  (``kernels/string_body_coupling.py``) the same sway, and with still bars, stays below the
+  bars' work down to 10 Hz (largest excess over 6 s: -0.024 J at 20 Hz, -0.029 J at 15 Hz,
+  -0.019 J at 10 Hz) and blows up at 5 Hz (+1,456 J), which the 10 Hz minimum below refuses.)
 - **tension-only strings under a slower puppet** (``[effects] tension_only = true`` with
-  ``string_hz / puppet_hz`` rounding to more than 1): the extrapolated coupling is not
-  passive when a tie force switches on and off within a puppet step. Measured with the
-  ``hanging`` scene at 30 Hz: with still bars the puppet does not settle (torso still
-  moving at 1.3 mm/s after 6 s), the 30 Hz run leaves the 1 kHz one by 34 mm (21.7 mm with
-  the printed spring), a shoulder thrown into its limit gains 0.62 J, and on 10x stiffer
-  strings the puppet bounces on its head string and is pumped 13 cm up in 4 s. With the
-  puppet at the string rate it settles and the hard cases tried
-  holds (ties carry the weight to 4e-7 after 6 s), so ``puppet_hz = string_hz`` is required.
-- **any puppet step longer than 0.1 s**: with the puppet at the string rate (``n = 1``) the
-  coupling is a plain staggered step; measured excess -0.020 J at 10 Hz and 5 Hz, but
-  8,000 J at 4 Hz, 150,000 J at 3 Hz (string particles metres below the ground). So
-  ``puppet_hz >= 10`` always (a factor 2.5 from the first failure).
+  ``string_hz / puppet_hz`` rounding to more than 1): the coupling's trial step sees a
+  string's pull linearised at the start of the puppet step, and a tension-only string's
+  pull switches off and on within it. Measured with the ``hanging`` scene at 30 Hz: still
+  bars settle (torso at 1.7e-3 mm/s after 6 s), the sway and a shoulder thrown into its
+  limit stay within the energy bound, but 10x stiffer strings go non-finite within 4 s
+  (with the ``x + H v`` tie path of before, the still puppet did not settle, the thrown
+  shoulder gained 0.62 J and the 10x puppet was pumped 13 cm up). With the puppet at the
+  string rate it settles and the hard cases tried hold (ties carry the weight to 4e-7
+  after 6 s), so ``puppet_hz = string_hz`` is required.
+- **any puppet step longer than 0.1 s**: measured with the puppet at the string rate
+  (``n = 1``): excess -0.038 J at 10 Hz, but thousands of joules and more within 10 s at
+  4 Hz (string particles metres below the ground); under 1 kHz strings -0.019 J at 10 Hz,
+  +1,456 J at 5 Hz (the sway, 6 s). So ``puppet_hz >= 10`` always.
 """
 
 from __future__ import annotations
 
 from .scene_fields import SceneError
 
-__all__ = ["MAX_FLOAT32_STRING_HZ", "MIN_PUPPET_HZ", "MIN_SUBSTEPPED_PUPPET_HZ", "check_marionette_settings",
+__all__ = ["MAX_FLOAT32_STRING_HZ", "MIN_PUPPET_HZ", "check_marionette_settings",
            "check_string_settings"]
 
 MIN_PUPPET_HZ = 10.0
-"""Lowest puppet rate [Hz] accepted at all (measured stable at 10 and 5 Hz, blowing up at 4 Hz)."""
-
-MIN_SUBSTEPPED_PUPPET_HZ = 25.0
-"""Lowest puppet rate [Hz] measured energy-consistent when the strings take several steps per puppet step."""
+"""Lowest puppet rate [Hz] accepted (measured energy-consistent at 10 Hz, with the puppet at the
+string rate and under 1 kHz strings; blowing up at 4 Hz and 5 Hz respectively)."""
 
 MAX_FLOAT32_STRING_HZ = 1.0e4
 """Highest string rate [Hz] at which float32 strings were measured to track float64 (see the module doc)."""
@@ -82,12 +80,6 @@ def check_marionette_settings(scene) -> None:
         raise SceneError(f"{source}: [rates]", "puppet_hz", scene.puppet_hz,
                          f">= {MIN_PUPPET_HZ:g} Hz (a puppet step above {1.0 / MIN_PUPPET_HZ:g} s lets the "
                          "string-body coupling blow up: measured at 4 Hz); raise puppet_hz (and string_hz)")
-    if substeps > 1 and scene.puppet_hz < MIN_SUBSTEPPED_PUPPET_HZ:
-        raise SceneError(f"{source}: [rates]", "puppet_hz", scene.puppet_hz,
-                         f">= {MIN_SUBSTEPPED_PUPPET_HZ:g} Hz while the strings take {substeps} steps per puppet "
-                         f"step (string_hz = {scene.string_hz:g}): over a longer puppet step the extrapolated "
-                         "string-body coupling puts energy into the puppet; raise puppet_hz, or set "
-                         "puppet_hz = string_hz")
     if substeps > 1 and scene.effects.tension_only:
         raise SceneError(f"{source}: [effects]", "tension_only", True,
                          f"false while the strings take {substeps} steps per puppet step (string_hz = "

@@ -164,8 +164,9 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
     the internal friction of the top segments (``k_f`` = 24.5 N s/m against a 5 m/s jump:
     ~120 N per string for 20 ms); the energy must still never exceed it. Ground bound
     ``v H + M g / k`` with ``v`` = 5 m/s (nothing in the puppet is moved faster than the bars
-    by the strings' pull). Measured: energy at most -1.16e-2 J from ``E(0) + W``, ground
-    6.3 mm (bound 5 x 0.033 + 0.0037 = 169 mm), limit 0.465 rad (energy bound 3.1 rad).
+    by the strings' pull). Measured: energy at most -1.66e-2 J from ``E(0) + W``, the puppet
+    off the ground (bound 5 x 0.033 + 0.0037 = 169 mm), limit 0.760 rad (energy bound
+    4.4 rad; 0.465 rad with the ``x + H v`` tie path of before, ``string_body_coupling``).
     """
     main, hand = hanging.bars
     p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
@@ -178,7 +179,7 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
     model = _model(hanging, bars=bars)
     r = simulate_energy_balance(model, 5.0)
     assert r["bar_work"][-1] > 1.0  # the jerks did put work in
-    _check("jerks", model, r, ground=_contact_bound(model, v), limit=_limit_bound(model, r), limit_measured=0.465)
+    _check("jerks", model, r, ground=_contact_bound(model, v), limit=_limit_bound(model, r), limit_measured=0.760)
 
 
 def test_dropped_onto_the_ground(hanging):
@@ -188,10 +189,11 @@ def test_dropped_onto_the_ground(hanging):
     switched on by the state at the start of a step, so a point that starts a step just
     above the ground falls freely for that step, ``g H^2`` deep at most.
 
-    Measured: the lying puppet chatters at the puppet rate's Nyquist frequency (depth
-    alternating 0.4 / 6.2 mm from frame to frame, decaying by 5 % in a second): a period-2
-    cycle of that active-set switch, within the bound, not a blow-up. Energy at most
-    -3.9e-2 J from ``E(0)``; limit 0.400 rad (energy bound 1.56 rad).
+    Measured: it comes to rest folded forward (head, knees and feet on the ground, the
+    torso's centre 0.164 m up) within 3 s; resting depth 2.5 mm; energy at most -3.9e-2 J
+    from ``E(0)``; limit 0.185 rad (energy bound 2.6 rad). (Before joint limits looked ahead,
+    ``articulation_codegen._limits``, it ended flat, torso 0.05 m up, the lying puppet
+    chattering at the puppet rate's Nyquist frequency, depth alternating 0.4 / 6.2 mm.)
     """
     puppet = dataclasses.replace(hanging.puppet, root_position=(0.0, 0.79, 0.0))
     bars = tuple(_still(b) for b in hanging.bars)
@@ -199,12 +201,14 @@ def test_dropped_onto_the_ground(hanging):
     r = simulate_energy_balance(model, 4.0)
     speed = np.sqrt(2 * G * 0.4)
     _check("drop on ground", model, r, ground=_contact_bound(model, speed), limit=_limit_bound(model, r),
-           limit_measured=0.400)
+           limit_measured=0.185)
     rest = r["time"] > r["time"][-1] - 1.0
     print(f"resting depth {r['ground_depth'][rest].max() * 1e3:.2f} mm")
     assert r["ground_depth"][rest].max() <= model.puppet_mass * G / model.puppet.contacts.stiffness \
         + G * model.puppet_dt**2
-    assert r["body_pos"][-1, 0, 1] < 0.1  # it is down
+    start = r["body_pos"][0, :, 1]
+    assert np.all(r["body_pos"][-1, :, 1] < start - 0.3)  # it is down: every body 0.3 m lower or more
+    assert r["parts"]["puppet_kinetic"][rest].max() < 1e-4  # and at rest [J]
 
 
 def test_dropped_onto_the_chair():
@@ -253,9 +257,11 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging):
     Bounds: puppet ``v H + M g / k`` with ``v = sqrt(2 g 0.1) + 0.6`` m/s (a free fall from its
     10 cm clearance on top of the bars' speed); string particles, which are tied to body
     points whose predicted path (``x + H v``) can run ``v H`` further below, ``2 v H + M g / k``.
-    Measured: bar work 11.6 J (the top segments' friction again), energy at most -1.16e-2 J
-    from ``E(0) + W``, puppet 28.8 mm (bound 70 mm), lowest particle -46.1 mm (bound 136 mm),
-    limit 0.409 rad. The particles that deep are not lying on the ground: they are the
+    Measured: bar work 10.2 J (the top segments' friction again), energy at most -1.66e-2 J
+    from ``E(0) + W``, puppet 61.1 mm (bound 70 mm), lowest particle -10.3 mm (bound 136 mm),
+    limit 1.676 rad (energy bound 4.3 rad: the soft limits, 5 N m/rad, let a folded limb of
+    the landed puppet lie far past a limit; 0.409 rad and 28.8 mm with the ``x + H v`` tie
+    path of before). The particles that deep are not lying on the ground: they are the
     lower end of a straight, *compressed* knee string pushed into the ground by the
     lowering bar, see ``test_hard_cases_strings.py::test_a_lowered_string_does_not_push_into_the_ground``.
     """
@@ -268,7 +274,7 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging):
     r = simulate_energy_balance(model, 6.0)
     v = np.sqrt(2 * G * 0.1) + 0.6
     bound = _contact_bound(model, v)
-    _check("slack on the ground", model, r, ground=bound, limit=_limit_bound(model, r), limit_measured=0.409,
+    _check("slack on the ground", model, r, ground=bound, limit=_limit_bound(model, r), limit_measured=1.676,
            string_ground=bound + v * model.puppet_dt)
 
 
@@ -310,11 +316,14 @@ def test_two_minutes_of_swaying_marionette(hanging):
     The 30-minute float64 run of the issue is ``test_hard_cases_long.py`` (the whole
     marionette, -O2 puppet kernels, 20 particles per string) and, for the strings alone,
     ``test_hard_cases_strings.py``. Here:
-    finite; within the energy bound; and periodic: from 30 s on (the strings and puppet
-    settle into the sway within a few periods) the energy at the sampled phase stays within
-    1e-4 J (any numerical creep or growing oscillation would show). Measured: spread
-    5.7e-9 J over 46 periods; energy at most -0.132 J from ``E(0) + W`` (W = 4.78 J);
-    limit 0.0005 rad; about 10 s of test time.
+    finite; within the energy bound; and periodic: from 60 s on (the strings and puppet
+    settle within about 20 periods) the energy at the sampled phase repeats with a period of
+    at most 8 sway periods to within 1e-4 J (any numerical creep or growing oscillation would
+    show). Measured: the puppet settles into a subharmonic of 6 sway periods (the energy at
+    the phase takes 6 values 5e-4 J apart, each repeating to 4e-7 J); energy at most
+    -0.117 J from ``E(0) + W``; limit 0.0004 rad; about 10 s of test time. (With the
+    ``x + H v`` tie path of before, ``string_body_coupling``, it settled into the sway's
+    own period, to 5.7e-9 J.)
     """
     main, hand = hanging.bars
     puppet_dt = round(hanging.string_hz / hanging.puppet_hz) / hanging.string_hz  # 33 ms
@@ -323,6 +332,9 @@ def test_two_minutes_of_swaying_marionette(hanging):
     model = _model(hanging, bars=(dataclasses.replace(main, trajectory=sway), _still(hand)))
     r = simulate_energy_balance(model, 120.0, frame_hz=1.0 / period)
     _check("2 minutes", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.0005)
-    late = r["energy"][r["time"] >= 30.0]
-    print(f"energy spread from 30 s on {np.ptp(late):.3e} J over {len(late)} samples")
-    assert np.ptp(late) <= 1e-4
+    late = r["energy"][r["time"] >= 60.0]
+    repeat = {p: float(np.abs(late[p:] - late[:-p]).max()) for p in range(1, 9)}
+    period = min(repeat, key=repeat.get)
+    print(f"energy from 60 s on: spread {np.ptp(late):.3e} J over {len(late)} samples; repeats every {period} "
+          f"periods to {repeat[period]:.1e} J")
+    assert repeat[period] <= 1e-4

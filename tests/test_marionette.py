@@ -15,6 +15,7 @@ import dmarionette as dm
 from dmarionette.control_bar import BarTrajectory, ControlBar
 from dmarionette.marionette import MarionetteModel, SolverMarionette
 from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.rotations import quat_to_matrix
 
 wp.config.log_level = wp.LOG_WARNING
 G = 9.81
@@ -104,7 +105,11 @@ def test_lowering_the_main_bar_slackens_the_leg_strings_and_feedback_drops(hangi
     assert trajectory.string_taut[before][:, knees].all()
     assert not trajectory.string_taut[after][:, knees].any()
     feet = [trajectory.body_names.index(n) for n in ("foot_left", "foot_right")]
-    assert trajectory.body_pos[-1, feet, 1].max() < 0.03  # the feet are down on the ground
+    for f in feet:  # the feet are down on the ground: each foot box's lowest corner within 5 mm of it
+        half = 0.5 * np.array(next(b.size for b in hanging.puppet.bodies if b.name == trajectory.body_names[f]))
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+        world = trajectory.body_pos[-1, f] + corners @ quat_to_matrix(trajectory.body_rot[-1, f]).T
+        assert world[:, 1].min() - hanging.ground_height < 0.005, (trajectory.body_names[f], world[:, 1].min())
     feedback = np.linalg.norm(trajectory.bar_feedback[:, 0], axis=1)
     assert feedback[after].max() < 0.8 * feedback[before].min()
 

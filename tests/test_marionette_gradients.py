@@ -6,7 +6,7 @@ their strings and the bottom segments pass through slack, a kink of the step, se
 ``string_terms.compute_string_spring``), 10 particles per string, the paper's rates
 (strings 1 kHz, puppet 30 Hz: 33 string steps per puppet step), a 1 s rollout (30 puppet
 steps, 990 string steps), joint limits off. The strings are shortened by ``F / k`` with
-``F = (6, 4, 4, 4) N`` so that they start under tension: then no segment goes slack and
+``F = (3, 2, 2, 2) N`` (about the weight each carries; with (6, 4, 4, 4) N the puppet, pulled up harder than its weight at the start, bounced and a segment passed through slack) so that they start under tension: then no segment goes slack and
 every string stays taut over the rollout (both checked below), and the loss is smooth over
 the finite-difference steps. Puppet kernels are compiled at ``optimization_level=0``.
 
@@ -44,7 +44,7 @@ from dmarionette.marionette_rollout import simulate_marionette
 wp.config.log_level = wp.LOG_WARNING
 
 PUPPET_STEPS = 30           # 1 s at 30 Hz
-PRETENSION = (6.0, 4.0, 4.0, 4.0)  # N, head, back, knees
+PRETENSION = (3.0, 2.0, 2.0, 2.0)  # N, head, back, knees
 CONTACT_GROUND = 0.075      # m: the feet come down on it after about 0.35 s
 
 
@@ -150,7 +150,7 @@ def _string_margins(model: MarionetteModel, puppet_steps: int = PUPPET_STEPS) ->
 
 
 def test_the_strings_stay_taut_so_the_loss_is_smooth(smooth, contact):
-    """No segment passes through slack and no string goes slack (measured: >= 8e-4)."""
+    """No segment passes through slack and no string goes slack (measured: >= 7e-4)."""
     for problem in (smooth, contact):
         problem.engine.forward(problem.engine.scene_inputs())
         smallest, taut = _string_margins(problem.model)

@@ -102,6 +102,12 @@ def slack_model():
     strings = tuple(dataclasses.replace(s, particle_count=10) for s in scene.strings)
     scene = dataclasses.replace(scene, strings=strings, body_effects=dict(scene.body_effects, joint_limits=False),
                                 contact=dict(scene.contact, smooth=True))
+    # Strings 5 mm longer than bar -> body point: they start slack (every segment compressed,
+    # out of the active set) and snap taut as the puppet drops onto them.
+    straight = MarionetteModel(scene, optimization_level=0)
+    strings = tuple(dataclasses.replace(s, length=straight.strings.specs[i].length + 0.005)
+                    for i, s in enumerate(scene.strings))
+    scene = dataclasses.replace(scene, strings=strings)
     return MarionetteModel(_at_string_rate(scene, True), optimization_level=0, requires_grad=True)
 
 

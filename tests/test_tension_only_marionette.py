@@ -87,9 +87,9 @@ def test_the_scene_key_is_read_and_refused_at_load_under_a_slower_puppet(tmp_pat
 def test_tension_only_strings_under_a_30_hz_puppet_are_refused(monkeypatch):
     """Refused with the key, the rates and the fix in the message. Built anyway to show why:
     10x stiffer tension-only strings (stiffness, tie stiffness and damping) at the default
-    30 Hz: the puppet bounces on its head string and the coupling pumps it up (measured:
-    the torso 13 cm above its start after 4 s; with the printed spring it settles within
-    2 mm of it)."""
+    30 Hz go non-finite within 4 s (measured; with the ``x + H v`` tie path of before, the
+    puppet bounced on its head string and was pumped 13 cm up; with the printed spring it
+    settles within 2 mm of its start)."""
     scene = dm.load_scene("hanging")
     strings = tuple(dataclasses.replace(s, stiffness=10 * s.stiffness, tie_stiffness=10 * s.tie_stiffness,
                                         tie_damping=10 * s.tie_damping) for s in scene.strings)
@@ -103,4 +103,4 @@ def test_tension_only_strings_under_a_30_hz_puppet_are_refused(monkeypatch):
     trajectory = simulate_marionette(model, 4.0, progress=False)
     rise = trajectory.body_pos[-1, 0, 1] - trajectory.body_pos[0, 0, 1]
     print(f"\ntension-only at 30 Hz, 10x stiffer: torso {rise * 1e3:+.1f} mm after 4 s")
-    assert rise > 0.05  # the reason for the refusal
+    assert not np.isfinite(rise) or rise > 0.05  # the reason for the refusal

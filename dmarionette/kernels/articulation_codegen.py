@@ -58,6 +58,10 @@ class JointTopology:
     upper: tuple = ()
 
 
+# Joint limits: the band [rad] before a limit over which its implicit part is switched on
+# (``_GeneratedSource._limits``).
+LIMIT_BAND = 1e-3
+
 _Q_COUNT = {"free": 7, "ball": 4, "universal": 2, "hinge": 1}
 _QD_COUNT = {"free": 6, "ball": 3, "universal": 2, "hinge": 1}
 
@@ -361,17 +365,22 @@ def solve_body_dynamics(
     def _limits(self, diag_extra: dict, tau: dict, H: dict) -> None:
         """Penalty joint limits, implicit in stiffness and damping (active side only).
 
-        A limit is active in a step if the angle is past it at the start *or* the start
-        velocity carries it past within the step (``q + h qd``): activated by the start state
-        alone, a joint entering its limit went up to ``|qd| h`` past it before any torque
-        acted (0.6 rad for a shoulder at 20 rad/s at 30 Hz), and the penalty energy
-        ``1/2 k e^2`` appeared from nothing. The spring's constant part is ``-k max(q - upper, 0)``
-        (nothing before the crossing), so in the entering step the limit acts as its
-        implicit part ``-k h qd'`` only, which opposes the motion: it takes energy out and
-        never pulls a joint towards its limit.
+        A limit acts in a step if the angle is past it at the start *or* the start velocity
+        carries it past within the step (``q + h qd``): activated by the start state alone,
+        a joint entering its limit went up to ``|qd| h`` past it before any torque acted
+        (0.6 rad for a shoulder at 20 rad/s at 30 Hz), and the penalty energy ``1/2 k e^2``
+        appeared from nothing. The spring's constant part is ``-k max(q - upper, 0)``
+        (nothing before the crossing), so in the entering step the limit acts through its
+        implicit part ``-(c + k h) qd'`` only, which opposes the motion: it takes energy out
+        and never pulls a joint towards its limit. The implicit part is switched on over a
+        band of ``LIMIT_BAND`` before the limit, ``w = clamp((max(q, q + h qd) - upper) /
+        band + 1, 0, 1)``, so that the step is continuous in ``q`` and ``qd`` (an on/off
+        switch there turned float32 rounding of the strings into different motions: 7x the
+        rounding bound of ``tests/test_marionette_float32.py``).
         """
         e = self
         e("kl = limit_stiffness")
+        e(f"band = wp.float64({LIMIT_BAND!r})")
         e("dl = limit_damping + h_implicit * limit_stiffness")
         e("hl = h_implicit * limit_damping + h_implicit * h_implicit * limit_stiffness")
         for b, j in enumerate(self.t.joints):
@@ -381,8 +390,8 @@ def solve_body_dynamics(
                     i = d + k
                     q = f"joint_q[w, {j.q_start + k}]"
                     e(f"qe{i} = {q} + h_implicit * qd{i}")
-                    e(f"up{i} = wp.where(wp.max({q}, qe{i}) > dof_limit_upper[{i}], one, zero)")
-                    e(f"lo{i} = wp.where(wp.min({q}, qe{i}) < dof_limit_lower[{i}], one, zero)")
+                    e(f"up{i} = wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
+                    e(f"lo{i} = wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
                     e(f"tl{i} = tau{i} - kl * (wp.max({q} - dof_limit_upper[{i}], zero) + wp.min({q} - dof_limit_lower[{i}], zero)) - (up{i} + lo{i}) * dl * qd{i}")
                     tau[i] = f"tl{i}"
                     diag_extra[i].append(f"(up{i} + lo{i}) * hl")
@@ -396,7 +405,8 @@ def solve_body_dynamics(
                 e(f"th{b} = wp.float64(2.0) * wp.atan2(sn{b}, qb{b}[3] * sg{b})")
                 e(f"n{b} = nv{b} / sn{b}")
                 e(f"om{b} = wp.vec3d(qd{d}, qd{d + 1}, qd{d + 2})")
-                e(f"ac{b} = wp.where(wp.max(th{b}, th{b} + h_implicit * wp.dot(n{b}, om{b})) > dof_limit_upper[{d}], one, zero)")
+                e(f"rt{b} = h_implicit * wp.dot(n{b}, om{b})")
+                e(f"ac{b} = wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
                 e(f"tb{b} = n{b} * (ac{b} * (-kl * wp.max(th{b} - dof_limit_upper[{d}], zero) - dl * wp.dot(n{b}, om{b})))")
                 for k in range(3):
                     e(f"tl{d + k} = tau{d + k} + tb{b}[{k}]")

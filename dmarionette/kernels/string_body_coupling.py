@@ -120,7 +120,15 @@ def eval_string_response_kernel(scalar, internal_friction: bool):
         first = string_start[s]
         last = string_start[s + 1] - 1
         k = wp.float64(string_tie_stiffness[s])
-        force = k * (wp.vec3d(particle_q[last]) - tie_target[s])
+        # The pull of the string's last segment on its end particle (the end particle is light:
+        # within a step the tie passes on what the segment pulls, not its own momentary stretch).
+        bottom = wp.vec3d(particle_q[last - 1]) - wp.vec3d(particle_q[last])
+        segment = wp.length(bottom)
+        force = wp.vec3d()
+        if segment > wp.float64(0.0):
+            force = (wp.float64(string_stiffness[s]) * (segment - wp.float64(string_rest_length[s])) / segment) * bottom
+        if wp.static(FRICTION):
+            force += wp.float64(string_internal_friction[s]) * (wp.vec3d(particle_qd[last - 1]) - wp.vec3d(particle_qd[last]))
         along = wp.vec3d(particle_q[first]) - x
         length = wp.length(along)
         zero = wp.float64(0.0)
@@ -129,12 +137,17 @@ def eval_string_response_kernel(scalar, internal_friction: bool):
         if length > zero:
             u = along / length
             uu = wp.outer(u, u)
-            segment = wp.length(wp.vec3d(particle_q[last]) - wp.vec3d(particle_q[last - 1]))
             tension = wp.max(wp.float64(string_stiffness[s]) * (segment - wp.float64(string_rest_length[s])), zero)
             stiffness = (tension / length) * (eye - uu)
-            if wp.length(wp.vec3d(particle_q[last]) - wp.vec3d(particle_q[first])) > wp.float64(string_taut_distance[s]):
-                whole = wp.float64(string_stiffness[s]) / wp.float64(last - first)
-                stiffness = stiffness + (k * whole / (k + whole)) * uu
+            # Along the string: the tie and the whole string in series, ramped in from the §3.2
+            # taut distance to the rest length (a continuous switch: a step in it would turn
+            # rounding into a different path).
+            span = wp.length(wp.vec3d(particle_q[last]) - wp.vec3d(particle_q[first]))
+            taut = wp.float64(string_taut_distance[s])
+            rest = wp.float64(string_rest_length[s]) * wp.float64(last - first)
+            ramp = wp.clamp((span - taut) / wp.max(rest - taut, wp.float64(1e-9)), zero, wp.float64(1.0))
+            whole = wp.float64(string_stiffness[s]) / wp.float64(last - first)
+            stiffness = stiffness + (ramp * k * whole / (k + whole)) * uu
         damping = wp.float64(0.0)
         if wp.static(FRICTION):
             # The whole string's friction in series with the tie, whose spring over one step acts
