@@ -32,11 +32,13 @@ is dissipative) take out. The hard-case tests check ``E(t) - E(0) <= W_bars + to
   bound ``E(t) - E(0) <= W`` remains a valid check.
 
 The penalty parts (``puppet_contact``, ``puppet_limit``) are reported but are not
-"paid for" at the puppet rate: a penalty is switched on by the state at the start of a
-puppet step, so a point or joint that crosses into its constraint during a step ends it
-up to ``v H`` deep without any force having acted, and ``1/2 k d^2`` appears from nothing
-(measured: 3 J in a shoulder limit thrown at 20 rad/s, 2.3 J in a landing, at 30 Hz);
-the following implicit steps take most of it out. The hard-case tests therefore check
+always "paid for" at the puppet rate: a contact penalty is switched on by the state at
+the start of a puppet step, so a point that crosses into the ground or chair during a
+step ends it up to ``v H`` deep without any force having acted, and ``1/2 k d^2`` appears
+from nothing (measured: 2.3 J in a landing at 30 Hz); the following implicit steps take
+most of it out. Joint limits look ahead (``articulation_codegen._limits``; before they
+did, a shoulder thrown at 20 rad/s into its limit at 30 Hz made 3 J this way), but their
+penalty energy is still only bounded, not balanced, by the work that drove the joint in. The hard-case tests therefore check
 the energy of the motion, ``total - puppet_contact - puppet_limit`` (same argument:
 non-negative terms, zero at the start).
 

@@ -100,6 +100,9 @@ def test_recovers_k_and_k_d_per_string_with_covering_uncertainties(fitted):
     assert result.labels[:2] == ["k[head]", "k[back]"] and len(result.labels) == 12
     assert result.converged, result.message
     error = (result.fitted - truth) / truth
+    print(f"\nrelative error {np.round(error, 4)}; in standard errors "
+          f"{np.round((result.fitted - truth) / result.uncertainty.standard_error, 2)}; "
+          f"relative SE {np.round(result.uncertainty.standard_error / truth, 4)}")
     assert np.all(np.abs(error[:6]) < 0.01), error[:6]  # k within 1 %
     assert np.all(np.abs(error[6:]) < 0.05), error[6:]  # k_d within 5 %
     se = result.uncertainty.standard_error

@@ -124,23 +124,28 @@ def _torso_path(scene, puppet_hz, string_hz=None, seconds=3.0, frame_hz=30.0):
 
 
 def test_slow_motion_at_30_hz_and_1_khz_agree_and_converge(hanging):
-    """The default sway over 4 s: the puppet at ~30 Hz stays within 3 cm of the fully coupled
+    """The default sway over 4 s: the puppet at ~30 Hz stays within 2.5 mm of the fully coupled
     1 kHz run, and the gap shrinks with the puppet step at first order or better.
 
     Rates 31.25 and 62.5 Hz (32 and 16 string steps per puppet step) share frames with the
-    1 kHz run. Measured torso gaps: 21.7 mm at 31.25 Hz, 5.7 mm at 62.5 Hz (1.6 mm at 125 Hz):
-    halving the step divides the gap by 3.5-3.8, between first order (2, the coupling's
-    linear prediction and backward Euler) and second order (4). The bound 3 cm is the
-    measured gap with 40 % headroom; the order check is what guards the physics.
+    1 kHz run. Measured torso gaps, largest / RMS over the run: 1.76 / 0.89 mm at 31.25 Hz,
+    1.14 / 0.47 mm at 62.5 Hz (0.56 / 0.22 mm at 125 Hz, 0.27 / 0.08 mm at 250 Hz): the RMS
+    gap halves or better with each halving of the step (ratios 1.9, 2.2, 2.6; first order is
+    2); the largest is the start's transient (at 0.1 s), whose ratio here is 1.5. With the
+    ``x + H v`` tie path of before (``string_body_coupling``) the largest gap was 21.7 mm at
+    31.25 Hz. The bound 2.5 mm is the measured largest gap with 40 % headroom; the order
+    check (on the RMS gap) is what guards the physics.
     """
     t_ref, x_ref = _torso_path(hanging, 1000.0, seconds=4.0, frame_hz=31.25)
-    gaps = {}
+    gaps, rms = {}, {}
     for hz in (31.25, 62.5):
         t, x = _torso_path(hanging, hz, seconds=4.0, frame_hz=31.25)
         np.testing.assert_allclose(t, t_ref)
-        gaps[hz] = float(np.linalg.norm(x - x_ref, axis=1).max())
-    assert gaps[31.25] < 0.03, gaps
-    assert 1.8 < gaps[31.25] / gaps[62.5] < 4.5, gaps
+        gap = np.linalg.norm(x - x_ref, axis=1)
+        gaps[hz], rms[hz] = float(gap.max()), float(np.sqrt(np.mean(gap**2)))
+    print(f"\ntorso gaps to 1 kHz, largest {gaps}, RMS {rms} [m]")
+    assert gaps[31.25] < 0.0025, gaps
+    assert 1.8 < rms[31.25] / rms[62.5] < 4.5, rms
 
 
 def test_fast_motion_is_more_accurate_fully_coupled(hanging):

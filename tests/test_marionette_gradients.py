@@ -6,8 +6,10 @@ their strings and the bottom segments pass through slack, a kink of the step, se
 ``string_terms.compute_string_spring``), 10 particles per string, the paper's rates
 (strings 1 kHz, puppet 30 Hz: 33 string steps per puppet step), a 1 s rollout (30 puppet
 steps, 990 string steps), joint limits off. The strings are shortened by ``F / k`` with
-``F = (3, 2, 2, 2) N`` (about the weight each carries; with (6, 4, 4, 4) N the puppet, pulled up harder than its weight at the start, bounced and a segment passed through slack) so that they start under tension: then no segment goes slack and
-every string stays taut over the rollout (both checked below), and the loss is smooth over
+``F = (3, 2, 2, 2) N`` so that they start under tension (9 N against the puppet's 7.4 N;
+with (6, 4, 4, 4) N the puppet, pulled up hard at the start, bounced and a segment passed
+through slack once the coupling's trial step passed the strings' pull on at once): then no
+segment goes slack and every string stays taut over the rollout (both checked below), and the loss is smooth over
 the finite-difference steps. Puppet kernels are compiled at ``optimization_level=0``.
 
 The loss is a fixed random linear function of every output. Each gradient is checked as

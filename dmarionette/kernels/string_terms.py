@@ -94,12 +94,11 @@ def string_terms(scalar, tension_only: bool = False) -> SimpleNamespace:
         **Why it is not the default:** strings alone, and a marionette whose puppet runs at the
         string rate, pass the hard cases tried with it (``tests/test_hard_cases_strings.py``,
         ``tests/test_tension_only_marionette.py``). With the puppet at 30 Hz the string-body
-        coupling (``kernels/string_body_coupling``: the strings follow a constant-velocity
-        predicted path, the body is held to that path by the stiff tie) is not passive
-        when a tie force switches on and off within a puppet step: a puppet on 10x stiffer
-        tension-only strings bounces on its head string and is pumped 13 cm up in 4 s, and
-        on the default strings it still moves at 1.3 mm/s after 6 s of still bars
-        (``tests/test_marionette.py`` asks below 1 mm/s).
+        coupling (``kernels/string_body_coupling``: a trial puppet step sees each string's
+        pull linearised at the start of the puppet step) meets a pull that switches off and on
+        within the step: a puppet on 10x stiffer tension-only strings goes non-finite within
+        4 s (on the default strings still bars settle and a thrown joint stays in the energy
+        bound).
         ``settings_check`` refuses tension-only strings with a puppet slower than the strings.
         """
         e = x_a - x_b
