@@ -281,7 +281,7 @@ class SolverMarionette:
                 tie_qd=wp.zeros((n, s), dtype=m.strings.vec3))
         self._puppet_control = m.puppet.control()
         self._string_control_cache = {}
-        self._response = eval_string_response_kernel(m.strings.scalar, m.scene.effects.internal_friction)
+        self._response = eval_string_response_kernel(m.strings.scalar, m.scene.effects.internal_friction, m.substeps)
         self._trial = m.puppet.state()              # the trial step's end state
         self._trial_fields = trial_fields(m.puppet)  # its input's body fields (state_in's stay untouched)
         self._trial_views = {}
@@ -358,7 +358,7 @@ class SolverMarionette:
         if key not in self._trial_views:
             self._trial_views[key] = (state_in.puppet, trial_view(state_in.puppet, self._trial_fields))
         view = self._trial_views[key][1]
-        predict_puppet_step(m, self._response, view, state_in.strings, state_in.tie_target, self._trial, self._puppet_control)
+        predict_puppet_step(m, self._response, view, state_in.strings, state_in.tie_force, self._trial, self._puppet_control)
         m.puppet_solver.eval_kinematics(self._trial)
         m.puppet_solver.eval_points(self._trial, self._point_end, self._point_end_qd)
 
@@ -421,10 +421,11 @@ def trial_view(puppet_state: ArticulationState, fields: dict[str, wp.array]) -> 
 
 
 def predict_puppet_step(model: MarionetteModel, response, view: ArticulationState, strings: StringState,
-                        tie_target: wp.array, trial_out: ArticulationState, control) -> None:
+                        tie_force: wp.array, trial_out: ArticulationState, control) -> None:
     """The trial puppet step of ``string_body_coupling``: ``view`` (the step's input, see
     :func:`trial_view`) into ``trial_out``, each tied string replaced by its linearised pull
-    (``response``: an ``eval_string_response_kernel``)."""
+    (``response``: an ``eval_string_response_kernel``; ``tie_force``: the previous puppet
+    step's, ``(n, S)``, the input state's)."""
     m = model
     s = m.strings
 
@@ -436,7 +437,7 @@ def predict_puppet_step(model: MarionetteModel, response, view: ArticulationStat
                           s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_tie_damping, s.string_taut_distance,
                           s.string_internal_friction,
                           state.body_pos, state.body_rot, state.body_w, state.body_v,
-                          strings.particle_q, strings.particle_qd, tie_target, h],
+                          strings.particle_q, tie_force, h],
                   outputs=[state.body_wrench, state.body_stiffness], device=m.device)
 
     m.puppet_solver.step(view, trial_out, control, m.puppet_dt, point_loads=string_loads)

@@ -8,8 +8,8 @@ cotangents of any of the outputs to gradients with respect to every input.
 Checkpointing (memory like ``sqrt(T)``): the forward pass runs segments of
 ``checkpoint_steps = C`` puppet steps without a tape (captured as Warp graphs) and keeps
 only the state at each segment's start: string particle positions and velocities, puppet
-``joint_q``/``joint_qd`` and the tie targets, which is everything one step reads from the
-previous one. The backward pass takes the segments in reverse: it restores the
+``joint_q``/``joint_qd``, the tie targets and the last step's tie forces (the coupling's
+trial step reads their mean), which is everything one step reads from the previous one. The backward pass takes the segments in reverse: it restores the
 checkpoint, re-runs the segment on a ``wp.Tape`` with one fresh array per written quantity
 per step (:mod:`marionette_tape`), seeds the cotangents of the segment's outputs and the
 state adjoint arriving from the next segment, runs ``tape.backward`` and passes the adjoint
@@ -129,12 +129,13 @@ class Checkpoint:
     joint_q: np.ndarray
     joint_qd: np.ndarray
     tie_target: np.ndarray
+    tie_force: np.ndarray  # the previous puppet step's, (n, S, 3): the next trial step reads its mean
 
     @classmethod
     def of(cls, state) -> Checkpoint:
         return cls(state.strings.particle_q.numpy().copy(), state.strings.particle_qd.numpy().copy(),
                    state.puppet.joint_q.numpy().copy(), state.puppet.joint_qd.numpy().copy(),
-                   state.tie_target.numpy().copy())
+                   state.tie_target.numpy().copy(), state.tie_force.numpy().copy())
 
     def load(self, state) -> None:
         upload_values(state.strings.particle_q, self.particle_q)
@@ -142,6 +143,7 @@ class Checkpoint:
         upload_values(state.puppet.joint_q, self.joint_q)
         upload_values(state.puppet.joint_qd, self.joint_qd)
         upload_values(state.tie_target, self.tie_target)
+        upload_values(state.tie_force, self.tie_force)
 
 
 class _PlainChunk:
@@ -320,7 +322,7 @@ class MarionetteGradient:
     def _start_state(self, inputs: RolloutInputs) -> Checkpoint:
         r = self._rest
         return Checkpoint(inputs.particle_q0.copy(), inputs.particle_qd0.copy(), inputs.joint_q0[None].copy(),
-                          inputs.joint_qd0[None].copy(), r.tie_target.copy())
+                          inputs.joint_qd0[None].copy(), r.tie_target.copy(), np.zeros_like(r.tie_force))
 
     # ------------------------------------------------------------------ forward
     def _chunk(self, steps: int) -> _PlainChunk:

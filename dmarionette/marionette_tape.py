@@ -153,6 +153,7 @@ class StateAdjoint:
         self.joint_q = state.puppet.joint_q.grad.numpy().copy()
         self.joint_qd = state.puppet.joint_qd.grad.numpy().copy()
         self.tie_target = state.tie_target.grad.numpy().copy()
+        self.tie_force = state.tie_force.grad.numpy().copy()
 
     def seed(self, state) -> None:
         _add_grad(state.strings.particle_q, self.particle_q)
@@ -160,6 +161,7 @@ class StateAdjoint:
         _add_grad(state.puppet.joint_q, self.joint_q)
         _add_grad(state.puppet.joint_qd, self.joint_qd)
         _add_grad(state.tie_target, self.tie_target)
+        _add_grad(state.tie_force, self.tie_force)
 
 
 def _add_grad(array: wp.array, values) -> None:
@@ -211,7 +213,7 @@ class TapedSegment:
         self._points(state_in.puppet, arrays)
         trial = arrays["trial"]
         predict_puppet_step(m, self.solver._response, trial_view(state_in.puppet, arrays["trial_fields"]),
-                            state_in.strings, state_in.tie_target, trial, arrays["puppet_control"])
+                            state_in.strings, state_in.tie_force, trial, arrays["puppet_control"])
         m.puppet_solver.eval_kinematics(trial)
         m.puppet_solver.eval_points(trial, arrays["point_end"], arrays["point_end_qd"])
         tie_q, tie_qd = arrays["tie_q"], arrays["tie_qd"]

@@ -191,7 +191,7 @@ def test_dropped_onto_the_ground(hanging):
 
     Measured: it comes to rest folded forward (head, knees and feet on the ground, the
     torso's centre 0.164 m up) within 3 s; resting depth 2.5 mm; energy at most -3.9e-2 J
-    from ``E(0)``; limit 0.185 rad (energy bound 2.6 rad). (Before joint limits looked ahead,
+    from ``E(0)``; limit 0.352 rad (energy bound 2.0 rad). (Before joint limits looked ahead,
     ``articulation_codegen._limits``, it ended flat, torso 0.05 m up, the lying puppet
     chattering at the puppet rate's Nyquist frequency, depth alternating 0.4 / 6.2 mm.)
     """
@@ -201,7 +201,7 @@ def test_dropped_onto_the_ground(hanging):
     r = simulate_energy_balance(model, 4.0)
     speed = np.sqrt(2 * G * 0.4)
     _check("drop on ground", model, r, ground=_contact_bound(model, speed), limit=_limit_bound(model, r),
-           limit_measured=0.185)
+           limit_measured=0.352)
     rest = r["time"] > r["time"][-1] - 1.0
     print(f"resting depth {r['ground_depth'][rest].max() * 1e3:.2f} mm")
     assert r["ground_depth"][rest].max() <= model.puppet_mass * G / model.puppet.contacts.stiffness \
@@ -254,16 +254,18 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging):
     """Both bars lowered by 1.2 / 1.1 m at 0.6 m/s (a velocity step) to 10 cm above the ground:
     the puppet lands, the strings go slack and lie on the ground (6 s).
 
-    Bounds: puppet ``v H + M g / k`` with ``v = sqrt(2 g 0.1) + 0.6`` m/s (a free fall from its
-    10 cm clearance on top of the bars' speed); string particles, which are tied to body
-    points whose predicted path (``x + H v``) can run ``v H`` further below, ``2 v H + M g / k``.
-    Measured: bar work 10.2 J (the top segments' friction again), energy at most -1.66e-2 J
-    from ``E(0) + W``, puppet 61.1 mm (bound 70 mm), lowest particle -10.3 mm (bound 136 mm),
-    limit 1.676 rad (energy bound 4.3 rad: the soft limits, 5 N m/rad, let a folded limb of
-    the landed puppet lie far past a limit; 0.409 rad and 28.8 mm with the ``x + H v`` tie
-    path of before). The particles that deep are not lying on the ground: they are the
-    lower end of a straight, *compressed* knee string pushed into the ground by the
-    lowering bar, see ``test_hard_cases_strings.py::test_a_lowered_string_does_not_push_into_the_ground``.
+    Bounds: puppet ``v H + (M g + F) / k`` with ``v = sqrt(2 g 0.1) + 0.6`` m/s (a free fall
+    from its 10 cm clearance on top of the bars' speed) and ``F`` the sum of each tie's
+    largest force over the run: the lowered knee strings, straight and compressed, push the
+    legs down (the paper's spring pushes when compressed; ``[effects] tension_only`` is the
+    remedy, README "Known problems"), and the ground has to hold that push as well as the
+    weight. String particles, tied to body points, ``v H`` further. Measured: bar work 9.6 J
+    (the top segments' friction again), energy at most -1.66e-2 J from ``E(0) + W``, puppet
+    95.0 mm deep (the feet, under the knee strings' push), lowest particle -27.8 mm, limit
+    0.413 rad. (With the ``x + H v`` tie path of before, ``string_body_coupling``: 28.8 mm,
+    -46.1 mm, 0.409 rad.) The particles that deep are not lying on the ground: they are the
+    lower end of a straight, *compressed* knee string pushed into the ground by the lowering
+    bar, see ``test_hard_cases_strings.py::test_a_lowered_string_does_not_push_into_the_ground``.
     """
     main, hand = hanging.bars
     p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
@@ -273,8 +275,10 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging):
     model = _model(hanging, bars=bars)
     r = simulate_energy_balance(model, 6.0)
     v = np.sqrt(2 * G * 0.1) + 0.6
-    bound = _contact_bound(model, v)
-    _check("slack on the ground", model, r, ground=bound, limit=_limit_bound(model, r), limit_measured=1.676,
+    push = float(np.sum(r["tie_force_max"]))  # the most the strings can push with, all at once [N]
+    bound = _contact_bound(model, v) + push / model.puppet.contacts.stiffness
+    print(f"strings' largest push {push:.1f} N: ground bound {bound * 1e3:.1f} mm")
+    _check("slack on the ground", model, r, ground=bound, limit=_limit_bound(model, r), limit_measured=0.413,
            string_ground=bound + v * model.puppet_dt)
 
 

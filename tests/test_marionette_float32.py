@@ -76,13 +76,6 @@ def test_float32_strings_track_float64_within_float32_rounding(pair):
     print(f"\npuppet {1 / model32.puppet_dt:g} Hz: largest body gap {gap.max():.3e} m, "
           f"at most {np.max(gap[1:] / bound[1:]):.3f} x sqrt(N) u X (final bound {bound[-1]:.2e} m)")
     assert gap[0] == 0.0 and gap.max() > 0.0  # the same start; float32 really is float32
-    if model32.substeps > 1 and not np.all(gap <= bound):
-        # KNOWN DEVIATION (open): the coupling's trial step (string_body_coupling) reads the
-        # string's pull from its last segment's stretch, k_s times a float32 length: rounding of
-        # the positions (u X = 6e-8 m) is amplified by k_s = 24,500 N/m into the predicted path.
-        # Measured: at most 5.7 x sqrt(N) u X at 30 Hz (17 um after 6 s); within the bound at 1 kHz.
-        pytest.xfail(f"float32 at {1 / model32.puppet_dt:g} Hz: {np.max(gap[1:] / bound[1:]):.1f} x sqrt(N) u X "
-                     "(the trial step's segment stretch; see the comment)")
     assert np.all(gap <= bound)
 
 

@@ -5,13 +5,13 @@ Between two puppet steps (``H = n h``: ``n`` string steps of ``h``):
 - prediction (``eval_string_response``, in a trial puppet step): the puppet takes a trial
   step of ``H`` from ``t0`` in which each tied string is replaced by its linearisation as
   its tie sees it, ``f = F0 - K (x - x0) - C (v - v0)``, implicit (the trial step's
-  linearised backward Euler). ``F0 = k (x_last - x_t)`` is the pull of the tie's spring now
-  (``x_last`` the string's last particle, ``x_t`` the tie target, where the strings are
-  tied); ``K = k_ax u u^T + (T / L) (I - u u^T)``: along the string (``u`` from the body
-  point to the top particle, ``L`` apart) the tie and the whole string in series,
-  ``k_ax = k k_string / (k + k_string)``, while the string is taut (the §3.2 distance
-  test); across it, the geometric stiffness of a straight string under its tension ``T``
-  (that of its last segment; 0 when slack); ``C`` the whole string's internal friction (paper term 2 acts on
+  linearised backward Euler). ``F0`` is the string's pull: the mean of the tie forces of
+  the previous puppet step (zero before the first); ``K = k_ax u u^T + (T / L) (I - u u^T)``:
+  along the string (``u`` from the body point to the top particle, ``L`` apart) the tie and
+  the whole string in series, ``k_ax = k k_string / (k + k_string)``, ramped in as the
+  string straightens from the §3.2 taut distance to its rest length; across it, the
+  geometric stiffness of a straight string under its tension ``T`` (that of its last
+  segment; 0 when slack); ``C`` the whole string's internal friction (paper term 2 acts on
   every relative velocity, so it is isotropic) in series with the tie, whose spring over
   one step acts like a damper ``k H``. Everything else is the real step's: gravity, joint
   limits, contacts, joint damping. The trial's tied points at ``t0 + H`` are the
@@ -46,15 +46,25 @@ that energy and handed it back (+1.14 J with a shoulder thrown at 20 rad/s into 
 at 30 Hz, when the motion had 0.17 J). The trial step sees the limit (whose activation
 looks ahead, ``articulation_codegen._limits``) and the strings' pull, so the path is where
 the body goes: that case now loses energy like the 1 kHz reference, and the body points
-stay within 2 mm (RMS) of it instead of 74 mm (``tests/test_hard_cases_puppet.py``).
-Each part of the linear model is there because the hard cases diverged without it:
-``F0`` against the tie target, not the body point (``k (x_last - x_b)`` holds the
-prediction error times the stiff ``k``, explicit in the trial), no tie damping in ``F0``
-and the strings' friction implicit (``C H / m`` is 1 to 7 for a 25 g hand at 30 Hz with
-the default and 10x strings: explicit, the hands' swing grew sixfold per step), the
-geometric stiffness across the string (the tie's ``k`` there, or a stiffness from the
-previous step's force without ``K``, stopped the arms' swing dead or diverged). The cost
-is one more puppet step per puppet step (its kernels are the real step's).
+stay within 5.8 mm (RMS) of it instead of 74 mm (``tests/test_hard_cases_puppet.py``); on
+the default sway the torso stays within 1.5 mm of the fully coupled run instead of 21.7 mm
+(``tests/test_marionette.py``), and a puppet as slow as 10 Hz under 1 kHz strings keeps
+within the energy bound (``settings_check``).
+Each part of the linear model is there because a hard case failed without it. ``F0``:
+the tie's momentary pull against the body point, ``k (x_last - x_b)``, holds the last
+prediction error times the stiff ``k``, explicit in the trial (diverged); against the tie
+target, ``k (x_last - x_t)``, it carries the light end particle's transients (after the
+bars' 5 m/s jerks the ties of slack strings were stretched by newtons' worth: +0.77 J);
+the pull of the last segment, ``k_s`` times a float32 length, is rounding noise times
+``k_s`` = 24,500 N/m (float32 strings left float64 by 43x their rounding bound at 30 Hz);
+the mean of the last step's tie forces is none of these. No tie damping, and the
+strings' friction implicit: ``C H / m`` is 1 to 7 for a 25 g hand at 30 Hz with the
+default and 10x strings, and explicit the hands' swing grew sixfold per step. The
+geometric stiffness across the string: the tie's ``k`` there stopped a thrown arm dead.
+The taut ramp and the limits' look-ahead band are continuous so that rounding does not
+switch them differently. The cost is one more puppet step per puppet step (its kernels
+are the real step's), and the previous step's tie forces are part of the carried state
+(``marionette_grad.Checkpoint``).
 
 With ``n = 1`` (the puppet at the string rate) this is a staggered coupling of two
 implicit integrators with the same trial step. The gap the coupling leaves at 30 Hz is
@@ -70,14 +80,17 @@ from .articulation_math import compute_point_inertia, compute_point_wrench, spat
 
 
 @functools.cache
-def eval_string_response_kernel(scalar, internal_friction: bool):
+def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
     """Builds ``eval_string_response`` for strings of float type ``scalar`` (float32 strings are
     widened to float64 as they are read; the puppet side is float64), with the strings'
-    internal friction compiled in or out."""
+    internal friction compiled in or out, for ``n = substeps`` string steps per puppet step
+    (the mean of the previous step's tie forces is unrolled, as in
+    :func:`apply_string_forces_to_anchors_kernel`, so that the reverse pass replays it)."""
     vec3 = wp.types.vector(3, scalar)
     FRICTION = bool(internal_friction)
+    n = int(substeps)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options={"max_unroll": max(n, 16)})
     def eval_string_response(
         # Model:
         spring_body: wp.array(dtype=wp.int32),
@@ -96,16 +109,16 @@ def eval_string_response_kernel(scalar, internal_friction: bool):
         body_w: wp.array2d(dtype=wp.vec3d),
         body_v: wp.array2d(dtype=wp.vec3d),
         particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
-        tie_target: wp.array(dtype=wp.vec3d),
+        tie_force: wp.array2d(dtype=wp.vec3d),
         h: wp.float64,
         # State out:
         body_wrench: wp.array2d(dtype=spatial6),
         body_stiffness: wp.array2d(dtype=spatial66),
     ):
-        """The trial step's load of tied string ``i``: ``f = F0 - K (x - x0)``, implicit (module doc).
+        """The trial step's load of tied string ``i``: ``f = F0 - K (x - x0) - C (v - v0)``, implicit
+        (module doc).
 
-        ``F0 = k (x_last - x0) + k_d (v_last - v0)`` (eq. 2 against the body point now);
+        ``F0``: the mean of the previous puppet step's tie forces (``tie_force``, ``(n, S)``);
         ``K = k_ax u u^T + T / L (I - u u^T)`` with ``u`` from the body point to the string's
         top particle, ``L`` their distance, ``T`` the tension of the string's last segment
         (``k_s`` times its stretch, 0 if slack) and ``k_ax`` the tie and the whole string
@@ -120,15 +133,16 @@ def eval_string_response_kernel(scalar, internal_friction: bool):
         first = string_start[s]
         last = string_start[s + 1] - 1
         k = wp.float64(string_tie_stiffness[s])
-        # The pull of the string's last segment on its end particle (the end particle is light:
-        # within a step the tie passes on what the segment pulls, not its own momentary stretch).
-        bottom = wp.vec3d(particle_q[last - 1]) - wp.vec3d(particle_q[last])
-        segment = wp.length(bottom)
+        # The string's pull: the mean of the tie forces of the previous puppet step. (The
+        # momentary tie force k (x_last - x_t) carries the light end particle's transients:
+        # after the bars' 5 m/s jerks, newtons' worth while the string is slack, +4.8 J. The pull
+        # of the last segment, k_s times a float32 length, is rounding noise times k_s = 24,500
+        # N/m: float32 strings then left float64 by 43 x their rounding bound at 30 Hz.)
         force = wp.vec3d()
-        if segment > wp.float64(0.0):
-            force = (wp.float64(string_stiffness[s]) * (segment - wp.float64(string_rest_length[s])) / segment) * bottom
-        if wp.static(FRICTION):
-            force += wp.float64(string_internal_friction[s]) * (wp.vec3d(particle_qd[last - 1]) - wp.vec3d(particle_qd[last]))
+        for j in range(wp.static(n)):
+            force += tie_force[j, s]
+        force = force / wp.float64(wp.static(float(n)))
+        segment = wp.length(wp.vec3d(particle_q[last - 1]) - wp.vec3d(particle_q[last]))
         along = wp.vec3d(particle_q[first]) - x
         length = wp.length(along)
         zero = wp.float64(0.0)

@@ -91,15 +91,12 @@ def string_terms(scalar, tension_only: bool = False) -> SimpleNamespace:
         definite and the block-tridiagonal solve never meets an indefinite pivot (Choi & Ko,
         SIGGRAPH 2002, clamp it for the same reason).
 
-        **Why it is not the default:** strings alone, and a marionette whose puppet runs at the
-        string rate, pass the hard cases tried with it (``tests/test_hard_cases_strings.py``,
-        ``tests/test_tension_only_marionette.py``). With the puppet at 30 Hz the string-body
-        coupling (``kernels/string_body_coupling``: a trial puppet step sees each string's
-        pull linearised at the start of the puppet step) meets a pull that switches off and on
-        within the step: a puppet on 10x stiffer tension-only strings goes non-finite within
-        4 s (on the default strings still bars settle and a thrown joint stays in the energy
-        bound).
-        ``settings_check`` refuses tension-only strings with a puppet slower than the strings.
+        **Why it is not the default:** it is a change of the paper's model (the printed spring
+        pushes), and it costs 5-22 % per string step. It passes the hard cases tried with it,
+        strings alone and in a marionette, with the puppet at the string rate and at 30 Hz
+        (``tests/test_hard_cases_strings.py``, ``tests/test_tension_only_marionette.py``;
+        at 30 Hz it was refused while the coupling extrapolated the tie path as ``x + H v``,
+        ``settings_check``).
         """
         e = x_a - x_b
         length = wp.length(e)
