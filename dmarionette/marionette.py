@@ -172,7 +172,8 @@ class MarionetteState:
         strings: the string state at the end of the step.
         puppet: the puppet state (one world).
         tie_force: eq. 2 force of each tie on its body point after each string step [N],
-            ``(n, S)`` of vec3d.
+            ``(n, S)`` of vec3d; the next puppet step's trial step reads its mean (zero in
+            the start state).
         string_taut: taut flags after each string step, ``(n, S)``.
         bar_feedback: eq. 4 feedback per bar after each string step [N], ``(n, B)``.
         bar_reaction: exact reaction of the strings on each bar after each string step [N], ``(n, B)``.
@@ -434,7 +435,7 @@ def predict_puppet_step(model: MarionetteModel, response, view: ArticulationStat
             return
         wp.launch(response, dim=(state.world_count, len(m.spring_string)),
                   inputs=[m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp, s.string_start,
-                          s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_tie_damping, s.string_taut_distance,
+                          s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_taut_distance,
                           s.string_internal_friction,
                           state.body_pos, state.body_rot, state.body_w, state.body_v,
                           strings.particle_q, tie_force, h],

@@ -45,10 +45,10 @@ def test_30_minutes_of_swaying_marionette_in_float64():
     the puppet never touches the ground; the joints stay within 0.01 rad of their limits
     from 1 minute on (measured: 0.0005 rad, the ankles resting on theirs).
 
-    Measured: max excess after the start -0.132 J (the bars put in 71.2 J, the dampers take
-    it out), energy spread from 1 minute on 1.3e-11 J over 880 samples; 28 s of wall time
-    for the 30 minutes (64x real time, under load; plus about a minute to compile the -O2
-    puppet kernels on a machine that has not yet).
+    Measured: max excess after the start -0.103 J (the bars put in 46.8 J, the dampers take
+    it out), energy spread from 1 minute on 2.4e-13 J over 880 samples, limit 0.0004 rad;
+    26 s of wall time for the 30 minutes (68x real time; plus about a minute to compile the
+    -O2 puppet kernels on a machine that has not yet).
     """
     scene = dm.load_scene("hanging")
     strings = tuple(dataclasses.replace(s, particle_count=20) for s in scene.strings)

@@ -50,6 +50,7 @@ stay within 5.8 mm (RMS) of it instead of 74 mm (``tests/test_hard_cases_puppet.
 the default sway the torso stays within 1.5 mm of the fully coupled run instead of 21.7 mm
 (``tests/test_marionette.py``), and a puppet as slow as 10 Hz under 1 kHz strings keeps
 within the energy bound (``settings_check``).
+
 Each part of the linear model is there because a hard case failed without it. ``F0``:
 the tie's momentary pull against the body point, ``k (x_last - x_b)``, holds the last
 prediction error times the stiff ``k``, explicit in the trial (diverged); against the tie
@@ -57,7 +58,8 @@ target, ``k (x_last - x_t)``, it carries the light end particle's transients (af
 bars' 5 m/s jerks the ties of slack strings were stretched by newtons' worth: +0.77 J);
 the pull of the last segment, ``k_s`` times a float32 length, is rounding noise times
 ``k_s`` = 24,500 N/m (float32 strings left float64 by 43x their rounding bound at 30 Hz);
-the mean of the last step's tie forces is none of these. No tie damping, and the
+the mean of the last step's tie forces is none of these (it lags the pull by half a
+puppet step, which the implicit ``K`` and ``C`` carry: stable in every hard case). No tie damping, and the
 strings' friction implicit: ``C H / m`` is 1 to 7 for a 25 g hand at 30 Hz with the
 default and 10x strings, and explicit the hands' swing grew sixfold per step. The
 geometric stiffness across the string: the tie's ``k`` there stopped a thrown arm dead.
@@ -100,7 +102,6 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         string_stiffness: wp.array(dtype=scalar),
         string_rest_length: wp.array(dtype=scalar),
         string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
         string_taut_distance: wp.array(dtype=scalar),
         string_internal_friction: wp.array(dtype=scalar),
         # State in:
@@ -122,7 +123,8 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         ``K = k_ax u u^T + T / L (I - u u^T)`` with ``u`` from the body point to the string's
         top particle, ``L`` their distance, ``T`` the tension of the string's last segment
         (``k_s`` times its stretch, 0 if slack) and ``k_ax`` the tie and the whole string
-        (``k_s / segments``) in series while the string is taut; ``C`` the whole string's
+        (``k_s / segments``) in series, ramped in from the taut distance to the rest length;
+        ``C`` the whole string's
         friction in series with ``k h``. The linearised backward-Euler force ``F0 - h K v``
         goes to the wrench, ``h^2 K + h C`` to the system matrix.
         """
