@@ -298,7 +298,7 @@ class ContactSet:
     """Contact candidates of a model and the launchers of the contact kernels it asks for.
 
     Args:
-        model: an :class:`~dmarionette.articulation.ArticulationModel`; its ``contacts``
+        model: an :class:`~dmarionette.articulation.solver.ArticulationModel`; its ``contacts``
             settings say which kernels exist.
     """
 

@@ -1,0 +1,2 @@
+"""The puppet's articulated bodies: model, state, control and the implicit solver; MJCF export.
+"""

@@ -1,0 +1,464 @@
+"""Gradients through whole marionette rollouts (Warp tape, checkpointed; docs/gradients.md).
+
+:class:`MarionetteGradient` runs a rollout of ``P`` puppet steps (``T = P n`` string steps)
+from host inputs (:class:`RolloutInputs`: the bars, per-string constants, the puppet's
+initial state) and returns its outputs (:class:`RolloutOutputs`); :meth:`backward` maps
+cotangents of any of the outputs to gradients with respect to every input.
+
+Checkpointing (memory like ``sqrt(T)``): the forward pass runs segments of
+``checkpoint_steps = C`` puppet steps without a tape (captured as Warp graphs) and keeps
+only the state at each segment's start: string particle positions and velocities, puppet
+``joint_q``/``joint_qd``, the tie targets and the last step's tie forces (the coupling's
+trial step reads their mean), which is everything one step reads from the previous one. The backward pass takes the segments in reverse: it restores the
+checkpoint, re-runs the segment on a ``wp.Tape`` with one fresh array per written quantity
+per step (:mod:`marionette_tape`), seeds the cotangents of the segment's outputs and the
+state adjoint arriving from the next segment, runs ``tape.backward`` and passes the adjoint
+of the segment's start state on. The peak memory is one segment's tape (``C n`` string
+steps) plus the checkpoints (``P / C``) and the host outputs.
+
+What is differentiated, and the mapping to the kernels' constants:
+
+- ``tie_stiffness`` ``k`` and ``tie_damping`` ``k_d`` (eq. 2, per string) act twice: on the
+  string side (``strings.string_tie_stiffness``/``_damping``: the implicit tie of the last
+  particle, and the anchor offset ``F / k`` of the coupling) and on the puppet side
+  (``puppet.spring_stiffness``/``_damping``, one spring per tied string, ``model.spring_string``);
+  their gradient is the sum of both.
+- ``string_stiffness`` is the scene's whole-string stiffness ``k`` [N/m] (``[[strings]]
+  stiffness``); the kernels use the per-segment ``k_s = k (n - 1)`` (``string_model``),
+  so ``dL/dk = (n - 1) dL/dk_s``.
+- ``joint_q0``/``joint_qd0`` start the puppet, ``particle_q0``/``particle_qd0`` the strings
+  (default: the scene's rest state, straight from bar to body point, at rest); the tie
+  targets start at the scene's rest tie points, so a ``joint_q0`` away from the rest pose
+  pulls the ties towards the new pose over the first puppet step.
+
+Not differentiable (discontinuous; keep the loss away from them): the taut flag of a
+string (eq. 4's feedback switches on and off with it), the slack clamp of a segment's
+geometric stiffness, string-ground contact and hard (non-smooth) body contact, and
+joint-limit onsets. The smooth body contact (``[contact] smooth = true``) is smooth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import warp as wp
+
+from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, SolverMarionette, bar_inputs
+from dmarionette.grad.tape import TapedSegment
+from dmarionette.strings.rollout import upload_values
+
+__all__ = ["INPUT_FIELDS", "OPTIONAL_INPUT_FIELDS", "OUTPUT_FIELDS", "MarionetteGradient", "RolloutInputs",
+           "RolloutOutputs"]
+
+
+@dataclasses.dataclass
+class RolloutInputs:
+    """Inputs of a rollout (host float64 arrays; ``T = puppet_steps * substeps`` string steps).
+
+    Attributes:
+        top_q: string top (attach) positions at the end of each string step [m], ``(T, S, 3)``.
+        bar_q: bar centre (eq. 4's device proxy) at the end of each string step [m], ``(T, B, 3)``
+            (``B = max(bars, 1)``; a scene without bars has one unused row).
+        bar_qd: its velocity [m/s], ``(T, B, 3)``.
+        tie_stiffness: eq. 2 ``k`` per string [N/m], ``(S,)`` (the same ``k`` acts on the string
+            and the puppet side); ``> 0`` for tied strings.
+        tie_damping: eq. 2 ``k_d`` per string [N s/m], ``(S,)``, ``>= 0``.
+        string_stiffness: the scene's whole-string (end-to-end) stiffness ``k`` [N/m], ``(S,)``,
+            ``> 0`` (the kernels' per-segment ``k_s = k (n - 1)``).
+        joint_q0: initial puppet coordinates, ``(q_count,)`` (``articulation`` layout).
+        joint_qd0: initial puppet velocities, ``(qd_count,)``.
+        particle_q0: initial string particle positions [m], ``(particles, 3)`` (the strings'
+            particles in ``model.strings`` order); None: the scene's rest state (straight from
+            bar to body point). The top particle of each string follows its bar from the first
+            step on.
+        particle_qd0: initial string particle velocities [m/s], ``(particles, 3)``; None: at rest.
+    """
+
+    top_q: np.ndarray
+    bar_q: np.ndarray
+    bar_qd: np.ndarray
+    tie_stiffness: np.ndarray
+    tie_damping: np.ndarray
+    string_stiffness: np.ndarray
+    joint_q0: np.ndarray
+    joint_qd0: np.ndarray
+    particle_q0: np.ndarray | None = None
+    particle_qd0: np.ndarray | None = None
+
+
+@dataclasses.dataclass
+class RolloutOutputs:
+    """Outputs of a rollout (host float64 arrays; ``P`` puppet steps, ``T`` string steps).
+
+    Attributes:
+        joint_q: puppet coordinates at every puppet step, ``(P + 1, q_count)`` (row 0: initial).
+        point_pos: world positions of the puppet's named points (``model.puppet.point_names``)
+            [m], ``(P + 1, points, 3)``.
+        body_pos: body origins (centres of mass) [m], ``(P + 1, bodies, 3)``.
+        body_rot: body orientations, quaternions ``(x, y, z, w)`` (as in
+            ``MarionetteTrajectory``), ``(P + 1, bodies, 4)``.
+        tie_force: eq. 2 force of each tie on its body point after each string step [N],
+            ``(T, S, 3)``.
+        bar_feedback: eq. 4 feedback per bar after each string step [N], ``(T, B, 3)``.
+        bar_reaction: exact reaction of the strings on each bar [N], ``(T, B, 3)``.
+    """
+
+    joint_q: np.ndarray
+    point_pos: np.ndarray
+    body_pos: np.ndarray
+    body_rot: np.ndarray
+    tie_force: np.ndarray
+    bar_feedback: np.ndarray
+    bar_reaction: np.ndarray
+
+
+INPUT_FIELDS = tuple(f.name for f in dataclasses.fields(RolloutInputs))
+# Inputs that may be left out (None): they then take the scene's rest state (``MarionetteGradient.default_inputs``).
+OPTIONAL_INPUT_FIELDS = tuple(f.name for f in dataclasses.fields(RolloutInputs) if f.default is None)
+OUTPUT_FIELDS = tuple(f.name for f in dataclasses.fields(RolloutOutputs))
+
+
+@dataclasses.dataclass
+class Checkpoint:
+    """Everything a puppet step reads from the previous one (host copies)."""
+
+    particle_q: np.ndarray
+    particle_qd: np.ndarray
+    joint_q: np.ndarray
+    joint_qd: np.ndarray
+    tie_target: np.ndarray
+    tie_force: np.ndarray  # the previous puppet step's, (n, S, 3): the next trial step reads its mean
+
+    @classmethod
+    def of(cls, state) -> Checkpoint:
+        return cls(state.strings.particle_q.numpy().copy(), state.strings.particle_qd.numpy().copy(),
+                   state.puppet.joint_q.numpy().copy(), state.puppet.joint_qd.numpy().copy(),
+                   state.tie_target.numpy().copy(), state.tie_force.numpy().copy())
+
+    def load(self, state) -> None:
+        upload_values(state.strings.particle_q, self.particle_q)
+        upload_values(state.strings.particle_qd, self.particle_qd)
+        upload_values(state.puppet.joint_q, self.joint_q)
+        upload_values(state.puppet.joint_qd, self.joint_qd)
+        upload_values(state.tie_target, self.tie_target)
+        upload_values(state.tie_force, self.tie_force)
+
+
+class _PlainChunk:
+    """``steps`` puppet steps without a tape, captured as one Warp graph (CPU or CUDA).
+
+    Per-step inputs are written into ``controls`` before a replay; per-step outputs are
+    copied into the ``(steps, ...)`` buffers by the graph.
+    """
+
+    def __init__(self, engine: MarionetteGradient, steps: int, capture: bool):
+        m = engine.model
+        self.engine = engine
+        self.steps = steps
+        n, s, b = m.substeps, m.strings.string_count, max(m.bar_count, 1)
+        self.controls = [MarionetteControl(m) for _ in range(steps)]
+        with wp.ScopedDevice(m.device):
+            self.joint_q = wp.zeros((steps, m.puppet.q_count), dtype=wp.float64)
+            self.point_pos = wp.zeros((steps, len(m.puppet.point_names)), dtype=wp.vec3d)
+            self.body_pos = wp.zeros((steps, m.puppet.body_count), dtype=wp.vec3d)
+            self.body_rot = wp.zeros((steps, m.puppet.body_count), dtype=wp.quatd)
+            self.tie_force = wp.zeros((steps, n, s), dtype=wp.vec3d)
+            self.bar_feedback = wp.zeros((steps, n, b), dtype=wp.vec3d)
+            self.bar_reaction = wp.zeros((steps, n, b), dtype=wp.vec3d)
+        self.graph = None
+        if capture:
+            saved = Checkpoint.of(engine.state)
+            self.launch()  # one eager pass loads every module before capture begins
+            saved.load(engine.state)
+            with wp.ScopedCapture(device=m.device) as c:
+                self.launch()
+            self.graph = c.graph
+
+    def launch(self) -> None:
+        e = self.engine
+        solver = e.solver
+        states = (e.state, e.spare)
+        for k, control in enumerate(self.controls):
+            state_in, state_out = states[k % 2], states[(k + 1) % 2]
+            solver.begin_step(state_in, state_out)  # fills state_in's body poses and the tied points
+            wp.copy(self.joint_q[k], state_in.puppet.joint_q[0])
+            wp.copy(self.point_pos[k], solver._point_q[0])
+            wp.copy(self.body_pos[k], state_in.puppet.body_pos[0])
+            wp.copy(self.body_rot[k], state_in.puppet.body_rot[0])
+            for j in range(e.model.substeps):
+                solver.step_string(state_in, state_out, control, j)
+            solver.end_step(state_in, state_out)
+            wp.copy(self.tie_force[k], state_out.tie_force)
+            wp.copy(self.bar_feedback[k], state_out.bar_feedback)
+            wp.copy(self.bar_reaction[k], state_out.bar_reaction)
+        if self.steps % 2 == 1:
+            e.state.assign(e.spare)
+
+    def run(self) -> None:
+        if self.graph is not None:
+            wp.capture_launch(self.graph)
+        else:
+            self.launch()
+
+
+class MarionetteGradient:
+    """Checkpointed rollouts of a marionette and their gradients.
+
+    Args:
+        model: built with ``requires_grad=True``. The engine owns it: :meth:`forward` writes
+            the inputs' constants into its arrays (:meth:`scene_inputs` keeps the scene's).
+        puppet_steps: ``P``, the rollout length in puppet steps (``T = P * model.substeps``).
+        checkpoint_steps: puppet steps per taped segment ``C`` (default ``ceil(sqrt(P))``).
+        capture: run the untaped forward segments, and the taped segments' forward and
+            reverse passes, as captured Warp graphs (no per-launch Python cost: 5-6x faster
+            on the CPU, measured); False launches them one by one (same numbers).
+    """
+
+    def __init__(self, model: MarionetteModel, puppet_steps: int, *, checkpoint_steps: int | None = None,
+                 capture: bool = True):
+        if getattr(model, "precision", "float64") != "float64":
+            raise ValueError(f"{model.scene.source}: [solver] precision = {model.precision!r}: MarionetteGradient "
+                             "needs a float64 marionette (gradients are float64: the puppet, the tape and the "
+                             "strings' adjoints); use precision = \"float64\" for fitting")
+        if not getattr(model, "requires_grad", False):
+            raise ValueError("MarionetteGradient: the model was built without gradients; build it with "
+                             "MarionetteModel(scene, requires_grad=True)")
+        if not (isinstance(puppet_steps, (int, np.integer)) and puppet_steps >= 1):
+            raise ValueError(f"puppet_steps: got {puppet_steps!r}; expected an integer >= 1")
+        if checkpoint_steps is None:
+            checkpoint_steps = math.ceil(math.sqrt(puppet_steps))
+        if not (isinstance(checkpoint_steps, (int, np.integer)) and checkpoint_steps >= 1):
+            raise ValueError(f"checkpoint_steps: got {checkpoint_steps!r}; expected an integer >= 1")
+        self.model = model
+        self.puppet_steps = int(puppet_steps)
+        self.checkpoint_steps = min(int(checkpoint_steps), self.puppet_steps)
+        self.string_steps = self.puppet_steps * model.substeps
+        m = model
+        self.segments = [(a, min(a + self.checkpoint_steps, self.puppet_steps))
+                         for a in range(0, self.puppet_steps, self.checkpoint_steps)]
+        self._keep_only_differentiated_gradients()
+        self.solver = SolverMarionette(m)
+        self.state = m.state()
+        self.spare = m.state()
+        self._rest = Checkpoint.of(self.state)
+        s = m.strings
+        self._segments_per_string = s.string_particle_count.astype(np.float64) - 1.0
+        self._scene_constants = (s.string_tie_stiffness.numpy().copy(), s.string_tie_damping.numpy().copy(),
+                                 s.string_stiffness.numpy() / self._segments_per_string)
+        b = max(m.bar_count, 1)
+        p, t = self.puppet_steps, self.string_steps
+        self.input_shapes = {
+            "top_q": (t, s.string_count, 3), "bar_q": (t, b, 3), "bar_qd": (t, b, 3),
+            "tie_stiffness": (s.string_count,), "tie_damping": (s.string_count,),
+            "string_stiffness": (s.string_count,), "joint_q0": (m.puppet.q_count,),
+            "joint_qd0": (m.puppet.qd_count,), "particle_q0": (s.particle_count, 3),
+            "particle_qd0": (s.particle_count, 3),
+        }
+        self.output_shapes = {
+            "joint_q": (p + 1, m.puppet.q_count), "point_pos": (p + 1, len(m.puppet.point_names), 3),
+            "body_pos": (p + 1, m.puppet.body_count, 3), "body_rot": (p + 1, m.puppet.body_count, 4),
+            "tie_force": (t, s.string_count, 3), "bar_feedback": (t, b, 3), "bar_reaction": (t, b, 3),
+        }
+        self._chunks = {}
+        self._capture = bool(capture)
+        self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), self.checkpoint_steps, capture=capture)
+        self._inputs: RolloutInputs | None = None
+        self._checkpoints: list[Checkpoint] = []
+
+    # ------------------------------------------------------------------ inputs
+    @property
+    def default_inputs(self) -> dict[str, np.ndarray]:
+        """The values the optional inputs (``OPTIONAL_INPUT_FIELDS``) take when None: the
+        strings' rest state (straight from bar to body point, at rest)."""
+        return {"particle_q0": self._rest.particle_q.copy(), "particle_qd0": self._rest.particle_qd.copy()}
+
+    def scene_inputs(self, t0: float = 0.0) -> RolloutInputs:
+        """The scene's own inputs: its bar trajectories from ``t0`` [s], its constants, its rest state."""
+        m = self.model
+        times = float(t0) + m.string_dt * np.arange(1, self.string_steps + 1)
+        top_q, bar_q, bar_qd = bar_inputs(m, times)
+        k, k_d, k_s = (c.copy() for c in self._scene_constants)
+        return RolloutInputs(top_q=top_q, bar_q=bar_q, bar_qd=bar_qd, tie_stiffness=k, tie_damping=k_d,
+                             string_stiffness=k_s, joint_q0=m.q_initial.copy(),
+                             joint_qd0=np.zeros(m.puppet.qd_count), **self.default_inputs)
+
+    def check_inputs(self, inputs: RolloutInputs) -> RolloutInputs:
+        """Validated float64 copies of ``inputs`` (raises ``ValueError`` naming the field)."""
+        if not isinstance(inputs, RolloutInputs):
+            raise TypeError(f"inputs: got {type(inputs).__name__}; expected a RolloutInputs")
+        values = {}
+        defaults = self.default_inputs
+        for name in INPUT_FIELDS:
+            if name in defaults and getattr(inputs, name) is None:
+                values[name] = defaults[name]
+                continue
+            values[name] = _checked(f"RolloutInputs.{name}", getattr(inputs, name), self.input_shapes[name])
+        tied = self.model.string_point >= 0
+        names = self.model.strings.string_names
+        for i, name in enumerate(names):
+            k, k_d, k_s = (float(values[f][i]) for f in ("tie_stiffness", "tie_damping", "string_stiffness"))
+            if tied[i] and not k > 0.0:
+                raise ValueError(f"RolloutInputs.tie_stiffness[{i}] (string {name!r}): got {k}; expected > 0 N/m "
+                                 "for a string tied to a body point (the coupling divides by it)")
+            if not k_d >= 0.0:
+                raise ValueError(f"RolloutInputs.tie_damping[{i}] (string {name!r}): got {k_d}; expected >= 0 N s/m")
+            if not k_s > 0.0:
+                raise ValueError(f"RolloutInputs.string_stiffness[{i}] (string {name!r}): got {k_s}; "
+                                 "expected > 0 N/m")
+        return RolloutInputs(**values)
+
+    def _set_constants(self, inputs: RolloutInputs) -> None:
+        m = self.model
+        s, pup = m.strings, m.puppet
+        upload_values(s.string_tie_stiffness, inputs.tie_stiffness)
+        upload_values(s.string_tie_damping, inputs.tie_damping)
+        upload_values(s.string_stiffness, inputs.string_stiffness * self._segments_per_string)
+        if len(m.spring_string):
+            upload_values(pup.spring_stiffness, inputs.tie_stiffness[m.spring_string])
+            upload_values(pup.spring_damping, inputs.tie_damping[m.spring_string])
+
+    def _start_state(self, inputs: RolloutInputs) -> Checkpoint:
+        r = self._rest
+        return Checkpoint(inputs.particle_q0.copy(), inputs.particle_qd0.copy(), inputs.joint_q0[None].copy(),
+                          inputs.joint_qd0[None].copy(), r.tie_target.copy(), np.zeros_like(r.tie_force))
+
+    # ------------------------------------------------------------------ forward
+    def _chunk(self, steps: int) -> _PlainChunk:
+        if steps not in self._chunks:
+            self._chunks[steps] = _PlainChunk(self, steps, self._capture)
+        return self._chunks[steps]
+
+    def forward(self, inputs: RolloutInputs) -> RolloutOutputs:
+        """Runs the rollout without a tape, keeping the checkpoints; returns all outputs."""
+        inputs = self.check_inputs(inputs)
+        m = self.model
+        self._set_constants(inputs)
+        shapes = self.output_shapes
+        out = {name: np.zeros(shape) for name, shape in shapes.items()}
+        n = m.substeps
+        checkpoints = []
+        start = self._start_state(inputs)
+        start.load(self.state)
+        for a, b in self.segments:
+            checkpoints.append(Checkpoint.of(self.state))
+            chunk = self._chunk(b - a)
+            for k, control in enumerate(chunk.controls):
+                rows = slice((a + k) * n, (a + k + 1) * n)
+                upload_values(control.top_q, inputs.top_q[rows])
+                upload_values(control.bar_q, inputs.bar_q[rows])
+                upload_values(control.bar_qd, inputs.bar_qd[rows])
+            chunk.run()
+            out["joint_q"][a:b] = chunk.joint_q.numpy()
+            out["point_pos"][a:b] = chunk.point_pos.numpy()
+            out["body_pos"][a:b] = chunk.body_pos.numpy()
+            out["body_rot"][a:b] = chunk.body_rot.numpy()
+            for name in ("tie_force", "bar_feedback", "bar_reaction"):
+                out[name][a * n:b * n] = getattr(chunk, name).numpy().reshape(-1, *shapes[name][1:])
+        # The last row: the final state's pose and points.
+        p = self.puppet_steps
+        point_q, _ = m.eval_points(self.state.puppet)  # fills the body poses too
+        out["joint_q"][p] = self.state.puppet.joint_q.numpy()[0]
+        out["point_pos"][p] = point_q
+        out["body_pos"][p] = self.state.puppet.body_pos.numpy()[0]
+        out["body_rot"][p] = self.state.puppet.body_rot.numpy()[0]
+        self._inputs = inputs
+        self._checkpoints = checkpoints
+        self._final = Checkpoint.of(self.state)
+        return RolloutOutputs(**out)
+
+    @property
+    def last_inputs(self) -> RolloutInputs | None:
+        """The inputs of the last :meth:`forward` (what :meth:`backward` differentiates), or None."""
+        return self._inputs
+
+    # ------------------------------------------------------------------ backward
+    def backward(self, cotangents: dict[str, np.ndarray]) -> RolloutInputs:
+        """Gradients of ``L`` with respect to the inputs of the last :meth:`forward`.
+
+        Args:
+            cotangents: ``dL/d output`` for any subset of :class:`RolloutOutputs` field names,
+                each of that output's shape (missing outputs: zero).
+
+        Returns:
+            ``dL/d input`` for every field, with :class:`RolloutInputs` shapes.
+        """
+        if self._inputs is None:
+            raise RuntimeError("MarionetteGradient.backward: call forward(inputs) first")
+        if not isinstance(cotangents, dict):
+            raise TypeError(f"cotangents: got {type(cotangents).__name__}; expected a dict of output name -> array")
+        cot = {}
+        for name, value in cotangents.items():
+            if name not in self.output_shapes:
+                raise ValueError(f"cotangents: unknown output {name!r}; expected some of {list(OUTPUT_FIELDS)}")
+            cot[name] = _checked(f"cotangents[{name!r}]", value, self.output_shapes[name])
+        m = self.model
+        self._set_constants(self._inputs)  # another engine on the same model may have run since
+        params = self._parameter_arrays()
+        for a in params:
+            a.grad.zero_()
+        grads = {name: np.zeros(shape) for name, shape in self.input_shapes.items()}
+        adjoint = None
+        for index in reversed(range(len(self.segments))):
+            a, b = self.segments[index]
+            end = self._checkpoints[index + 1] if index + 1 < len(self.segments) else self._final
+            adjoint = self._taped.backward(self._checkpoints[index], self._inputs, a, b,
+                                           last=b == self.puppet_steps, cotangents=cot, adjoint_end=adjoint,
+                                           grads=grads, expected_end=end)
+        grads["joint_q0"] = adjoint.joint_q[0]
+        grads["joint_qd0"] = adjoint.joint_qd[0]
+        grads["particle_q0"] = adjoint.particle_q
+        grads["particle_qd0"] = adjoint.particle_qd
+        s, pup = m.strings, m.puppet
+        k_grad = s.string_tie_stiffness.grad.numpy().copy()
+        kd_grad = s.string_tie_damping.grad.numpy().copy()
+        if len(m.spring_string):
+            np.add.at(k_grad, m.spring_string, pup.spring_stiffness.grad.numpy())
+            np.add.at(kd_grad, m.spring_string, pup.spring_damping.grad.numpy())
+        grads["tie_stiffness"] = k_grad
+        grads["tie_damping"] = kd_grad
+        grads["string_stiffness"] = s.string_stiffness.grad.numpy() * self._segments_per_string
+        return RolloutInputs(**grads)
+
+    def memory(self) -> dict[str, int]:
+        """Bytes the engine holds for gradients: ``checkpoints`` (host, one per segment),
+        ``tape`` (the planned taped segments' arrays and gradients: one per segment length
+        used), ``outputs`` (the host outputs and input copies of the last forward)."""
+        checkpoints = sum(sum(a.nbytes for a in vars(c).values()) for c in self._checkpoints)
+        host = sum(np.asarray(getattr(self._inputs, k)).nbytes for k in INPUT_FIELDS) if self._inputs else 0
+        host += sum(int(np.prod(s)) * 8 for s in self.output_shapes.values())
+        return {"checkpoints": checkpoints, "tape": self._taped.nbytes, "outputs": host}
+
+    def _keep_only_differentiated_gradients(self) -> None:
+        """Drops the gradients of the model arrays no input maps to (masses, rest lengths,
+        drag, ground and joint constants...): every adjoint kernel would otherwise
+        accumulate into them too, atomically, at every string step (measured: the segment
+        springs' reverse pass cost 6x their forward with them, 2.7x without)."""
+        kept = {id(a) for a in self._parameter_arrays()}
+        for owner in (self.model.strings, self.model.puppet):
+            for value in vars(owner).values():
+                if isinstance(value, wp.array) and value.requires_grad and id(value) not in kept:
+                    value.requires_grad = False
+
+    def _parameter_arrays(self) -> list[wp.array]:
+        s, pup = self.model.strings, self.model.puppet
+        arrays = [s.string_tie_stiffness, s.string_tie_damping, s.string_stiffness]
+        if len(self.model.spring_string):
+            arrays += [pup.spring_stiffness, pup.spring_damping]
+        return arrays
+
+
+def _checked(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` with finite values, else a ``ValueError`` naming it."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: got {type(value).__name__}; expected a float array of shape {shape}") from None
+    if array.shape != tuple(shape):
+        raise ValueError(f"{name}: got shape {array.shape}; expected {tuple(shape)}")
+    if not np.all(np.isfinite(array)):
+        bad = np.argwhere(~np.isfinite(array))[0]
+        raise ValueError(f"{name}: non-finite value {array[tuple(bad)]} at index {tuple(int(i) for i in bad)}; "
+                         "expected finite values")
+    return array.copy()

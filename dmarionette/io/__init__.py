@@ -1,0 +1,2 @@
+"""Files: trajectories, recorded sessions (MCAP) and motion exports (BVH, glTF).
+"""

@@ -1,0 +1,2 @@
+"""Motion export: the puppet's body motion to BVH and glTF.
+"""

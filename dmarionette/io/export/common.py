@@ -1,0 +1,312 @@
+"""What the motion exporters (BVH, glTF) share: the checked body motion, quaternions, the puppet.
+
+The exporters read a :class:`~dmarionette.marionette.rollout.MarionetteTrajectory` (or any
+object with the same ``frame_time``, ``body_pos``, ``body_rot``, ``body_names`` and
+``body_shape`` attributes), or a trajectory file through :func:`read_marionette_trajectory`.
+Quaternions are Warp's ``(x, y, z, w)``, body to world, as in the trajectory (and as in
+glTF); body positions are the centres of mass [m], y up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dmarionette.scene.puppet import PuppetDescription, load_puppet
+from dmarionette.rotations import quat_to_matrix
+
+__all__ = [
+    "JOINT_GAP_TOLERANCE",
+    "BodyMotion",
+    "ExportError",
+    "body_motion",
+    "check_puppet_matches",
+    "continuous_quats",
+    "matrix_to_quat",
+    "quat_to_matrix",
+    "read_marionette_trajectory",
+    "resolve_puppet",
+]
+
+JOINT_GAP_TOLERANCE = 1e-6
+"""Largest distance [m] allowed between a joint's anchor on the parent and on the child.
+
+The puppet is simulated in reduced coordinates, so the two anchor points of a joint
+coincide to rounding (measured ~1e-16 m); a larger gap means that the trajectory was not
+made with the puppet description given to the exporter."""
+
+
+class ExportError(ValueError):
+    """A trajectory (or trajectory file) that cannot be exported as it is.
+
+    The message names the file or object, the field, the value received and what was expected.
+    """
+
+
+@dataclasses.dataclass(frozen=True)
+class BodyMotion:
+    """The checked body motion of a trajectory, float64.
+
+    Attributes:
+        frame_time: [s], strictly increasing, shape ``(F,)``.
+        body_pos: centres of mass, world [m], shape ``(F, B, 3)``.
+        body_rot: unit quaternions ``(x, y, z, w)`` body to world, shape ``(F, B, 4)``.
+        body_names: ``B`` names.
+        body_shape: per body ``(shape, (sx, sy, sz))``: ``"box"`` with full extents [m] or
+            ``"sphere"`` with ``(radius, 0, 0)``.
+    """
+
+    frame_time: np.ndarray
+    body_pos: np.ndarray
+    body_rot: np.ndarray
+    body_names: list[str]
+    body_shape: list[tuple[str, tuple[float, float, float]]]
+
+    @property
+    def frame_count(self) -> int:
+        return len(self.frame_time)
+
+
+def _field(trajectory: Any, name: str, where: str) -> Any:
+    if isinstance(trajectory, dict):
+        value = trajectory.get(name)
+    else:
+        value = getattr(trajectory, name, None)
+    if value is None:
+        raise ExportError(f"{where}: field '{name}': got nothing (missing); expected a marionette trajectory "
+                          "(dmarionette.MarionetteTrajectory or a trajectory file of a scene with a puppet)")
+    return value
+
+
+def _array(trajectory: Any, name: str, where: str, shape: tuple) -> np.ndarray:
+    value = _field(trajectory, name, where)
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ExportError(f"{where}: field '{name}': got {type(value).__name__}; expected numbers") from None
+    wanted = "(" + ", ".join(str(s) if s is not None else "?" for s in shape) + ")"
+    if array.ndim != len(shape) or any(s is not None and a != s for a, s in zip(array.shape, shape)):
+        raise ExportError(f"{where}: field '{name}': got shape {array.shape}; expected {wanted}")
+    if not np.all(np.isfinite(array)):
+        bad = np.argwhere(~np.isfinite(array))[0]
+        raise ExportError(f"{where}: field '{name}': got a non-finite value at index {tuple(int(i) for i in bad)}; "
+                          "expected finite numbers (the simulation blew up?)")
+    return array
+
+
+def body_motion(trajectory: Any, where: str = "trajectory") -> BodyMotion:
+    """Checks and returns the body motion of ``trajectory``.
+
+    Args:
+        trajectory: a :class:`~dmarionette.marionette.rollout.MarionetteTrajectory`, or an
+            object or dict with the same fields.
+        where: names the trajectory in error messages (a file path).
+
+    Raises:
+        ExportError: a missing field, wrong shapes, non-finite values, times not strictly
+            increasing, a quaternion far from unit length, an unknown body shape.
+    """
+    time = _array(trajectory, "frame_time", where, (None,))
+    frames = len(time)
+    if frames < 1:
+        raise ExportError(f"{where}: field 'frame_time': got 0 frames; expected at least one")
+    if frames > 1 and not np.all(np.diff(time) > 0.0):
+        f = int(np.argmin(np.diff(time)))
+        raise ExportError(f"{where}: field 'frame_time': got {time[f]} then {time[f + 1]} at frames {f}, {f + 1}; "
+                          "expected strictly increasing times [s]")
+    names = [str(n) for n in _field(trajectory, "body_names", where)]
+    bodies = len(names)
+    pos = _array(trajectory, "body_pos", where, (frames, bodies, 3))
+    rot = _array(trajectory, "body_rot", where, (frames, bodies, 4))
+    norm = np.linalg.norm(rot, axis=-1)
+    if np.any(np.abs(norm - 1.0) > 1e-3):
+        f, b = (int(i) for i in np.argwhere(np.abs(norm - 1.0) > 1e-3)[0])
+        raise ExportError(f"{where}: field 'body_rot': got a quaternion of length {norm[f, b]:.6g} at frame {f}, "
+                          f"body '{names[b]}'; expected unit quaternions (x, y, z, w)")
+    rot = rot / norm[..., None]
+    shapes = []
+    raw_shapes = list(_field(trajectory, "body_shape", where))
+    if len(raw_shapes) != bodies:
+        raise ExportError(f"{where}: field 'body_shape': got {len(raw_shapes)} entries; expected one per body "
+                          f"({bodies}: {names})")
+    for b, entry in enumerate(raw_shapes):
+        try:
+            shape, size = entry
+            size = tuple(float(s) for s in size)
+        except (TypeError, ValueError):
+            raise ExportError(f"{where}: field 'body_shape' of body '{names[b]}': got {entry!r}; expected "
+                              "[shape, [sx, sy, sz]]") from None
+        ok = len(size) == 3 and (
+            (shape == "box" and all(s > 0.0 for s in size)) or (shape == "sphere" and size[0] > 0.0))
+        if not ok:
+            raise ExportError(f"{where}: field 'body_shape' of body '{names[b]}': got {entry!r}; expected "
+                              "['box', [sx, sy, sz]] with extents > 0 [m] or ['sphere', [radius > 0, 0, 0]]")
+        shapes.append((str(shape), size))
+    return BodyMotion(time, pos, rot, names, shapes)
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(x, y, z, w)`` of rotation matrices, ``(..., 3, 3) -> (..., 4)``, w >= 0.
+
+    Shepperd's method: each quaternion is computed from its largest component, so the
+    result is accurate to rounding for every rotation, including those near 180 degrees.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    flat = r.reshape(-1, 3, 3)
+    out = np.empty((len(flat), 4))
+    trace = flat[:, 0, 0] + flat[:, 1, 1] + flat[:, 2, 2]
+    diag = np.stack([flat[:, 0, 0], flat[:, 1, 1], flat[:, 2, 2], trace], axis=1)
+    pick = np.argmax(diag, axis=1)
+    for k in range(4):
+        m = flat[pick == k]
+        if not len(m):
+            continue
+        if k == 3:
+            s = 2.0 * np.sqrt(1.0 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2])
+            q = np.stack([(m[:, 2, 1] - m[:, 1, 2]) / s, (m[:, 0, 2] - m[:, 2, 0]) / s,
+                          (m[:, 1, 0] - m[:, 0, 1]) / s, 0.25 * s], axis=1)
+        else:
+            i, j, l = k, (k + 1) % 3, (k + 2) % 3
+            s = 2.0 * np.sqrt(1.0 + m[:, i, i] - m[:, j, j] - m[:, l, l])
+            q = np.empty((len(m), 4))
+            q[:, i] = 0.25 * s
+            q[:, j] = (m[:, j, i] + m[:, i, j]) / s
+            q[:, l] = (m[:, l, i] + m[:, i, l]) / s
+            q[:, 3] = (m[:, l, j] - m[:, j, l]) / s
+        out[pick == k] = q
+    out *= np.where(out[:, 3:4] < 0.0, -1.0, 1.0)
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    return out.reshape(r.shape[:-2] + (4,))
+
+
+def continuous_quats(q: np.ndarray) -> np.ndarray:
+    """Flips signs along axis 0 so that consecutive quaternions have a non-negative dot product.
+
+    ``q`` and ``-q`` are the same rotation; interpolating between neighbours of one sign
+    takes the short way round. Shape ``(F, ..., 4)``.
+    """
+    q = np.array(q, dtype=np.float64, copy=True)
+    for f in range(1, len(q)):
+        dot = np.sum(q[f] * q[f - 1], axis=-1, keepdims=True)
+        q[f] *= np.where(dot < 0.0, -1.0, 1.0)
+    return q
+
+
+def resolve_puppet(trajectory: Any, puppet: PuppetDescription | None) -> PuppetDescription:
+    """The puppet whose joint tree a trajectory was simulated with.
+
+    The explicit ``puppet`` if given, else the trajectory's ``puppet`` attribute (set by
+    :func:`read_marionette_trajectory` from the scene the file names), else the default
+    marionette (``dmarionette/scene/builtin/puppet.toml``). :func:`check_puppet_matches` then
+    verifies it against the motion.
+    """
+    if puppet is not None:
+        return puppet
+    own = trajectory.get("puppet") if isinstance(trajectory, dict) else getattr(trajectory, "puppet", None)
+    return own if own is not None else load_puppet()
+
+
+def check_puppet_matches(motion: BodyMotion, puppet: PuppetDescription, where: str) -> None:
+    """Refuses a puppet description that does not describe the simulated bodies.
+
+    The puppet's bodies must be the first bodies of the trajectory, in the same order
+    (a free ball may follow), and every joint's two anchors (``anchor_parent`` on the
+    parent, ``anchor_child`` on the child) must coincide in the world at every frame
+    within :data:`JOINT_GAP_TOLERANCE`.
+
+    Raises:
+        ExportError: naming the first mismatch.
+    """
+    names = [b.name for b in puppet.bodies]
+    if motion.body_names[: len(names)] != names:
+        raise ExportError(f"{where}: field 'body_names': got {motion.body_names}; expected the bodies of puppet "
+                          f"'{puppet.name}' first, in its order: {names} (pass the scene's puppet)")
+    rot = quat_to_matrix(motion.body_rot)
+    parents = puppet.parent_index()
+    for b, joint in enumerate(puppet.joints, start=1):
+        p = parents[b]
+        on_parent = motion.body_pos[:, p] + rot[:, p] @ np.asarray(joint.anchor_parent)
+        on_child = motion.body_pos[:, b] + rot[:, b] @ np.asarray(joint.anchor_child)
+        gap = np.linalg.norm(on_parent - on_child, axis=-1)
+        if gap.max() > JOINT_GAP_TOLERANCE:
+            f = int(np.argmax(gap))
+            raise ExportError(f"{where}: joint '{joint.name}' of puppet '{puppet.name}': its anchors are "
+                              f"{gap[f]:.3g} m apart at frame {f}; expected them to coincide (<= "
+                              f"{JOINT_GAP_TOLERANCE:g} m): the trajectory was simulated with another puppet "
+                              "(pass the scene's puppet)")
+
+
+def read_marionette_trajectory(path: str | Path):
+    """Reads a marionette trajectory file (``dmarionette simulate``, docs/trajectory.md).
+
+    Returns a :class:`~dmarionette.marionette.rollout.MarionetteTrajectory` with one extra
+    attribute, ``puppet``: the puppet of the scene named by the file's ``scene_source``
+    when that scene file still exists, else ``None`` (the exporters then use the default
+    marionette and check that it fits). ``wall_seconds`` is not stored in the file: NaN.
+
+    Raises:
+        ExportError: the file is missing, not a NumPy archive, not a dmarionette
+            trajectory, a strings-only trajectory, or lacks a field.
+    """
+    from dmarionette.marionette.rollout import MarionetteTrajectory
+
+    path = Path(path)
+    if not path.is_file():
+        raise ExportError(f"{path}: no such file; expected a trajectory file (trajectory.npz from "
+                          "'dmarionette simulate')")
+    if not zipfile.is_zipfile(path):
+        raise ExportError(f"{path}: not a NumPy .npz archive (not a zip file: {path.stat().st_size} bytes that do "
+                          "not start like one); expected a trajectory file from 'dmarionette simulate'")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        raise ExportError(f"{path}: cannot be read as a NumPy .npz archive ({type(error).__name__}: {error}); "
+                          "expected a trajectory file from 'dmarionette simulate'") from None
+    if "metadata" not in arrays:
+        raise ExportError(f"{path}: field 'metadata': got nothing (missing; fields are {sorted(arrays)}); "
+                          "expected a dmarionette trajectory file")
+    try:
+        metadata = json.loads(str(arrays["metadata"]))
+    except json.JSONDecodeError as error:
+        raise ExportError(f"{path}: field 'metadata': not valid JSON ({error})") from None
+    if not isinstance(metadata, dict) or metadata.get("format") != "dmarionette-trajectory":
+        got = metadata.get("format") if isinstance(metadata, dict) else metadata
+        raise ExportError(f"{path}: field 'metadata.format': got {got!r}; expected 'dmarionette-trajectory'")
+    if metadata.get("kind") != "marionette":
+        raise ExportError(f"{path}: field 'metadata.kind': got {metadata.get('kind')!r}; expected 'marionette' "
+                          "(this trajectory has strings only, no puppet motion to export)")
+    fields = [f.name for f in dataclasses.fields(MarionetteTrajectory)]
+    stored = [n for n in fields if n not in ("body_shape", "string_dt", "puppet_dt", "frame_steps", "wall_seconds")]
+    missing = sorted(n for n in stored if n not in arrays)
+    if missing:
+        raise ExportError(f"{path}: fields {missing}: got nothing (missing); expected every field of "
+                          "docs/trajectory.md for a marionette")
+    values = {n: arrays[n] for n in stored}
+    for key in ("string_names", "body_names", "bar_names"):
+        values[key] = [str(s) for s in values[key]]
+    for key in ("body_shape", "string_dt", "puppet_dt", "frame_steps"):
+        if key not in metadata:
+            raise ExportError(f"{path}: field 'metadata.{key}': got nothing (missing); expected it for a marionette")
+    values["body_shape"] = [(str(s), tuple(float(v) for v in size)) for s, size in metadata["body_shape"]]
+    trajectory = MarionetteTrajectory(string_dt=float(metadata["string_dt"]), puppet_dt=float(metadata["puppet_dt"]),
+                                      frame_steps=int(metadata["frame_steps"]), wall_seconds=float("nan"), **values)
+    trajectory.puppet = _scene_puppet(metadata.get("scene_source"))
+    return trajectory
+
+
+def _scene_puppet(source: Any) -> PuppetDescription | None:
+    if not isinstance(source, str) or not Path(source).is_file():
+        return None
+    from dmarionette.scene.scene import load_scene
+    from dmarionette.scene.fields import SceneError
+
+    try:
+        return load_scene(source).puppet
+    except SceneError:
+        return None

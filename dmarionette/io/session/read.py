@@ -1,0 +1,338 @@
+"""Reading a session file (docs/session.md), whole or cut off by a crash.
+
+A file still being written, or left by a crash, has no summary and no footer, and its last
+record may be cut in the middle; ``mcap.reader.make_reader(f).iter_messages()`` refuses it
+(it looks for the footer first). This reader walks the records from the start with the
+``mcap`` package's own record parser (:class:`mcap.stream_reader.StreamReader`), stopping
+at the last complete record, so it reads everything that reached the disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import struct
+from collections import defaultdict
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+from dmarionette.scene.bars import BarTrajectory
+from dmarionette.scene.scene import Scene, scene_from_table
+from dmarionette.io.session.write import FORMAT, FORMAT_VERSION
+
+__all__ = ["Session", "format_session_info", "read_session", "session_bar_trajectories", "session_info"]
+
+_MAGIC = b"\x89MCAP0\r\n"
+_INT_FIELDS = {"buttons", "taut"}
+
+
+@dataclasses.dataclass
+class _Records:
+    """The raw records of a session file, up to its end or its last complete record."""
+
+    header: Header | None
+    metadata: dict[str, dict[str, str]]
+    channels: dict[int, Channel]
+    schemas: dict[int, Schema]
+    messages: dict[int, list[Message]]
+    truncated: bool
+    size: int
+    error: str | None = None
+
+
+def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
+    """Reads the data section of ``path`` record by record; tolerant of a cut-off end."""
+    if not path.is_file():
+        raise ValueError(f"{path}: no such session file")
+    data = path.read_bytes()
+    if not data.startswith(_MAGIC):
+        raise ValueError(f"{path}: not an MCAP file (it does not start with the MCAP magic bytes "
+                         f"{_MAGIC!r}; got {data[:8]!r}); a session is the .mcap file written by --record")
+    # Walk the record lengths: the data section ends at DataEnd (or the footer, or the cut).
+    offset, end, truncated = len(_MAGIC), len(data), True
+    while offset + 9 <= len(data):
+        opcode = data[offset]
+        (length,) = struct.unpack_from("<Q", data, offset + 1)
+        if offset + 9 + length > len(data):
+            break  # the last record was cut off
+        if opcode in (Opcode.DATA_END, Opcode.FOOTER):
+            truncated = not data.endswith(_MAGIC) or len(data) < offset + 9 + length + len(_MAGIC)
+            break
+        offset += 9 + length
+    end = offset
+    wanted = None if topics is None else set(topics)
+    records = _Records(header=None, metadata={}, channels={}, schemas={}, messages=defaultdict(list),
+                       truncated=truncated, size=len(data))
+    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end]), skip_magic=True).records)
+    while True:
+        try:
+            record = next(reader)
+        except (StopIteration, EndOfFile):
+            break
+        except McapError as error:  # a damaged record: keep what came before it
+            records.truncated = True
+            records.error = str(error)
+            break
+        if isinstance(record, Message):
+            channel = records.channels.get(record.channel_id)
+            if channel is not None and (wanted is None or channel.topic in wanted):
+                records.messages[record.channel_id].append(record)
+        elif isinstance(record, Channel):
+            records.channels[record.id] = record
+        elif isinstance(record, Schema):
+            records.schemas[record.id] = record
+        elif isinstance(record, Metadata):
+            records.metadata[record.name] = dict(record.metadata)
+        elif isinstance(record, Header):
+            records.header = record
+    return records
+
+
+def _session_metadata(path: Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
+    """The decoded ``"dmarionette"`` record and the ``"scene"`` record; clear errors if absent."""
+    topics = sorted({c.topic for c in records.channels.values()})
+    if "dmarionette" not in records.metadata and records.truncated and not records.channels:
+        raise ValueError(f"{path}: an MCAP file cut off after {records.size} bytes, before its metadata records "
+                         "(a recording that crashed at once): nothing to read")
+    if "dmarionette" not in records.metadata:
+        raise ValueError(f"{path}: an MCAP file, but not a dmarionette session: it has no 'dmarionette' "
+                         f"metadata record (metadata found: {sorted(records.metadata)}; topics: {topics})")
+    raw = records.metadata["dmarionette"]
+    try:
+        meta = {k: json.loads(v) for k, v in raw.items()}
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: the 'dmarionette' metadata record is not JSON ({error})") from None
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{path}: the 'dmarionette' metadata record names format {meta.get('format')!r}; "
+                         f"expected {FORMAT!r}")
+    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
+        raise ValueError(f"{path}: session format version {meta.get('format_version')}; this dmarionette reads "
+                         f"up to version {FORMAT_VERSION} (upgrade dmarionette)")
+    missing = [k for k in ("string_hz", "puppet_hz", "bars", "strings", "bodies", "constants") if k not in meta]
+    if missing:
+        raise ValueError(f"{path}: the 'dmarionette' metadata record lacks {missing}")
+    scene = records.metadata.get("scene")
+    if scene is None or "toml" not in scene:
+        raise ValueError(f"{path}: a dmarionette session without its 'scene' metadata record (or without its "
+                         f"'toml' key): the scene cannot be rebuilt")
+    return meta, scene
+
+
+def _stack(values: list) -> np.ndarray:
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):  # ragged (should not happen): keep the lists
+        return np.asarray(values, dtype=object)
+
+
+def _decode_topic(messages: list[Message]) -> dict[str, np.ndarray]:
+    decoded = [json.loads(m.data) for m in messages]
+    fields: dict[str, np.ndarray] = {"log_time": np.array([m.log_time for m in messages], dtype=np.int64)}
+    keys = dict.fromkeys(k for d in decoded for k in d)  # optional fields too (missing: NaN)
+    for key in keys:
+        array = _stack([d.get(key) for d in decoded])
+        if key in _INT_FIELDS and array.dtype != object:
+            array = array.astype(np.int64)
+        fields[key] = array
+    return fields
+
+
+@dataclasses.dataclass
+class Session:
+    """A session read back.
+
+    Attributes:
+        path: the file.
+        metadata: the ``"dmarionette"`` record, decoded (``string_hz``, ``puppet_hz``, ``bars``,
+            ``strings``, ``bodies``, ``constants``, ... see docs/session.md).
+        scene_record: the ``"scene"`` record (``name``, ``source``, ``toml``, ``table_json``).
+        extra_metadata: any other metadata record, by name (values JSON-decoded when they are JSON).
+        scene: the scene rebuilt from the embedded TOML (its source is ``"<path>#scene"``), or
+            ``None`` when not asked for.
+        channels: topic -> field -> array: ``log_time`` [ns] ``(N,)``, ``t`` [s] ``(N,)`` and each
+            message field stacked (``position`` ``(N, 3)``, ``body_pos`` ``(N, bodies, 3)``, ...).
+        truncated: the file has no footer (cut off by a crash, or still being written).
+    """
+
+    path: Path
+    metadata: dict[str, Any]
+    scene_record: dict[str, str]
+    extra_metadata: dict[str, dict[str, Any]]
+    scene: Scene | None
+    channels: dict[str, dict[str, np.ndarray]]
+    truncated: bool
+
+    @property
+    def bars(self) -> list[str]:
+        return list(self.metadata["bars"])
+
+    @property
+    def strings(self) -> list[str]:
+        return list(self.metadata["strings"])
+
+    @property
+    def bodies(self) -> list[str]:
+        return list(self.metadata["bodies"])
+
+    @property
+    def string_hz(self) -> float:
+        return float(self.metadata["string_hz"])
+
+    @property
+    def puppet_hz(self) -> float:
+        return float(self.metadata["puppet_hz"])
+
+    def require(self, topics: Iterable[str], purpose: str) -> None:
+        """Raises ``ValueError`` naming the file and every topic of ``topics`` it lacks (or has empty)."""
+        missing = [t for t in topics if len(self.channels.get(t, {}).get("t", ())) == 0]
+        if missing:
+            raise ValueError(f"{self.path}: {purpose} needs the channels {missing}, which this session "
+                             f"does not have (it has {sorted(self.channels)})")
+
+    def topic(self, topic: str) -> dict[str, np.ndarray]:
+        """The arrays of one topic; ``ValueError`` naming the file when it is absent."""
+        self.require([topic], f"reading {topic}")
+        return self.channels[topic]
+
+
+def read_session(path: str | Path, *, topics: Iterable[str] | None = None, load_scene: bool = True) -> Session:
+    """Reads a session file, complete or cut off (everything up to the last complete record).
+
+    Args:
+        path: the ``.mcap`` file.
+        topics: decode only these topics (all when ``None``).
+        load_scene: rebuild the :class:`Scene` from the embedded TOML.
+
+    Raises:
+        ValueError: not an MCAP file, not a dmarionette session, metadata missing.
+        SceneError: the embedded scene does not load.
+    """
+    path = Path(path)
+    records = _read_records(path, topics)
+    meta, scene_record = _session_metadata(path, records)
+    extra = {}
+    for name, values in records.metadata.items():
+        if name not in ("dmarionette", "scene"):
+            extra[name] = {k: _json_or_text(v) for k, v in values.items()}
+    channels = {}
+    for channel_id, messages in records.messages.items():
+        channels[records.channels[channel_id].topic] = _decode_topic(messages)
+    scene = _load_scene(path, scene_record) if load_scene else None
+    return Session(path=path, metadata=meta, scene_record=scene_record, extra_metadata=extra, scene=scene,
+                   channels=channels, truncated=records.truncated)
+
+
+def _json_or_text(value: str) -> Any:
+    try:
+        return json.loads(value)
+    except json.JSONDecodeError:
+        return value
+
+
+def _load_scene(path: Path, scene_record: dict[str, str]) -> Scene:
+    """The scene from the self-contained table (``table_json``) or, failing that, the TOML text."""
+    import tomllib
+
+    source = f"{path}#scene"
+    if "table_json" in scene_record:
+        table = json.loads(scene_record["table_json"])
+    else:
+        table = tomllib.loads(scene_record["toml"])
+    return scene_from_table(table, source)
+
+
+def session_info(path: str | Path) -> dict[str, Any]:
+    """A summary of a session file, without decoding its messages.
+
+    Returns:
+        A JSON-ready dict: ``path``, ``bytes``, ``truncated`` (cut off: no footer),
+        ``recorder``, ``created``, ``version``, ``scene``, ``scene_source``, ``string_hz``,
+        ``puppet_hz``, ``bars``, ``strings``, ``bodies``, ``start`` and ``end`` [s],
+        ``duration`` [s], ``messages``, ``topics`` (topic -> ``count``, ``rate_hz`` (mean),
+        ``start``, ``end`` [s]), ``device_channels`` (whether device samples/forces were
+        recorded) and ``notes`` (lines worth showing).
+    """
+    path = Path(path)
+    records = _read_records(path)
+    meta, scene_record = _session_metadata(path, records)
+    topics = {}
+    for channel_id, channel in sorted(records.channels.items()):
+        times = np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.int64) * 1e-9
+        count = len(times)
+        span = float(times.max() - times.min()) if count else 0.0
+        topics[channel.topic] = {"count": count, "rate_hz": (count - 1) / span if count > 1 and span > 0 else 0.0,
+                                 "start": float(times.min()) if count else None,
+                                 "end": float(times.max()) if count else None}
+    starts = [v["start"] for v in topics.values() if v["start"] is not None]
+    ends = [v["end"] for v in topics.values() if v["end"] is not None]
+    device = any(t.startswith("/device/") and v["count"] for t, v in topics.items())
+    notes = []
+    if records.truncated:
+        notes.append("cut off: no footer (the recording crashed or is still being written); "
+                     "everything up to the last complete record is read")
+    if not device:
+        notes.append("no device channels (/device/*): "
+                     + ("a simulated session" if meta.get("recorder") == "simulation" else "no device was recorded"))
+    missing_bars = [b for b in meta["bars"] if not topics.get(f"/bar/{b}/pose", {}).get("count")]
+    if missing_bars:
+        notes.append(f"no bar poses for {missing_bars}: replay is not possible")
+    return {
+        "path": str(path), "bytes": records.size, "truncated": records.truncated,
+        "recorder": meta.get("recorder"), "created": meta.get("created"), "version": meta.get("version"),
+        "scene": scene_record.get("name"), "scene_source": scene_record.get("source"),
+        "string_hz": meta["string_hz"], "puppet_hz": meta["puppet_hz"],
+        "bars": meta["bars"], "strings": meta["strings"], "bodies": meta["bodies"],
+        "start": min(starts) if starts else None, "end": max(ends) if ends else None,
+        "duration": (max(ends) - min(starts)) if starts else 0.0,
+        "messages": sum(v["count"] for v in topics.values()),
+        "topics": topics, "device_channels": device, "notes": notes,
+    }
+
+
+def format_session_info(info: dict[str, Any]) -> str:
+    """:func:`session_info`'s summary as lines of text (what ``dmarionette info FILE`` prints)."""
+    duration = info["duration"] or 0.0
+    lines = [f"{info['path']}: dmarionette session, {info['bytes'] / 1e6:.2f} MB"
+             + (" (CUT OFF: no footer)" if info["truncated"] else ""),
+             f"  scene {info['scene']!r} ({info['scene_source']}), recorded by {info['recorder']} "
+             f"on {info['created']} with dmarionette {info['version']}",
+             f"  {duration:.3f} s simulated, {info['messages']} messages; strings at {info['string_hz']:g} Hz, "
+             f"puppet at {info['puppet_hz']:g} Hz",
+             f"  bars {info['bars']}, {len(info['strings'])} strings, {len(info['bodies'])} bodies",
+             "  topics:"]
+    width = max((len(t) for t in info["topics"]), default=0)
+    for topic, v in info["topics"].items():
+        span = f"{v['start']:.3f}-{v['end']:.3f} s" if v["count"] else "-"
+        lines.append(f"    {topic:<{width}}  {v['count']:>8} msgs  {v['rate_hz']:>9.2f} Hz  {span}")
+    lines += [f"  note: {note}" for note in info["notes"]]
+    return "\n".join(lines)
+
+
+def session_bar_trajectories(session: Session) -> dict[str, BarTrajectory]:
+    """The recorded bar poses (``/bar/BAR/pose``) as the trajectories the simulator takes.
+
+    Each is the C1 spline through the timed poses (exact at the recorded times); samples
+    whose time does not increase, or with a non-finite value, are dropped. Bars without a
+    pose channel are left out.
+    """
+    trajectories = {}
+    for bar in session.bars:
+        channel = session.channels.get(f"/bar/{bar}/pose")
+        if channel is None or len(channel.get("t", ())) == 0:
+            continue
+        t, position, rotation = channel["t"], channel["position"], channel["rotation"]
+        finite = np.isfinite(t) & np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(rotation), axis=1)
+        t, position, rotation = t[finite], position[finite], rotation[finite]
+        keep = np.concatenate([[True], t[1:] > np.maximum.accumulate(t)[:-1]]) if len(t) else np.zeros(0, bool)
+        if not keep.any():
+            continue
+        trajectories[bar] = BarTrajectory(t[keep], position[keep], rotation[keep])
+    return trajectories

@@ -1,0 +1,199 @@
+"""Sessions and the simulator: record a simulated run, replay a recorded session.
+
+:func:`record_simulation` writes what a live session would hold, from a simulated run (no
+device channels): it is the reference example of the format. :func:`replay_session`
+rebuilds the scene from a session's metadata, drives its bars with the recorded bar
+poses, re-simulates and says how far the re-simulated bodies are from the recorded ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.rollout import MarionetteTrajectory, simulate_marionette
+from dmarionette.scene.scene import Scene
+from dmarionette.io.session.read import Session, read_session, session_bar_trajectories
+from dmarionette.io.session.write import SessionWriter
+
+__all__ = ["record_simulation", "replay_session", "scene_for_replay"]
+
+
+def _bar_angles(bar, times: np.ndarray) -> np.ndarray:
+    """The bar's XYZ Euler angles [deg] at ``times``, from its spline (as its pose uses them)."""
+    return bar.trajectory.angles(times)
+
+
+def record_simulation(model: MarionetteModel, duration: float, path: str | Path, *,
+                      scene_text: str | None = None, flush_seconds: float = 1.0,
+                      progress: bool = False) -> tuple[MarionetteTrajectory, Path]:
+    """Simulates ``duration`` seconds of ``model`` and writes the session a live run would.
+
+    Written: bar poses at t = 0 and after every string step (from the scene's bar
+    trajectories), feedback and taut flags after every string step, and the puppet state
+    at t = 0 and after every puppet step. No device channels (there is no device).
+
+    Args:
+        model: the marionette (its scene says the rates and the bars' motion).
+        duration: simulated seconds (rounded up to whole puppet steps).
+        path: the ``.mcap`` file to write.
+        scene_text: the scene's TOML text; by default read from ``model.scene.source``.
+        flush_seconds: see :class:`SessionWriter`.
+        progress: show a progress bar while simulating.
+
+    Returns:
+        The simulated trajectory and the path written.
+    """
+    scene = model.scene
+    if scene_text is None:
+        source = Path(scene.source)
+        if not source.is_file():
+            raise ValueError(f"record_simulation: the scene's source {scene.source!r} is not a file; "
+                             "pass scene_text= (the scene's TOML text)")
+        scene_text = source.read_text()
+    trajectory = simulate_marionette(model, duration, progress=progress, frame_hz=1.0 / model.puppet_dt)
+    times = np.concatenate([[0.0], trajectory.step_time])
+    poses = [(bar.name, bar.trajectory.pose(times)[0], _bar_angles(bar, times)) for bar in scene.bars]
+    steps = trajectory.frame_steps  # string steps per recorded puppet state (one puppet step)
+    feedback = scene.body_effects["feedback"] and model.bar_count > 0
+    path = Path(path)
+    with SessionWriter(path, scene, scene_text, flush_seconds=flush_seconds, recorder="simulation") as writer:
+        for k, t in enumerate(times):
+            t = float(t)
+            for name, position, angles in poses:
+                writer.write_bar_pose(name, t, position[k], angles[k])
+            if k > 0:
+                for b, name in enumerate(trajectory.bar_names):
+                    if feedback:
+                        writer.write_feedback(name, t, trajectory.bar_feedback[k - 1, b],
+                                              trajectory.bar_reaction[k - 1, b])
+                writer.write_taut(t, trajectory.string_taut[k - 1])
+            if k % steps == 0:
+                f = k // steps
+                writer.write_puppet_state(float(trajectory.frame_time[f]), trajectory.joint_q[f],
+                                          trajectory.body_pos[f], trajectory.body_rot[f])
+    return trajectory, path
+
+
+def _as_field(value: Any) -> Any:
+    return tuple(_as_field(v) for v in value) if isinstance(value, list) else value
+
+
+def scene_for_replay(session: Session) -> Scene:
+    """The session's scene with its recorded constants and rates, its bars driven by the
+    recorded bar poses, and the strings on a bar starting from the first recorded pose.
+
+    Raises:
+        ValueError: the session lacks a bar's ``/bar/BAR/pose`` channel, or its metadata
+            does not match its scene (different strings).
+    """
+    scene = session.scene if session.scene is not None else read_session(session.path).scene
+    if scene.puppet is None:
+        raise ValueError(f"{session.path}: the session's scene has no [puppet]; replay needs a marionette")
+    session.require([f"/bar/{bar.name}/pose" for bar in scene.bars], "replay")
+    constants = session.metadata["constants"]
+    recorded = constants.get("strings", {})
+    names = [s.name for s in scene.strings]
+    if sorted(recorded) != sorted(names):
+        raise ValueError(f"{session.path}: the metadata's strings {sorted(recorded)} differ from the embedded "
+                         f"scene's {sorted(names)}")
+    fields = {f.name for f in dataclasses.fields(type(scene.strings[0]))}
+    strings = [dataclasses.replace(s, **{k: _as_field(v) for k, v in recorded[s.name].items() if k in fields})
+               for s in scene.strings]
+    trajectories = session_bar_trajectories(session)
+    bars = tuple(dataclasses.replace(bar, trajectory=trajectories[bar.name]) for bar in scene.bars)
+    for bar in bars:  # a string on a bar starts at its attach point at the first recorded pose
+        for i, spec in enumerate(strings):
+            if spec.name in bar.attach:
+                top = bar.attach_points(bar.trajectory.times[:1], [spec.name])[0, 0]
+                strings[i] = dataclasses.replace(spec, top=tuple(float(v) for v in top))
+    changes = dict(strings=tuple(strings), bars=bars, string_hz=session.string_hz, puppet_hz=session.puppet_hz)
+    if "feedback" in constants:
+        changes.update(feedback_stiffness=float(constants["feedback"]["stiffness"]),
+                       feedback_damping=float(constants["feedback"]["damping"]))
+    if "contact" in constants:
+        changes["contact"] = dict(constants["contact"])
+    if "world" in constants:
+        changes.update(gravity=tuple(constants["world"]["gravity"]),
+                       ground_height=float(constants["world"]["ground_height"]))
+    if "initial_pose" in constants:
+        changes["initial_pose"] = {k: tuple(v) for k, v in constants["initial_pose"].items()}
+    return dataclasses.replace(scene, **changes)
+
+
+def _at(times: np.ndarray, sim_times: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` (sampled at ``sim_times``) linearly interpolated at ``times``, any trailing shape."""
+    flat = values.reshape(len(sim_times), -1)
+    out = np.stack([np.interp(times, sim_times, flat[:, j]) for j in range(flat.shape[1])], axis=1)
+    return out.reshape((len(times),) + values.shape[1:])
+
+
+def replay_session(path: str | Path, *, optimization_level: int = 2, progress: bool = False,
+                   device=None) -> tuple[MarionetteTrajectory, dict[str, Any]]:
+    """Re-simulates a recorded session from its recorded bar poses.
+
+    Args:
+        path: the session file (a cut-off file replays up to its last complete record).
+        optimization_level: Warp optimisation of the puppet kernels (0 compiles fast).
+        progress: show a progress bar.
+        device: the Warp device (``None``: Warp's default).
+
+    Returns:
+        The re-simulated trajectory (frames at the puppet rate), and a report (JSON-ready):
+        ``duration`` [s], ``frames_compared``, ``rms_body_gap`` and ``max_body_gap`` [m]
+        (distance between recorded and re-simulated body centres at the recorded puppet
+        times; ``None`` without ``/puppet/state``), per body ``rms_body_gap_per_body``,
+        ``rms_feedback_gap`` [N] (recorded vs re-simulated eq. 4, when recorded),
+        ``wall_seconds``, ``truncated``.
+
+    Raises:
+        ValueError: not a session, or the channels replay needs (``/bar/BAR/pose`` for every
+            bar) are missing.
+    """
+    start = time.perf_counter()
+    session = read_session(path)
+    scene = scene_for_replay(session)
+    model = MarionetteModel(scene, optimization_level=optimization_level, device=device)
+    if not scene.bars:
+        raise ValueError(f"{session.path}: the session's scene has no [bars.*]: nothing drives a replay")
+    puppet = session.channels.get("/puppet/state")
+    ends = [session.channels[f"/bar/{b.name}/pose"]["t"].max() for b in scene.bars]
+    if puppet is not None and len(puppet["t"]):
+        ends.append(puppet["t"].max())
+    end = float(max(ends))
+    # Whole puppet steps, none past the last recorded pose (beyond it a bar would only be held).
+    steps = int(np.floor(min(ends[:len(scene.bars)]) / model.puppet_dt + 1e-9))
+    if steps < 1:
+        raise ValueError(f"{session.path}: the recorded bar poses end at t = {end} s, before the first puppet "
+                         f"step ({model.puppet_dt} s): nothing to replay")
+    duration = (steps - 0.5) * model.puppet_dt
+    trajectory = simulate_marionette(model, duration, progress=progress, frame_hz=1.0 / model.puppet_dt)
+    report: dict[str, Any] = {"path": str(session.path), "scene": scene.name, "duration": float(trajectory.frame_time[-1]),
+                              "truncated": session.truncated, "frames_compared": 0, "rms_body_gap": None,
+                              "max_body_gap": None, "rms_body_gap_per_body": None, "rms_feedback_gap": None}
+    if puppet is not None and len(puppet["t"]):
+        inside = puppet["t"] <= trajectory.frame_time[-1] + 1e-9
+        t = puppet["t"][inside]
+        recorded = puppet["body_pos"][inside]
+        replayed = _at(t, trajectory.frame_time, trajectory.body_pos)
+        gap = np.linalg.norm(recorded - replayed, axis=-1)  # (frames, bodies)
+        report.update(frames_compared=int(len(t)), rms_body_gap=float(np.sqrt(np.mean(gap**2))),
+                      max_body_gap=float(gap.max()),
+                      rms_body_gap_per_body=dict(zip(session.bodies, np.sqrt(np.mean(gap**2, axis=0)).tolist())))
+    gaps = []
+    for b, name in enumerate(trajectory.bar_names):
+        channel = session.channels.get(f"/bar/{name}/feedback")
+        if channel is None or not len(channel["t"]):
+            continue
+        inside = (channel["t"] >= trajectory.step_time[0] - 1e-9) & (channel["t"] <= trajectory.step_time[-1] + 1e-9)
+        replayed = _at(channel["t"][inside], trajectory.step_time, trajectory.bar_feedback[:, b])
+        gaps.append(np.linalg.norm(channel["eq4"][inside] - replayed, axis=-1))
+    if gaps:
+        report["rms_feedback_gap"] = float(np.sqrt(np.mean(np.concatenate(gaps) ** 2)))
+    report["wall_seconds"] = time.perf_counter() - start
+    return trajectory, report

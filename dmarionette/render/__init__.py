@@ -1,0 +1,2 @@
+"""Pictures and animations of rollouts (matplotlib).
+"""
