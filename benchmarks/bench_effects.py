@@ -24,9 +24,9 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 import dmarionette as dm  # noqa: E402
-from dmarionette.marionette import MarionetteModel  # noqa: E402
-from dmarionette.marionette_rollout import simulate_marionette  # noqa: E402
-from dmarionette.scene import BallSpec  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
+from dmarionette.marionette.rollout import simulate_marionette  # noqa: E402
+from dmarionette.scene.scene import BallSpec  # noqa: E402
 
 STRING_EFFECTS = ("air_drag", "internal_friction", "ground_contact")
 BODY_EFFECTS = ("body_ground", "chair", "ball", "joint_limits", "feedback")

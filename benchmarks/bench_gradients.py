@@ -42,8 +42,8 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 import dmarionette as dm  # noqa: E402
-from dmarionette.marionette import MarionetteModel  # noqa: E402
-from dmarionette.marionette_grad import MarionetteGradient  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
+from dmarionette.grad.engine import MarionetteGradient  # noqa: E402
 
 MIB = 2**20
 

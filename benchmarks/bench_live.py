@@ -38,8 +38,8 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 import dmarionette as dm  # noqa: E402
-from dmarionette.live import run_live  # noqa: E402
-from dmarionette.marionette import MarionetteModel  # noqa: E402
+from dmarionette.live.run import run_live  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 
 MODES = {"thread": {"physics": "thread"}, "process": {"physics": "process"},
          "shm": {"physics": "shm"}, "shm-nort": {"physics": "shm", "realtime": False},

@@ -37,10 +37,10 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 import dmarionette as dm  # noqa: E402
-from dmarionette.live import LiveMarionette, run_live  # noqa: E402
-from dmarionette.live_view import LiveViewGeometry, LiveViewPublisher, SnapshotBuffer  # noqa: E402
-from dmarionette.live_view_viser import LiveViewServer  # noqa: E402
-from dmarionette.marionette import MarionetteModel  # noqa: E402
+from dmarionette.live.run import LiveMarionette, run_live  # noqa: E402
+from dmarionette.live.view import LiveViewGeometry, LiveViewPublisher, SnapshotBuffer  # noqa: E402
+from dmarionette.live.view_viser import LiveViewServer  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from live_view_client import ViewClient  # noqa: E402

@@ -9,7 +9,7 @@ stepping alone (captured CPU graphs, kernels compiled with optimisation beforeha
 first run of this script compiles the puppet kernels, about a minute, then they are
 cached). "spread" is (max - min) / median.
 
-MuJoCo: the exported puppet (``dmarionette.mjcf``) with each string as a spatial tendon
+MuJoCo: the exported puppet (``dmarionette.articulation.mjcf``) with each string as a spatial tendon
 from a mocap bar to the puppet's attach point, limited to the string's rest length (an
 inextensible string that can go slack), at the string rate (1 ms, Euler), bars moved
 every step. It is a coarser model than ours (no string mass, waves or ground contact of
@@ -31,9 +31,9 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 import dmarionette as dm  # noqa: E402
-from dmarionette.marionette import MarionetteModel, bar_inputs  # noqa: E402
-from dmarionette.marionette_rollout import simulate_marionette  # noqa: E402
-from dmarionette.mjcf import puppet_to_mjcf  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel, bar_inputs  # noqa: E402
+from dmarionette.marionette.rollout import simulate_marionette  # noqa: E402
+from dmarionette.articulation.mjcf import puppet_to_mjcf  # noqa: E402
 
 
 def _median_rate(run, seconds: float, repeats: int) -> tuple[float, float]:

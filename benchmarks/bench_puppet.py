@@ -22,13 +22,13 @@ import time
 import numpy as np
 import warp as wp
 
-from dmarionette.articulation import (
+from dmarionette.articulation.solver import (
     BallDescription,
     ContactSettings,
     SolverArticulation,
     build_articulation_model,
 )
-from dmarionette.puppet import load_puppet
+from dmarionette.scene.puppet import load_puppet
 
 POINTS = ("head", "back", "hand_left", "hand_right", "knee_left", "knee_right")
 

@@ -22,10 +22,10 @@ import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
 
-from dmarionette.scene import load_scene  # noqa: E402
-from dmarionette.string_model import StringEffects, StringModel  # noqa: E402
-from dmarionette.string_rollout import StringRollout  # noqa: E402
-from dmarionette.string_solver import SolverStringImplicit  # noqa: E402
+from dmarionette.scene.scene import load_scene  # noqa: E402
+from dmarionette.strings.model import StringEffects, StringModel  # noqa: E402
+from dmarionette.strings.rollout import StringRollout  # noqa: E402
+from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
 
 DT = 1e-3
 CHUNK = 100

@@ -29,9 +29,10 @@ import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
 
-from dmarionette.scene import load_scene  # noqa: E402
-from dmarionette.string_rollout import StringRollout  # noqa: E402
-from dmarionette.string_solver import SolverStringImplicit  # noqa: E402
+from dmarionette.scene.scene import load_scene  # noqa: E402
+from dmarionette.strings.model import StringModel  # noqa: E402
+from dmarionette.strings.rollout import StringRollout  # noqa: E402
+from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
 
 DT = 1e-3
 CHUNK = 100
@@ -65,7 +66,7 @@ def main() -> None:
     models = {}
     for tension_only in (False, True):
         effects = dataclasses.replace(scene.effects, tension_only=tension_only)
-        models[tension_only] = dataclasses.replace(scene, effects=effects).build_string_model()
+        models[tension_only] = StringModel.from_scene(dataclasses.replace(scene, effects=effects))
     print(f"# Tension-only springs — {platform.processor() or platform.machine()}, Warp {wp.config.version}; "
           f"6 x 50 particles, float64, dt = 1 ms; median of {args.rounds} interleaved rounds of {steps} steps\n")
     print("| motion | printed: steps/s | tension-only: steps/s | tension-only costs | spread |")

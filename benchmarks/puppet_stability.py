@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from dmarionette.articulation import SolverArticulation, build_articulation_model
-from dmarionette.puppet import load_puppet
+from dmarionette.articulation.solver import SolverArticulation, build_articulation_model
+from dmarionette.scene.puppet import load_puppet
 
 POINTS = ("head", "back", "hand_left", "hand_right", "knee_left", "knee_right")
 STEPS = (1.0 / 30.0, 1.0 / 100.0, 1.0 / 1000.0)

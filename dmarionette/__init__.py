@@ -12,34 +12,34 @@ The public API; everything else is implementation::
     trajectory = dm.simulate_marionette(model, 2.0)  # many, without Python overhead
 """
 
-from .control_bar import BarTrajectory as BarTrajectory
-from .control_bar import ControlBar as ControlBar
-from .export_bvh import export_bvh as export_bvh
-from .export_common import read_marionette_trajectory as read_marionette_trajectory
-from .export_gltf import export_gltf as export_gltf
-from .marionette import MarionetteControl as MarionetteControl
-from .marionette import MarionetteModel as MarionetteModel
-from .marionette import MarionetteState as MarionetteState
-from .marionette import SolverMarionette as SolverMarionette
-from .marionette_rollout import MarionetteRollout as MarionetteRollout
-from .marionette_rollout import MarionetteTrajectory as MarionetteTrajectory
-from .marionette_rollout import simulate_marionette as simulate_marionette
-from .scene import Scene as Scene
-from .scene import builtin_scenes as builtin_scenes
-from .scene import load_scene as load_scene
-from .scene_fields import SceneError as SceneError
-from .simulate import StringTrajectory as StringTrajectory
-from .simulate import simulate_strings as simulate_strings
-from .string_model import StringControl as StringControl
-from .string_model import StringEffects as StringEffects
-from .string_model import StringModel as StringModel
-from .string_model import StringSpec as StringSpec
-from .string_model import StringState as StringState
-from .string_model import string_energy as string_energy
-from .string_rollout import StringRollout as StringRollout
-from .string_solver import SolverStringImplicit as SolverStringImplicit
-from .trajectory_file import read_trajectory as read_trajectory
-from .trajectory_file import write_trajectory as write_trajectory
+from .scene.bars import BarTrajectory as BarTrajectory
+from .scene.bars import ControlBar as ControlBar
+from .io.export.bvh import export_bvh as export_bvh
+from .io.export.common import read_marionette_trajectory as read_marionette_trajectory
+from .io.export.gltf import export_gltf as export_gltf
+from .marionette.solver import MarionetteControl as MarionetteControl
+from .marionette.solver import MarionetteModel as MarionetteModel
+from .marionette.solver import MarionetteState as MarionetteState
+from .marionette.solver import SolverMarionette as SolverMarionette
+from .marionette.rollout import MarionetteRollout as MarionetteRollout
+from .marionette.rollout import MarionetteTrajectory as MarionetteTrajectory
+from .marionette.rollout import simulate_marionette as simulate_marionette
+from .scene.scene import Scene as Scene
+from .scene.scene import builtin_scenes as builtin_scenes
+from .scene.scene import load_scene as load_scene
+from .scene.fields import SceneError as SceneError
+from .strings.simulate import StringTrajectory as StringTrajectory
+from .strings.simulate import simulate_strings as simulate_strings
+from .strings.model import StringControl as StringControl
+from .strings.model import StringEffects as StringEffects
+from .strings.model import StringModel as StringModel
+from .strings.model import StringSpec as StringSpec
+from .strings.model import StringState as StringState
+from .strings.model import string_energy as string_energy
+from .strings.rollout import StringRollout as StringRollout
+from .strings.solver import SolverStringImplicit as SolverStringImplicit
+from .io.trajectory import read_trajectory as read_trajectory
+from .io.trajectory import write_trajectory as write_trajectory
 
 __all__ = [
     "BarTrajectory",

@@ -213,14 +213,14 @@ def _run_author(args: argparse.Namespace) -> int:
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from .export_bvh import export_bvh
-    from .export_common import read_marionette_trajectory
-    from .export_gltf import export_gltf
+    from .io.export.bvh import export_bvh
+    from .io.export.common import read_marionette_trajectory
+    from .io.export.gltf import export_gltf
 
     trajectory = read_marionette_trajectory(args.trajectory)
     trajectory.source = str(args.trajectory)
     if args.scene is not None:
-        from .scene import load_scene
+        from .scene.scene import load_scene
 
         scene = load_scene(args.scene)
         if scene.puppet is None:
@@ -322,9 +322,9 @@ def _run_calibrate(args: argparse.Namespace) -> int:
 def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .scene import load_scene
-    from .simulate import simulate_strings
-    from .trajectory_file import summarize, write_trajectory
+    from .scene.scene import load_scene
+    from .strings.simulate import simulate_strings
+    from .io.trajectory import summarize, write_trajectory
 
     scene = load_scene(scene_name)
     if args.precision is not None:
@@ -335,7 +335,7 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     trajectory = simulate_strings(scene, args.duration, progress=not args.quiet)
     files = {"trajectory": str(write_trajectory(out / "trajectory.npz", trajectory, scene))}
     if not args.no_picture:
-        from .render_strings import render_string_picture
+        from .render.strings import render_string_picture
 
         files["picture"] = str(render_string_picture(out / "strings.png", trajectory, title=scene.description,
                                                      ground_height=scene.ground_height))
@@ -350,9 +350,9 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
 
 
 def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
-    from .marionette import MarionetteModel
-    from .marionette_rollout import simulate_marionette
-    from .trajectory_file import summarize_marionette, write_marionette_trajectory
+    from .marionette.solver import MarionetteModel
+    from .marionette.rollout import simulate_marionette
+    from .io.trajectory import summarize_marionette, write_marionette_trajectory
 
     if not args.quiet:
         print("building the marionette (the first run compiles the puppet kernels)", file=sys.stderr)
@@ -361,7 +361,7 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
     trajectory = simulate_marionette(model, duration, progress=not args.quiet)
     files = {"trajectory": str(write_marionette_trajectory(out / "trajectory.npz", trajectory, scene))}
     if not args.no_picture:
-        from .render_marionette import render_marionette_animation
+        from .render.marionette import render_marionette_animation
 
         every = max(1, round(1.0 / (args.fps * (trajectory.frame_time[1] - trajectory.frame_time[0]))))
         path, frames = render_marionette_animation(
@@ -381,12 +381,12 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
 
 
 def _run_replay(args: argparse.Namespace) -> int:
-    from .session import replay_session
+    from .io.session import replay_session
 
     trajectory, report = replay_session(args.session, optimization_level=0 if args.fast_compile else 2)
     if args.out is not None:
-        from .session import read_session
-        from .trajectory_file import summarize_marionette, write_marionette_trajectory
+        from .io.session import read_session
+        from .io.trajectory import summarize_marionette, write_marionette_trajectory
 
         scene = read_session(args.session).scene
         write_marionette_trajectory(args.out / "trajectory.npz", trajectory, scene)
@@ -396,9 +396,9 @@ def _run_replay(args: argparse.Namespace) -> int:
 
 
 def _run_live(args: argparse.Namespace) -> int:
-    from .live import resolve_physics, run_live
-    from .marionette import MarionetteModel
-    from .scene import load_scene
+    from .live.run import resolve_physics, run_live
+    from .marionette.solver import MarionetteModel
+    from .scene.scene import load_scene
 
     scene = load_scene(args.scene)
     if scene.puppet is None or not scene.bars:
@@ -435,7 +435,7 @@ def _run_live(args: argparse.Namespace) -> int:
         raise ValueError(f"--snapshot: got {str(args.snapshot)!r}; expected a .png file name")
     level = 0 if args.fast_compile else 2
     model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
-    from .live_view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
+    from .live.view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
 
     def on_start(info: dict) -> None:
         # CLOCK_MONOTONIC is the clock of the simulated device and of time.monotonic() in any process
@@ -447,7 +447,7 @@ def _run_live(args: argparse.Namespace) -> int:
     geometry = LiveViewGeometry.from_model(model, bars)  # every device's bar: a drag handle, a force-sent arrow
     view = None
     if args.view == "browser" and geometry is not None:
-        from .live_view_viser import LiveViewServer
+        from .live.view_viser import LiveViewServer
 
         view = LiveViewServer(geometry, host=args.view_host, port=args.view_port, rate_hz=args.view_hz)
         print(f"live view: {view.url}", file=sys.stderr, flush=True)
@@ -481,11 +481,11 @@ def main(argv: list[str] | None = None) -> int:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
-    from .scene_fields import SceneError
+    from .scene.fields import SceneError
 
     try:
         if args.command == "scenes":
-            from .scene import builtin_scenes, load_scene
+            from .scene.scene import builtin_scenes, load_scene
 
             for name in builtin_scenes():
                 print(f"{name:12s} {load_scene(name).description}")
@@ -493,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "live":
             return _run_live(args)
         if args.command == "info":
-            from .session import format_session_info, session_info
+            from .io.session import format_session_info, session_info
 
             print(format_session_info(session_info(args.session)))
             return 0
@@ -502,7 +502,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "calibrate":
             return _run_calibrate(args)
         if args.command == "bench":
-            from .accuracy import run_sweep, write_outputs
+            from .marionette.accuracy import run_sweep, write_outputs
 
             rows, summary = run_sweep(args.seconds, args.grid, 0 if args.fast_compile else 2, args.repeats,
                                       progress=lambda line: print(line, file=sys.stderr))
@@ -515,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "export":
             return _run_export(args)
         if args.command == "demo":
-            from .scene import DEFAULT_SCENE
+            from .scene.scene import DEFAULT_SCENE
 
             return _run_simulate(DEFAULT_SCENE, args)
         return _run_simulate(args.scene, args)

@@ -1,7 +1,7 @@
 """fitting: optimisation on top of dmarionette (JAX + optimistix): keyframe authoring, calibration.
 
 This package may import ``dmarionette``; ``dmarionette`` never imports it. ``marionette_rollout``
-exposes a checkpointed marionette rollout (``dmarionette.marionette_grad``) to JAX with a
+exposes a checkpointed marionette rollout (``dmarionette.grad.engine``) to JAX with a
 custom VJP (docs/gradients.md).
 """
 

@@ -9,7 +9,7 @@ rollout and the objective; :func:`author` solves it and writes everything
   initial knots;
 - ``trajectory.npz``: the replay of the authored scene by the simulator (what
   ``simulate`` writes), and its gap to the optimiser's own rollout;
-- ``motion.bvh`` and ``motion.glb`` (binary glTF): the puppet motion (``dmarionette.export_bvh`` /
+- ``motion.bvh`` and ``motion.glb`` (binary glTF): the puppet motion (``dmarionette.io.export.bvh`` /
   ``export_gltf``);
 - ``animation_before.gif`` / ``animation_after.gif``; ``convergence.png``;
 - ``summary.json``: per-keyframe errors before and after, the solver's history, timings.
@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from dmarionette.control_bar import BarTrajectory
-from dmarionette.scene import SCENE_DIR
+from dmarionette.scene.bars import BarTrajectory
+from dmarionette.scene.scene import SCENE_DIR
 
 from .bar_spline import BarParameterisation
 from .keyframes import AuthorSpec
@@ -77,8 +77,8 @@ def build_problem(spec: AuthorSpec, *, optimization_level: int = 2,
                   checkpoint_steps: int | None = None) -> AuthoringProblem:
     """Builds the marionette (with gradients), the engine and the objective of ``spec``."""
     try:
-        from dmarionette.marionette import MarionetteModel
-        from dmarionette.marionette_grad import MarionetteGradient
+        from dmarionette.marionette.solver import MarionetteModel
+        from dmarionette.grad.engine import MarionetteGradient
 
         from .rollout import marionette_rollout
     except ImportError as error:  # pragma: no cover - depends on the install
@@ -144,9 +144,9 @@ def _plain(outputs: dict) -> dict[str, np.ndarray]:
 
 
 def _simulate_scene(path: Path, duration: float, optimization_level: int):
-    from dmarionette.marionette import MarionetteModel
-    from dmarionette.marionette_rollout import simulate_marionette
-    from dmarionette.scene import load_scene
+    from dmarionette.marionette.solver import MarionetteModel
+    from dmarionette.marionette.rollout import simulate_marionette
+    from dmarionette.scene.scene import load_scene
 
     scene = load_scene(path)
     model = MarionetteModel(scene, optimization_level=optimization_level)
@@ -204,15 +204,15 @@ def _export(trajectory, scene, out: Path) -> dict:
     """BVH and glTF files of the puppet motion, where the exporters are installed."""
     files = {}
     try:
-        from dmarionette.export_bvh import export_bvh
+        from dmarionette.io.export.bvh import export_bvh
     except ImportError:
-        files["bvh"] = "not written: dmarionette.export_bvh is not available"
+        files["bvh"] = "not written: dmarionette.io.export.bvh is not available"
     else:
         files["bvh"] = str(export_bvh(trajectory, out / "motion.bvh", puppet=scene.puppet))
     try:
-        from dmarionette.export_gltf import export_gltf
+        from dmarionette.io.export.gltf import export_gltf
     except ImportError:
-        files["gltf"] = "not written: dmarionette.export_gltf is not available"
+        files["gltf"] = "not written: dmarionette.io.export.gltf is not available"
     else:
         files["gltf"] = str(export_gltf(trajectory, out / "motion.glb"))
     return files
@@ -254,7 +254,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
     say("replaying the authored scene with the simulator")
     scene, trajectory = _simulate_scene(authored_path, spec.duration, optimization_level)
     gap = replay_gap(problem, trajectory, after)
-    from dmarionette.trajectory_file import write_marionette_trajectory
+    from dmarionette.io.trajectory import write_marionette_trajectory
 
     files["trajectory"] = str(write_marionette_trajectory(out / "trajectory.npz", trajectory, scene))
     if exports:
@@ -262,7 +262,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
     files["convergence"] = str(_convergence_plot(out / "convergence.png", result.history,
                                                  f"{stem}: {method}, {len(result.history) - 1} steps"))
     if animation:
-        from dmarionette.render_marionette import render_marionette_animation
+        from dmarionette.render.marionette import render_marionette_animation
 
         _, before_trajectory = _simulate_scene(initial_path, spec.duration, optimization_level)
         every = max(1, round(1.0 / (fps * (trajectory.frame_time[1] - trajectory.frame_time[0]))))

@@ -1,6 +1,6 @@
 """The control bars' motion in JAX: knots -> the rollout's bar inputs, differentiably.
 
-This reproduces :class:`dmarionette.control_bar.BarTrajectory` operation for operation (C1
+This reproduces :class:`dmarionette.scene.bars.BarTrajectory` operation for operation (C1
 cubic Hermite through the knots, Catmull-Rom tangents inside, zero tangents at both ends,
 the pose held outside the knots, XYZ Euler angles ``R = Rz Ry Rx``), so that the optimised
 knots written as ``[[bars.NAME.keyframes]]`` of a scene replay the same bar motion in
@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmarionette.control_bar import BarTrajectory
+from dmarionette.scene.bars import BarTrajectory
 
 from .keyframes import BAR_DOFS, AuthorSpec
 

@@ -5,7 +5,7 @@ The parameters are the logarithms of the constants (so they stay positive), one 
 or one shared by every string. The residuals are ``(simulated - recorded) / noise scale``
 for the chosen targets: body centres at the puppet rate and/or the exact reaction of the
 strings on each bar at the string rate (:mod:`fitting.calibration_data`). The rollout is
-:class:`dmarionette.marionette_grad.MarionetteGradient`, whose gradients come from Warp's tape
+:class:`dmarionette.grad.engine.MarionetteGradient`, whose gradients come from Warp's tape
 (reverse mode only), exposed to JAX by :func:`fitting.rollout.marionette_rollout`.
 
 Solvers (measured costs in docs/calibration.md):
@@ -110,8 +110,8 @@ class CalibrationProblem:
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
                  start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
                  noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None):
-        from dmarionette.marionette import MarionetteModel
-        from dmarionette.marionette_grad import MarionetteGradient
+        from dmarionette.marionette.solver import MarionetteModel
+        from dmarionette.grad.engine import MarionetteGradient
 
         for label, value in (("noise_position", noise_position), ("noise_force", noise_force)):
             if not (np.isfinite(value) and value > 0.0):

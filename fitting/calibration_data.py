@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dmarionette.control_bar import euler_to_matrix
+from dmarionette.scene.bars import euler_to_matrix
 from dmarionette.hw.device import matrix_from_quat
-from dmarionette.scene import Scene
-from dmarionette.session import Session, read_session, scene_for_replay
+from dmarionette.scene.scene import Scene
+from dmarionette.io.session import Session, read_session, scene_for_replay
 
 __all__ = ["TARGETS", "CalibrationData", "device_mapping_record", "read_calibration_data"]
 
@@ -49,7 +49,7 @@ class CalibrationData:
         path: the session file.
         session: the session as read (all channels).
         scene: the scene to simulate: the embedded scene with the recorded constants and rates
-            (:func:`dmarionette.session.scene_for_replay`; bars follow the recorded poses).
+            (:func:`dmarionette.io.session.scene_for_replay`; bars follow the recorded poses).
         string_dt, puppet_dt: [s]; ``substeps`` string steps per puppet step.
         puppet_steps: ``P``, whole puppet steps covered; ``T = P * substeps`` string steps.
         step_time: end time of each string step [s], ``(T,)``.

@@ -6,7 +6,7 @@ times with target poses (joint angles in degrees, world positions of named puppe
 or body centres, any subset). Every key is documented in ``docs/authoring.md``.
 
 Loading validates everything and raises :class:`KeyframeError` (a
-:class:`dmarionette.scene_fields.SceneError`) naming the file, the key, the value received
+:class:`dmarionette.scene.fields.SceneError`) naming the file, the key, the value received
 and what was expected.
 """
 
@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from dmarionette.scene import Scene, load_scene, scene_from_table
-from dmarionette.scene_fields import (
+from dmarionette.scene.scene import Scene, load_scene, scene_from_table
+from dmarionette.scene.fields import (
     SceneError,
     check_keys,
     read_choice,

@@ -1,6 +1,6 @@
 """A marionette rollout as a JAX function with a custom VJP (docs/gradients.md).
 
-:func:`marionette_rollout` wraps a :class:`~dmarionette.marionette_grad.MarionetteGradient`
+:func:`marionette_rollout` wraps a :class:`~dmarionette.grad.engine.MarionetteGradient`
 engine: ``f(inputs) -> outputs``, dictionaries keyed by the ``RolloutInputs`` and
 ``RolloutOutputs`` field names, float64 arrays of the engine's shapes. The forward pass and
 the reverse pass run the Warp engine on the host through ``jax.pure_callback``, so ``f``
@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmarionette.marionette_grad import (INPUT_FIELDS, OPTIONAL_INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient,
+from dmarionette.grad.engine import (INPUT_FIELDS, OPTIONAL_INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient,
                                          RolloutInputs)
 
 jax.config.update("jax_enable_x64", True)

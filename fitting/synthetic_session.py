@@ -2,7 +2,7 @@
 
 :func:`record_synthetic_session` simulates a scene whose strings have the *true* constants
 (e.g. a different ``k``, ``k_d`` per string) and writes the session a live run would
-(``dmarionette.session.SessionWriter``, the layout of ``record_simulation``), but with the
+(``dmarionette.io.session.SessionWriter``, the layout of ``record_simulation``), but with the
 scene's *nominal* constants in its metadata, as when a real marionette's strings differ from
 what its scene file says. Gaussian noise is added to the recorded body centres and feedback
 forces (a motion-capture system and a force sensor), with a fixed seed.
@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_rollout import MarionetteTrajectory, simulate_marionette
-from dmarionette.scene import Scene
-from dmarionette.session import SessionWriter
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.rollout import MarionetteTrajectory, simulate_marionette
+from dmarionette.scene.scene import Scene
+from dmarionette.io.session import SessionWriter
 
 __all__ = ["SPEC_FIELDS", "record_synthetic_session", "with_string_constants"]
 

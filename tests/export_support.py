@@ -17,7 +17,7 @@ import numpy as np
 import pygltflib
 import trimesh
 
-from dmarionette.puppet import load_puppet
+from dmarionette.scene.puppet import load_puppet
 
 BVH_POS_TOL = 1e-6   # [m]
 BVH_ROT_TOL = 2e-7   # [rad]

@@ -3,9 +3,9 @@
 import numpy as np
 import warp as wp
 
-from dmarionette.string_model import StringEffects, StringModel, StringSpec
-from dmarionette.string_rollout import StringRollout
-from dmarionette.string_solver import SolverStringImplicit
+from dmarionette.strings.model import StringEffects, StringModel, StringSpec
+from dmarionette.strings.rollout import StringRollout
+from dmarionette.strings.solver import SolverStringImplicit
 
 wp.config.log_level = wp.LOG_WARNING
 

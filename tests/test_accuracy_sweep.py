@@ -4,7 +4,7 @@ import csv
 
 import numpy as np
 
-from dmarionette.accuracy import accuracy_scene
+from dmarionette.marionette.accuracy import accuracy_scene
 from dmarionette.cli import main
 
 U32 = 2.0 ** -24  # float32 unit roundoff

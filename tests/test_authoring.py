@@ -19,7 +19,7 @@ tomli_w = pytest.importorskip("tomli_w")
 
 import jax.numpy as jnp  # noqa: E402
 
-from dmarionette.control_bar import BarTrajectory  # noqa: E402
+from dmarionette.scene.bars import BarTrajectory  # noqa: E402
 from fitting.bar_spline import HermiteSpans, euler_to_matrix, hermite_evaluate  # noqa: E402
 from fitting.keyframes import KeyframeError, keyframes_from_table, load_keyframes  # noqa: E402
 

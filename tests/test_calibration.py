@@ -19,8 +19,8 @@ pytest.importorskip("jax")
 pytest.importorskip("optimistix")
 
 import dmarionette as dm  # noqa: E402
-from dmarionette.marionette import bar_inputs  # noqa: E402
-from dmarionette.session import SessionWriter, read_session  # noqa: E402
+from dmarionette.marionette.solver import bar_inputs  # noqa: E402
+from dmarionette.io.session import SessionWriter, read_session  # noqa: E402
 from fitting.calibrate import CalibrationProblem, parse_parameters  # noqa: E402
 from fitting.calibration_data import read_calibration_data  # noqa: E402
 from fitting.calibration_fit import calibrate_session, jacobian_at  # noqa: E402
@@ -223,7 +223,7 @@ def test_dmarionette_does_not_import_fitting():
 
 def test_device_poses_through_the_mapping_stand_in_for_missing_bar_poses(recorded, tmp_path):
     """A session with the main bar's device samples (and the mapping S, W) but no bar poses."""
-    from dmarionette.control_bar import euler_to_matrix
+    from dmarionette.scene.bars import euler_to_matrix
     from dmarionette.hw import DeviceMapping
     from fitting.calibration_data import device_mapping_record
 
@@ -253,7 +253,7 @@ def test_device_poses_through_the_mapping_stand_in_for_missing_bar_poses(recorde
 def _with_device_samples(source: Path, target: Path, pose, mapping, h, record, name="device_mapping"):
     """Adds the device samples that, mapped by ``mapping``, give the recorded main-bar poses;
     the sample at t = (k - 1) h drives the step ending at k h (as in the live loop)."""
-    from dmarionette.control_bar import euler_to_matrix
+    from dmarionette.scene.bars import euler_to_matrix
     from dmarionette.hw import HapticSample
     from dmarionette.hw.device import quat_from_matrix
 

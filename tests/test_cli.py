@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dmarionette.cli import main
-from dmarionette.trajectory_file import read_trajectory
+from dmarionette.io.trajectory import read_trajectory
 
 
 @pytest.mark.parametrize("command", [[], ["simulate"], ["demo"], ["scenes"]])

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from dmarionette.control_bar import (
+from dmarionette.scene.bars import (
     BarTrajectory,
     ControlBar,
     euler_to_matrix,
     read_bar_trajectory_csv,
     write_bar_trajectory_csv,
 )
-from dmarionette.scene_fields import SceneError
+from dmarionette.scene.fields import SceneError
 
 KEYS = BarTrajectory(np.array([0.0, 1.0, 2.5, 4.0]),
                      np.array([[0.0, 1.3, 0.0], [0.1, 1.2, 0.0], [0.0, 1.4, 0.2], [-0.1, 1.3, 0.1]]),

@@ -12,8 +12,8 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.marionette import MarionetteModel, SolverMarionette
-from dmarionette.scene import BallSpec
+from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
+from dmarionette.scene.scene import BallSpec
 
 wp.config.log_level = wp.LOG_WARNING
 

@@ -31,11 +31,11 @@ import warp as wp
 
 import dmarionette as dm
 from dmarionette.cli import main
-from dmarionette.export_bvh import export_bvh
-from dmarionette.export_common import ExportError, read_marionette_trajectory
-from dmarionette.export_gltf import export_gltf
-from dmarionette.puppet import load_puppet
-from dmarionette.trajectory_file import write_marionette_trajectory
+from dmarionette.io.export.bvh import export_bvh
+from dmarionette.io.export.common import ExportError, read_marionette_trajectory
+from dmarionette.io.export.gltf import export_gltf
+from dmarionette.scene.puppet import load_puppet
+from dmarionette.io.trajectory import write_marionette_trajectory
 
 for _reader in ("bvh", "bvhio", "pygltflib", "trimesh"):   # the independent readers (the dev extra)
     pytest.importorskip(_reader)

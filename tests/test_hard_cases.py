@@ -2,7 +2,7 @@
 the work the bars put in, and penetration and joint-limit violation stay within bounds.
 
 Energy check (every case): ``E(t) - E(0) <= W_bars(0..t) + TOL_ENERGY`` at every frame,
-with ``E`` from :func:`dmarionette.marionette_energy.marionette_energy` *without* the
+with ``E`` from :func:`dmarionette.marionette.energy.marionette_energy` *without* the
 puppet's penalty energies (contacts and joint limits). Why without them: a contact penalty
 is switched on by the state at the start of a puppet step, so a box corner that starts a
 step above the ground ends it up to ``v H`` below (docs/puppet.md), and ``1/2 k d^2`` then
@@ -47,9 +47,9 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.control_bar import euler_to_matrix
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_energy import simulate_energy_balance
+from dmarionette.scene.bars import euler_to_matrix
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.energy import simulate_energy_balance
 
 wp.config.log_level = wp.LOG_WARNING
 G = 9.81

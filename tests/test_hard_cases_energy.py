@@ -1,4 +1,4 @@
-"""The energy accounting the hard cases rely on (dmarionette/marionette_energy.py).
+"""The energy accounting the hard cases rely on (dmarionette/marionette/energy.py).
 
 ``E(t) - E(0) = W_bars - D`` with ``D >= 0``: checked here on cases whose answer is known.
 """
@@ -9,11 +9,11 @@ import numpy as np
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.control_bar import BarTrajectory
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_energy import BarWorkMeter, marionette_energy, simulate_energy_balance
-from dmarionette.string_model import StringControl, StringSpec, build_string_model, string_energy
-from dmarionette.string_solver import SolverStringImplicit
+from dmarionette.scene.bars import BarTrajectory
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.energy import BarWorkMeter, marionette_energy, simulate_energy_balance
+from dmarionette.strings.model import StringControl, StringSpec, build_string_model, string_energy
+from dmarionette.strings.solver import SolverStringImplicit
 
 wp.config.log_level = wp.LOG_WARNING
 G = 9.81
@@ -130,8 +130,8 @@ def test_bar_work_agrees_with_the_exact_reaction_of_a_translated_bar():
     must agree to 1 %. The bar is lifted 5 cm in 2 s (C1), the hand bar held; 3 s.
     Measured: metered 0.439634 J, from the reaction 0.439683 J (1.1e-4 apart).
     """
-    from dmarionette.marionette import bar_inputs
-    from dmarionette.marionette_rollout import simulate_marionette
+    from dmarionette.marionette.solver import bar_inputs
+    from dmarionette.marionette.rollout import simulate_marionette
 
     scene = dm.load_scene("hanging")
     main, hand = scene.bars

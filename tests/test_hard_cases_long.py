@@ -21,9 +21,9 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.marionette import MarionetteModel, SolverMarionette
-from dmarionette.marionette_energy import install_bar_work_meter, marionette_energy, puppet_limit_violation
-from dmarionette.marionette_rollout import MarionetteRollout
+from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
+from dmarionette.marionette.energy import install_bar_work_meter, marionette_energy, puppet_limit_violation
+from dmarionette.marionette.rollout import MarionetteRollout
 from test_hard_cases import TOL_ENERGY, SwayPath, _still
 
 wp.config.log_level = wp.LOG_WARNING

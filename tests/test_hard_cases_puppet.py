@@ -11,11 +11,11 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.control_bar import BarTrajectory
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_energy import puppet_limit_violation, simulate_energy_balance
-from dmarionette.scene_fields import SceneError
-from dmarionette.settings_check import check_marionette_settings
+from dmarionette.scene.bars import BarTrajectory
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.energy import puppet_limit_violation, simulate_energy_balance
+from dmarionette.scene.fields import SceneError
+from dmarionette.scene.settings_check import check_marionette_settings
 from test_hard_cases import G, _check, _contact_bound, _limit_bound, _model, _still
 
 wp.config.log_level = wp.LOG_WARNING
@@ -203,7 +203,7 @@ def test_a_puppet_step_above_0_1_s_is_refused(hanging, monkeypatch):
     with pytest.raises(SceneError, match="puppet_hz.*10"):
         check_marionette_settings(scene)
     # Build it anyway (the model refuses it too) to show why it is refused.
-    monkeypatch.setattr("dmarionette.marionette.check_marionette_settings", lambda scene: None)
+    monkeypatch.setattr("dmarionette.marionette.solver.check_marionette_settings", lambda scene: None)
     model = MarionetteModel(scene, optimization_level=0)
     r = simulate_energy_balance(model, 10.0, frame_hz=4.0)
     motion = r["energy"] - r["parts"]["puppet_contact"] - r["parts"]["puppet_limit"]

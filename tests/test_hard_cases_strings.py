@@ -2,8 +2,8 @@
 the smallest string step, settings that are refused, and a string lowered onto the ground.
 
 Energy check as in ``test_hard_cases.py``: ``E(t) - E(0) <= W_bars(0..t) + TOL_ENERGY`` with
-:func:`~dmarionette.string_model.string_energy` and the bars' work from
-:class:`~dmarionette.marionette_energy.BarWorkMeter`; ``TOL_ENERGY = 1e-3 J`` (module doc
+:func:`~dmarionette.strings.model.string_energy` and the bars' work from
+:class:`~dmarionette.marionette.energy.BarWorkMeter`; ``TOL_ENERGY = 1e-3 J`` (module doc
 of ``test_hard_cases.py``: a correct run stays at or below 0).
 """
 
@@ -14,11 +14,11 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.marionette_energy import BarWorkMeter
-from dmarionette.scene_fields import SceneError
-from dmarionette.settings_check import check_string_settings
-from dmarionette.string_model import StringControl, StringSpec, build_string_model, string_energy
-from dmarionette.string_solver import SolverStringImplicit
+from dmarionette.marionette.energy import BarWorkMeter
+from dmarionette.scene.fields import SceneError
+from dmarionette.scene.settings_check import check_string_settings
+from dmarionette.strings.model import StringControl, StringModel, StringSpec, build_string_model, string_energy
+from dmarionette.strings.solver import SolverStringImplicit
 
 wp.config.log_level = wp.LOG_WARNING
 G = 9.81
@@ -91,7 +91,7 @@ def test_30_minutes_of_swaying_strings_in_float64():
     scene = dm.load_scene("strings")
     strings = tuple(dataclasses.replace(s, particle_count=20) for s in scene.strings)
     scene = dataclasses.replace(scene, strings=strings)
-    model = scene.build_string_model()
+    model = StringModel.from_scene(scene)
     rollout = MeteredStringRollout(scene, model, chunk=10_000)
     energy, work, lowest, finite = rollout.run(180)
     assert finite
@@ -117,7 +117,7 @@ def test_very_stiff_strings_in_float32_track_float64(segment_stiffness, tension_
     for precision in ("float64", "float32"):
         sc = dataclasses.replace(scene, strings=strings, precision=precision,
                                  effects=dataclasses.replace(scene.effects, tension_only=tension_only))
-        rollout = MeteredStringRollout(sc, sc.build_string_model(), chunk=100)
+        rollout = MeteredStringRollout(sc, StringModel.from_scene(sc), chunk=100)
         energy, work, _, finite = rollout.run(20)
         assert finite, precision
         assert (energy - energy[0] - work).max() <= TOL_ENERGY, precision
@@ -136,7 +136,7 @@ def test_the_smallest_string_step_allowed():
     result = {}
     for hz, chunk in ((1e6, 2000), (1e3, 2)):
         sc = dataclasses.replace(scene, string_hz=hz)
-        rollout = MeteredStringRollout(sc, sc.build_string_model(), chunk=chunk)
+        rollout = MeteredStringRollout(sc, StringModel.from_scene(sc), chunk=chunk)
         energy, work, _, finite = rollout.run(int(round(0.02 * hz)) // chunk)
         assert finite
         assert (energy - energy[0] - work).max() <= TOL_ENERGY
@@ -148,7 +148,7 @@ def test_the_smallest_string_step_allowed():
 
 def test_float32_with_a_tiny_string_step_is_refused():
     """float32 strings at more than 10 kHz are refused, with the key, the value and the fix
-    in the message (the measurements are in ``dmarionette/settings_check.py``)."""
+    in the message (the measurements are in ``dmarionette/scene/settings_check.py``)."""
     scene = dm.load_scene("strings")
     check_string_settings(dataclasses.replace(scene, precision="float32", string_hz=1e4))
     with pytest.raises(SceneError, match=r"string_hz.*1e\+06|string_hz.*1000000") as error:

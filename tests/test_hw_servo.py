@@ -291,6 +291,6 @@ def test_refused_realtime_priority_is_said_in_the_tick_summary(monkeypatch):
     assert "servo thread: SCHED_FIFO 10 refused ([Errno 1] Operation not permitted), normal scheduling" \
         in stats.summary()
     assert any("SCHED_FIFO" in str(w.message) for w in caught)
-    from dmarionette.live_setup import fifo_allowed
+    from dmarionette.live.setup import fifo_allowed
 
     assert not fifo_allowed()  # so `auto` picks the worker thread there

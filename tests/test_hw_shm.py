@@ -78,7 +78,7 @@ class RecordingSpring(SpringPhysics):
 
 def pinned_realtime():
     """The set-up run_live uses: SCHED_FIFO 10 and, where that is allowed, the first two CPUs."""
-    from dmarionette.live_setup import fifo_allowed
+    from dmarionette.live.setup import fifo_allowed
 
     cpus = sorted(os.sched_getaffinity(0))
     servo, physics = (cpus[0], cpus[1]) if len(cpus) >= 2 and fifo_allowed() else (None, None)

@@ -6,9 +6,9 @@ import warp as wp
 
 import dmarionette as dm
 from dmarionette.hw import HapticSample
-from dmarionette.live import LiveMarionette, make_physics_step, run_live
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.live.run import LiveMarionette, make_physics_step, run_live
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.rollout import simulate_marionette
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -37,8 +37,8 @@ def assert_device_frame_samples(model, session, duration):
     """``/device/main/sample`` holds what the simulated device read, in its own frame: the scene's
     trajectory shifted to the bar's start (``make_device``), bit for bit at each sample's
     ``device_time``, not the world-frame bar position."""
-    from dmarionette.live_setup import make_device
-    from dmarionette.session import read_session
+    from dmarionette.live.setup import make_device
+    from dmarionette.io.session import read_session
 
     samples = read_session(session, load_scene=False).channels["/device/main/sample"]
     start = np.array(model.scene.bars[0].trajectory.positions[0], dtype=np.float64)
@@ -110,7 +110,7 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
     import json
 
     from dmarionette.cli import main
-    from dmarionette.session import read_session
+    from dmarionette.io.session import read_session
 
     session = tmp_path / "live.mcap"
     assert main(["live", "--duration", "1.0", "--record", str(session), "--fast-compile"]) == 0
@@ -129,7 +129,7 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["frames_compared"] >= 3  # how many puppet steps ran depends on the load (README)
     assert report["max_body_gap"] < 1e-6, report
-    from dmarionette.session import session_bar_trajectories
+    from dmarionette.io.session import session_bar_trajectories
 
     pose = recorded.channels["/bar/main/pose"]
     replayed = session_bar_trajectories(recorded)["main"].pose(pose["t"])[0]
@@ -153,7 +153,7 @@ def test_servo_loop_with_the_physics_over_shared_memory(model, tmp_path):
 
 
 def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
-    from dmarionette.live_setup import fifo_allowed
+    from dmarionette.live.setup import fifo_allowed
 
     stats, summary = run_live(model, duration=0.2, physics="auto", optimization_level=0)
     assert summary["physics_mode"] == ("shm" if fifo_allowed() else "thread")
@@ -165,7 +165,7 @@ def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
 def test_tabulated_simulated_device_follows_the_trajectory():
     """Linear interpolation of a 2 kHz table: exact at the table's times, within the interpolation
     error bound h^2/8 max|x''| in between (h = 0.5 ms)."""
-    from dmarionette.live_setup import SIMULATED_TABLE_HZ, make_device
+    from dmarionette.live.setup import SIMULATED_TABLE_HZ, make_device
 
     scene = dm.load_scene("hanging")
     trajectory = scene.bars[0].trajectory

@@ -27,7 +27,7 @@ from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader
 
 from dmarionette.cli import main
-from dmarionette.session import read_session
+from dmarionette.io.session import read_session
 
 ROOT = Path(__file__).resolve().parents[1]
 START = re.compile(r"servo loop starting at CLOCK_MONOTONIC ([0-9.]+) s; physics: (\w+) \(pid (\d+)\)")

@@ -12,10 +12,10 @@ import dmarionette as dm
 from dmarionette.hw import DeviceMapping, HapticSample, SafetyConfig, ServoLoop
 from dmarionette.hw.device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError, HapticDeviceSpec
 from dmarionette.hw.simulated import HapticDeviceSimulated
-from dmarionette.live import LiveMarionette, make_physics_step, run_live
-from dmarionette.live_setup import bar_mapping, make_device
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.live.run import LiveMarionette, make_physics_step, run_live
+from dmarionette.live.setup import bar_mapping, make_device
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.rollout import simulate_marionette
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -303,7 +303,7 @@ def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
     and forces sent, each within its limit); `replay` re-simulates it (every bar pose exact, the
     puppet to 1e-6 m as for one device, tests/test_live.py), and two `--device replay` play it back."""
     from dmarionette.cli import main
-    from dmarionette.session import read_session, session_bar_trajectories
+    from dmarionette.io.session import read_session, session_bar_trajectories
 
     session = tmp_path / "two.mcap"
     assert main(["live", "--device", "sim", "--bar", "main", "--device", "sim", "--bar", "hand",

@@ -14,9 +14,9 @@ import warp as wp
 
 import dmarionette as dm
 from dmarionette.hw import HapticDeviceSimulated, HapticSample
-from dmarionette.live import LiveMarionette, make_physics_step, run_live
-from dmarionette.live_setup import make_device
-from dmarionette.live_view import (
+from dmarionette.live.run import LiveMarionette, make_physics_step, run_live
+from dmarionette.live.setup import make_device
+from dmarionette.live.view import (
     SLACK_RGB,
     TAUT_RGB,
     LiveSnapshot,
@@ -25,10 +25,10 @@ from dmarionette.live_view import (
     SnapshotBuffer,
     string_colors,
 )
-from dmarionette.marionette import MarionetteModel
+from dmarionette.marionette.solver import MarionetteModel
 
 viser = pytest.importorskip("viser")
-from dmarionette.live_view_viser import LiveViewServer  # noqa: E402
+from dmarionette.live.view_viser import LiveViewServer  # noqa: E402
 from live_view_client import ViewClient  # noqa: E402
 from viser import _messages as vm  # noqa: E402
 
@@ -149,7 +149,7 @@ def test_headless_picture_colours_strings_by_taut_flag(model, tmp_path):
     way round."""
     from matplotlib.image import imread
 
-    from dmarionette.live_view import render_live_snapshot
+    from dmarionette.live.view import render_live_snapshot
 
     geometry = LiveViewGeometry.from_model(model, "main")
     live = LiveMarionette(model)
@@ -291,12 +291,12 @@ def test_cli_browser_view_and_headless_snapshot(tmp_path, capsys, monkeypatch):
     image = imread(picture)[:, :, :3]
     assert image.shape[0] > 300 and image.shape[1] > 600
 
-    import dmarionette.marionette
+    import dmarionette.marionette.solver
 
     def no_model(*_args, **_kwargs):
         raise AssertionError("the model was built before the physics mode was checked")
 
-    monkeypatch.setattr(dmarionette.marionette, "MarionetteModel", no_model)
+    monkeypatch.setattr(dmarionette.marionette.solver, "MarionetteModel", no_model)
     assert main(["live", "--duration", "0.3", "--view", "browser", "--own-process"]) == 2
     assert "drop --own-process" in capsys.readouterr().err
     for mode in ("shm", "process"):

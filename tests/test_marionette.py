@@ -12,9 +12,9 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.control_bar import BarTrajectory, ControlBar
-from dmarionette.marionette import MarionetteModel, SolverMarionette
-from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.scene.bars import BarTrajectory, ControlBar
+from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
+from dmarionette.marionette.rollout import simulate_marionette
 from dmarionette.rotations import quat_to_matrix
 
 wp.config.log_level = wp.LOG_WARNING

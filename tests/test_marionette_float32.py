@@ -28,13 +28,13 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette import marionette as marionette_module
-from dmarionette.live import LiveMarionette, make_physics_step
+from dmarionette.marionette import solver as marionette_module
+from dmarionette.live.run import LiveMarionette, make_physics_step
 from dmarionette.hw import HapticSample
-from dmarionette.marionette import MarionetteModel, SolverMarionette
-from dmarionette.marionette_energy import simulate_energy_balance
-from dmarionette.marionette_grad import MarionetteGradient
-from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
+from dmarionette.marionette.energy import simulate_energy_balance
+from dmarionette.grad.engine import MarionetteGradient
+from dmarionette.marionette.rollout import simulate_marionette
 
 from test_hard_cases import TOL_ENERGY, _excess
 

@@ -38,10 +38,10 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.marionette import MarionetteModel, SolverMarionette
-from dmarionette.marionette_grad import (INPUT_FIELDS, OPTIONAL_INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient,
+from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
+from dmarionette.grad.engine import (INPUT_FIELDS, OPTIONAL_INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient,
                                          RolloutInputs)
-from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.marionette.rollout import simulate_marionette
 
 wp.config.log_level = wp.LOG_WARNING
 

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 import warp as wp
 
-from dmarionette.articulation import (
+from dmarionette.articulation.solver import (
     BallDescription,
     ContactSettings,
     SolverArticulation,
     build_articulation_model,
 )
-from dmarionette.puppet import load_puppet
+from dmarionette.scene.puppet import load_puppet
 
 
 H30 = 1.0 / 30.0

@@ -8,8 +8,8 @@ import tomllib
 
 import pytest
 
-from dmarionette.puppet import default_puppet_path, load_puppet, puppet_from_table
-from dmarionette.scene_fields import SceneError
+from dmarionette.scene.puppet import default_puppet_path, load_puppet, puppet_from_table
+from dmarionette.scene.fields import SceneError
 
 
 @pytest.fixture()

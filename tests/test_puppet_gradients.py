@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from dmarionette.articulation import SolverArticulation, build_articulation_model
-from dmarionette.puppet import load_puppet
+from dmarionette.articulation.solver import SolverArticulation, build_articulation_model
+from dmarionette.scene.puppet import load_puppet
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -176,7 +176,7 @@ def test_smooth_ground_contact_gradients():
     10 steps at 60 Hz with feet and then more shapes touching; tape gradients of a
     linear loss w.r.t. initial velocities and joint forces match Richardson central
     differences to 1e-5 relative."""
-    from dmarionette.articulation import ContactSettings
+    from dmarionette.articulation.solver import ContactSettings
 
     model = build_articulation_model(load_puppet(), joint_limits=False,
                                      contacts=ContactSettings(ground=True, smooth=True))

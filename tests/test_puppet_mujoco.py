@@ -8,9 +8,9 @@ import warp as wp
 
 mujoco = pytest.importorskip("mujoco")
 
-from dmarionette.articulation import BallDescription, SolverArticulation, build_articulation_model
-from dmarionette.mjcf import puppet_to_mjcf
-from dmarionette.puppet import load_puppet
+from dmarionette.articulation.solver import BallDescription, SolverArticulation, build_articulation_model
+from dmarionette.articulation.mjcf import puppet_to_mjcf
+from dmarionette.scene.puppet import load_puppet
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -153,7 +153,7 @@ def test_other_puppet_oblique_axes_matches_mujoco():
     """Any tree is described the same way: a small creature with oblique universal axes,
     a ball joint, a hinge, an overridden inertia and a chain three deep agrees with
     MuJoCo as tightly as the marionette (mass matrix and accelerations, 1e-8)."""
-    from dmarionette.puppet import puppet_from_table
+    from dmarionette.scene.puppet import puppet_from_table
 
     table = {
         "root": "body",

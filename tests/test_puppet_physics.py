@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from dmarionette.articulation import SolverArticulation, build_articulation_model
-from dmarionette.puppet import load_puppet
+from dmarionette.articulation.solver import SolverArticulation, build_articulation_model
+from dmarionette.scene.puppet import load_puppet
 
 wp.config.log_level = wp.LOG_WARNING
 

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from dmarionette.scene import builtin_scenes, load_scene
-from dmarionette.scene_fields import SceneError
+from dmarionette.scene.scene import builtin_scenes, load_scene
+from dmarionette.scene.fields import SceneError
 
 MINIMAL = """
 [scene]

@@ -19,7 +19,7 @@ from mcap.writer import Writer
 
 import dmarionette as dm
 from dmarionette.hw.device import HapticSample
-from dmarionette.session import SCHEMAS, SessionWriter, read_session, session_info
+from dmarionette.io.session import SCHEMAS, SessionWriter, read_session, session_info
 
 BODIES = 12
 
@@ -221,7 +221,7 @@ _CRASH = textwrap.dedent("""
     import os, sys, time
     import numpy as np
     import dmarionette as dm
-    from dmarionette.session import SessionWriter
+    from dmarionette.io.session import SessionWriter
     scene = dm.load_scene("hanging")
     writer = SessionWriter(sys.argv[1], scene, open(scene.source).read(), flush_seconds=1.0)
     steps, pause = int(sys.argv[2]), float(sys.argv[3])

@@ -11,8 +11,8 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.control_bar import euler_to_matrix
-from dmarionette.session import (
+from dmarionette.scene.bars import euler_to_matrix
+from dmarionette.io.session import (
     SessionWriter,
     format_session_info,
     read_session,
@@ -126,7 +126,7 @@ def test_replay_uses_the_recorded_constants_and_first_bar_pose(recorded, tmp_pat
         for k in range(3):
             writer.write_bar_pose("main", k * 1e-3, [0.01, 1.31, 0.0], [0.0, 0.0, 2.0])
             writer.write_bar_pose("hand", k * 1e-3, [0.0, 1.2, 0.12], [0.0, 0.0, 0.0])
-    from dmarionette.session import scene_for_replay
+    from dmarionette.io.session import scene_for_replay
 
     rebuilt = scene_for_replay(read_session(session_path))
     assert all(s.tie_stiffness == 450.0 for s in rebuilt.strings) and rebuilt.feedback_stiffness == 7.0

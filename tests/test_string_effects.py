@@ -8,8 +8,8 @@ import warp as wp
 from strings_support import make_model, roll, spec
 
 from dmarionette.kernels.string_system import eval_string_system_kernel
-from dmarionette.string_model import StringControl, StringEffects, StringModel
-from dmarionette.string_solver import SolverStringImplicit
+from dmarionette.strings.model import StringControl, StringEffects, StringModel
+from dmarionette.strings.solver import SolverStringImplicit
 
 ALL_ON = StringEffects()
 
@@ -94,11 +94,11 @@ def test_rollout_equals_step_by_step():
 
 def test_float32_runs_the_hanging_strings_close_to_float64():
     """float32 is available; at the default stiffness it stays within 1 mm of float64 over 1 s."""
-    from dmarionette.scene import load_scene
-    from dmarionette.simulate import simulate_strings
+    from dmarionette.scene.scene import load_scene
+    from dmarionette.strings.simulate import simulate_strings
 
     scene = load_scene("strings")
-    runs = {p: simulate_strings(scene, 1.0, progress=False, model=scene.build_string_model(precision=p))
+    runs = {p: simulate_strings(scene, 1.0, progress=False, model=StringModel.from_scene(scene, precision=p))
             for p in ("float64", "float32")}
     assert np.all(np.isfinite(runs["float32"].particle_q))
     gap = np.max(np.abs(runs["float32"].particle_q - runs["float64"].particle_q))

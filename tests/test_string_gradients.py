@@ -20,8 +20,8 @@ import pytest
 import warp as wp
 from strings_support import make_model, spec
 
-from dmarionette.string_model import StringControl, StringEffects
-from dmarionette.string_solver import SolverStringImplicit
+from dmarionette.strings.model import StringControl, StringEffects
+from dmarionette.strings.solver import SolverStringImplicit
 
 STEPS = 500
 DT = 1e-3

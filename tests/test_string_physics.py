@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from strings_support import G, NOTHING, ONLY_GRAVITY, make_model, roll, spec, zero_crossing_times
 
-from dmarionette.string_model import StringEffects, string_energy
-from dmarionette.string_solver import SolverStringImplicit
+from dmarionette.strings.model import StringEffects, string_energy
+from dmarionette.strings.solver import SolverStringImplicit
 
 
 @pytest.mark.parametrize("particle_count", [2, 7, 50])

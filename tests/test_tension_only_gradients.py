@@ -27,10 +27,10 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette import marionette_tape
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_grad import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient
-from dmarionette.marionette_rollout import simulate_marionette
+from dmarionette.grad import tape as marionette_tape
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.grad.engine import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient
+from dmarionette.marionette.rollout import simulate_marionette
 from test_marionette_gradients import Problem, _scene, _string_margins
 
 wp.config.log_level = wp.LOG_WARNING

@@ -13,11 +13,11 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.marionette import MarionetteModel
-from dmarionette.marionette_energy import simulate_energy_balance
-from dmarionette.marionette_rollout import simulate_marionette
-from dmarionette.scene import SCENE_DIR
-from dmarionette.settings_check import check_marionette_settings
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.energy import simulate_energy_balance
+from dmarionette.marionette.rollout import simulate_marionette
+from dmarionette.scene.scene import SCENE_DIR
+from dmarionette.scene.settings_check import check_marionette_settings
 from test_hard_cases import G, PiecewiseLinearPath, _check, _contact_bound, _limit_bound, _still
 
 wp.config.log_level = wp.LOG_WARNING

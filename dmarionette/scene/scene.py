@@ -44,7 +44,7 @@ from dmarionette.scene.fields import (
     read_vec3,
 )
 from dmarionette.scene.bars import ControlBar, bar_from_table
-from dmarionette.strings.model import StringEffects, StringModel, StringSpec
+from dmarionette.scene.strings import StringEffects, StringSpec
 
 __all__ = ["Scene", "StringMotion", "builtin_scenes", "load_scene", "scene_from_table"]
 
@@ -150,19 +150,6 @@ class Scene:
     def string_dt(self) -> float:
         """String (and feedback) step [s]."""
         return 1.0 / self.string_hz
-
-    def build_string_model(self, *, device=None, requires_grad: bool = False,
-                           precision: str | None = None, effects: StringEffects | None = None) -> StringModel:
-        """The strings of this scene as a :class:`StringModel` (overrides for tests and benchmarks)."""
-        return StringModel(
-            self.strings,
-            effects=self.effects if effects is None else effects,
-            gravity=self.gravity,
-            ground_height=self.ground_height,
-            precision=self.precision if precision is None else precision,
-            device=device,
-            requires_grad=requires_grad,
-        )
 
 
 def builtin_scenes() -> list[str]:

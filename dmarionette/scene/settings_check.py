@@ -2,7 +2,7 @@
 
 :func:`check_marionette_settings` is meant to be called where a marionette is built
 (``MarionetteModel.__init__``); :func:`check_string_settings`
-where strings are built from a scene (``Scene.build_string_model``, or at the end of
+where strings are built from a scene (``StringModel.from_scene``, or at the end of
 ``scene_from_table``). Every refusal comes from a measurement in ``tests/test_hard_cases*.py``:
 
 - **float32 strings at a string step below 1e-4 s** (:func:`check_string_settings`).

@@ -31,6 +31,8 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
+from dmarionette.scene.strings import StringEffects, StringSpec
+
 __all__ = [
     "StringControl",
     "StringEffects",
@@ -42,55 +44,6 @@ __all__ = [
 ]
 
 _FLOAT_TYPES = {"float64": wp.float64, "float32": wp.float32}
-
-
-@dataclasses.dataclass(frozen=True)
-class StringEffects:
-    """Which string effects are compiled into the kernels (the spring is always on)."""
-
-    gravity: bool = True
-    internal_friction: bool = True
-    air_drag: bool = True
-    ground_contact: bool = True
-    ground_friction: bool = True
-    #: Tension-only segment springs (no push when shorter than the rest length), a deliberate
-    #: deviation from the paper's printed spring (``kernels/string_terms``); off by default:
-    #: the 30 Hz string-body coupling is not ready for it (refused there by ``settings_check``).
-    tension_only: bool = False
-
-    def as_tuple(self) -> tuple[bool, bool, bool, bool, bool]:
-        """The switches in kernel order; ground friction needs ground contact."""
-        return (
-            self.gravity,
-            self.internal_friction,
-            self.air_drag,
-            self.ground_contact,
-            self.ground_contact and self.ground_friction,
-        )
-
-
-@dataclasses.dataclass(frozen=True)
-class StringSpec:
-    """One string as described in a scene (whole-string constants; see the module doc)."""
-
-    name: str
-    top: tuple[float, float, float]
-    bottom: tuple[float, float, float]
-    length: float
-    particle_count: int = 50
-    mass: float = 0.002
-    load_mass: float = 0.0
-    stiffness: float = 500.0
-    internal_friction: float = 0.5
-    air_drag: float = 0.01
-    ground_stiffness: float = 2000.0
-    ground_absorption: float = 5.0
-    ground_friction: float = 2.0
-    tied: bool = False
-    tie_point: tuple[float, float, float] | None = None
-    tie_stiffness: float = 300.0
-    tie_damping: float = 3.0
-    taut_fraction: float = 0.98
 
 
 class StringModel:
@@ -173,6 +126,14 @@ class StringModel:
             for name, values in per_string.items():
                 setattr(self, name, self._array(np.asarray(values, dtype=np.float64)))
 
+
+    @classmethod
+    def from_scene(cls, scene, *, device=None, requires_grad: bool = False, precision: str | None = None,
+                   effects: StringEffects | None = None) -> StringModel:
+        """The strings of a :class:`~dmarionette.scene.scene.Scene` (overrides for tests and benchmarks)."""
+        return cls(scene.strings, effects=scene.effects if effects is None else effects, gravity=scene.gravity,
+                   ground_height=scene.ground_height, precision=scene.precision if precision is None else precision,
+                   device=device, requires_grad=requires_grad)
     def _array(self, values: np.ndarray) -> wp.array:
         return wp.array(values, dtype=self.scalar, requires_grad=self.requires_grad)
 

@@ -61,7 +61,7 @@ def simulate_strings(scene: Scene, duration: float | None = None, *, progress: b
     duration = scene.duration if duration is None else float(duration)
     if not duration > 0.0:
         raise ValueError(f"duration: got {duration}; expected a positive number of seconds")
-    model = scene.build_string_model() if model is None else model
+    model = StringModel.from_scene(scene) if model is None else model
     dt = scene.string_dt
     frame_steps = max(1, round(scene.string_hz / scene.puppet_hz))
     frames = max(1, int(np.ceil(duration / (dt * frame_steps))))

@@ -23,10 +23,10 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 import dmarionette as dm  # noqa: E402
-from dmarionette.live import run_live  # noqa: E402
-from dmarionette.live_view import LiveViewGeometry  # noqa: E402
-from dmarionette.live_view_viser import LiveViewServer  # noqa: E402
-from dmarionette.marionette import MarionetteModel  # noqa: E402
+from dmarionette.live.run import run_live  # noqa: E402
+from dmarionette.live.view import LiveViewGeometry  # noqa: E402
+from dmarionette.live.view_viser import LiveViewServer  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
