@@ -342,6 +342,10 @@ class SolverMarionette:
         if self._feedback is not None:
             self.eval_bar_feedback(nxt, control, state_out, j)
 
+    def string_state_after(self, state_out: MarionetteState, j: int) -> StringState:
+        """The string state holding string step ``j``'s result: a spare state before the last step, then ``state_out.strings``."""
+        return state_out.strings if j == self.model.substeps - 1 else self._spare[j % 2]
+
     def end_step(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
         """Passes after the string steps (strings -> body)."""
         self.apply_string_forces_to_anchors(state_out)  # mean tie force -> body springs' anchors
