@@ -37,13 +37,13 @@ def assert_device_frame_samples(model, session, duration):
     """``/device/main/sample`` holds what the simulated device read, in its own frame: the scene's
     trajectory shifted to the bar's start (``make_device``), bit for bit at each sample's
     ``device_time``, not the world-frame bar position."""
-    from dmarionette.live.setup import make_device
+    from dmarionette.live.setup import simulated_pose
     from dmarionette.io.session import read_session
 
     samples = read_session(session, load_scene=False).channels["/device/main/sample"]
     start = np.array(model.scene.bars[0].trajectory.positions[0], dtype=np.float64)
-    device = make_device("simulated", model.scene, "main", trajectory_offset=start, duration=duration)
-    expected = np.array([device._trajectory(t)[0] for t in samples["device_time"]])
+    pose = simulated_pose(model.scene, "main", trajectory_offset=start, duration=duration)
+    expected = np.array([pose(t)[0] for t in samples["device_time"]])
     assert len(expected) > 0 and np.all(np.diff(samples["device_time"]) > 0)
     np.testing.assert_array_equal(samples["position"], expected)
     assert np.linalg.norm(samples["position"], axis=1).max() < 0.1 < np.linalg.norm(start)  # not the world frame
@@ -165,19 +165,19 @@ def test_auto_physics_is_shm_exactly_where_real_time_priority_is_allowed(model):
 def test_tabulated_simulated_device_follows_the_trajectory():
     """Linear interpolation of a 2 kHz table: exact at the table's times, within the interpolation
     error bound h^2/8 max|x''| in between (h = 0.5 ms)."""
-    from dmarionette.live.setup import SIMULATED_TABLE_HZ, make_device
+    from dmarionette.live.setup import SIMULATED_TABLE_HZ, simulated_pose
 
     scene = dm.load_scene("hanging")
     trajectory = scene.bars[0].trajectory
     offset = np.array(trajectory.positions[0])
-    exact = make_device("simulated", scene, "main", trajectory_offset=offset)
-    table = make_device("simulated", scene, "main", trajectory_offset=offset, duration=2.0)
+    exact = simulated_pose(scene, "main", trajectory_offset=offset)
+    table = simulated_pose(scene, "main", trajectory_offset=offset, duration=2.0)
     fine = np.linspace(0.0, 2.0, 40001)
     p = trajectory.pose(fine)[0]
     accel = np.abs(np.diff(p, 2, axis=0)).max() / (fine[1] - fine[0]) ** 2
     h = 1.0 / SIMULATED_TABLE_HZ
     for t in np.concatenate([np.arange(0, 2.0, h)[::97], np.random.default_rng(0).uniform(0, 2.0, 50)]):
-        (pe, _), (pt, _) = exact._trajectory(t), table._trajectory(t)
+        (pe, _), (pt, _) = exact(t), table(t)
         on_grid = abs(t * SIMULATED_TABLE_HZ - round(t * SIMULATED_TABLE_HZ)) < 1e-9
         tol = 1e-12 if on_grid else h * h / 8 * accel * 1.01 + 1e-12
         assert np.abs(pt - pe).max() <= tol, (t, pt - pe)

@@ -363,7 +363,7 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
                 "on_start": lambda info: stop.setdefault("stop", info["stop"])})  # stopped below
             session.start()
             _wait(lambda: view.frames_sent >= 2, 120, "the first snapshots")
-            assert not view._gizmos[0].visible
+            assert not view.drag_handles_visible[0]
             client.send(vm.TransformControlsUpdateMessage(name="/drag/main", wxyz=(1.0, 0.0, 0.0, 0.0),
                                                           position=(0.3, 0.3, 0.3)))
             seen = view.frames_sent
@@ -417,7 +417,7 @@ def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
         thread.start()
         assert started.wait(120) and "error" not in out, out.get("error")
         _wait(lambda: view.frames_sent >= 2, 60, "the first snapshots")
-        assert all(g.visible for g in view._gizmos)
+        assert all(view.drag_handles_visible)
         targets = {}
         for k in (1, 0):  # the hand first: the main device must not move with it
             gizmo = f"/drag/{bars[k]}"

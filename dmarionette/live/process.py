@@ -37,22 +37,26 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["LivePhysicsFactory", "PhysicsProcess"]
+from dmarionette.hw.device import HapticSample
+from dmarionette.live.setup import LivePhysics
+
+__all__ = ["ChildPhysics", "LivePhysicsFactory", "PhysicsProcess"]
 
 
 @dataclasses.dataclass(frozen=True)
 class LivePhysicsFactory:
-    """Builds the live marionette in the shared-memory physics process (picklable: sent to the child).
+    """Builds the live marionette in a physics process (picklable: sent to the child).
 
-    The child works in the device frame: it maps each sample to the world with ``mapping``
-    (eq. 3), steps the marionette and returns the force through ``W``'s rotation, so the
-    servo process only reads, filters and writes. It also writes the recording, with the
-    device samples and the forces actually sent in the device frame (as the worker-thread
-    mode does).
+    Called, it builds the physics object that :class:`dmarionette.hw.shm_link.SharedMemoryPhysics`
+    runs in its child; :class:`PhysicsProcess` builds its child's with :meth:`build`. The child
+    works in the device frame: it maps each sample to the world with ``mapping`` (eq. 3), steps
+    the marionette and returns the force through ``W``'s rotation, so the servo process only
+    reads, filters and writes. It also writes the recording, with the device samples and the
+    forces actually sent in the device frame (as the worker-thread mode does).
 
     Attributes:
         scene_ref: A built-in scene name or a scene file path (the child loads it).
-        bar, duration, feedback, force_scale: As for :func:`dmarionette.live.run.make_physics_step`.
+        bar, duration, feedback, force_scale: As for :func:`dmarionette.live.physics.make_physics_step`.
         mapping: Device-to-world mapping of the driven bar.
         optimization_level: Puppet kernel optimisation (compiled kernels are cached on disk).
         record_path: Write the session (MCAP) from the child, or None.
@@ -67,107 +71,77 @@ class LivePhysicsFactory:
     optimization_level: int = 2
     record_path: str | None = None
 
-    def __call__(self) -> _LivePhysics:
-        return _LivePhysics(self)
-
-
-class _LivePhysics:
-    """The child's physics object for :class:`~dmarionette.hw.shm_link.SharedMemoryPhysics`."""
-
-    def __init__(self, f: LivePhysicsFactory) -> None:
+    def build(self) -> LivePhysics:
+        """Loads the scene and sets the marionette up: kernels compile and graphs are captured
+        here, before the parent's loop starts."""
         import warp as wp
 
         wp.config.log_level = wp.LOG_WARNING
-        from dmarionette.live.run import LiveMarionette, make_physics_step
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.scene.scene import load_scene
 
-        scene = load_scene(f.scene_ref)
-        self.model = MarionetteModel(scene, optimization_level=f.optimization_level)
-        self.live = LiveMarionette(self.model)
-        self.bar = f.bar
-        self.writer = None
-        if f.record_path is not None:
-            from pathlib import Path
+        model = MarionetteModel(load_scene(self.scene_ref), optimization_level=self.optimization_level)
+        return LivePhysics(model, self.bar, self.mapping, self.duration, feedback=self.feedback,
+                           force_scale=self.force_scale, record=self.record_path)
 
-            from dmarionette.io.session import SessionWriter
+    def __call__(self) -> _SharedMemoryChild:
+        return _SharedMemoryChild(self.build())
 
-            self.writer = SessionWriter(f.record_path, scene, Path(scene.source).read_text())
-        world_step = make_physics_step(self.live, f.bar, f.duration, feedback=f.feedback, force_scale=f.force_scale,
-                                       on_tick=_recorder(self.writer, self.model, self.live, f.bar)
-                                       if self.writer else None)
-        self._step = f.mapping.wrap(world_step)
-        self.info = {"substeps": self.model.substeps, "string_dt": self.model.string_dt}
+
+class ChildPhysics:
+    """One device's marionette in a physics process, device frame both ways; it records the
+    samples as the device gave them and the forces as the device got them.
+
+    Args:
+        physics: The marionette, set up for one driven bar.
+    """
+
+    def __init__(self, physics: LivePhysics) -> None:
+        self.physics = physics
+        model = physics.live.model
+        self.info = {"substeps": model.substeps, "string_dt": model.string_dt}
 
     def force_sent(self, force: np.ndarray) -> None:
-        if self.writer is not None:
-            self.writer.write_force(self.bar, self.live.time, force)
+        """Records the force last written to the device (after the safety filter)."""
+        self.physics.record_device(0, "force", force)
 
-    def step(self, sample, t: float) -> np.ndarray:
-        if self.writer is not None:
-            self.writer.write_device_sample(self.bar, sample, t=self.live.time)
-        return self._step(sample, t)
+    def step(self, sample: HapticSample, t: float) -> np.ndarray:
+        """Records the sample, then steps the marionette: the device-frame force ``(3,)``."""
+        self.physics.record_device(0, "sample", sample)
+        return self.physics.step(sample, t)
 
     def close(self) -> dict[str, Any]:
-        if self.writer is not None:
-            self.writer.close()
-        live = self.live
-        return {"string_steps": live.tick, "puppet_steps": live.tick // self.model.substeps,
-                "simulated_seconds": round(live.time, 4), "physics_cpu_seconds": round(time.process_time(), 3)}
+        """Ends the recording; returns the steps run."""
+        return self.physics.close()
 
 
-def _physics_main(conn, scene_ref: str, bar: str, duration: float, mapping, feedback: str, force_scale: float,
-                  optimization_level: int, record_path: str | None) -> None:
-    """The child: builds the live marionette, then answers one device-frame force per device-frame sample."""
+class _SharedMemoryChild(ChildPhysics):
+    """The shared-memory child's physics: its summary also gives the CPU time it used."""
+
+    def close(self) -> dict[str, Any]:
+        return {**super().close(), "physics_cpu_seconds": round(time.process_time(), 3)}
+
+
+def _physics_main(conn, factory: LivePhysicsFactory) -> None:
+    """The pipe child: builds the live marionette, then answers one device-frame force per device-frame sample."""
     try:
-        import warp as wp
-
-        wp.config.log_level = wp.LOG_WARNING
-        from dmarionette.hw.device import HapticSample
-        from dmarionette.live.run import LiveMarionette, make_physics_step
-        from dmarionette.marionette.solver import MarionetteModel
-        from dmarionette.scene.scene import load_scene
-
-        scene = load_scene(scene_ref)
-        model = MarionetteModel(scene, optimization_level=optimization_level)
-        live = LiveMarionette(model)
-        writer = None
-        if record_path is not None:
-            from pathlib import Path
-
-            from dmarionette.io.session import SessionWriter
-
-            writer = SessionWriter(record_path, scene, Path(scene.source).read_text())
-        step = mapping.wrap(make_physics_step(live, bar, duration, feedback=feedback, force_scale=force_scale,
-                                              on_tick=_recorder(writer, model, live, bar) if writer else None))
-        # Kernels compile and graphs are captured above, before the parent's loop starts.
+        physics = ChildPhysics(factory.build())
     except Exception as error:  # reported to the parent, which raises it with context
         conn.send(("error", f"{type(error).__name__}: {error}"))
         return
-    conn.send(("ready", {"substeps": model.substeps, "string_dt": model.string_dt}))
+    conn.send(("ready", physics.info))
     try:
         while True:
             message = conn.recv()
             if message is None:
                 break
             sample_time, position, orientation, buttons, t, last_force = message
-            if writer is not None and last_force is not None:
-                writer.write_force(bar, live.time, last_force)
+            if last_force is not None:
+                physics.force_sent(last_force)
             sample = HapticSample(sample_time, position, orientation, buttons)  # as the device gave it
-            if writer is not None:
-                writer.write_device_sample(bar, sample, t=live.time)
-            conn.send(np.asarray(step(sample, t), dtype=np.float64))
+            conn.send(np.asarray(physics.step(sample, t), dtype=np.float64))
     finally:
-        if writer is not None:
-            writer.close()
-        conn.send({"string_steps": live.tick, "puppet_steps": live.tick // model.substeps,
-                   "simulated_seconds": round(live.time, 4)})
-
-
-def _recorder(writer, model, live, bar):
-    from dmarionette.live.run import _record_tick
-
-    return lambda tick, poses: _record_tick(writer, model, live, tick, poses)
+        conn.send(physics.close())
 
 
 class PhysicsProcess:
@@ -175,7 +149,7 @@ class PhysicsProcess:
 
     Args:
         scene_ref: a built-in scene name or a scene file path (the child loads it).
-        bar, duration, feedback, force_scale: as for :func:`dmarionette.live.run.make_physics_step`.
+        bar, duration, feedback, force_scale: as for :func:`dmarionette.live.physics.make_physics_step`.
         mapping: the driven bar's device-to-world mapping (a
             :class:`~dmarionette.hw.DeviceMapping`); the child maps samples and forces with it.
         optimization_level: puppet kernel optimisation (compiled kernels are cached on disk).
@@ -188,9 +162,10 @@ class PhysicsProcess:
                  start_timeout: float = 300.0):
         context = mp.get_context("spawn")
         self._conn, child = context.Pipe()
-        self._process = context.Process(
-            target=_physics_main, name="dmarionette-physics", daemon=True,
-            args=(child, scene_ref, bar, duration, mapping, feedback, force_scale, optimization_level, record_path))
+        factory = LivePhysicsFactory(scene_ref, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
+                                     optimization_level=optimization_level, record_path=record_path)
+        self._process = context.Process(target=_physics_main, name="dmarionette-physics", daemon=True,
+                                        args=(child, factory))
         self._process.start()
         if not self._conn.poll(start_timeout):
             self._process.kill()

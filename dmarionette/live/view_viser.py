@@ -193,6 +193,11 @@ class LiveViewServer(AbstractLiveView):
             "device (after the safety filter), one per device. With a simulated device, drag the gizmo on "
             "its bar (arrows move it, rings turn it): the device follows the mouse from then on.")
 
+    @property
+    def drag_handles_visible(self) -> tuple[bool, ...]:
+        """Whether each device's drag handle (gizmo) shows, in :attr:`LiveViewGeometry.device_bars` order."""
+        return tuple(bool(gizmo.visible) for gizmo in self._gizmos)
+
     def connect_device(self, drag: Callable[[np.ndarray, np.ndarray], None] | None) -> None:
         """Sets what a drag of the (first) driven bar calls: ``drag(position [m] (3,), rotation
         (3, 3))`` in the world frame, from viser's callback thread; None hides the gizmo."""
