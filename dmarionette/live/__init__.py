@@ -1,2 +1,5 @@
-"""Live puppetry: the per-tick marionette, the dispatcher over physics links, the worker process, the view.
+"""Live puppetry: the per-tick marionette (physics), the session set-up (setup, record), one link
+per physics mode (links, process), the dispatcher (run) and the live view (view, view_viser).
+
+Imports point one way: view <- physics <- record <- setup <- process <- links <- run.
 """

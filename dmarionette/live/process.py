@@ -1,8 +1,9 @@
 """The live marionette in its own process: through a pipe (``--physics process``) or shared memory (``--physics shm``).
 
-Shared memory: :class:`LivePhysicsFactory` builds the marionette in the child that
-:class:`dmarionette.hw.shm_link.SharedMemoryPhysics` spawns; the rest of this module is the
-pipe version.
+:class:`LivePhysicsFactory` builds the marionette in the child (:class:`ChildPhysics`, one
+device, device frame): called, in the child that :class:`dmarionette.hw.shm_link.SharedMemoryPhysics`
+spawns; through :meth:`LivePhysicsFactory.build`, in the one :class:`PhysicsProcess` spawns (the
+pipe version, the rest of this module).
 
 In one process the physics (Warp launches, numpy) and the servo thread's deadline spin
 compete for Python's interpreter lock, and the physics misses deadlines. Here the physics

@@ -44,8 +44,10 @@ def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Seq
     ``workspace_scale``, ``W`` a translation (by the bar's start divided by ``S``) putting the
     device origin at the bar's start. A device displacement ``d`` moves the bar by ``S d``, so a
     world stiffness ``k`` is felt as ``S k`` (:meth:`~dmarionette.hw.DeviceMapping.stiffness_to_device`;
-    the force itself is not scaled). Where the marionette runs is ``physics`` (:data:`~dmarionette.live.setup.PHYSICS_MODES` or ``"auto"``;
-    :data:`~dmarionette.live.setup.DEFAULT_PHYSICS` when None, ``"process"`` when ``process=True``, the older spelling):
+    the force itself is not scaled). Where the marionette runs is ``physics``
+    (:data:`~dmarionette.live.setup.PHYSICS_MODES` or ``"auto"``; :data:`~dmarionette.live.setup.DEFAULT_PHYSICS`
+    when None, ``"process"`` when ``process=True``, the older spelling), each mode set up by its
+    factory in :data:`dmarionette.live.links.PHYSICS_LINKS`:
 
     * ``"thread"``: ``model`` itself, in the servo loop's worker thread;
     * ``"process"``: a child process over a pipe (:mod:`dmarionette.live.process`);

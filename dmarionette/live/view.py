@@ -190,9 +190,9 @@ class SnapshotBuffer:
 
 
 class LiveViewPublisher:
-    """Takes snapshots of a :class:`~dmarionette.live.run.LiveMarionette` at a wall-clock rate.
+    """Takes snapshots of a :class:`~dmarionette.live.physics.LiveMarionette` at a wall-clock rate.
 
-    Called by the physics step after every tick (:func:`dmarionette.live.run.make_physics_step`);
+    Called by the physics step after every tick (:func:`dmarionette.live.physics.make_physics_step`);
     it does real work only when a snapshot is due.
 
     Args:
@@ -233,7 +233,7 @@ class LiveViewPublisher:
         """Copies the live marionette's state into a new snapshot and publishes it.
 
         Args:
-            live: The :class:`~dmarionette.live.run.LiveMarionette`, between two ticks.
+            live: The :class:`~dmarionette.live.physics.LiveMarionette`, between two ticks.
             bar_pos: Bar centres at the end of the tick [m], shape (B, 3).
             bar_rot: Bar orientations, shape (B, 3, 3).
             bar_reaction: Reaction per bar of the tick [N], shape (B, 3).
