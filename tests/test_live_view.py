@@ -379,7 +379,7 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
 
 
 def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
-    from dmarionette.hw.device import quat_from_matrix
+    from dmarionette.rotations import matrix_to_quat, to_wxyz
 
     """Two simulated devices, one per bar (the hand's with workspace scale 2): each bar has its own
     gizmo (``/drag/main``, ``/drag/hand``); dragging one moves that device only, through its own
@@ -424,7 +424,7 @@ def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
             _wait(lambda: client.poses(gizmo, "position"), 10, f"{gizmo}'s position")
             p0 = np.array(client.poses(gizmo, "position")[-1][1])
             # (viser sends an orientation only when it changes: the hand's stays the identity)
-            q0 = tuple(float(x) for x in quat_from_matrix(view.last_sent.bar_rot[idx[k]]))
+            q0 = tuple(float(x) for x in to_wxyz(matrix_to_quat(view.last_sent.bar_rot[idx[k]])))
             # On its own bar (which may have moved on a little since; the bars are 0.16 m apart).
             assert np.linalg.norm(p0 - view.last_sent.bar_pos[idx[k]]) < 0.01
             targets[k] = p0 + np.array([0.04, -0.02, 0.03]) * (k + 1)

@@ -33,6 +33,7 @@ from dmarionette.live.setup import (DEFAULT_PHYSICS, PHYSICS_MODES, SIMULATED_TA
                          fifo_allowed, make_device, resolve_physics)
 from dmarionette.live.view import scripted_rotations
 from dmarionette.marionette.solver import MarionetteModel, SolverMarionette, bar_inputs
+from dmarionette.rotations import matrix_to_euler
 
 # The session set-up (devices, mappings, physics modes) lives in dmarionette.live.setup; its
 # public names are re-exported here, where callers have always found them.
@@ -192,7 +193,7 @@ def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], dur
         if on_tick is not None:
             poses = {name: (bar_q[b], scripted_angles[b][k]) for b, name in enumerate(model.bar_names)}
             for b, rotation in zip(driven, rotations):
-                poses[model.bar_names[b]] = (bar_q[b], _matrix_to_euler_deg(rotation))
+                poses[model.bar_names[b]] = (bar_q[b], matrix_to_euler(rotation))
             on_tick(tick, poses)
         if view is not None and view.due():
             all_rotations = scripted_rotations(scripted_angles, k)
@@ -209,16 +210,6 @@ def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], dur
         return step_all((sample,), t)[0]
 
     return step
-
-
-def _matrix_to_euler_deg(r: np.ndarray) -> np.ndarray:
-    """XYZ Euler angles [deg] of ``R = Rz Ry Rx`` (inverse of :func:`euler_to_matrix`)."""
-    ry = np.arcsin(np.clip(-r[2, 0], -1.0, 1.0))
-    rx = np.arctan2(r[2, 1], r[2, 2])
-    rz = np.arctan2(r[1, 0], r[0, 0])
-    return np.degrees([rx, ry, rz])
-
-
 
 
 def run_live(model: MarionetteModel, *, device: str | AbstractHapticDevice | Sequence = "simulated",
