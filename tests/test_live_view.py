@@ -205,15 +205,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         gizmo = "/drag/main"
         _wait(lambda: client.poses(gizmo, "position") and client.poses(gizmo, "wxyz"), 10, "the gizmo pose")
         assert not device.dragged
-        p0 = np.array(client.poses(gizmo, "position")[-1][1])
-        q0 = tuple(client.poses(gizmo, "wxyz")[-1][1])
-        target = p0 + np.array([0.05, -0.03, 0.02])
-        client.send(vm.TransformControlsDragStartMessage(name=gizmo))
-        for a in np.linspace(0.0, 1.0, 6)[1:]:
-            client.send(vm.TransformControlsUpdateMessage(name=gizmo, wxyz=q0,
-                                                          position=tuple(map(float, p0 + a * (target - p0)))))
-            time.sleep(0.02)
-        client.send(vm.TransformControlsDragEndMessage(name=gizmo))
+        target, q0 = client.drag(gizmo, [0.05, -0.03, 0.02], steps=5, pause=0.02)
         # The device follows the drag (first-order lag of 30 ms)...
         _wait(lambda: device.last_read is not None and
               np.linalg.norm(device.last_read.position - (target - start)) < 1e-6, 5, "the device to reach the drag")
