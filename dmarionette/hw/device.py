@@ -8,6 +8,10 @@ Frame convention of every sample (whatever the hardware's native frame): SI unit
 device's own frame with x to the user's right, y up, z towards the user (the OpenHaptics
 convention). Each concrete device converts from its native units and axes, which its
 :class:`HapticDeviceSpec` names. :mod:`dmarionette.hw.mapping` takes samples to the world.
+
+Orientations of samples are quaternions ``(w, x, y, z)``, as session files and viser store
+them; the rest of the project uses Warp's ``(x, y, z, w)``. The conversions are those of
+:mod:`dmarionette.rotations` (``from_wxyz``/``to_wxyz`` at this boundary).
 """
 
 from __future__ import annotations
