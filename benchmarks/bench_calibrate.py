@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_support import time_forward_backward
+
 ROOT = Path(__file__).resolve().parent.parent
 FACTORS = {"k": [1.10, 0.92, 1.05, 0.88, 1.17, 0.95], "k_d": [1.13, 0.87, 1.03, 0.93, 1.08, 0.9]}
 
@@ -106,14 +108,7 @@ def compare(session: Path, targets: str, level: int, rows: int, bwd_steps: int, 
     engine.forward(inputs)
     cot = {"body_pos": np.ones(engine.output_shapes["body_pos"])}
     engine.backward(cot)  # compiles the adjoint kernels
-    forward, backward = [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        engine.forward(inputs)
-        forward.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        engine.backward(cot)
-        backward.append(time.perf_counter() - t0)
+    forward, backward = time_forward_backward(engine, inputs, cot, repeats)
     out = {"session": str(session), "targets": targets, "residuals": problem.residual_count,
            "puppet_steps": data.puppet_steps, "forward_s": statistics.median(forward),
            "backward_s": statistics.median(backward), "solvers": {}, "load_average": os.getloadavg()}

@@ -45,6 +45,8 @@ import dmarionette as dm  # noqa: E402
 from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 from dmarionette.grad.engine import MarionetteGradient  # noqa: E402
 
+from bench_support import time_forward_backward  # noqa: E402
+
 MIB = 2**20
 
 
@@ -70,14 +72,7 @@ def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | Non
     engine.forward(inputs)
     engine.backward(cot)  # plans the taped segments and captures their graphs
     first = time.perf_counter() - start
-    forward, backward = [], []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        engine.forward(inputs)
-        forward.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        engine.backward(cot)
-        backward.append(time.perf_counter() - t)
+    forward, backward = time_forward_backward(engine, inputs, cot, repeats)
     mem = engine.memory()
     return {"seconds": seconds, "puppet_steps": steps, "string_steps": engine.string_steps,
             "checkpoint_steps": engine.checkpoint_steps, "segments": len(engine.segments), "capture": capture,

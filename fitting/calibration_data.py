@@ -29,10 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dmarionette.scene.bars import euler_to_matrix
-from dmarionette.hw.device import matrix_from_quat
 from dmarionette.scene.scene import Scene
 from dmarionette.io.session import Session, read_session, scene_for_replay
+from dmarionette.rotations import euler_to_matrix, from_wxyz, normalize_quat, quat_to_matrix
 
 __all__ = ["TARGETS", "CalibrationData", "device_mapping_record", "read_calibration_data"]
 
@@ -180,7 +179,8 @@ def _bar_from_device(session: Session, bar: str, dt: float, steps: int):
     _finite(path, topic, "position", channel["t"][rows], channel["position"][rows])
     _finite(path, topic, "orientation", channel["t"][rows], channel["orientation"][rows])
     position = mapping.position_to_world(channel["position"][rows])
-    rotation = np.stack([mapping.rotation_to_world(matrix_from_quat(q)) for q in channel["orientation"][rows]])
+    device_rotation = [quat_to_matrix(from_wxyz(normalize_quat(q))) for q in channel["orientation"][rows]]
+    rotation = np.stack([mapping.rotation_to_world(r) for r in device_rotation])
     return position, rotation
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import viser
 import websockets.sync.client
 import zstandard
+from viser import _messages as vm
 
 
 def _decode_frame(raw: bytes) -> list[dict]:
@@ -89,6 +90,25 @@ class ViewClient:
     def send(self, message) -> None:
         """Sends a viser message (an instance of a ``viser._messages`` class)."""
         self._ws.send(msgspec.msgpack.encode(message.as_serializable_dict()))
+
+    def drag(self, name: str, displacement, steps: int, pause: float) -> tuple[np.ndarray, tuple]:
+        """Drags gizmo ``name`` as a mouse would: by ``displacement`` [m] from its last position,
+        in ``steps`` equal moves ``pause`` [s] apart between a drag start and a drag end, its last
+        orientation held.
+
+        Returns:
+            ``(target, q0)``: where the drag ended [m], and the orientation held (w, x, y, z).
+        """
+        p0 = np.array(self.poses(name, "position")[-1][1])
+        q0 = tuple(self.poses(name, "wxyz")[-1][1])
+        target = p0 + np.asarray(displacement, dtype=np.float64)
+        self.send(vm.TransformControlsDragStartMessage(name=name))
+        for a in np.linspace(0.0, 1.0, steps + 1)[1:]:
+            self.send(vm.TransformControlsUpdateMessage(name=name, wxyz=q0,
+                                                        position=tuple(map(float, p0 + a * (target - p0)))))
+            time.sleep(pause)
+        self.send(vm.TransformControlsDragEndMessage(name=name))
+        return target, q0
 
     def close(self) -> None:
         self._ws.close()

@@ -223,7 +223,7 @@ def test_dmarionette_does_not_import_fitting():
 
 def test_device_poses_through_the_mapping_stand_in_for_missing_bar_poses(recorded, tmp_path):
     """A session with the main bar's device samples (and the mapping S, W) but no bar poses."""
-    from dmarionette.scene.bars import euler_to_matrix
+    from dmarionette.rotations import euler_to_matrix
     from dmarionette.hw import DeviceMapping
     from fitting.calibration_data import device_mapping_record
 
@@ -253,9 +253,8 @@ def test_device_poses_through_the_mapping_stand_in_for_missing_bar_poses(recorde
 def _with_device_samples(source: Path, target: Path, pose, mapping, h, record, name="device_mapping"):
     """Adds the device samples that, mapped by ``mapping``, give the recorded main-bar poses;
     the sample at t = (k - 1) h drives the step ending at k h (as in the live loop)."""
-    from dmarionette.scene.bars import euler_to_matrix
     from dmarionette.hw import HapticSample
-    from dmarionette.hw.device import quat_from_matrix
+    from dmarionette.rotations import euler_to_matrix, matrix_to_quat, to_wxyz
 
     session = read_session(source)
     with SessionWriter(target, session.scene, session.scene_record["toml"]) as writer:
@@ -266,7 +265,7 @@ def _with_device_samples(source: Path, target: Path, pose, mapping, h, record, n
                 _copy_message(writer, topic, channel, i, t)
         for position, angles, t in zip(pose["position"][1:], pose["rotation"][1:], pose["t"][1:]):
             device_rotation = mapping.rotation.T @ euler_to_matrix(angles)
-            sample = HapticSample.make(t, mapping.position_to_device(position), quat_from_matrix(device_rotation))
+            sample = HapticSample.make(t, mapping.position_to_device(position), to_wxyz(matrix_to_quat(device_rotation)))
             writer.write_device_sample("main", sample, t=float(t) - h)
     return read_calibration_data(target, "bodies")
 

@@ -6,10 +6,10 @@ import pytest
 from dmarionette.scene.bars import (
     BarTrajectory,
     ControlBar,
-    euler_to_matrix,
     read_bar_trajectory_csv,
     write_bar_trajectory_csv,
 )
+from dmarionette.rotations import euler_to_matrix
 from dmarionette.scene.fields import SceneError
 
 KEYS = BarTrajectory(np.array([0.0, 1.0, 2.5, 4.0]),

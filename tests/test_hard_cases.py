@@ -47,9 +47,9 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.scene.bars import euler_to_matrix
 from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.marionette.energy import simulate_energy_balance
+from dmarionette.rotations import euler_to_matrix
 
 wp.config.log_level = wp.LOG_WARNING
 G = 9.81

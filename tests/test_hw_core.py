@@ -11,8 +11,6 @@ from dmarionette.hw.device import (
     HapticDeviceError,
     HapticDeviceSpec,
     HapticSample,
-    matrix_from_quat,
-    quat_from_matrix,
 )
 from dmarionette.hw.mapping import DeviceMapping, rigid_transform, scale_transform
 from dmarionette.hw.safety import ForceSafetyFilter, SafetyConfig, clamp_force
@@ -44,18 +42,22 @@ def test_hw_imports_neither_kernels_nor_warp():
                 names = [("." * node.level) + (node.module or "")]
             for n in names:
                 assert "warp" not in n.split(".") and "kernels" not in n, f"{path.name} imports {n}"
+                # Outside hw/, only the NumPy-only rotations leaf.
+                assert n.split(".")[0] != "dmarionette" or n == "dmarionette.rotations", f"{path.name} imports {n}"
 
 
-def test_quaternion_matrix_round_trip():
+def test_sample_orientation_round_trips_through_its_rotation_matrix():
+    """Samples hold (w, x, y, z); ``make`` takes either form, ``rotation`` gives the matrix."""
     rng = np.random.default_rng(0)
     for _ in range(20):
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         q = q if q[0] >= 0 else -q
-        r = matrix_from_quat(q)
+        r = HapticSample.make(0.0, np.zeros(3), q).rotation
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
-        np.testing.assert_allclose(quat_from_matrix(r), q, atol=1e-12)
-    np.testing.assert_allclose(matrix_from_quat([np.cos(0.3), 0, 0, np.sin(0.3)]), rot_z(0.6), atol=1e-12)
+        np.testing.assert_allclose(HapticSample.make(0.0, np.zeros(3), r).orientation, q, atol=1e-12)
+    turn = HapticSample.make(0.0, np.zeros(3), [np.cos(0.3), 0, 0, np.sin(0.3)])
+    np.testing.assert_allclose(turn.rotation, rot_z(0.6), atol=1e-12)
 
 
 def test_spec_validation_names_the_problem():
@@ -167,7 +169,7 @@ def test_mapping_round_trips_and_anisotropic_stiffness():
     # Orientation: W's rotation composes, scale does not act.
     s = HapticSample.make(0.0, p0, rot_z(0.3))
     _, q_world = m.sample_to_world(s)
-    np.testing.assert_allclose(matrix_from_quat(q_world), m.rotation @ rot_z(0.3), atol=1e-12)
+    np.testing.assert_allclose(HapticSample.make(0.0, p0, q_world).rotation, m.rotation @ rot_z(0.3), atol=1e-12)
 
 
 def test_mapping_refuses_non_rigid_w_and_bad_scale():

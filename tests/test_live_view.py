@@ -205,15 +205,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         gizmo = "/drag/main"
         _wait(lambda: client.poses(gizmo, "position") and client.poses(gizmo, "wxyz"), 10, "the gizmo pose")
         assert not device.dragged
-        p0 = np.array(client.poses(gizmo, "position")[-1][1])
-        q0 = tuple(client.poses(gizmo, "wxyz")[-1][1])
-        target = p0 + np.array([0.05, -0.03, 0.02])
-        client.send(vm.TransformControlsDragStartMessage(name=gizmo))
-        for a in np.linspace(0.0, 1.0, 6)[1:]:
-            client.send(vm.TransformControlsUpdateMessage(name=gizmo, wxyz=q0,
-                                                          position=tuple(map(float, p0 + a * (target - p0)))))
-            time.sleep(0.02)
-        client.send(vm.TransformControlsDragEndMessage(name=gizmo))
+        target, q0 = client.drag(gizmo, [0.05, -0.03, 0.02], steps=5, pause=0.02)
         # The device follows the drag (first-order lag of 30 ms)...
         _wait(lambda: device.last_read is not None and
               np.linalg.norm(device.last_read.position - (target - start)) < 1e-6, 5, "the device to reach the drag")
@@ -379,7 +371,7 @@ def test_no_drag_handle_for_a_device_the_view_cannot_move(model):
 
 
 def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
-    from dmarionette.hw.device import quat_from_matrix
+    from dmarionette.rotations import matrix_to_quat, to_wxyz
 
     """Two simulated devices, one per bar (the hand's with workspace scale 2): each bar has its own
     gizmo (``/drag/main``, ``/drag/hand``); dragging one moves that device only, through its own
@@ -424,7 +416,7 @@ def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
             _wait(lambda: client.poses(gizmo, "position"), 10, f"{gizmo}'s position")
             p0 = np.array(client.poses(gizmo, "position")[-1][1])
             # (viser sends an orientation only when it changes: the hand's stays the identity)
-            q0 = tuple(float(x) for x in quat_from_matrix(view.last_sent.bar_rot[idx[k]]))
+            q0 = tuple(float(x) for x in to_wxyz(matrix_to_quat(view.last_sent.bar_rot[idx[k]])))
             # On its own bar (which may have moved on a little since; the bars are 0.16 m apart).
             assert np.linalg.norm(p0 - view.last_sent.bar_pos[idx[k]]) < 0.01
             targets[k] = p0 + np.array([0.04, -0.02, 0.03]) * (k + 1)

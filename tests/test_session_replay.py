@@ -11,7 +11,6 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.scene.bars import euler_to_matrix
 from dmarionette.io.session import (
     SessionWriter,
     format_session_info,
@@ -21,6 +20,7 @@ from dmarionette.io.session import (
     session_bar_trajectories,
     session_info,
 )
+from dmarionette.rotations import euler_to_matrix
 
 wp.config.log_level = wp.LOG_WARNING
 DURATION = 1.6  # the main bar of "hanging" starts to rock at t = 1 s

@@ -16,8 +16,6 @@ from .device import DeviceDisconnectedError as DeviceDisconnectedError
 from .device import HapticDeviceError as HapticDeviceError
 from .device import HapticDeviceSpec as HapticDeviceSpec
 from .device import HapticSample as HapticSample
-from .device import matrix_from_quat as matrix_from_quat
-from .device import quat_from_matrix as quat_from_matrix
 from .falcon import HapticDeviceFalcon as HapticDeviceFalcon
 from .falcon_kinematics import FalconGeometry as FalconGeometry
 from .falcon_kinematics import FalconKinematics as FalconKinematics
@@ -62,8 +60,6 @@ __all__ = [
     "ServoStatistics",
     "SharedMemoryPhysics",
     "clamp_force",
-    "matrix_from_quat",
-    "quat_from_matrix",
     "rigid_transform",
     "run_servo_loop",
     "scale_transform",

@@ -8,6 +8,10 @@ Frame convention of every sample (whatever the hardware's native frame): SI unit
 device's own frame with x to the user's right, y up, z towards the user (the OpenHaptics
 convention). Each concrete device converts from its native units and axes, which its
 :class:`HapticDeviceSpec` names. :mod:`dmarionette.hw.mapping` takes samples to the world.
+
+Orientations of samples are quaternions ``(w, x, y, z)``, as session files and viser store
+them; the rest of the project uses Warp's ``(x, y, z, w)``. The conversions are those of
+:mod:`dmarionette.rotations` (``from_wxyz``/``to_wxyz`` at this boundary).
 """
 
 from __future__ import annotations
@@ -18,14 +22,14 @@ from typing import Any
 
 import numpy as np
 
+from dmarionette.rotations import from_wxyz, matrix_to_quat, nearest_rotation, normalize_quat, quat_to_matrix, to_wxyz
+
 __all__ = [
     "AbstractHapticDevice",
     "DeviceDisconnectedError",
     "HapticDeviceError",
     "HapticDeviceSpec",
     "HapticSample",
-    "matrix_from_quat",
-    "quat_from_matrix",
 ]
 
 IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])
@@ -40,60 +44,6 @@ class HapticDeviceError(RuntimeError):
 
 class DeviceDisconnectedError(HapticDeviceError):
     """The device went away (unplugged, communication lost) while open."""
-
-
-def quat_from_matrix(rotation: Any) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation matrix.
-
-    Args:
-        rotation: Rotation matrix, shape (3, 3); re-orthonormalised first, so small
-            drift (e.g. from encoders) is tolerated.
-
-    Returns:
-        Quaternion (w, x, y, z) with w >= 0, shape (4,).
-    """
-    r = np.asarray(rotation, dtype=float).reshape(3, 3)
-    u, _, vt = np.linalg.svd(r)
-    r = u @ vt
-    if np.linalg.det(r) < 0.0:
-        raise ValueError(f"quat_from_matrix: matrix is a reflection, not a rotation: {r.tolist()}")
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
-    if trace > 0.0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0.0 else q
-
-
-def matrix_from_quat(quat: Any) -> np.ndarray:
-    """Rotation matrix of a quaternion (w, x, y, z), normalised first.
-
-    Args:
-        quat: Quaternion (w, x, y, z), shape (4,); must be non-zero.
-
-    Returns:
-        Rotation matrix, shape (3, 3).
-    """
-    q = np.asarray(quat, dtype=float).reshape(4)
-    n = np.linalg.norm(q)
-    if not np.isfinite(n) or n == 0.0:
-        raise ValueError(f"matrix_from_quat: need a non-zero finite quaternion (w, x, y, z), got {q.tolist()}")
-    w, x, y, z = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,7 +66,7 @@ class HapticSample:
     @property
     def rotation(self) -> np.ndarray:
         """Orientation as a rotation matrix, shape (3, 3)."""
-        return matrix_from_quat(self.orientation)
+        return quat_to_matrix(from_wxyz(normalize_quat(self.orientation)))
 
     @staticmethod
     def make(time: float, position: Any, orientation: Any = None, buttons: int = 0) -> HapticSample:
@@ -135,7 +85,7 @@ class HapticSample:
         else:
             o = np.asarray(orientation, dtype=float)
             if o.shape == (3, 3):
-                q = quat_from_matrix(o)
+                q = to_wxyz(matrix_to_quat(nearest_rotation(o)))
             elif o.shape == (4,):
                 q = o / np.linalg.norm(o)
             else:

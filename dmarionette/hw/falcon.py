@@ -36,14 +36,8 @@ from typing import Any, final
 
 import numpy as np
 
-from .device import (
-    AbstractHapticDevice,
-    DeviceDisconnectedError,
-    HapticDeviceError,
-    HapticDeviceSpec,
-    HapticSample,
-    as_force,
-)
+from .device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError
+from .device import HapticDeviceSpec, HapticSample, as_force
 from .falcon_kinematics import FalconKinematics, FalconKinematicsError
 
 __all__ = ["FALCON_PRODUCT_ID", "FALCON_VENDOR_ID", "FTDI", "FalconPacketReader", "HapticDeviceFalcon",

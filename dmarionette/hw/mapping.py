@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from .device import HapticSample, matrix_from_quat, quat_from_matrix
+from dmarionette.rotations import from_wxyz, matrix_to_quat, nearest_rotation, normalize_quat, quat_to_matrix, to_wxyz
+
+from .device import HapticSample
 
 __all__ = ["DeviceMapping", "rigid_transform", "scale_transform"]
 
@@ -47,7 +49,7 @@ def rigid_transform(rotation: Any = None, translation: Any = None) -> np.ndarray
     w = np.eye(4)
     if rotation is not None:
         r = np.asarray(rotation, dtype=float)
-        w[:3, :3] = matrix_from_quat(r) if r.shape == (4,) else r
+        w[:3, :3] = quat_to_matrix(from_wxyz(normalize_quat(r))) if r.shape == (4,) else r
     if translation is not None:
         w[:3, 3] = np.asarray(translation, dtype=float).reshape(3)
     return w
@@ -143,7 +145,7 @@ class DeviceMapping:
             ``(position [m] (3,), orientation quaternion (w, x, y, z) (4,))`` in the world.
         """
         return (self.position_to_world(sample.position),
-                quat_from_matrix(self.rotation_to_world(sample.rotation)))
+                to_wxyz(matrix_to_quat(nearest_rotation(self.rotation_to_world(sample.rotation)))))
 
     def sample_in_world(self, sample: HapticSample) -> HapticSample:
         """The same sample with position and orientation in the world (time and buttons kept)."""

@@ -24,15 +24,10 @@ from typing import Any, final
 
 import numpy as np
 
-from .device import (
-    AbstractHapticDevice,
-    DeviceDisconnectedError,
-    HapticDeviceError,
-    HapticDeviceSpec,
-    HapticSample,
-    as_force,
-    quat_from_matrix,
-)
+from dmarionette.rotations import matrix_to_quat, nearest_rotation, to_wxyz
+
+from .device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError
+from .device import HapticDeviceSpec, HapticSample, as_force
 
 __all__ = ["HD", "HapticDeviceOpenHaptics", "find_hd_library"]
 
@@ -336,7 +331,7 @@ class HapticDeviceOpenHaptics(AbstractHapticDevice):
                 self._error = cls(f"OpenHaptics servo loop: {self._error_text(info)}")
                 return HD.CALLBACK_DONE
             m = np.array(self._transform[:], dtype=float).reshape(4, 4).T  # column-major -> row-major
-            sample = HapticSample(now - self._t0, m[:3, 3] * 1e-3, quat_from_matrix(m[:3, :3]),
+            sample = HapticSample(now - self._t0, m[:3, 3] * 1e-3, to_wxyz(matrix_to_quat(nearest_rotation(m[:3, :3]))),
                                   int(self._buttons.value))
             with self._lock:
                 self._sample = sample

@@ -10,14 +10,8 @@ from typing import Any, final
 
 import numpy as np
 
-from .device import (
-    AbstractHapticDevice,
-    DeviceDisconnectedError,
-    HapticDeviceError,
-    HapticDeviceSpec,
-    HapticSample,
-    as_force,
-)
+from .device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError
+from .device import HapticDeviceSpec, HapticSample, as_force
 
 __all__ = ["DEFAULT_SIMULATED_SPEC", "HapticDeviceReplay", "HapticDeviceSimulated"]
 

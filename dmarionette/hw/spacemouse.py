@@ -25,16 +25,10 @@ from typing import Any, Protocol, final
 
 import numpy as np
 
-from .device import (
-    AbstractHapticDevice,
-    DeviceDisconnectedError,
-    HapticDeviceError,
-    HapticDeviceSpec,
-    HapticSample,
-    as_force,
-    matrix_from_quat,
-    quat_from_matrix,
-)
+from dmarionette.rotations import matrix_to_quat, nearest_rotation, normalize_quat, quat_to_matrix, to_wxyz
+
+from .device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError
+from .device import HapticDeviceSpec, HapticSample, as_force
 
 __all__ = ["KNOWN_SPACEMOUSE_IDS", "HapticDeviceSpaceMouse", "HidTransport", "SpaceMouseReportParser"]
 
@@ -257,9 +251,10 @@ class HapticDeviceSpaceMouse(AbstractHapticDevice):
         angle = float(np.linalg.norm(w)) * dt
         if angle > 0.0:  # rotate about fixed (base) axes: R <- exp([w] dt) R
             axis = w / np.linalg.norm(w)
-            dq = np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis]
-            self._rot = matrix_from_quat(dq) @ self._rot
-        return HapticSample(now - self._t0, self._pos.copy(), quat_from_matrix(self._rot), self.parser.buttons)
+            dq = np.r_[np.sin(angle / 2) * axis, np.cos(angle / 2)]
+            self._rot = quat_to_matrix(normalize_quat(dq)) @ self._rot
+        return HapticSample(now - self._t0, self._pos.copy(), to_wxyz(matrix_to_quat(nearest_rotation(self._rot))),
+                            self.parser.buttons)
 
     def write_force(self, force: Any) -> None:
         """No motors: a zero force is accepted, a non-zero one ignored (or refused with ``refuse_force``)."""

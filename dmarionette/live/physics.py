@@ -26,6 +26,7 @@ import numpy as np
 from dmarionette.capture import CapturedChunk
 from dmarionette.live.view import scripted_rotations
 from dmarionette.marionette.solver import MarionetteModel, SolverMarionette, bar_inputs
+from dmarionette.rotations import matrix_to_euler
 
 __all__ = ["LiveMarionette", "LiveTick", "make_physics_step"]
 
@@ -184,7 +185,7 @@ def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], dur
         if on_tick is not None:
             poses = {name: (bar_q[b], scripted_angles[b][k]) for b, name in enumerate(model.bar_names)}
             for b, rotation in zip(driven, rotations):
-                poses[model.bar_names[b]] = (bar_q[b], _matrix_to_euler_deg(rotation))
+                poses[model.bar_names[b]] = (bar_q[b], matrix_to_euler(rotation))
             on_tick(tick, poses)
         if view is not None and view.due():
             all_rotations = scripted_rotations(scripted_angles, k)
@@ -205,11 +206,3 @@ def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], dur
 
 def _loaded() -> None:
     """The warm-up of the chunks after the first: their modules are loaded already."""
-
-
-def _matrix_to_euler_deg(r: np.ndarray) -> np.ndarray:
-    """XYZ Euler angles [deg] of ``R = Rz Ry Rx`` (inverse of :func:`euler_to_matrix`)."""
-    ry = np.arcsin(np.clip(-r[2, 0], -1.0, 1.0))
-    rx = np.arctan2(r[2, 1], r[2, 2])
-    rz = np.arctan2(r[1, 0], r[0, 0])
-    return np.degrees([rx, ry, rz])

@@ -28,7 +28,7 @@ from typing import final
 
 import numpy as np
 
-from dmarionette.scene.bars import euler_to_matrix
+from dmarionette.rotations import euler_to_matrix, from_wxyz, quat_rotate, to_wxyz
 
 __all__ = ["AbstractLiveView", "LiveSnapshot", "LiveViewGeometry", "LiveViewHeadless", "LiveViewPublisher", "SLACK_RGB",
            "SnapshotBuffer", "TAUT_RGB",
@@ -254,7 +254,7 @@ class LiveViewPublisher:
         self.buffer.publish(LiveSnapshot(
             sequence=self.buffer.published + 1, t=live.time, wall_time=now,
             particle_q=live.latest_particle_q().copy(), body_pos=body_pos[0].copy(),
-            body_wxyz=body_rot[0][:, [3, 0, 1, 2]].copy(),  # Warp (x, y, z, w) -> (w, x, y, z)
+            body_wxyz=to_wxyz(body_rot[0]),
             bar_pos=np.array(bar_pos, dtype=np.float64), bar_rot=np.array(bar_rot, dtype=np.float64),
             string_taut=live.latest_string_taut().copy(), bar_reaction=np.array(bar_reaction, dtype=np.float64),
             force_sent=np.array(force, dtype=np.float64), dragged=self.dragged))
@@ -316,13 +316,6 @@ def scripted_rotations(angles_deg: list[np.ndarray], k: int) -> np.ndarray:
     return euler_to_matrix(np.array([a[k] for a in angles_deg]).reshape(-1, 3))
 
 
-def _quat_rotate(wxyz: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``v`` (k, 3) rotated by the unit quaternion ``wxyz`` (4,)."""
-    w, u = wxyz[0], wxyz[1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
 def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot: LiveSnapshot, *,
                          title: str = "", arrow_scale: float = 0.03) -> Path:
     """A picture (PNG) of one snapshot: front (x-y) and side (z-y) views, no browser needed.
@@ -363,13 +356,13 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
                                        alpha=0.7))
         for (shape, size), centre3, q in zip(geometry.body_shape, snapshot.body_pos, snapshot.body_wxyz):
             if shape == "box":
-                world = centre3 + _quat_rotate(q, corners * 0.5 * np.asarray(size))
+                world = centre3 + quat_rotate(from_wxyz(q), corners * 0.5 * np.asarray(size))
                 for i, j in edges:
                     ax.plot(world[[i, j], axis], world[[i, j], 1], color="steelblue", lw=1.0)
             else:
                 for loop in (np.stack([np.cos(ring), np.sin(ring), 0 * ring], 1),
                              np.stack([0 * ring, np.sin(ring), np.cos(ring)], 1)):
-                    world = centre3 + _quat_rotate(q, size[0] * loop)
+                    world = centre3 + quat_rotate(from_wxyz(q), size[0] * loop)
                     ax.plot(world[:, axis], world[:, 1], color="steelblue", lw=1.0)
         for s in range(len(geometry.string_names)):
             a, b = geometry.string_start[s], geometry.string_start[s + 1]

@@ -28,8 +28,8 @@ from typing import final
 
 import numpy as np
 
-from dmarionette.hw.device import matrix_from_quat, quat_from_matrix
 from dmarionette.live.view import AbstractLiveView, LiveSnapshot, LiveViewGeometry, SnapshotBuffer, string_colors
+from dmarionette.rotations import from_wxyz, matrix_to_quat, normalize_quat, quat_to_matrix, to_wxyz
 
 __all__ = ["LiveViewServer"]
 
@@ -235,7 +235,8 @@ class LiveViewServer(AbstractLiveView):
             target = event.target
             drag = self._drags[device]
             if drag is not None and event.phase in ("start", "update"):
-                drag(np.array(target.position, dtype=np.float64), matrix_from_quat(target.wxyz))
+                rotation = quat_to_matrix(from_wxyz(normalize_quat(target.wxyz)))
+                drag(np.array(target.position, dtype=np.float64), rotation)
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -269,7 +270,7 @@ class LiveViewServer(AbstractLiveView):
                 for i, (gizmo, b) in enumerate(zip(self._gizmos, devices)):
                     if i not in self._dragging:  # the mouse holds it: do not pull it back
                         gizmo.position = snapshot.bar_pos[b]
-                        gizmo.wxyz = quat_from_matrix(snapshot.bar_rot[b])
+                        gizmo.wxyz = to_wxyz(matrix_to_quat(snapshot.bar_rot[b]))
             if snapshot.sequence % 10 == 1:
                 taut = int(np.count_nonzero(snapshot.string_taut))
                 self._status.content = (

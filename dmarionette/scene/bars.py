@@ -19,27 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from dmarionette.rotations import euler_to_matrix
 from dmarionette.scene.fields import SceneError, check_keys, read_float, read_str, read_table, read_vec3
 
-__all__ = ["BarTrajectory", "ControlBar", "euler_to_matrix", "read_bar_trajectory_csv"]
-
-
-def euler_to_matrix(angles_deg: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``Rz Ry Rx`` from XYZ angles in degrees, ``(..., 3) -> (..., 3, 3)``."""
-    a = np.radians(np.asarray(angles_deg, dtype=np.float64))
-    cx, cy, cz = np.cos(a[..., 0]), np.cos(a[..., 1]), np.cos(a[..., 2])
-    sx, sy, sz = np.sin(a[..., 0]), np.sin(a[..., 1]), np.sin(a[..., 2])
-    r = np.empty(a.shape[:-1] + (3, 3))
-    r[..., 0, 0] = cy * cz
-    r[..., 0, 1] = sx * sy * cz - cx * sz
-    r[..., 0, 2] = cx * sy * cz + sx * sz
-    r[..., 1, 0] = cy * sz
-    r[..., 1, 1] = sx * sy * sz + cx * cz
-    r[..., 1, 2] = cx * sy * sz - sx * cz
-    r[..., 2, 0] = -sy
-    r[..., 2, 1] = sx * cy
-    r[..., 2, 2] = cx * cy
-    return r
+__all__ = ["BarTrajectory", "ControlBar", "read_bar_trajectory_csv"]
 
 
 @dataclasses.dataclass(frozen=True)

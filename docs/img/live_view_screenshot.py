@@ -17,7 +17,6 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
@@ -31,7 +30,6 @@ from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
 from live_view_client import ViewClient  # noqa: E402
-from viser import _messages as vm  # noqa: E402
 
 
 def main() -> None:
@@ -44,16 +42,7 @@ def main() -> None:
         time.sleep(3.0)
         client = ViewClient(view.url)
         time.sleep(0.5)
-        name = "/drag/main"
-        p0 = np.array(client.poses(name, "position")[-1][1])
-        q0 = tuple(client.poses(name, "wxyz")[-1][1])
-        target = p0 + np.array([0.05, -0.16, 0.0])
-        client.send(vm.TransformControlsDragStartMessage(name=name))
-        for a in np.linspace(0.0, 1.0, 20)[1:]:
-            client.send(vm.TransformControlsUpdateMessage(name=name, wxyz=q0,
-                                                          position=tuple(map(float, p0 + a * (target - p0)))))
-            time.sleep(0.03)
-        client.send(vm.TransformControlsDragEndMessage(name=name))
+        client.drag("/drag/main", [0.05, -0.16, 0.0], steps=19, pause=0.03)
         time.sleep(1.0)
         with tempfile.TemporaryDirectory() as tmp:
             raw = Path(tmp) / "shot.png"

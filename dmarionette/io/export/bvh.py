@@ -56,60 +56,17 @@ from dmarionette.io.export.common import (
     ExportError,
     body_motion,
     check_puppet_matches,
-    continuous_quats,
-    matrix_to_quat,
-    quat_to_matrix,
     resolve_puppet,
 )
+from dmarionette.rotations import continuous_quats, matrix_to_euler_xzy, matrix_to_quat, quat_slerp, quat_to_matrix
 from dmarionette.scene.puppet import PuppetDescription
 
-__all__ = ["BVH_ROTATION_CHANNELS", "bvh_local_rotations", "euler_xzy", "export_bvh"]
+__all__ = ["BVH_ROTATION_CHANNELS", "bvh_local_rotations", "export_bvh"]
 
 BVH_ROTATION_CHANNELS = ("Xrotation", "Zrotation", "Yrotation")
 """The rotation channel order of every joint: ``R = Rx(X) Rz(Z) Ry(Y)``."""
 
 _DECIMALS = 6
-_GIMBAL = 1e-9
-
-
-def euler_xzy(r: np.ndarray, previous: np.ndarray | None = None) -> np.ndarray:
-    """Intrinsic X-Z-Y Euler angles [rad] of rotation matrices, ``R = Rx(a) Rz(b) Ry(c)``.
-
-    Args:
-        r: rotation matrices, shape ``(N, 3, 3)``.
-        previous: angles ``(N, 3)`` of the previous frame, or None. Given, each result is
-            the one of the two equivalent triples (``(a, b, c)`` and
-            ``(a + pi, pi - b, c + pi)``), each angle shifted by whole turns, nearest to it.
-            At gimbal lock (``|b| = 90 deg``) only ``a -/+ c`` is defined; ``c`` then keeps
-            its previous value (0 without one).
-
-    Returns:
-        ``(N, 3)`` angles ``(a, b, c)`` [rad]: about x, then z, then y.
-    """
-    r = np.asarray(r, dtype=np.float64)
-    cos_b = np.hypot(r[:, 0, 0], r[:, 0, 2])
-    b = np.arctan2(-r[:, 0, 1], cos_b)
-    a = np.arctan2(r[:, 2, 1], r[:, 1, 1])
-    c = np.arctan2(r[:, 0, 2], r[:, 0, 0])
-    locked = cos_b < _GIMBAL
-    if np.any(locked):
-        c_keep = previous[locked, 2] if previous is not None else np.zeros(np.count_nonzero(locked))
-        rl = r[locked]
-        up = -rl[:, 0, 1] > 0.0
-        a_minus_c = np.arctan2(rl[:, 2, 0], rl[:, 2, 2])   # b = +90 deg: R depends on a - c only
-        a_plus_c = np.arctan2(-rl[:, 1, 2], rl[:, 2, 2])   # b = -90 deg: R depends on a + c only
-        c[locked] = c_keep
-        a[locked] = np.where(up, a_minus_c + c_keep, a_plus_c - c_keep)
-    angles = np.stack([a, b, c], axis=1)
-    if previous is None:
-        return angles
-    other = np.stack([a + np.pi, np.pi - b, c + np.pi], axis=1)
-    best = []
-    for candidate in (angles, other):
-        turns = np.round((previous - candidate) / (2.0 * np.pi))
-        best.append(candidate + 2.0 * np.pi * turns)
-    distance = [np.abs(x - previous).sum(axis=1) for x in best]
-    return np.where((distance[1] < distance[0])[:, None], best[1], best[0])
 
 
 def bvh_local_rotations(motion: BodyMotion, puppet: PuppetDescription) -> np.ndarray:
@@ -127,26 +84,12 @@ def bvh_local_rotations(motion: BodyMotion, puppet: PuppetDescription) -> np.nda
     return continuous_quats(matrix_to_quat(local))
 
 
-def _slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Spherical interpolation of unit quaternions ``(..., 4)`` at ``u`` in [0, 1] ``(...,)``."""
-    dot = np.sum(q0 * q1, axis=-1)
-    q1 = np.where(dot[..., None] < 0.0, -q1, q1)
-    dot = np.clip(np.abs(dot), -1.0, 1.0)
-    theta = np.arccos(dot)
-    small = theta < 1e-8
-    s = np.where(small, 1.0, np.sin(theta))
-    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / s)
-    w1 = np.where(small, u, np.sin(u * theta) / s)
-    q = w0[..., None] * q0 + w1[..., None] * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
 def _resample(times: np.ndarray, root_pos: np.ndarray, local: np.ndarray, new_times: np.ndarray):
     """Root position (linear) and joint rotations (slerp) at ``new_times`` inside ``times``."""
     i = np.clip(np.searchsorted(times, new_times, side="right") - 1, 0, len(times) - 2)
     u = np.clip((new_times - times[i]) / (times[i + 1] - times[i]), 0.0, 1.0)
     pos = root_pos[i] + u[:, None] * (root_pos[i + 1] - root_pos[i])
-    rot = _slerp(local[i], local[i + 1], np.broadcast_to(u[:, None], (len(u), local.shape[1])))
+    rot = quat_slerp(local[i], local[i + 1], np.broadcast_to(u[:, None], (len(u), local.shape[1])))
     return pos, continuous_quats(rot)
 
 
@@ -257,7 +200,7 @@ def export_bvh(trajectory: Any, path: str | Path, *, fps: float | None = None,
     euler = np.empty((frames, joints, 3))
     previous = None
     for f in range(frames):
-        previous = euler[f] = euler_xzy(quat_to_matrix(local[f]), previous)
+        previous = euler[f] = matrix_to_euler_xzy(quat_to_matrix(local[f]), previous)
     columns = [root_pos] + [np.degrees(euler[:, b]) for b in order]
     table = np.concatenate(columns, axis=1)
 

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from dmarionette.scene.puppet import PuppetDescription, load_puppet
 from dmarionette.rotations import quat_to_matrix
+from dmarionette.scene.puppet import PuppetDescription, load_puppet
 
 __all__ = [
     "JOINT_GAP_TOLERANCE",
@@ -26,9 +26,6 @@ __all__ = [
     "ExportError",
     "body_motion",
     "check_puppet_matches",
-    "continuous_quats",
-    "matrix_to_quat",
-    "quat_to_matrix",
     "read_marionette_trajectory",
     "resolve_puppet",
 ]
@@ -148,53 +145,6 @@ def body_motion(trajectory: Any, where: str = "trajectory") -> BodyMotion:
                               "['box', [sx, sy, sz]] with extents > 0 [m] or ['sphere', [radius > 0, 0, 0]]")
         shapes.append((str(shape), size))
     return BodyMotion(time, pos, rot, names, shapes)
-
-
-def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(x, y, z, w)`` of rotation matrices, ``(..., 3, 3) -> (..., 4)``, w >= 0.
-
-    Shepperd's method: each quaternion is computed from its largest component, so the
-    result is accurate to rounding for every rotation, including those near 180 degrees.
-    """
-    r = np.asarray(r, dtype=np.float64)
-    flat = r.reshape(-1, 3, 3)
-    out = np.empty((len(flat), 4))
-    trace = flat[:, 0, 0] + flat[:, 1, 1] + flat[:, 2, 2]
-    diag = np.stack([flat[:, 0, 0], flat[:, 1, 1], flat[:, 2, 2], trace], axis=1)
-    pick = np.argmax(diag, axis=1)
-    for k in range(4):
-        m = flat[pick == k]
-        if not len(m):
-            continue
-        if k == 3:
-            s = 2.0 * np.sqrt(1.0 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2])
-            q = np.stack([(m[:, 2, 1] - m[:, 1, 2]) / s, (m[:, 0, 2] - m[:, 2, 0]) / s,
-                          (m[:, 1, 0] - m[:, 0, 1]) / s, 0.25 * s], axis=1)
-        else:
-            i, j, l = k, (k + 1) % 3, (k + 2) % 3
-            s = 2.0 * np.sqrt(1.0 + m[:, i, i] - m[:, j, j] - m[:, l, l])
-            q = np.empty((len(m), 4))
-            q[:, i] = 0.25 * s
-            q[:, j] = (m[:, j, i] + m[:, i, j]) / s
-            q[:, l] = (m[:, l, i] + m[:, i, l]) / s
-            q[:, 3] = (m[:, l, j] - m[:, j, l]) / s
-        out[pick == k] = q
-    out *= np.where(out[:, 3:4] < 0.0, -1.0, 1.0)
-    out /= np.linalg.norm(out, axis=1, keepdims=True)
-    return out.reshape(r.shape[:-2] + (4,))
-
-
-def continuous_quats(q: np.ndarray) -> np.ndarray:
-    """Flips signs along axis 0 so that consecutive quaternions have a non-negative dot product.
-
-    ``q`` and ``-q`` are the same rotation; interpolating between neighbours of one sign
-    takes the short way round. Shape ``(F, ..., 4)``.
-    """
-    q = np.array(q, dtype=np.float64, copy=True)
-    for f in range(1, len(q)):
-        dot = np.sum(q[f] * q[f - 1], axis=-1, keepdims=True)
-        q[f] *= np.where(dot < 0.0, -1.0, 1.0)
-    return q
 
 
 def resolve_puppet(trajectory: Any, puppet: PuppetDescription | None) -> PuppetDescription:

@@ -45,7 +45,8 @@ from typing import Any
 
 import numpy as np
 
-from dmarionette.io.export.common import BodyMotion, ExportError, body_motion, continuous_quats, matrix_to_quat
+from dmarionette.io.export.common import BodyMotion, ExportError, body_motion
+from dmarionette.rotations import continuous_quats, matrix_to_quat
 
 __all__ = ["box_mesh", "export_gltf", "sphere_mesh"]
 

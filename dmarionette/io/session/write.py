@@ -48,51 +48,55 @@ def _vector(n: int, description: str, items: dict | None = None) -> dict:
 
 _T = {"type": "number", "description": "simulated time [s] (the log time is the same in ns)"}
 
+def _message_schema(name: str, description: str, properties: dict, required: list[str]) -> dict:
+    """JSON Schema of one message type: an object with the simulated time ``t`` and ``properties``."""
+    return {"title": name, "type": "object", "description": description,
+            "properties": {"t": _T, **properties}, "required": ["t", *required]}
+
+
 #: JSON Schema of each message type, by schema name (one schema record each in the file).
-SCHEMAS: dict[str, dict] = {
-    "dmarionette.DeviceSample": {
-        "title": "dmarionette.DeviceSample", "type": "object",
-        "description": "A haptic device sample, device frame (x right, y up, z towards the user).",
-        "properties": {"t": _T, "position": _vector(3, "tip position [m], device frame"),
-                       "orientation": _vector(4, "unit quaternion (w, x, y, z), device frame"),
-                       "buttons": {"type": "integer", "description": "button bitmask"},
-                       "device_time": {"type": "number",
-                                       "description": "the device's clock [s since open], when t is the "
-                                                      "simulated time (optional)"}},
-        "required": ["t", "position", "orientation", "buttons"]},
-    "dmarionette.DeviceForce": {
-        "title": "dmarionette.DeviceForce", "type": "object",
-        "description": "The force sent to the device (after the safety filter), device frame.",
-        "properties": {"t": _T, "force": _vector(3, "force [N], device frame")},
-        "required": ["t", "force"]},
-    "dmarionette.BarPose": {
-        "title": "dmarionette.BarPose", "type": "object",
-        "description": "A control bar's pose, world frame (y up).",
-        "properties": {"t": _T, "position": _vector(3, "bar centre [m], world frame"),
-                       "rotation": _vector(3, "XYZ Euler angles [deg], R = Rz Ry Rx (control_bar.py)")},
-        "required": ["t", "position", "rotation"]},
-    "dmarionette.BarFeedback": {
-        "title": "dmarionette.BarFeedback", "type": "object",
-        "description": "Forces of the strings on a bar, world frame.",
-        "properties": {"t": _T, "eq4": _vector(3, "paper eq. 4 feedback summed over the bar's taut strings [N]"),
-                       "reaction": _vector(3, "exact reaction: sum of string tensions at the attach points [N]")},
-        "required": ["t", "eq4", "reaction"]},
-    "dmarionette.StringTaut": {
-        "title": "dmarionette.StringTaut", "type": "object",
-        "description": "Taut flags (paper 3.2), one per string in the order of the metadata's 'strings'.",
-        "properties": {"t": _T, "taut": {"type": "array", "items": {"type": "integer", "enum": [0, 1]}}},
-        "required": ["t", "taut"]},
-    "dmarionette.PuppetState": {
-        "title": "dmarionette.PuppetState", "type": "object",
-        "description": "The puppet: generalised coordinates and body poses (world frame), bodies in the "
-                       "order of the metadata's 'bodies'.",
-        "properties": {"t": _T,
-                       "joint_q": {"type": "array", "items": {"type": ["number", "null"]},
-                                   "description": "generalised coordinates (metadata 'joint_q_layout')"},
-                       "body_pos": {"type": "array", "items": _vector(3, "body centre [m]")},
-                       "body_rot": {"type": "array", "items": _vector(4, "body quaternion (x, y, z, w)")}},
-        "required": ["t", "joint_q", "body_pos", "body_rot"]},
-}
+SCHEMAS: dict[str, dict] = {schema["title"]: schema for schema in (
+    _message_schema(
+        "dmarionette.DeviceSample",
+        "A haptic device sample, device frame (x right, y up, z towards the user).",
+        {"position": _vector(3, "tip position [m], device frame"),
+         "orientation": _vector(4, "unit quaternion (w, x, y, z), device frame"),
+         "buttons": {"type": "integer", "description": "button bitmask"},
+         "device_time": {"type": "number",
+                         "description": "the device's clock [s since open], when t is the simulated time (optional)"}},
+        ["position", "orientation", "buttons"]),
+    _message_schema(
+        "dmarionette.DeviceForce",
+        "The force sent to the device (after the safety filter), device frame.",
+        {"force": _vector(3, "force [N], device frame")},
+        ["force"]),
+    _message_schema(
+        "dmarionette.BarPose",
+        "A control bar's pose, world frame (y up).",
+        {"position": _vector(3, "bar centre [m], world frame"),
+         "rotation": _vector(3, "XYZ Euler angles [deg], R = Rz Ry Rx (control_bar.py)")},
+        ["position", "rotation"]),
+    _message_schema(
+        "dmarionette.BarFeedback",
+        "Forces of the strings on a bar, world frame.",
+        {"eq4": _vector(3, "paper eq. 4 feedback summed over the bar's taut strings [N]"),
+         "reaction": _vector(3, "exact reaction: sum of string tensions at the attach points [N]")},
+        ["eq4", "reaction"]),
+    _message_schema(
+        "dmarionette.StringTaut",
+        "Taut flags (paper 3.2), one per string in the order of the metadata's 'strings'.",
+        {"taut": {"type": "array", "items": {"type": "integer", "enum": [0, 1]}}},
+        ["taut"]),
+    _message_schema(
+        "dmarionette.PuppetState",
+        "The puppet: generalised coordinates and body poses (world frame), bodies in the order of the "
+        "metadata's 'bodies'.",
+        {"joint_q": {"type": "array", "items": {"type": ["number", "null"]},
+                     "description": "generalised coordinates (metadata 'joint_q_layout')"},
+         "body_pos": {"type": "array", "items": _vector(3, "body centre [m]")},
+         "body_rot": {"type": "array", "items": _vector(4, "body quaternion (x, y, z, w)")}},
+        ["joint_q", "body_pos", "body_rot"]),
+)}
 
 # topic pattern -> schema name
 _TOPIC_SCHEMA = {

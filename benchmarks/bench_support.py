@@ -1,0 +1,33 @@
+"""Helpers shared by the benchmark scripts (run as ``python benchmarks/bench_x.py``, so this
+folder is on ``sys.path``)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+__all__ = ["time_forward_backward"]
+
+
+def time_forward_backward(engine: Any, inputs: Any, cot: dict, repeats: int) -> tuple[list[float], list[float]]:
+    """Wall times [s] of ``repeats`` alternating ``engine.forward(inputs)`` / ``engine.backward(cot)`` calls.
+
+    Args:
+        engine: A gradient engine with ``forward`` and ``backward`` (e.g. ``MarionetteGradient``),
+            already warmed up (kernels compiled, graphs captured).
+        inputs: What ``forward`` takes.
+        cot: The output cotangents ``backward`` takes.
+        repeats: Number of forward/backward pairs.
+
+    Returns:
+        ``(forward, backward)``: one time per repeat each.
+    """
+    forward, backward = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        engine.forward(inputs)
+        forward.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        engine.backward(cot)
+        backward.append(time.perf_counter() - start)
+    return forward, backward
