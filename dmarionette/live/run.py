@@ -81,8 +81,7 @@ class LiveMarionette:
         # Where the latest string state is after string step j of a puppet step: the solver's
         # two spare string states in turn, and the step's output (then assigned to self.state)
         # after the last one (see SolverMarionette.step_string).
-        spare = [s.particle_q.numpy() for s in self.solver._spare]
-        self._particle_after = [self.state.strings.particle_q.numpy() if j == n - 1 else spare[j % 2]
+        self._particle_after = [self.solver.string_state_after(self.state, j).particle_q.numpy()
                                 for j in range(n)]
         assert self._top_q.shape == (n, s, 3) and self._bar_q.shape == (n, b, 3)
 
@@ -96,6 +95,7 @@ class LiveMarionette:
         n = self.model.substeps
         with wp.ScopedCapture(device=self.model.device) as capture:
             if j == 0:
+                self.model.puppet_solver.eval_kinematics(self.state.puppet)  # body poses, for the view
                 self.solver.begin_step(self.state, self._next)
             self.solver.step_string(self.state, self._next, self.control, j)
             if j == n - 1:
