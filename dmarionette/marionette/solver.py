@@ -300,10 +300,12 @@ class SolverMarionette:
         states = (workspace or self.workspace).string_states
         return states[j % len(states)]
 
-    def _string_controls(self, control: MarionetteControl, ws: MarionetteWorkspace) -> list[StringControl]:
-        """The controls of the n string steps: views of ``control``'s buffers and the tie path
-        (float32 strings: of their own float32 copies); cached for the plain workspace (the
-        cache holds the control, so its id stays unique)."""
+    def string_controls(self, control: MarionetteControl, *,
+                        workspace: MarionetteWorkspace | None = None) -> list[StringControl]:
+        """The controls of the n string steps: views of ``control``'s buffers and the
+        workspace's tie path (float32 strings: of their own float32 copies); cached for the
+        plain workspace (the cache holds the control, so its id stays unique)."""
+        ws = workspace or self.workspace
         key = id(control)
         if ws is self.workspace and key in self._string_control_cache:
             return self._string_control_cache[key][1]
@@ -354,7 +356,7 @@ class SolverMarionette:
         previous = state_in.strings if j == 0 else self.string_state_after(state_out, j - 1, workspace=ws)
         particles = self.string_state_after(state_out, j, workspace=ws)
         string_ws = ws.string_workspaces[j % len(ws.string_workspaces)]
-        controls = self._string_controls(control, ws)
+        controls = self.string_controls(control, workspace=ws)
         if ws.narrow is None:
             # The tie force and taut flags go straight into this string step's rows of state_out.
             nxt = StringStepOutput(particles.particle_q, particles.particle_qd, state_out.tie_force[j],
