@@ -395,8 +395,9 @@ class SolverArticulation:
         self.contacts = ContactSet(model)
         self._workspaces: dict[int, ArticulationWorkspace] = {}
 
-    def workspace(self, world_count: int = 1) -> ArticulationWorkspace:
-        """The workspace plain (untaped) steps of ``world_count`` worlds reuse."""
+    def default_workspace(self, world_count: int = 1) -> ArticulationWorkspace:
+        """The workspace plain (untaped) steps of ``world_count`` worlds reuse (what the last
+        plain step derived: its input's body kinematics, wrenches, spring forces)."""
         if world_count not in self._workspaces:
             self._workspaces[world_count] = self.model.workspace(world_count)
         return self._workspaces[world_count]
@@ -413,7 +414,7 @@ class SolverArticulation:
             tape: the ``wp.Tape`` the step is recorded on (the caller's ``with tape:``), or None.
                 A taped step without ``workspace`` derives into fresh arrays of its own.
             workspace: where the step writes its derived quantities (default: the solver's
-                :meth:`workspace`, or fresh arrays when taped).
+                :meth:`default_workspace`, or fresh arrays when taped).
 
         Raises:
             ValueError: ``dt`` negative or not finite, ``state_in is state_out``, or
@@ -434,7 +435,7 @@ class SolverArticulation:
             return workspace
         if tape is not None:
             return self.model.workspace(state_in.world_count, requires_grad=True)
-        return self.workspace(state_in.world_count)
+        return self.default_workspace(state_in.world_count)
 
     def step_sizes(self, dt: float) -> tuple:
         """``(h, h_implicit)`` of a step of ``dt`` [s] as float64 (``h_implicit`` is 0 for the explicit step)."""
