@@ -182,7 +182,7 @@ class TapedSegment:
         """Re-runs puppet steps ``a .. b-1`` from ``checkpoint`` on a tape and pulls back.
 
         Args:
-            checkpoint: the state at step ``a`` (``marionette_grad.Checkpoint``).
+            checkpoint: the state at step ``a`` (``dmarionette.grad.engine.Checkpoint``).
             inputs: the rollout's ``RolloutInputs`` (the model's constants already set from them).
             a, b: the segment's first and one-past-last puppet step.
             last: ``b`` is the rollout's end (its final row of per-puppet-step outputs is seeded here).

@@ -74,7 +74,7 @@ class MarionetteModel:
         spring_string: string index of each body spring, ``(N,)``.
         puppet_mass: total puppet mass [kg] (eq. 4's ``m``).
         requires_grad: whether the strings' and puppet's fittable arrays (and the states
-            made from them) carry gradients, for taped rollouts (``marionette_grad``).
+            made from them) carry gradients, for taped rollouts (``dmarionette.grad.engine``).
     """
 
     def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None, requires_grad: bool = False):

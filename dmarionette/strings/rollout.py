@@ -6,7 +6,7 @@ the whole chunk in native code. Per-step inputs are read from ``(chunk_steps, S)
 buffers filled before each replay; per-step outputs (tie forces, taut flags) are
 written to buffers of the same shape.
 
-Not for gradients: under a ``wp.Tape`` use :meth:`SolverStringImplicit.step` directly.
+Not for gradients: on a ``wp.Tape`` call :meth:`SolverStringImplicit.step` with ``tape=`` directly.
 """
 
 from __future__ import annotations
