@@ -129,7 +129,7 @@ def test_float64_launches_no_conversion_and_float32_converts_each_crossing(hangi
         if expected is None:
             expected = 2 + 2 * model.substeps
         assert len(calls) == expected, precision
-        views = solver._string_controls(control)
+        views = solver.string_controls(control)
         same = all(v.top_q.ptr == control.top_q[j].ptr for j, v in enumerate(views))
         assert same == (precision == "float64"), precision
 

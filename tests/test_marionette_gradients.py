@@ -141,7 +141,7 @@ def _string_margins(model: MarionetteModel, puppet_steps: int = PUPPET_STEPS) ->
         solver.begin_step(a, b)
         for j in range(model.substeps):
             solver.step_string(a, b, control, j)
-            q = (b.strings if j == model.substeps - 1 else solver._spare[j % 2]).particle_q.numpy()
+            q = solver.string_state_after(b, j).particle_q.numpy()
             for s in range(model.strings.string_count):
                 length = np.linalg.norm(np.diff(q[start[s]:start[s + 1]], axis=0), axis=1)
                 smallest = min(smallest, float(np.min((length - rest[s]) / rest[s])))

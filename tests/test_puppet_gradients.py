@@ -77,7 +77,7 @@ class Rollout:
         loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
         with (tape if tape is not None else _Null()):
             for i in range(STEPS):
-                self.solver.step(states[i], states[i + 1], c, DT)
+                self.solver.step(states[i], states[i + 1], c, DT, tape=tape)
             wp.launch(eval_linear_loss, dim=max(m.q_count, m.qd_count),
                       inputs=[states[-1].joint_q, states[-1].joint_qd, self.wq, self.wqd], outputs=[loss])
         return loss, states, c
@@ -199,7 +199,7 @@ def test_smooth_ground_contact_gradients():
         loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
         with (tape if tape is not None else _Null()):
             for i in range(STEPS):
-                solver.step(states[i], states[i + 1], c, 1.0 / 60.0)
+                solver.step(states[i], states[i + 1], c, 1.0 / 60.0, tape=tape)
             wp.launch(eval_linear_loss, dim=max(model.q_count, model.qd_count),
                       inputs=[states[-1].joint_q, states[-1].joint_qd, wq, wqd], outputs=[loss])
         return loss, states, c

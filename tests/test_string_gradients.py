@@ -72,7 +72,7 @@ class Problem:
         loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
         with tape if tape is not None else _nullcontext():
             for k in range(STEPS):
-                self.solver.step(states[k], states[k + 1], controls[k], DT)
+                self.solver.step(states[k], states[k + 1], controls[k], DT, tape=tape)
             wp.launch(weighted_position_sum, dim=m.particle_count, inputs=[states[-1].particle_q, self.weight],
                       outputs=[loss])
         return loss, controls, states[0]

@@ -14,8 +14,8 @@ A second problem has slack strings (the ``hanging`` scene's hand strings, still 
 segments go slack and snap taut within a step, where the recorded pass (the active set
 held fixed, the system assembled from scratch) and the untaped solve (the snapped
 segment's block added in place) differ by rounding; the taped step integrates the
-unrecorded pass's ``dv`` (``marionette_tape._copy_unrecorded``), so the re-run still ends
-bit for bit where the forward did. No finite differences there: the step has kinks.
+unrecorded pass's ``dv`` (``SolverStringImplicit.apply_active_set_dv``), so the taped step
+still ends bit for bit where the plain one did. No finite differences there: the step has kinks.
 """
 
 from __future__ import annotations
@@ -27,8 +27,7 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.grad import tape as marionette_tape
-from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
 from dmarionette.grad.engine import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient
 from dmarionette.marionette.rollout import simulate_marionette
 from test_marionette_gradients import Problem, _scene, _string_margins
@@ -55,17 +54,25 @@ def printed():
 
 
 def _inactive_segments(engine: MarionetteGradient) -> int:
-    """Segments out of the active set over the planned steps of the last taped segment run
-    (the rollout's first: the backward pass ends there), not counting each string's last
-    particle (it starts no segment)."""
-    plan = engine._taped._plan
-    last = engine.model.strings.string_start_np[1:] - 1
+    """Segments out of the active set over the first taped segment's puppet steps of the
+    engine's rollout (the scene's inputs; a plain run, whose active sets the taped steps
+    use), not counting each string's last particle (it starts no segment)."""
+    model = engine.model
+    solver = SolverMarionette(model)
+    a, b, control = model.state(), model.state(), model.control()
+    last = model.strings.string_start_np[1:] - 1
+    active_set = solver.workspace.string_workspaces[0].segment_active
     count = 0
-    for arrays in plan.steps_arrays:
-        for ws in arrays["active_workspaces"]:
-            active = ws.segment_active.numpy().copy()
+    for p in range(engine.checkpoint_steps):
+        control.set_bars(model, p * model.puppet_dt)
+        solver.begin_step(a, b)
+        for j in range(model.substeps):
+            solver.step_string(a, b, control, j)
+            active = active_set.numpy().copy()
             active[last] = 1
             count += int(np.sum(active == 0))
+        solver.end_step(a, b)
+        a, b = b, a
     return count
 
 
@@ -111,11 +118,11 @@ def slack_model():
     return MarionetteModel(_at_string_rate(scene, True), optimization_level=0, requires_grad=True)
 
 
-def test_slack_strings_snapping_taut_replay_exactly(slack_model, monkeypatch):
+def test_slack_strings_snapping_taut_replay_exactly(slack_model):
     """Segments leave and rejoin the active set: the engine's forward is the ordinary
-    rollout's, the taped re-run ends exactly where it did (else ``backward`` raises), the
-    gradients are finite. Without the copy of the unrecorded ``dv`` the re-run differs
-    (measured: by 7e-18 m within the first 8 steps) and ``backward`` refuses."""
+    rollout's, the taped steps end exactly where the plain ones did, the gradients are
+    finite. (Without the copy of the unrecorded ``dv`` the taped steps differ, measured:
+    by 7e-18 m within the first 8 steps.)"""
     m = slack_model
     engine = MarionetteGradient(m, SLACK_STEPS)
     inputs = engine.scene_inputs()
@@ -133,8 +140,16 @@ def test_slack_strings_snapping_taut_replay_exactly(slack_model, monkeypatch):
         assert np.all(np.isfinite(getattr(grads, name))), name
     assert np.abs(grads.tie_stiffness).max() > 0.0
 
-    monkeypatch.setattr(marionette_tape, "_copy_unrecorded", lambda dest, src: None)
-    uncopied = MarionetteGradient(m, SLACK_STEPS)
-    uncopied.forward(inputs)
-    with pytest.raises(RuntimeError, match=r"taped re-run of puppet steps \d+\.\.\d+: string particle_q differs"):
-        uncopied.backward(weights)
+    solver = SolverMarionette(m)
+    plain = [m.state(), m.state()]
+    taped = [m.state(requires_grad=True) for _ in range(engine.checkpoint_steps + 1)]
+    control = m.control()
+    tape = wp.Tape()
+    for p in range(engine.checkpoint_steps):
+        control.set_bars(m, p * m.puppet_dt)
+        solver.step(plain[p % 2], plain[(p + 1) % 2], control)
+        with tape:
+            solver.step(taped[p], taped[p + 1], control, tape=tape)
+        end = plain[(p + 1) % 2]
+        np.testing.assert_array_equal(taped[p + 1].strings.particle_q.numpy(), end.strings.particle_q.numpy())
+        np.testing.assert_array_equal(taped[p + 1].puppet.joint_q.numpy(), end.puppet.joint_q.numpy())

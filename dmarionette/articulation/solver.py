@@ -50,8 +50,10 @@ from dmarionette.scene.fields import SceneError
 
 __all__ = [
     "ArticulationControl",
+    "ArticulationKinematics",
     "ArticulationModel",
     "ArticulationState",
+    "ArticulationWorkspace",
     "BallDescription",
     "ContactSettings",
     "SolverArticulation",
@@ -145,6 +147,14 @@ class ArticulationModel:
         """A state at the rest pose, at rest."""
         return ArticulationState(self, world_count, requires_grad)
 
+    def kinematics(self, world_count: int = 1, requires_grad: bool = False) -> "ArticulationKinematics":
+        """Arrays for the body poses and velocities of a state."""
+        return ArticulationKinematics(self, world_count, requires_grad)
+
+    def workspace(self, world_count: int = 1, requires_grad: bool = False) -> "ArticulationWorkspace":
+        """Arrays for what one step derives (body kinematics, wrenches, stiffness blocks, spring forces)."""
+        return ArticulationWorkspace(self, world_count, requires_grad)
+
     def control(self, world_count: int = 1, requires_grad: bool = False) -> "ArticulationControl":
         """A control with no applied force and spring anchors at rest."""
         return ArticulationControl(self, world_count, requires_grad)
@@ -160,15 +170,10 @@ class ArticulationState:
             shape (world_count, qd_count).
         body_pos, body_rot, body_w, body_v: body centre position [m], orientation
             (Warp quaternion x, y, z, w), angular velocity [rad/s] and centre velocity
-            [m/s], world frame, shape (world_count, body_count); derived from
-            ``joint_q``/``joint_qd`` by :meth:`SolverArticulation.eval_kinematics` (the
-            step fills them for its input state).
-        body_wrench: total applied spatial force about the world origin of the step
-            that took this state as input, shape (world_count, body_count).
-        body_stiffness: ``h D + h^2 K`` body blocks of that step, (world_count, body_count).
-        spring_force: force of each point spring on its body in that step [N], world,
-            shape (world_count, spring_count); the string end feels the opposite. It is
-            paper eq. 2 plus the implicit step's ``-h k (v - v_anchor)``.
+            [m/s], world frame, shape (world_count, body_count): derived from
+            ``joint_q``/``joint_qd``, filled only when a caller asks for them
+            (:meth:`SolverArticulation.eval_kinematics` with ``out`` left out); no step
+            writes them (a step's own body poses are in its :class:`ArticulationWorkspace`).
     """
 
     def __init__(self, model: ArticulationModel, world_count: int, requires_grad: bool):
@@ -178,15 +183,52 @@ class ArticulationState:
         self.joint_q = wp.array(q, dtype=wp.float64, device=dev, requires_grad=rg)
         self.joint_qd = wp.zeros((n, model.qd_count), dtype=wp.float64, device=dev, requires_grad=rg)
         self.joint_qdd = wp.zeros((n, model.qd_count), dtype=wp.float64, device=dev, requires_grad=rg)
-        nb = model.body_count
-        self.body_pos = wp.zeros((n, nb), dtype=wp.vec3d, device=dev, requires_grad=rg)
-        self.body_rot = wp.zeros((n, nb), dtype=wp.quatd, device=dev, requires_grad=rg)
-        self.body_w = wp.zeros((n, nb), dtype=wp.vec3d, device=dev, requires_grad=rg)
-        self.body_v = wp.zeros((n, nb), dtype=wp.vec3d, device=dev, requires_grad=rg)
+        _allocate_kinematics(self, model, n, rg)
+
+
+class ArticulationKinematics:
+    """Body poses and velocities of one state (what :meth:`SolverArticulation.eval_kinematics` writes).
+
+    Attributes:
+        world_count: worlds.
+        body_pos, body_rot, body_w, body_v: as :class:`ArticulationState`'s, shape (world_count, body_count).
+    """
+
+    def __init__(self, model: ArticulationModel, world_count: int = 1, requires_grad: bool = False):
+        self.world_count = world_count
+        _allocate_kinematics(self, model, world_count, requires_grad)
+
+
+class ArticulationWorkspace(ArticulationKinematics):
+    """The derived quantities of one step (like MJX's ``Data``): what the step writes besides
+    its output state. A plain run reuses one (the solver's :attr:`SolverArticulation.workspace`);
+    a step recorded on a tape needs its own (an array written after it was read gives wrong
+    gradients).
+
+    Attributes:
+        body_pos, body_rot, body_w, body_v: the input state's body kinematics.
+        body_wrench: total applied spatial force about the world origin, shape (world_count, body_count).
+        body_stiffness: ``h D + h^2 K`` body blocks, shape (world_count, body_count).
+        spring_force: force of each point spring on its body [N], world, shape
+            (world_count, spring_count); the string end feels the opposite. It is paper
+            eq. 2 plus the implicit step's ``-h k (v - v_anchor)``.
+    """
+
+    def __init__(self, model: ArticulationModel, world_count: int = 1, requires_grad: bool = False):
+        super().__init__(model, world_count, requires_grad)
+        dev, n, rg, nb = model.device, world_count, requires_grad, model.body_count
         self.body_wrench = wp.zeros((n, nb), dtype=spatial6, device=dev, requires_grad=rg)
         self.body_stiffness = wp.zeros((n, nb), dtype=spatial66, device=dev, requires_grad=rg)
         ns = max(model.spring_count, 1)
         self.spring_force = wp.zeros((n, ns), dtype=wp.vec3d, device=dev, requires_grad=rg)
+
+
+def _allocate_kinematics(owner, model: ArticulationModel, n: int, rg: bool) -> None:
+    dev, nb = model.device, model.body_count
+    owner.body_pos = wp.zeros((n, nb), dtype=wp.vec3d, device=dev, requires_grad=rg)
+    owner.body_rot = wp.zeros((n, nb), dtype=wp.quatd, device=dev, requires_grad=rg)
+    owner.body_w = wp.zeros((n, nb), dtype=wp.vec3d, device=dev, requires_grad=rg)
+    owner.body_v = wp.zeros((n, nb), dtype=wp.vec3d, device=dev, requires_grad=rg)
 
 
 class ArticulationControl:
@@ -351,35 +393,57 @@ class SolverArticulation:
         self.implicit = implicit
         self.kernels = build_articulation_kernels(model.topology, optimization_level)
         self.contacts = ContactSet(model)
+        self._workspaces: dict[int, ArticulationWorkspace] = {}
+
+    def default_workspace(self, world_count: int = 1) -> ArticulationWorkspace:
+        """The workspace plain (untaped) steps of ``world_count`` worlds reuse (what the last
+        plain step derived: its input's body kinematics, wrenches, spring forces)."""
+        if world_count not in self._workspaces:
+            self._workspaces[world_count] = self.model.workspace(world_count)
+        return self._workspaces[world_count]
 
     def step(self, state_in: ArticulationState, state_out: ArticulationState,
-             control: ArticulationControl, dt: float, *, point_loads=None) -> None:
-        """Advances ``state_in`` by ``dt`` [s] into ``state_out`` (fills ``state_in``'s
-        derived body fields on the way; use one state per step when recording a tape).
+             control: ArticulationControl, dt: float, *, tape: wp.Tape | None = None,
+             workspace: ArticulationWorkspace | None = None) -> None:
+        """Advances ``state_in`` by ``dt`` [s] into ``state_out`` (``state_in`` is only read).
 
-        ``point_loads``, if given, replaces the model's point springs: a callable
-        ``point_loads(state_in, h_implicit)`` that adds its forces to ``state_in.body_wrench``
-        and its ``h D + h^2 K`` blocks to ``state_in.body_stiffness`` (the marionette's
-        trial step, ``kernels/string_body_coupling``); ``control``'s spring anchors are then unused.
+        Args:
+            state_in, state_out: two states of this model.
+            control: applied forces and the point springs' anchors.
+            dt: the step [s].
+            tape: the ``wp.Tape`` the step is recorded on (the caller's ``with tape:``), or None.
+                A taped step without ``workspace`` derives into fresh arrays of its own.
+            workspace: where the step writes its derived quantities (default: the solver's
+                :meth:`default_workspace`, or fresh arrays when taped).
 
         Raises:
             ValueError: ``dt`` negative or not finite, ``state_in is state_out``, or
                 states/control of another model or world count.
         """
-        self._check(state_in, state_out, control, dt)
-        h = wp.float64(dt)
-        hi = h if self.implicit else wp.float64(0.0)
-        self.eval_kinematics(state_in)                             # body poses and velocities
-        self._eval_external_forces(state_in, control)              # applied wrenches; resets h D + h^2 K
-        if point_loads is None:
-            self._eval_point_springs(state_in, control, hi)        # strings pull on bodies (eq. 2)
-        else:
-            point_loads(state_in, hi)                              # the caller's loads instead
-        self.contacts.eval(state_in, hi)                           # ground / chair / ball penalties
-        self._solve_dynamics(state_in, state_out, control, h, hi)  # (M + h D + h^2 K) qdd = tau
-        self._integrate(state_in, state_out, h)                    # q' = q (+) h qd'
+        self.check_step(state_in, state_out, control, dt)
+        ws = self._workspace_of(state_in, tape, workspace)
+        h, hi = self.step_sizes(dt)
+        self.eval_kinematics(state_in, ws)                         # body poses and velocities
+        self.eval_external_forces(ws, control)                     # applied wrenches; resets h D + h^2 K
+        self.eval_point_springs(ws, control, hi)                   # strings pull on bodies (eq. 2)
+        self.eval_contacts(ws, hi)                                 # ground / chair / ball penalties
+        self.solve_dynamics(state_in, state_out, control, ws, h, hi)  # (M + h D + h^2 K) qdd = tau
+        self.integrate(state_in, state_out, h)                     # q' = q (+) h qd'
 
-    def _check(self, state_in, state_out, control, dt) -> None:
+    def _workspace_of(self, state_in, tape, workspace) -> ArticulationWorkspace:
+        if workspace is not None:
+            return workspace
+        if tape is not None:
+            return self.model.workspace(state_in.world_count, requires_grad=True)
+        return self.default_workspace(state_in.world_count)
+
+    def step_sizes(self, dt: float) -> tuple:
+        """``(h, h_implicit)`` of a step of ``dt`` [s] as float64 (``h_implicit`` is 0 for the explicit step)."""
+        h = wp.float64(dt)
+        return h, (h if self.implicit else wp.float64(0.0))
+
+    def check_step(self, state_in, state_out, control, dt) -> None:
+        """Raises ``ValueError`` unless ``step(state_in, state_out, control, dt)`` is well posed."""
         m = self.model
         if not (np.isfinite(dt) and dt >= 0.0):
             raise ValueError(f"SolverArticulation.step: dt = {dt!r}; expected a finite step >= 0 [s]")
@@ -396,29 +460,38 @@ class SolverArticulation:
                                  f"({n}, {cols}) (world_count, ...) from this model")
 
     # ------------------------------------------------------------------ passes
-    def eval_kinematics(self, state: ArticulationState) -> None:
-        """Fills ``state.body_pos/rot/w/v`` from ``state.joint_q/joint_qd``."""
+    def eval_kinematics(self, state: ArticulationState, out: ArticulationKinematics | None = None) -> None:
+        """Body poses and velocities of ``state`` (from ``joint_q/joint_qd``) into ``out``
+        (an :class:`ArticulationKinematics` or workspace; default: ``state``'s own body fields)."""
+        out = state if out is None else out
         wp.launch(self.kernels.eval_body_kinematics, dim=state.world_count,
                   inputs=[state.joint_q, state.joint_qd],
-                  outputs=[state.body_pos, state.body_rot, state.body_w, state.body_v],
+                  outputs=[out.body_pos, out.body_rot, out.body_w, out.body_v],
                   device=self.model.device)
 
-    def _eval_external_forces(self, state, control) -> None:
-        wp.launch(eval_body_external_forces, dim=(state.world_count, self.model.body_count),
-                  inputs=[state.body_pos, control.body_force, control.body_torque],
-                  outputs=[state.body_wrench, state.body_stiffness], device=self.model.device)
+    def eval_external_forces(self, ws: ArticulationWorkspace, control) -> None:
+        """Applied forces into ``ws.body_wrench`` (which it resets, with ``ws.body_stiffness``)."""
+        wp.launch(eval_body_external_forces, dim=(ws.world_count, self.model.body_count),
+                  inputs=[ws.body_pos, control.body_force, control.body_torque],
+                  outputs=[ws.body_wrench, ws.body_stiffness], device=self.model.device)
 
-    def _eval_point_springs(self, state, control, h) -> None:
+    def eval_point_springs(self, ws: ArticulationWorkspace, control, h) -> None:
+        """The model's point spring-dampers (eq. 2) against ``control``'s anchors, implicit over ``h``."""
         m = self.model
         if m.spring_count == 0:
             return
-        wp.launch(eval_body_point_springs, dim=(state.world_count, m.spring_count),
+        wp.launch(eval_body_point_springs, dim=(ws.world_count, m.spring_count),
                   inputs=[m.spring_body, m.spring_point, m.spring_stiffness, m.spring_damping,
-                          state.body_pos, state.body_rot, state.body_w, state.body_v,
+                          ws.body_pos, ws.body_rot, ws.body_w, ws.body_v,
                           control.spring_anchor_pos, control.spring_anchor_vel, h],
-                  outputs=[state.spring_force, state.body_wrench, state.body_stiffness], device=m.device)
+                  outputs=[ws.spring_force, ws.body_wrench, ws.body_stiffness], device=m.device)
 
-    def _solve_dynamics(self, state_in, state_out, control, h, h_implicit) -> None:
+    def eval_contacts(self, ws: ArticulationWorkspace, h) -> None:
+        """Ground, chair and ball contact penalties (the compiled-in ones), implicit over ``h``."""
+        self.contacts.eval(ws, h)
+
+    def solve_dynamics(self, state_in, state_out, control, ws: ArticulationWorkspace, h, h_implicit) -> None:
+        """``(M + h D + h^2 K) qdd = tau`` with ``ws``'s loads: ``state_out.joint_qdd``, ``joint_qd``."""
         m = self.model
         limits = []
         if m.topology.joint_limits:
@@ -426,32 +499,35 @@ class SolverArticulation:
                       wp.float64(m.limit_damping)]
         wp.launch(self.kernels.solve_body_dynamics, dim=state_in.world_count,
                   inputs=[m.body_mass, m.body_inertia, m.dof_damping, m.gravity, *limits,
-                          state_in.joint_q, state_in.joint_qd, state_in.body_pos, state_in.body_rot,
-                          state_in.body_w, state_in.body_v, state_in.body_wrench, state_in.body_stiffness,
+                          state_in.joint_q, state_in.joint_qd, ws.body_pos, ws.body_rot,
+                          ws.body_w, ws.body_v, ws.body_wrench, ws.body_stiffness,
                           control.joint_f, h, h_implicit],
                   outputs=[state_out.joint_qdd, state_out.joint_qd], device=m.device)
 
-    def _integrate(self, state_in, state_out, h) -> None:
+    def integrate(self, state_in, state_out, h) -> None:
+        """``q' = q (+) h qd'`` into ``state_out.joint_q``."""
         wp.launch(self.kernels.integrate_joint_coordinates, dim=state_in.world_count,
                   inputs=[state_in.joint_q, state_out.joint_qd, h],
                   outputs=[state_out.joint_q], device=self.model.device)
 
     # ------------------------------------------------------------------ queries
-    def eval_points(self, state: ArticulationState, point_pos: wp.array, point_vel: wp.array) -> None:
+    def eval_points(self, kinematics: ArticulationKinematics, point_pos: wp.array, point_vel: wp.array) -> None:
         """World positions and velocities of the puppet's named points (``model.point_names``
-        order) into arrays of shape (world_count, point_count) of vec3d; needs
-        :meth:`eval_kinematics` (or a step) on ``state`` first."""
+        order) into arrays of shape (world_count, point_count) of vec3d, from body
+        ``kinematics`` (a state whose body fields :meth:`eval_kinematics` filled, or the
+        ``out`` it filled)."""
         m = self.model
-        wp.launch(eval_body_points, dim=(state.world_count, len(m.point_names)),
-                  inputs=[m.point_body, m.point_local, state.body_pos, state.body_rot, state.body_w,
-                          state.body_v], outputs=[point_pos, point_vel], device=m.device)
+        wp.launch(eval_body_points, dim=(kinematics.world_count, len(m.point_names)),
+                  inputs=[m.point_body, m.point_local, kinematics.body_pos, kinematics.body_rot, kinematics.body_w,
+                          kinematics.body_v], outputs=[point_pos, point_vel], device=m.device)
 
     def eval_mass_matrix(self, state: ArticulationState) -> np.ndarray:
         """Joint-space mass matrix, shape (world_count, qd_count, qd_count) (numpy)."""
         m = self.model
-        self.eval_kinematics(state)
+        kinematics = m.kinematics(state.world_count)
+        self.eval_kinematics(state, kinematics)
         out = wp.zeros((state.world_count, m.qd_count, m.qd_count), dtype=wp.float64, device=m.device)
         wp.launch(self.kernels.eval_mass_matrix, dim=state.world_count,
-                  inputs=[m.body_mass, m.body_inertia, state.body_pos, state.body_rot],
+                  inputs=[m.body_mass, m.body_inertia, kinematics.body_pos, kinematics.body_rot],
                   outputs=[out], device=m.device)
         return out.numpy()

@@ -11,7 +11,7 @@ only the state at each segment's start: string particle positions and velocities
 ``joint_q``/``joint_qd``, the tie targets and the last step's tie forces (the coupling's
 trial step reads their mean), which is everything one step reads from the previous one. The backward pass takes the segments in reverse: it restores the
 checkpoint, re-runs the segment on a ``wp.Tape`` with one fresh array per written quantity
-per step (:mod:`marionette_tape`), seeds the cotangents of the segment's outputs and the
+per step (:mod:`dmarionette.grad.tape`: ``SolverMarionette.step`` itself, a fresh workspace per step), seeds the cotangents of the segment's outputs and the
 state adjoint arriving from the next segment, runs ``tape.backward`` and passes the adjoint
 of the segment's start state on. The peak memory is one segment's tape (``C n`` string
 steps) plus the checkpoints (``P / C``) and the host outputs.
@@ -45,8 +45,9 @@ import math
 import numpy as np
 import warp as wp
 
-from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, SolverMarionette, bar_inputs
+from dmarionette.capture import CapturedChunk, ping_pong
 from dmarionette.grad.tape import TapedSegment
+from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, SolverMarionette, bar_inputs
 from dmarionette.strings.rollout import upload_values
 
 __all__ = ["INPUT_FIELDS", "OPTIONAL_INPUT_FIELDS", "OUTPUT_FIELDS", "MarionetteGradient", "RolloutInputs",
@@ -167,40 +168,32 @@ class _PlainChunk:
             self.tie_force = wp.zeros((steps, n, s), dtype=wp.vec3d)
             self.bar_feedback = wp.zeros((steps, n, b), dtype=wp.vec3d)
             self.bar_reaction = wp.zeros((steps, n, b), dtype=wp.vec3d)
-        self.graph = None
-        if capture:
-            saved = Checkpoint.of(engine.state)
-            self.launch()  # one eager pass loads every module before capture begins
-            saved.load(engine.state)
-            with wp.ScopedCapture(device=m.device) as c:
-                self.launch()
-            self.graph = c.graph
+        self.chunk = CapturedChunk(self.launch, m.device, capture=capture, warm_up=self._warm_up)
+
+    def _warm_up(self) -> None:
+        # One eager pass loads every module before capture begins; the state is put back.
+        saved = Checkpoint.of(self.engine.state)
+        self.launch()
+        saved.load(self.engine.state)
 
     def launch(self) -> None:
         e = self.engine
-        solver = e.solver
-        states = (e.state, e.spare)
-        for k, control in enumerate(self.controls):
-            state_in, state_out = states[k % 2], states[(k + 1) % 2]
-            solver.begin_step(state_in, state_out)  # fills state_in's body poses and the tied points
-            wp.copy(self.joint_q[k], state_in.puppet.joint_q[0])
-            wp.copy(self.point_pos[k], solver._point_q[0])
-            wp.copy(self.body_pos[k], state_in.puppet.body_pos[0])
-            wp.copy(self.body_rot[k], state_in.puppet.body_rot[0])
-            for j in range(e.model.substeps):
-                solver.step_string(state_in, state_out, control, j)
-            solver.end_step(state_in, state_out)
-            wp.copy(self.tie_force[k], state_out.tie_force)
-            wp.copy(self.bar_feedback[k], state_out.bar_feedback)
-            wp.copy(self.bar_reaction[k], state_out.bar_reaction)
-        if self.steps % 2 == 1:
-            e.state.assign(e.spare)
+        ping_pong(self._step, e.state, e.spare, self.steps)
+
+    def _step(self, k: int, state_in, state_out) -> None:
+        solver = self.engine.solver
+        solver.step(state_in, state_out, self.controls[k])
+        points = solver.workspace.points  # the input state's body poses and points (begin_step)
+        wp.copy(self.joint_q[k], state_in.puppet.joint_q[0])
+        wp.copy(self.point_pos[k], points.point_q[0])
+        wp.copy(self.body_pos[k], points.kinematics.body_pos[0])
+        wp.copy(self.body_rot[k], points.kinematics.body_rot[0])
+        wp.copy(self.tie_force[k], state_out.tie_force)
+        wp.copy(self.bar_feedback[k], state_out.bar_feedback)
+        wp.copy(self.bar_reaction[k], state_out.bar_reaction)
 
     def run(self) -> None:
-        if self.graph is not None:
-            wp.capture_launch(self.graph)
-        else:
-            self.launch()
+        self.chunk.run()
 
 
 class MarionetteGradient:
@@ -365,7 +358,6 @@ class MarionetteGradient:
         out["body_rot"][p] = self.state.puppet.body_rot.numpy()[0]
         self._inputs = inputs
         self._checkpoints = checkpoints
-        self._final = Checkpoint.of(self.state)
         return RolloutOutputs(**out)
 
     @property
@@ -402,10 +394,9 @@ class MarionetteGradient:
         adjoint = None
         for index in reversed(range(len(self.segments))):
             a, b = self.segments[index]
-            end = self._checkpoints[index + 1] if index + 1 < len(self.segments) else self._final
             adjoint = self._taped.backward(self._checkpoints[index], self._inputs, a, b,
                                            last=b == self.puppet_steps, cotangents=cot, adjoint_end=adjoint,
-                                           grads=grads, expected_end=end)
+                                           grads=grads)
         grads["joint_q0"] = adjoint.joint_q[0]
         grads["joint_qd0"] = adjoint.joint_qd[0]
         grads["particle_q0"] = adjoint.particle_q

@@ -85,6 +85,7 @@ class LiveMarionette:
         """The launches of tick ``j`` of a puppet step: string step ``j``, the puppet step's passes
         around it at the first and last tick (then the result becomes the state)."""
         if j == 0:
+            self.model.puppet_solver.eval_kinematics(self.state.puppet)  # the state's body poses, for the view
             self.solver.begin_step(self.state, self._next)
         self.solver.step_string(self.state, self._next, self.control, j)
         if j == self.model.substeps - 1:

@@ -158,9 +158,9 @@ class BarWorkMeter:
         """Work of all bars since the last reset [J] (a copy, read on the host)."""
         return float(np.sum(self.bar_work.numpy()))
 
-    def step(self, state_in, state_out, control, dt: float) -> None:
+    def step(self, state_in, state_out, control, dt: float, *, tape=None, workspace=None) -> None:
         """The wrapped solver's step, then the bar work of that step."""
-        self.solver.step(state_in, state_out, control, dt)
+        self.solver.step(state_in, state_out, control, dt, tape=tape, workspace=workspace)
         m = self.model
         wp.launch(self._kernel, dim=m.string_count,
                   inputs=[m.string_start, m.string_stiffness, m.string_rest_length, m.string_internal_friction,

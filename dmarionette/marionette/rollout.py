@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 from tqdm import tqdm
 
+from dmarionette.capture import CapturedChunk, ping_pong
 from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, MarionetteState, SolverMarionette, bar_inputs
 
 __all__ = ["MarionetteRollout", "MarionetteTrajectory", "simulate_marionette"]
@@ -82,27 +83,22 @@ class MarionetteRollout:
             self._taut = wp.zeros((k, n, s), dtype=wp.int32)
             self._feedback = wp.zeros((k, n, b), dtype=wp.vec3d)
             self._reaction = wp.zeros((k, n, b), dtype=wp.vec3d)
-        self._graph = self._capture()
+        self._chunk = CapturedChunk(self._launch, m.device, warm_up=self._warm_up)
 
-    def _chunk(self) -> None:
-        states = (self._state, self._spare)
-        for k, control in enumerate(self._controls):
-            state_in, state_out = states[k % 2], states[(k + 1) % 2]
-            self.solver.step(state_in, state_out, control)
-            wp.copy(self._tie_force[k], state_out.tie_force)
-            wp.copy(self._taut[k], state_out.string_taut)
-            wp.copy(self._feedback[k], state_out.bar_feedback)
-            wp.copy(self._reaction[k], state_out.bar_reaction)
-        if self.chunk_steps % 2 == 1:
-            self._state.assign(self._spare)
+    def _launch(self) -> None:
+        ping_pong(self._step, self._state, self._spare, self.chunk_steps)
 
-    def _capture(self):
+    def _step(self, k: int, state_in: MarionetteState, state_out: MarionetteState) -> None:
+        self.solver.step(state_in, state_out, self._controls[k])
+        wp.copy(self._tie_force[k], state_out.tie_force)
+        wp.copy(self._taut[k], state_out.string_taut)
+        wp.copy(self._feedback[k], state_out.bar_feedback)
+        wp.copy(self._reaction[k], state_out.bar_reaction)
+
+    def _warm_up(self) -> None:
         # One eager step loads every module before capture begins.
         self.solver.step(self._state, self._spare, self._controls[0])
         self._state.assign(self.model.state())
-        with wp.ScopedCapture(device=self.model.device) as capture:
-            self._chunk()
-        return capture.graph
 
     def run(self, state: MarionetteState, t0: float, chunks: int,
             on_chunk: Callable[[int, MarionetteState], None] | None = None) -> dict[str, np.ndarray]:
@@ -124,7 +120,7 @@ class MarionetteRollout:
                 control.top_q.numpy()[...] = all_tops[rows]
                 control.bar_q.numpy()[...] = all_bar_q[rows]
                 control.bar_qd.numpy()[...] = all_bar_qd[rows]
-            wp.capture_launch(self._graph)
+            self._chunk.run()
             # .numpy() is a view of the buffers on the CPU: copy before the next replay overwrites them.
             outputs["tie_force"].append(self._tie_force.numpy().reshape(per_chunk, -1, 3).copy())
             outputs["string_taut"].append(self._taut.numpy().reshape(per_chunk, -1).copy())

@@ -27,9 +27,7 @@ energy) stays float64 either way; a float64 marionette launches no conversion.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -52,9 +50,10 @@ from dmarionette.scene.scene import Scene
 from dmarionette.scene.settings_check import check_marionette_settings
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
+from dmarionette.marionette.workspace import MarionetteWorkspace, PuppetPoints, StringStepOutput
 from dmarionette.strings.solver import SolverStringImplicit
 
-__all__ = ["MarionetteControl", "MarionetteModel", "MarionetteState", "SolverMarionette"]
+__all__ = ["MarionetteControl", "MarionetteModel", "MarionetteState", "MarionetteWorkspace", "SolverMarionette"]
 
 
 class MarionetteModel:
@@ -75,7 +74,7 @@ class MarionetteModel:
         spring_string: string index of each body spring, ``(N,)``.
         puppet_mass: total puppet mass [kg] (eq. 4's ``m``).
         requires_grad: whether the strings' and puppet's fittable arrays (and the states
-            made from them) carry gradients, for taped rollouts (``marionette_grad``).
+            made from them) carry gradients, for taped rollouts (``dmarionette.grad.engine``).
     """
 
     def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None, requires_grad: bool = False):
@@ -109,7 +108,7 @@ class MarionetteModel:
         self.puppet_solver = SolverArticulation(self.puppet, optimization_level=optimization_level)
         # Where the tied points are in the initial pose: the strings start straight from bar to point.
         self.q_initial = initial_joint_q(self.puppet, scene)
-        point_q, point_qd = self.eval_points(self._initial_puppet_state())
+        point_q, point_qd = self.eval_points(self.initial_puppet_state())
         point_names = self.puppet.point_names
         specs = []
         for spec, body_point in zip(scene.strings, scene.string_body_points):
@@ -136,8 +135,9 @@ class MarionetteModel:
             self.string_tie_stiffness = self.strings.string_tie_stiffness if self.precision == "float64" \
                 else wp.array([s.tie_stiffness for s in specs], dtype=wp.float64)
 
-    def _initial_puppet_state(self) -> ArticulationState:
-        state = self.puppet.state()
+    def initial_puppet_state(self, requires_grad: bool = False) -> ArticulationState:
+        """The puppet at its start pose (``q_initial``), at rest."""
+        state = self.puppet.state(requires_grad=requires_grad)
         state.joint_q.assign(wp.array(self.q_initial[None], dtype=wp.float64, device=self.device))
         return state
 
@@ -146,7 +146,8 @@ class MarionetteModel:
         return len(self.bar_names)
 
     def eval_points(self, state: ArticulationState) -> tuple[np.ndarray, np.ndarray]:
-        """World positions [m] and velocities [m/s] of the puppet's named points, ``(points, 3)`` each."""
+        """World positions [m] and velocities [m/s] of the puppet's named points, ``(points, 3)`` each
+        (fills ``state``'s body poses on the way: ``SolverArticulation.eval_kinematics``)."""
         n = len(self.puppet.point_names)
         q = wp.zeros((1, n), dtype=wp.vec3d, device=self.device)
         qd = wp.zeros((1, n), dtype=wp.vec3d, device=self.device)
@@ -154,13 +155,14 @@ class MarionetteModel:
         self.puppet_solver.eval_points(state, q, qd)
         return q.numpy()[0], qd.numpy()[0]
 
-    def state(self) -> MarionetteState:
-        """The start state: puppet at its rest pose, strings straight from bar to body point, at rest."""
-        return MarionetteState(self)
+    def state(self, requires_grad: bool = False) -> MarionetteState:
+        """The start state: puppet at its rest pose, strings straight from bar to body point, at rest
+        (``requires_grad``: its float arrays carry gradients, for taped steps)."""
+        return MarionetteState(self, requires_grad)
 
-    def control(self) -> MarionetteControl:
+    def control(self, requires_grad: bool = False) -> MarionetteControl:
         """Control buffers for one puppet step, holding the bars at their t = 0 pose."""
-        control = MarionetteControl(self)
+        control = MarionetteControl(self, requires_grad)
         control.set_bars(self, 0.0)
         return control
 
@@ -181,16 +183,17 @@ class MarionetteState:
             (the start of the next step's path; see ``string_body_coupling``).
     """
 
-    def __init__(self, model: MarionetteModel):
+    def __init__(self, model: MarionetteModel, requires_grad: bool = False):
+        rg = requires_grad
         self.strings: StringState = model.strings.state()
-        self.puppet: ArticulationState = model._initial_puppet_state()
+        self.puppet: ArticulationState = model.initial_puppet_state(rg)
         n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
         with wp.ScopedDevice(model.device):
-            self.tie_force = wp.zeros((n, s), dtype=wp.vec3d)
+            self.tie_force = wp.zeros((n, s), dtype=wp.vec3d, requires_grad=rg)
             self.string_taut = wp.zeros((n, s), dtype=wp.int32)
-            self.bar_feedback = wp.zeros((n, b), dtype=wp.vec3d)
-            self.bar_reaction = wp.zeros((n, b), dtype=wp.vec3d)
-            self.tie_target = wp.array(model.strings.tie_points(), dtype=wp.vec3d)
+            self.bar_feedback = wp.zeros((n, b), dtype=wp.vec3d, requires_grad=rg)
+            self.bar_reaction = wp.zeros((n, b), dtype=wp.vec3d, requires_grad=rg)
+            self.tie_target = wp.array(model.strings.tie_points(), dtype=wp.vec3d, requires_grad=rg)
 
     def assign(self, other: MarionetteState) -> None:
         """Copies ``other`` (same model) into this state."""
@@ -211,12 +214,12 @@ class MarionetteControl:
         t0: time at the start of the step [s] (host side, used by :meth:`set_bars`).
     """
 
-    def __init__(self, model: MarionetteModel):
+    def __init__(self, model: MarionetteModel, requires_grad: bool = False):
         n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
         with wp.ScopedDevice(model.device):
-            self.top_q = wp.zeros((n, s), dtype=wp.vec3d)
-            self.bar_q = wp.zeros((n, b), dtype=wp.vec3d)
-            self.bar_qd = wp.zeros((n, b), dtype=wp.vec3d)
+            self.top_q = wp.zeros((n, s), dtype=wp.vec3d, requires_grad=requires_grad)
+            self.bar_q = wp.zeros((n, b), dtype=wp.vec3d, requires_grad=requires_grad)
+            self.bar_qd = wp.zeros((n, b), dtype=wp.vec3d, requires_grad=requires_grad)
         self.t0 = 0.0
 
     def set_bars(self, model: MarionetteModel, t0: float) -> None:
@@ -256,6 +259,12 @@ def bar_inputs(model: MarionetteModel, times: np.ndarray) -> tuple[np.ndarray, n
 class SolverMarionette:
     """Steps a :class:`MarionetteModel` by one puppet step (``n`` string steps).
 
+    Every pass takes the step's :class:`MarionetteWorkspace` (keyword ``workspace``; default:
+    :attr:`workspace`, reused by plain runs) and the ``wp.Tape`` it is recorded on (keyword
+    ``tape``; None for a plain step). A taped step needs a workspace of its own
+    (:meth:`new_workspace`); :meth:`step` makes one when given only a tape. The gradient
+    engine (``grad/tape.py``) records exactly these methods.
+
     Args:
         model: the marionette.
     """
@@ -266,118 +275,157 @@ class SolverMarionette:
         self._feedback = eval_bar_feedback_kernel(m.strings.scalar, m.scene.effects.internal_friction,
                                                   m.scene.effects.tension_only, bar_scalar=wp.float64) \
             if m.scene.body_effects["feedback"] and m.bar_count else None
-        self._spare = (m.strings.state(), m.strings.state())
-        n_points = len(m.puppet.point_names)
-        n, s = m.substeps, m.strings.string_count
-        with wp.ScopedDevice(m.device):
-            self._point_q = wp.zeros((1, n_points), dtype=wp.vec3d)
-            self._point_qd = wp.zeros((1, n_points), dtype=wp.vec3d)
-            self._point_end = wp.zeros((1, n_points), dtype=wp.vec3d)
-            self._point_end_qd = wp.zeros((1, n_points), dtype=wp.vec3d)
-            self._tie_q = wp.zeros((n, s), dtype=wp.vec3d)
-            self._tie_qd = wp.zeros((n, s), dtype=wp.vec3d)
-            # Float32 strings: their own controls, converted from the float64 ones (module doc).
-            self._narrow = None if m.precision == "float64" else SimpleNamespace(
-                top_q=wp.zeros((n, s), dtype=m.strings.vec3), tie_q=wp.zeros((n, s), dtype=m.strings.vec3),
-                tie_qd=wp.zeros((n, s), dtype=m.strings.vec3))
-        self._puppet_control = m.puppet.control()
-        self._string_control_cache = {}
         self._response = eval_string_response_kernel(m.strings.scalar, m.scene.effects.internal_friction, m.substeps)
-        self._trial = m.puppet.state()              # the trial step's end state
-        self._trial_fields = trial_fields(m.puppet)  # its input's body fields (state_in's stay untouched)
-        self._trial_views = {}
+        self.workspace = self.new_workspace(taped=False)
+        self._string_control_cache = {}
 
-    def _string_controls(self, control: MarionetteControl) -> list[StringControl]:
-        """The controls of the n string steps: views of ``control``'s buffers and the tie path
-        (float32 strings: of their own float32 copies), made once per control (the cache holds
-        the control, so its id stays unique)."""
+    def new_workspace(self, taped: bool = True) -> MarionetteWorkspace:
+        """A workspace for one taped step (``taped``), or one that plain steps may reuse."""
+        return MarionetteWorkspace.allocate(self.model, taped=taped)
+
+    def _workspace(self, tape, workspace: MarionetteWorkspace | None) -> MarionetteWorkspace:
+        if workspace is not None:
+            return workspace
+        if tape is not None:
+            raise ValueError("SolverMarionette: a taped pass needs its step's own workspace (new_workspace()); "
+                             "got workspace=None")
+        return self.workspace
+
+    def string_state_after(self, state_out: MarionetteState, j: int, *,
+                           workspace: MarionetteWorkspace | None = None) -> StringState:
+        """The string state that holds string step ``j``'s result in the step into ``state_out``
+        (``state_out.strings`` for the last string step, else one of the workspace's)."""
+        if j == self.model.substeps - 1:
+            return state_out.strings
+        states = (workspace or self.workspace).string_states
+        return states[j % len(states)]
+
+    def string_controls(self, control: MarionetteControl, *,
+                        workspace: MarionetteWorkspace | None = None) -> list[StringControl]:
+        """The controls of the n string steps: views of ``control``'s buffers and the
+        workspace's tie path (float32 strings: of their own float32 copies); cached for the
+        plain workspace (the cache holds the control, so its id stays unique)."""
+        ws = workspace or self.workspace
         key = id(control)
-        if key not in self._string_control_cache:
-            if self._narrow is None:
-                top_q, tie_q, tie_qd = control.top_q, self._tie_q, self._tie_qd
-            else:
-                top_q, tie_q, tie_qd = self._narrow.top_q, self._narrow.tie_q, self._narrow.tie_qd
-            views = [StringControl(top_q[j], tie_q[j], tie_qd[j]) for j in range(self.model.substeps)]
+        if ws is self.workspace and key in self._string_control_cache:
+            return self._string_control_cache[key][1]
+        if ws.narrow is None:
+            top_q, tie_q, tie_qd = control.top_q, ws.tie_q, ws.tie_qd
+        else:
+            top_q, tie_q, tie_qd = ws.narrow.top_q, ws.narrow.tie_q, ws.narrow.tie_qd
+        views = [StringControl(top_q[j], tie_q[j], tie_qd[j]) for j in range(self.model.substeps)]
+        if ws is self.workspace:
             self._string_control_cache[key] = (control, views)
-        return self._string_control_cache[key][1]
+        return views
 
     def step(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl,
-             dt: float | None = None) -> None:
-        """Advances ``state_in`` by one puppet step into ``state_out`` (``dt`` must equal ``puppet_dt``)."""
+             dt: float | None = None, *, tape: wp.Tape | None = None,
+             workspace: MarionetteWorkspace | None = None) -> None:
+        """Advances ``state_in`` by one puppet step into ``state_out`` (``dt`` must equal
+        ``puppet_dt``); ``state_in`` is only read."""
         m = self.model
         if dt is not None and abs(dt - m.puppet_dt) > 1e-12 * m.puppet_dt:
             raise ValueError(f"dt: got {dt}; this marionette steps by puppet_dt = {m.puppet_dt} "
                              f"({m.substeps} string steps of {m.string_dt})")
-        self.begin_step(state_in, state_out)            # body points, tie path (body -> strings)
+        ws = workspace if workspace is not None else (self.new_workspace() if tape is not None else self.workspace)
+        self.begin_step(state_in, state_out, tape=tape, workspace=ws)  # body points, tie path (body -> strings)
         for j in range(m.substeps):
-            self.step_string(state_in, state_out, control, j)  # string step j + feedback (eq. 2, eq. 4)
-        self.end_step(state_in, state_out)              # mean tie force -> anchors, puppet step
+            self.step_string(state_in, state_out, control, j, tape=tape, workspace=ws)  # eq. 2, eq. 4
+        self.end_step(state_in, state_out, tape=tape, workspace=ws)  # mean tie force -> anchors, puppet step
 
-    def begin_step(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+    def begin_step(self, state_in: MarionetteState, state_out: MarionetteState, *, tape: wp.Tape | None = None,
+                   workspace: MarionetteWorkspace | None = None) -> None:
         """Passes before the string steps (a live loop runs them at the first tick of a puppet step)."""
-        self.eval_body_points(state_in)                 # tied body points at t0
-        self.predict_body_points(state_in)              # trial puppet step: the tied points at t0 + H
-        self.eval_tie_path(state_in, state_out)         # the strings' tie targets over the step
-        if self._narrow is not None:
-            self.apply_tie_path_to_strings()            # float64 -> float32 string controls
+        ws = self._workspace(tape, workspace)
+        self.eval_body_points(state_in, ws.points)      # tied body points at t0
+        self.predict_body_points(state_in, ws)          # trial puppet step: the tied points at t0 + H
+        self.eval_tie_path(state_in, state_out, ws)     # the strings' tie targets over the step
+        if ws.narrow is not None:
+            self.apply_tie_path_to_strings(ws)          # float64 -> float32 string controls
         if self._feedback is not None:
             state_out.bar_feedback.zero_()
             state_out.bar_reaction.zero_()
 
     def step_string(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl,
-                    j: int) -> None:
-        """String step ``j`` of the puppet step: from ``state_in`` (j = 0) through two spare string
-        states to ``state_out`` (j = n - 1); records the tie force, taut flags and feedback."""
+                    j: int, *, tape: wp.Tape | None = None, workspace: MarionetteWorkspace | None = None) -> None:
+        """String step ``j`` of the puppet step: from ``state_in`` (j = 0) through the workspace's
+        string states to ``state_out`` (j = n - 1, :meth:`string_state_after`); the tie force and
+        taut flags into row ``j`` of ``state_out``'s, and the feedback."""
         m = self.model
-        previous = state_in.strings if j == 0 else self._spare[(j - 1) % 2]
-        nxt = state_out.strings if j == m.substeps - 1 else self._spare[j % 2]
-        if self._narrow is not None:
-            convert_vec3(control.top_q[j], self._narrow.top_q[j], m.device)  # bar tops -> float32
-        m.string_solver.step(previous, nxt, self._string_controls(control)[j], m.string_dt)
-        if self._narrow is None:
-            wp.copy(state_out.tie_force[j], nxt.tie_force)
+        ws = self._workspace(tape, workspace)
+        previous = state_in.strings if j == 0 else self.string_state_after(state_out, j - 1, workspace=ws)
+        particles = self.string_state_after(state_out, j, workspace=ws)
+        string_ws = ws.string_workspaces[j % len(ws.string_workspaces)]
+        controls = self.string_controls(control, workspace=ws)
+        if ws.narrow is None:
+            # The tie force and taut flags go straight into this string step's rows of state_out.
+            nxt = StringStepOutput(particles.particle_q, particles.particle_qd, state_out.tie_force[j],
+                                   state_out.string_taut[j])
+            m.string_solver.step(previous, nxt, controls[j], m.string_dt, tape=tape, workspace=string_ws)
         else:
+            nxt = particles
+            convert_vec3(control.top_q[j], ws.narrow.top_q[j], m.device)  # bar tops -> float32
+            m.string_solver.step(previous, nxt, controls[j], m.string_dt, tape=tape, workspace=string_ws)
             convert_vec3(nxt.tie_force, state_out.tie_force[j], m.device)  # float32 -> float64 tie force
-        wp.copy(state_out.string_taut[j], nxt.string_taut)
+            wp.copy(state_out.string_taut[j], nxt.string_taut)
         if self._feedback is not None:
             self.eval_bar_feedback(nxt, control, state_out, j)
 
-    def string_state_after(self, state_out: MarionetteState, j: int) -> StringState:
-        """The string state holding string step ``j``'s result: a spare state before the last step, then ``state_out.strings``."""
-        return state_out.strings if j == self.model.substeps - 1 else self._spare[j % 2]
-
-    def end_step(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+    def end_step(self, state_in: MarionetteState, state_out: MarionetteState, *, tape: wp.Tape | None = None,
+                 workspace: MarionetteWorkspace | None = None) -> None:
         """Passes after the string steps (strings -> body)."""
-        self.apply_string_forces_to_anchors(state_out)  # mean tie force -> body springs' anchors
-        self.step_puppet(state_in, state_out)           # implicit puppet step
+        ws = self._workspace(tape, workspace)
+        self.apply_string_forces_to_anchors(state_out, ws)  # mean tie force -> body springs' anchors
+        self.step_puppet(state_in, state_out, ws, tape)     # implicit puppet step
 
-    def eval_body_points(self, state_in: MarionetteState) -> None:
-        self.model.puppet_solver.eval_kinematics(state_in.puppet)
-        self.model.puppet_solver.eval_points(state_in.puppet, self._point_q, self._point_qd)
+    def eval_body_points(self, state: MarionetteState, points: PuppetPoints) -> None:
+        """``state``'s body kinematics and named points into ``points``."""
+        ps = self.model.puppet_solver
+        ps.eval_kinematics(state.puppet, points.kinematics)
+        ps.eval_points(points.kinematics, points.point_q, points.point_qd)
 
-    def predict_body_points(self, state_in: MarionetteState) -> None:
-        """Trial puppet step under the strings' linearised pull (``string_body_coupling``); its
-        tied points at ``t0 + H`` into ``_point_end``."""
+    def predict_body_points(self, state_in: MarionetteState, ws: MarionetteWorkspace) -> None:
+        """The trial puppet step (``string_body_coupling``): the puppet step's passes with each tied
+        string's linearised pull in place of its spring, into ``ws.trial``; its points at ``t0 + H``
+        into ``ws.trial_points``."""
         m = self.model
-        key = id(state_in.puppet)
-        if key not in self._trial_views:
-            self._trial_views[key] = (state_in.puppet, trial_view(state_in.puppet, self._trial_fields))
-        view = self._trial_views[key][1]
-        predict_puppet_step(m, self._response, view, state_in.strings, state_in.tie_force, self._trial, self._puppet_control)
-        m.puppet_solver.eval_kinematics(self._trial)
-        m.puppet_solver.eval_points(self._trial, self._point_end, self._point_end_qd)
+        ps, tw, puppet = m.puppet_solver, ws.trial_workspace, state_in.puppet
+        h, hi = ps.step_sizes(m.puppet_dt)
+        ps.eval_kinematics(puppet, tw)                           # body poses and velocities at t0
+        ps.eval_external_forces(tw, ws.puppet_control)           # applied wrenches; resets h D + h^2 K
+        self.eval_string_response(state_in, tw, hi)              # the strings' linearised pull
+        ps.eval_contacts(tw, hi)                                 # ground / chair / ball penalties
+        ps.solve_dynamics(puppet, ws.trial, ws.puppet_control, tw, h, hi)  # (M + h D + h^2 K) qdd = tau
+        ps.integrate(puppet, ws.trial, h)                        # q' = q (+) h qd'
+        ps.eval_kinematics(ws.trial, ws.trial_points.kinematics)
+        ps.eval_points(ws.trial_points.kinematics, ws.trial_points.point_q, ws.trial_points.point_qd)
 
-    def eval_tie_path(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+    def eval_string_response(self, state_in: MarionetteState, tw, h) -> None:
+        """Each tied string's linearised pull on its body (``eval_string_response``; ``tie_force``:
+        the previous puppet step's, the input state's) into ``tw``'s wrenches and stiffness blocks."""
+        m = self.model
+        s = m.strings
+        if len(m.spring_string) == 0:
+            return
+        wp.launch(self._response, dim=(tw.world_count, len(m.spring_string)),
+                  inputs=[m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp, s.string_start,
+                          s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_taut_distance,
+                          s.string_internal_friction,
+                          tw.body_pos, tw.body_rot, tw.body_w, tw.body_v,
+                          state_in.strings.particle_q, state_in.tie_force, h],
+                  outputs=[tw.body_wrench, tw.body_stiffness], device=m.device)
+
+    def eval_tie_path(self, state_in: MarionetteState, state_out: MarionetteState, ws: MarionetteWorkspace) -> None:
         m = self.model
         wp.launch(eval_tie_path, dim=(m.substeps, m.strings.string_count),
-                  inputs=[m.string_point_wp, self._point_end, state_in.tie_target, wp.float64(m.string_dt)],
-                  outputs=[self._tie_q, self._tie_qd, state_out.tie_target], device=m.device)
+                  inputs=[m.string_point_wp, ws.trial_points.point_q, state_in.tie_target, wp.float64(m.string_dt)],
+                  outputs=[ws.tie_q, ws.tie_qd, state_out.tie_target], device=m.device)
 
-    def apply_tie_path_to_strings(self) -> None:
+    def apply_tie_path_to_strings(self, ws: MarionetteWorkspace) -> None:
         """Float32 strings: the tie path (float64, from the puppet) into their float32 controls."""
         m = self.model
-        convert_vec3(self._tie_q, self._narrow.tie_q, m.device)
-        convert_vec3(self._tie_qd, self._narrow.tie_qd, m.device)
+        convert_vec3(ws.tie_q, ws.narrow.tie_q, m.device)
+        convert_vec3(ws.tie_qd, ws.narrow.tie_qd, m.device)
 
     def eval_bar_feedback(self, strings: StringState, control: MarionetteControl, state_out: MarionetteState,
                           j: int) -> None:
@@ -392,57 +440,18 @@ class SolverMarionette:
                           control.bar_q[j], control.bar_qd[j]],
                   outputs=[state_out.bar_feedback[j], state_out.bar_reaction[j]], device=m.device)
 
-    def apply_string_forces_to_anchors(self, state_out: MarionetteState) -> None:
+    def apply_string_forces_to_anchors(self, state_out: MarionetteState, ws: MarionetteWorkspace) -> None:
         m = self.model
         if len(m.spring_string) == 0:
             return
         wp.launch(apply_string_forces_to_anchors_kernel(m.substeps), dim=len(m.spring_string),
                   inputs=[m.spring_string_wp, m.string_tie_stiffness, state_out.tie_force,
-                          self._tie_q, self._tie_qd, wp.float64(m.string_dt)],
-                  outputs=[self._puppet_control.spring_anchor_pos, self._puppet_control.spring_anchor_vel],
+                          ws.tie_q, ws.tie_qd, wp.float64(m.string_dt)],
+                  outputs=[ws.puppet_control.spring_anchor_pos, ws.puppet_control.spring_anchor_vel],
                   device=m.device)
 
-    def step_puppet(self, state_in: MarionetteState, state_out: MarionetteState) -> None:
+    def step_puppet(self, state_in: MarionetteState, state_out: MarionetteState, ws: MarionetteWorkspace,
+                    tape: wp.Tape | None = None) -> None:
         m = self.model
-        m.puppet_solver.step(state_in.puppet, state_out.puppet, self._puppet_control, m.puppet_dt)
-
-
-TRIAL_FIELDS = ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness", "spring_force")
-
-
-def trial_fields(puppet_model, requires_grad: bool = False) -> dict[str, wp.array]:
-    """Arrays for the body fields a trial step writes into its input state (``TRIAL_FIELDS``)."""
-    scratch = puppet_model.state(requires_grad=requires_grad)
-    return {name: getattr(scratch, name) for name in TRIAL_FIELDS}
-
-
-def trial_view(puppet_state: ArticulationState, fields: dict[str, wp.array]) -> ArticulationState:
-    """``puppet_state`` with its own ``fields``: the trial step reads its coordinates and writes
-    its body fields elsewhere (the real step, and a tape, see them untouched)."""
-    view = copy.copy(puppet_state)
-    for name, array in fields.items():
-        setattr(view, name, array)
-    return view
-
-
-def predict_puppet_step(model: MarionetteModel, response, view: ArticulationState, strings: StringState,
-                        tie_force: wp.array, trial_out: ArticulationState, control) -> None:
-    """The trial puppet step of ``string_body_coupling``: ``view`` (the step's input, see
-    :func:`trial_view`) into ``trial_out``, each tied string replaced by its linearised pull
-    (``response``: an ``eval_string_response_kernel``; ``tie_force``: the previous puppet
-    step's, ``(n, S)``, the input state's)."""
-    m = model
-    s = m.strings
-
-    def string_loads(state, h):
-        if len(m.spring_string) == 0:
-            return
-        wp.launch(response, dim=(state.world_count, len(m.spring_string)),
-                  inputs=[m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp, s.string_start,
-                          s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_taut_distance,
-                          s.string_internal_friction,
-                          state.body_pos, state.body_rot, state.body_w, state.body_v,
-                          strings.particle_q, tie_force, h],
-                  outputs=[state.body_wrench, state.body_stiffness], device=m.device)
-
-    m.puppet_solver.step(view, trial_out, control, m.puppet_dt, point_loads=string_loads)
+        m.puppet_solver.step(state_in.puppet, state_out.puppet, ws.puppet_control, m.puppet_dt, tape=tape,
+                             workspace=ws.puppet_workspace)

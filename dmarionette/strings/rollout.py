@@ -6,7 +6,7 @@ the whole chunk in native code. Per-step inputs are read from ``(chunk_steps, S)
 buffers filled before each replay; per-step outputs (tie forces, taut flags) are
 written to buffers of the same shape.
 
-Not for gradients: under a ``wp.Tape`` use :meth:`SolverStringImplicit.step` directly.
+Not for gradients: on a ``wp.Tape`` call :meth:`SolverStringImplicit.step` with ``tape=`` directly.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from collections.abc import Callable
 import numpy as np
 import warp as wp
 
+from dmarionette.capture import CapturedChunk, ping_pong
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.solver import SolverStringImplicit
 
@@ -78,27 +79,21 @@ class StringRollout:
         self._controls = [
             StringControl(self._top_q[k], self._tie_q[k], self._tie_qd[k]) for k in range(self.chunk_steps)
         ]
-        self._graph = self._capture()
+        self._chunk = CapturedChunk(self._launch, m.device, warm_up=self._warm_up)
 
-    def _chunk(self) -> None:
+    def _launch(self) -> None:
         """The launches of one chunk: ping-pong between two states, ending in ``self._state``."""
-        states = (self._state, self._spare)
-        for k, control in enumerate(self._controls):
-            state_in, state_out = states[k % 2], states[(k + 1) % 2]
-            self.solver.step(state_in, state_out, control, self.dt)
-            wp.copy(self._tie_force[k], state_out.tie_force)
-            wp.copy(self._taut[k], state_out.string_taut)
-        if self.chunk_steps % 2 == 1:
-            self._state.assign(self._spare)
+        ping_pong(self._step, self._state, self._spare, self.chunk_steps)
 
-    def _capture(self):
+    def _step(self, k: int, state_in: StringState, state_out: StringState) -> None:
+        self.solver.step(state_in, state_out, self._controls[k], self.dt)
+        wp.copy(self._tie_force[k], state_out.tie_force)
+        wp.copy(self._taut[k], state_out.string_taut)
+
+    def _warm_up(self) -> None:
         # One eager step on scratch states loads every module before capture begins.
-        scratch_out = self.model.state()
-        self.solver.step(self._state, scratch_out, self._controls[0], self.dt)
+        self.solver.step(self._state, self.model.state(), self._controls[0], self.dt)
         self._state.assign(self.model.state())
-        with wp.ScopedCapture(device=self.model.device) as capture:
-            self._chunk()
-        return capture.graph
 
     def run(
         self,
@@ -145,7 +140,7 @@ class StringRollout:
             upload_values(self._top_q, top_q[rows])
             upload_values(self._tie_q, tie_q[rows])
             upload_values(self._tie_qd, tie_qd[rows])
-            wp.capture_launch(self._graph)
+            self._chunk.run()
             tie_force[rows] = self._tie_force.numpy()
             taut[rows] = self._taut.numpy()
             frames[c] = self._state.particle_q.numpy()

@@ -9,17 +9,26 @@ One step is five named passes::
     integrate_string       v1 = v0 + dv, x1 = x0 + h v1; the top particle follows its bar
     eval_string_tie_force  eq. 2 force on each body point, taut flags (paper §3.2)
 
-Under a ``wp.Tape`` each step allocates its own intermediates (one array per step, as
-Warp's reverse pass needs) and the solve records its hand-written adjoint. The active set of
-the tension-only springs (which segments are in the system) is found first by an unrecorded
-pass; the recorded pass then assembles and solves the system with that active set, so the
-gradient is that of the step with the active set held fixed (the derivative of the
-piecewise-smooth step away from its kinks).
+A step recorded on a tape is asked for explicitly (``step(..., tape=tape)``): it writes its
+intermediates into a workspace of its own (one array per step, as Warp's reverse pass
+needs; given, or allocated by the step) and the solve records its hand-written adjoint
+(``tape.record_func``). The active set of the tension-only springs (which segments are in
+the system) is found first by an unrecorded pass (launches with ``record_tape=False``); the
+recorded pass then assembles and solves the system with that active set, so the gradient
+is that of the step with the active set held fixed (the derivative of the piecewise-smooth
+step away from its kinks). The step then integrates the unrecorded pass's ``dv``, which is
+the plain step's bit for bit: where a segment snaps taut in the step, the plain solve adds
+its block to the assembled system in place and solves again, while the recorded pass
+assembles the system with it from scratch (the same system up to the order of the sums),
+so the two ``dv`` differ by rounding; with the copy a taped step ends exactly where the
+plain one does, and the recorded adjoint uses the recorded system with that ``dv`` (the
+gradient changes by rounding only).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import warp as wp
 
@@ -47,9 +56,12 @@ class StringWorkspace:
     scratch_d: wp.array
     scratch_rhs_bar: wp.array
     scratch_inverse: wp.array  # pivot inverses of a recorded solve, read by its adjoint
+    active_set: StringWorkspace | None = None  # a taped tension-only step's unrecorded active-set pass
 
     @classmethod
-    def allocate(cls, model: StringModel, requires_grad: bool) -> StringWorkspace:
+    def allocate(cls, model: StringModel, requires_grad: bool, active_set: bool = False) -> StringWorkspace:
+        """Arrays for one step's intermediates (``requires_grad``: for a step on a tape;
+        ``active_set``: with the unrecorded active-set pass's own, for taped tension-only springs)."""
         n = model.particle_count
         with wp.ScopedDevice(model.device):
             def zeros(dtype, grad):
@@ -68,11 +80,15 @@ class StringWorkspace:
                 scratch_d=zeros(model.vec3, False),
                 scratch_rhs_bar=zeros(model.vec3, False),
                 scratch_inverse=zeros(model.mat33, False),
+                active_set=cls.allocate(model, False) if active_set else None,
             )
 
 
-def _active_tape():
-    return wp._src.context.runtime.tape
+@wp.kernel
+def copy_particle_dv(src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
+    """``dst = src`` (launched off the tape: the taped tension-only step's ``dv``, module doc)."""
+    i = wp.tid()
+    dst[i] = src[i]
 
 
 class SolverStringImplicit:
@@ -90,36 +106,44 @@ class SolverStringImplicit:
         (self._solve, self._solve_active, self._solve_recorded,
          self._solve_adjoint) = solve_string_system_kernels(model.scalar)
         self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
-        self._workspace = StringWorkspace.allocate(model, requires_grad=False)
+        self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
 
-    def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float) -> None:
+    def new_workspace(self, taped: bool = True) -> StringWorkspace:
+        """A workspace of one step's own (``taped``: with gradients, and for tension-only
+        springs the active-set pass's arrays)."""
+        return StringWorkspace.allocate(self.model, requires_grad=taped, active_set=taped and self._tension_only)
+
+    def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float, *,
+             tape: wp.Tape | None = None, workspace: StringWorkspace | None = None) -> None:
         """Advances the strings by ``dt`` seconds from ``state_in`` into ``state_out``.
 
-        ``state_out`` must be a different object from ``state_in``.
+        Args:
+            state_in, state_out: two different states (``state_in`` is only read).
+            control: the tops and tie targets at the end of the step.
+            dt: the step [s].
+            tape: the ``wp.Tape`` the step is recorded on (the caller's ``with tape:``), or
+                None for a plain step. Required for gradients: the solve's adjoint is recorded
+                on it.
+            workspace: the step's intermediates (default: :attr:`workspace` for a plain step,
+                a :meth:`new_workspace` for a taped one); a taped step needs one of its own
+                (from :meth:`new_workspace`).
         """
         m = self.model
-        tape = _active_tape()
         h = m.scalar(dt)
-        forced = self._none_forced
+        ws = workspace if workspace is not None else (self.new_workspace() if tape is not None else self.workspace)
+        forced = self._none_forced  # every segment in the system (printed springs)
         if tape is not None and self._tension_only:
-            # The active set, unrecorded (segments taut at the start or at the end of the step),
-            # in arrays of this step's own (the recorded pass reads the flags again backwards) ...
-            ws = StringWorkspace.allocate(m, requires_grad=False)
-            self.eval_active_set(state_in, control, h, ws)
-            forced = ws.segment_active
-            # ... then the recorded step with that active set.
-            ws = StringWorkspace.allocate(m, requires_grad=True)
-        elif tape is not None:
-            ws = StringWorkspace.allocate(m, requires_grad=True)
-        else:
-            ws = self._workspace
+            self.eval_active_set(state_in, control, h, ws.active_set)  # unrecorded: which segments are taut
+            forced = ws.active_set.segment_active
         self.eval_string_spring(state_in, forced, ws)  # spring force and stiffness per segment
         self.eval_string_system(state_in, control, h, ws)  # all force terms -> A dv = b
         if tape is None and self._tension_only:
             self.solve_string_system_active(state_in, control, h, ws)  # block Thomas + active set
         else:
             self.solve_string_system(ws, tape)  # block Thomas (with the active set found above)
+        if tape is not None and self._tension_only:
+            self.apply_active_set_dv(ws)  # integrate the plain solve's dv (module doc)
         self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
         self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
 
@@ -127,16 +151,17 @@ class SolverStringImplicit:
         """Tension-only springs: the active set of a step from ``state_in`` (segments taut at
         the start or at the end of the step) into ``ws.segment_active``, and that step's
         ``ws.particle_dv``; never recorded, even under a tape (``ws`` needs no gradients)."""
-        runtime = wp._src.context.runtime
-        tape, runtime.tape = runtime.tape, None
-        try:
-            self.eval_string_spring(state_in, self._none_forced, ws)
-            self.eval_string_system(state_in, control, h, ws)
-            self.solve_string_system_active(state_in, control, h, ws)
-        finally:
-            runtime.tape = tape
+        self.eval_string_spring(state_in, self._none_forced, ws, record=False)
+        self.eval_string_system(state_in, control, h, ws, record=False)
+        self.solve_string_system_active(state_in, control, h, ws)
 
-    def eval_string_spring(self, state_in, forced, ws: StringWorkspace) -> None:
+    def apply_active_set_dv(self, ws: StringWorkspace) -> None:
+        """``ws.particle_dv`` <- the active-set pass's (``ws.active_set``), off the tape."""
+        m = self.model
+        wp.launch(copy_particle_dv, dim=m.particle_count, inputs=[ws.active_set.particle_dv],
+                  outputs=[ws.particle_dv], device=m.device, record_tape=False)
+
+    def eval_string_spring(self, state_in, forced, ws: StringWorkspace, record: bool = True) -> None:
         m = self.model
         wp.launch(
             self._eval_spring,
@@ -145,9 +170,10 @@ class SolverStringImplicit:
                     state_in.particle_q, forced],
             outputs=[ws.segment_force, ws.segment_jacobian, ws.segment_jacobian_active, ws.segment_active],
             device=m.device,
+            record_tape=record,
         )
 
-    def eval_string_system(self, state_in, control, h, ws: StringWorkspace) -> None:
+    def eval_string_system(self, state_in, control, h, ws: StringWorkspace, record: bool = True) -> None:
         m = self.model
         wp.launch(
             self._eval_system,
@@ -163,6 +189,7 @@ class SolverStringImplicit:
             ],
             outputs=[ws.system_diag, ws.system_upper, ws.system_rhs],
             device=m.device,
+            record_tape=record,
         )
 
     def solve_string_system_active(self, state_in, control, h, ws: StringWorkspace) -> None:

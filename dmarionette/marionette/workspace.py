@@ -1,0 +1,122 @@
+"""What one marionette step writes besides its output state (like MJX's ``Data``).
+
+:class:`SolverMarionette` keeps one :class:`MarionetteWorkspace` for plain runs and reuses
+it from step to step; a step recorded on a tape gets one of its own (on a tape an array
+written after it was read gives silently wrong gradients), so a taped run and a plain run
+call the same methods with different workspaces.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import warp as wp
+
+from dmarionette.articulation.solver import (
+    ArticulationControl,
+    ArticulationKinematics,
+    ArticulationState,
+    ArticulationWorkspace,
+)
+from dmarionette.strings.model import StringState
+from dmarionette.strings.solver import StringWorkspace
+
+__all__ = ["MarionetteWorkspace", "PuppetPoints", "StringStepOutput"]
+
+
+@dataclasses.dataclass
+class StringStepOutput:
+    """Where one string step of a marionette writes (the string solver's ``state_out``): a string
+    state's particles, and the tie force and taut flags straight into that string step's rows
+    of the marionette state's ``(n, S)`` arrays (float64 strings).
+
+    Attributes:
+        particle_q, particle_qd: [m], [m/s], ``(P,)`` of vec3.
+        tie_force: eq. 2 force of each tie on its body point [N], ``(S,)``.
+        string_taut: taut flags, ``(S,)``.
+    """
+
+    particle_q: wp.array
+    particle_qd: wp.array
+    tie_force: wp.array
+    string_taut: wp.array
+
+
+@dataclasses.dataclass
+class PuppetPoints:
+    """Body kinematics of a puppet state and its named points there.
+
+    Attributes:
+        kinematics: body poses and velocities (one world).
+        point_q, point_qd: world positions [m] and velocities [m/s] of the puppet's named
+            points (``puppet.point_names`` order), ``(1, points)`` of vec3d.
+    """
+
+    kinematics: ArticulationKinematics
+    point_q: wp.array
+    point_qd: wp.array
+
+    @classmethod
+    def allocate(cls, puppet_model, requires_grad: bool = False) -> PuppetPoints:
+        n = len(puppet_model.point_names)
+        with wp.ScopedDevice(puppet_model.device):
+            return cls(puppet_model.kinematics(1, requires_grad),
+                       wp.zeros((1, n), dtype=wp.vec3d, requires_grad=requires_grad),
+                       wp.zeros((1, n), dtype=wp.vec3d, requires_grad=requires_grad))
+
+
+@dataclasses.dataclass
+class MarionetteWorkspace:
+    """The derived quantities and scratch of one puppet step (``n`` string steps, ``S`` strings).
+
+    Attributes:
+        points: the input state's body kinematics and tied points at ``t0``.
+        trial_workspace: the trial puppet step's derived quantities (``string_body_coupling``).
+        trial: the trial step's end state.
+        trial_points: its body kinematics and points at ``t0 + H`` (the prediction).
+        tie_q, tie_qd: the tie path over the string steps [m], [m/s], ``(n, S)``.
+        string_states: the string states between string steps (two in turn for a plain
+            run, ``n - 1`` for a taped one); :meth:`SolverMarionette.string_state_after`
+            says which holds string step ``j``'s result.
+        string_workspaces: the string steps' intermediates (one shared, or one per string step).
+        narrow: float32 strings only: their float32 controls (``top_q``, ``tie_q``, ``tie_qd``).
+        puppet_control: the puppet step's control (the body springs' anchors).
+        puppet_workspace: the puppet step's derived quantities.
+    """
+
+    points: PuppetPoints
+    trial_workspace: ArticulationWorkspace
+    trial: ArticulationState
+    trial_points: PuppetPoints
+    tie_q: wp.array
+    tie_qd: wp.array
+    string_states: list[StringState]
+    string_workspaces: list[StringWorkspace]
+    narrow: SimpleNamespace | None
+    puppet_control: ArticulationControl
+    puppet_workspace: ArticulationWorkspace
+
+    @classmethod
+    def allocate(cls, model, *, taped: bool = False) -> MarionetteWorkspace:
+        """A workspace for ``model``'s steps (``taped``: one step on a tape, with gradients)."""
+        m, rg = model, taped
+        n, s = m.substeps, m.strings.string_count
+        pup = m.puppet
+        with wp.ScopedDevice(m.device):
+            narrow = None if m.precision == "float64" else SimpleNamespace(
+                top_q=wp.zeros((n, s), dtype=m.strings.vec3), tie_q=wp.zeros((n, s), dtype=m.strings.vec3),
+                tie_qd=wp.zeros((n, s), dtype=m.strings.vec3))
+            return cls(
+                points=PuppetPoints.allocate(pup, rg),
+                trial_workspace=pup.workspace(1, rg),
+                trial=pup.state(requires_grad=rg),
+                trial_points=PuppetPoints.allocate(pup, rg),
+                tie_q=wp.zeros((n, s), dtype=wp.vec3d, requires_grad=rg),
+                tie_qd=wp.zeros((n, s), dtype=wp.vec3d, requires_grad=rg),
+                string_states=[m.strings.state() for _ in range(n - 1 if taped else 2)],
+                string_workspaces=[m.string_solver.new_workspace(taped) for _ in range(n if taped else 1)],
+                narrow=narrow,
+                puppet_control=pup.control(requires_grad=rg),
+                puppet_workspace=pup.workspace(1, rg),
+            )
