@@ -11,7 +11,9 @@ on the source text with the standard library's ``ast``: nothing here imports the
 (e) the descriptions (``dmarionette/scene/``) import no simulator (``strings``, ``articulation``,
     ``marionette``, ``grad``, ``live``, ``kernels``) and not ``warp``;
 (f) ``dmarionette/kernels/`` never imports ``hw/``; ``hw/`` imports nothing from the rest of
-    ``dmarionette`` but ``dmarionette.rotations`` (a numpy-only leaf).
+    ``dmarionette`` but ``dmarionette.rotations`` (a numpy-only leaf);
+(g) in ``tests/``: no module imports a test module (``test_*.py``; shared helpers live in
+    ``tests/support/``), nor a ``_private`` name of a project or test module.
 
 An import ``a.b.c`` is an edge to the module ``a.b.c`` only, not to the packages ``a`` and
 ``a.b`` it loads on the way (else every module would sit in a cycle through
@@ -30,6 +32,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("dmarionette", "fitting")
+TESTS = "tests"
 SIMULATORS = ("strings", "articulation", "marionette", "grad", "live", "kernels")
 HW_MAY_IMPORT = ("dmarionette.rotations",)
 
@@ -56,9 +59,9 @@ class Violation:
 
 
 def module_files(root: Path) -> dict[str, Path]:
-    """The project's modules under root: dotted name -> file."""
+    """The project's modules and the tests under root: dotted name -> file."""
     files = {}
-    for package in PACKAGES:
+    for package in (*PACKAGES, TESTS):
         for path in sorted((root / package).rglob("*.py")):
             parts = path.relative_to(root).with_suffix("").parts
             if parts[-1] == "__init__":
@@ -76,6 +79,12 @@ def _resolve(module: str, is_package: bool, level: int, name: str | None) -> str
     return ".".join([*base, name] if name else base)
 
 
+def _absolute(target: str, files: dict[str, Path]) -> str:
+    """A test helper imported by its bare name (tests/ on sys.path) as tests.NAME."""
+    top = f"{TESTS}.{target}"
+    return top if target not in files and any(_within(m, top) for m in files) else target
+
+
 def read_imports(root: Path, files: dict[str, Path]) -> tuple[list[Import], dict[Path, ast.Module]]:
     """Every import statement of every module, wherever it stands (lazy ones included)."""
     imports, trees = [], {}
@@ -86,9 +95,9 @@ def read_imports(root: Path, files: dict[str, Path]) -> tuple[list[Import], dict
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
                 for alias in node.names:
-                    imports.append(Import(module, alias.name, (), path, node.lineno))
+                    imports.append(Import(module, _absolute(alias.name, files), (), path, node.lineno))
             elif isinstance(node, ast.ImportFrom):
-                base = _resolve(module, is_package, node.level, node.module)
+                base = _absolute(_resolve(module, is_package, node.level, node.module), files)
                 for alias in node.names:  # 'from pkg import mod' loads the module pkg.mod
                     target = f"{base}.{alias.name}" if f"{base}.{alias.name}" in files else base
                     imports.append(Import(module, target, (alias.name,), path, node.lineno))
@@ -105,9 +114,9 @@ def _where(root: Path, path: Path, line: int) -> str:
 
 def _edges(imports: list[Import], files: dict[str, Path]) -> dict[str, dict[str, Import]]:
     """module -> {imported project module -> the first import that makes the edge}."""
-    edges: dict[str, dict[str, Import]] = {m: {} for m in files}
+    edges: dict[str, dict[str, Import]] = {m: {} for m in files if not _within(m, TESTS)}
     for imp in imports:
-        if imp.target in files and imp.target != imp.module:
+        if imp.module in edges and imp.target in edges and imp.target != imp.module:
             edges[imp.module].setdefault(imp.target, imp)
     return edges
 
@@ -162,18 +171,18 @@ def _cycles(edges: dict[str, dict[str, Import]]) -> list[list[str]]:
     return cycles
 
 
-def _module_aliases(tree: ast.Module, module: str, is_package: bool) -> dict[str, str]:
+def _module_aliases(tree: ast.Module, module: str, is_package: bool, files: dict[str, Path]) -> dict[str, str]:
     """Names a file binds to modules by import: local name -> absolute module name."""
     aliases = {}
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 if alias.asname:
-                    aliases[alias.asname] = alias.name
+                    aliases[alias.asname] = _absolute(alias.name, files)
                 else:
-                    aliases[alias.name.split(".")[0]] = alias.name.split(".")[0]
+                    aliases[alias.name.split(".")[0]] = _absolute(alias.name.split(".")[0], files)
         elif isinstance(node, ast.ImportFrom):
-            base = _resolve(module, is_package, node.level, node.module)
+            base = _absolute(_resolve(module, is_package, node.level, node.module), files)
             for alias in node.names:
                 aliases[alias.asname or alias.name] = f"{base}.{alias.name}"
     return aliases
@@ -202,12 +211,25 @@ def check(root: Path) -> list[Violation]:
             "a", _where(root, steps[0].path, steps[0].line),
             "import cycle " + " -> ".join([*cycle, cycle[0]]) + " ("
             + ", ".join(f"{_where(root, s.path, s.line)} imports {s.target}" for s in steps) + ")"))
+    private: dict[tuple[str, str], list[str]] = {}  # (file:line, module) -> the private names imported
+    for imp in imports:
+        for name in imp.names:
+            if name.startswith("_") and not name.startswith("__"):
+                private.setdefault((_where(root, imp.path, imp.line), imp.target), []).append(name)
     for imp in imports:
         where = _where(root, imp.path, imp.line)
-        private = [n for n in imp.names if n.startswith("_") and not n.startswith("__")]
-        if private:
-            found.append(Violation("b", where, f"imports private {', '.join(private)} from {imp.target}"))
-        if _within(imp.target, "warp._src") or (imp.target == "warp" and "_src" in imp.names):
+        names = private.pop((where, imp.target), None)
+        if _within(imp.module, TESTS):
+            ours = any(_within(imp.target, p) for p in (*PACKAGES, TESTS))
+            if names and ours:
+                found.append(Violation("g", where, f"a test imports private {', '.join(names)} from {imp.target}"))
+            if imp.target.rpartition(".")[2].startswith("test_") and imp.target != imp.module:
+                found.append(Violation("g", where, f"imports the test module {imp.target} (shared helpers belong "
+                                                   f"in {TESTS}/support/)"))
+            continue
+        if names:
+            found.append(Violation("b", where, f"imports private {', '.join(names)} from {imp.target}"))
+        if _within(imp.target, "warp._src") or (imp.target == "warp" and "_src" in imp.names):  # (c)
             found.append(Violation("c", where, f"imports Warp's internals ({imp.target})"))
         if imp.module.startswith("dmarionette") and _within(imp.target, "fitting"):
             found.append(Violation("d", where, f"dmarionette imports {imp.target}"))
@@ -221,21 +243,29 @@ def check(root: Path) -> list[Violation]:
                 and not _within(imp.target, "dmarionette.hw") and imp.target not in HW_MAY_IMPORT):
             found.append(Violation("f", where, f"hw imports {imp.target} (only dmarionette.hw.* and "
                                                f"{', '.join(HW_MAY_IMPORT)} are allowed)"))
-    for module, path in files.items():  # module._name and wp._src read as attributes
-        aliases = _module_aliases(trees[path], module, path.name == "__init__.py")
+    for module, path in files.items():  # module._name, setattr(module, "_name", ...) and wp._src
+        aliases = _module_aliases(trees[path], module, path.name == "__init__.py", files)
+        rule = "g" if _within(module, TESTS) else "b"
         for node in ast.walk(trees[path]):
-            if not isinstance(node, ast.Attribute):
+            if isinstance(node, ast.Attribute):
+                chain, name = _dotted(node), node.attr
+            elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Name, ast.Attribute))
+                  and getattr(node.func, "id", getattr(node.func, "attr", None)) in ("setattr", "getattr")
+                  and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
+                  and isinstance(node.args[1].value, str)):
+                chain, name = _dotted(node.args[0]), node.args[1].value
+                chain = None if chain is None else [*chain, name]
+            else:
                 continue
-            chain = _dotted(node)
-            if chain is None or chain[0] not in aliases or isinstance(node.ctx, ast.Del):
+            if chain is None or chain[0] not in aliases:
                 continue
             full = [*aliases[chain[0]].split("."), *chain[1:]]
             where = _where(root, path, node.lineno)
-            if full[:2] == ["warp", "_src"] and len(chain) == 2:
+            if full[:2] == ["warp", "_src"] and len(chain) == 2 and rule == "b":
                 found.append(Violation("c", where, f"reads Warp's internals ({'.'.join(chain)})"))
-            elif (len(chain) == 2 and node.attr.startswith("_") and not node.attr.startswith("__")
-                  and full[0] in PACKAGES and ".".join(full[:-1]) in files):
-                found.append(Violation("b", where, f"reads private {node.attr} of module {'.'.join(full[:-1])}"))
+            elif (name.startswith("_") and not name.startswith("__") and full[0] in (*PACKAGES, TESTS)
+                  and ".".join(full[:-1]) in files and ".".join(full[:-1]) != module):
+                found.append(Violation(rule, where, f"reaches into private {name} of module {'.'.join(full[:-1])}"))
     return sorted(set(found), key=lambda v: (v.rule, v.where.rpartition(":")[0], int(v.where.rpartition(":")[2]),
                                              v.what))
 
@@ -343,3 +373,24 @@ def test_rule_f_catches_kernels_and_hw_reaching_out(tmp_path, source, statement)
     others = {name: "" for name in ("dmarionette/hw/device.py", "dmarionette/kernels/bar_feedback.py",
                                     "dmarionette/scene/bars.py")}
     assert _caught(tmp_path, {**others, source: f"import numpy\n{statement}\n"}) == [("f", f"{source}:2")]
+
+
+def test_rule_g_catches_a_test_importing_another_test_module(tmp_path):
+    assert _caught(tmp_path, {
+        "tests/test_hard_cases.py": "def check():\n    pass\n",
+        "tests/marionette/test_float32.py": "from test_hard_cases import check\n",
+        "tests/grad/test_tape.py": "import numpy\nfrom ..test_hard_cases import check\n",
+        "tests/support/strings.py": "",
+        "tests/strings/test_physics.py": "from tests.support.strings import make_model\n",
+    }) == [("g", "tests/grad/test_tape.py:2"), ("g", "tests/marionette/test_float32.py:1")]
+
+
+def test_rule_g_catches_a_test_reaching_into_private_names(tmp_path):
+    assert _caught(tmp_path, {
+        "dmarionette/grad/tape.py": "",
+        "tests/support/export.py": "",
+        "tests/io/test_export.py": "from tests.support.export import _synthetic\n",
+        "tests/grad/test_tape.py": "from dmarionette.grad import tape\n\ndef test(monkeypatch):\n"
+                                   "    monkeypatch.setattr(tape, '_copy_unrecorded', None)\n",
+        "tests/live/test_view.py": "from viser import _messages\n",  # a third party's: not this rule's
+    }) == [("g", "tests/grad/test_tape.py:4"), ("g", "tests/io/test_export.py:1")]
