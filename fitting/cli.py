@@ -21,11 +21,7 @@ __all__ = ["add_author_command", "add_calibrate_command"]
 
 
 def add_author_command(commands) -> None:
-    """Adds ``dmarionette author`` to dmarionette's subcommands.
-
-    Args:
-        commands: what ``argparse.ArgumentParser.add_subparsers`` returned for dmarionette's parser.
-    """
+    """Adds ``dmarionette author`` to ``commands`` (dmarionette's ``add_subparsers()``)."""
     author = commands.add_parser(
         "author", help="keyframes -> bar motions that reach them (needs the fitting extra: jax, optimistix)",
         description="Keyframe authoring (docs/authoring.md): find control-bar motions that make the puppet reach "
@@ -85,11 +81,7 @@ def _run_author(args: argparse.Namespace) -> int:
 
 
 def add_calibrate_command(commands) -> None:
-    """Adds ``dmarionette calibrate`` to dmarionette's subcommands.
-
-    Args:
-        commands: what ``argparse.ArgumentParser.add_subparsers`` returned for dmarionette's parser.
-    """
+    """Adds ``dmarionette calibrate`` to ``commands`` (dmarionette's ``add_subparsers()``)."""
     calibrate = commands.add_parser(
         "calibrate", help="fit the strings' constants (eq. 2 k, k_d per string) to a recorded session",
         description="Fit string constants to a recorded session (docs/calibration.md): the recorded bar poses "

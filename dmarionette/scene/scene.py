@@ -41,6 +41,7 @@ from dmarionette.scene.fields import (
     read_int,
     read_str,
     read_table,
+    read_toml_file,
     read_vec3,
 )
 from dmarionette.scene.bars import ControlBar, bar_from_table
@@ -172,12 +173,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
                              f"a TOML file path or a built-in scene name: {builtin_scenes()}")
     if not path.is_file():
         raise SceneError(str(path), "scene", str(path), "an existing TOML file")
-    try:
-        with path.open("rb") as f:
-            table = tomllib.load(f)
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError(str(path), "(file)", "invalid TOML", f"valid TOML ({error})") from None
-    return scene_from_table(table, str(path))
+    return scene_from_table(read_toml_file(path), str(path))
 
 
 def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
