@@ -17,6 +17,7 @@ from .scene.bars import ControlBar as ControlBar
 from .io.export.bvh import export_bvh as export_bvh
 from .io.export.common import read_marionette_trajectory as read_marionette_trajectory
 from .io.export.gltf import export_gltf as export_gltf
+from .grad.engine import MarionetteGradient as MarionetteGradient
 from .marionette.solver import MarionetteControl as MarionetteControl
 from .marionette.solver import MarionetteModel as MarionetteModel
 from .marionette.solver import MarionetteState as MarionetteState
@@ -44,6 +45,7 @@ from .io.trajectory import write_trajectory as write_trajectory
 __all__ = [
     "BarTrajectory",
     "ControlBar",
+    "MarionetteGradient",
     "MarionetteControl",
     "MarionetteModel",
     "MarionetteRollout",

@@ -7,12 +7,34 @@
   (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time;
 - ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md);
-- ``dmarionette author KEYFRAMES``: bar motions that reach keyframe poses (docs/authoring.md;
-  needs the ``fitting`` extra, imported only by this command);
-- ``dmarionette calibrate SESSION``: fit string constants to a recorded session (docs/calibration.md;
-  needs the ``fitting`` extra, imported only by this command).
+- plug-in commands, from other packages: ``fitting`` adds ``dmarionette author KEYFRAMES`` (bar
+  motions that reach keyframe poses, docs/authoring.md) and ``dmarionette calibrate SESSION``
+  (string constants fitted to a recorded session, docs/calibration.md).
 
 ``--help`` on every command.
+
+Plug-in commands. ``dmarionette`` never imports ``fitting`` (nor any other plug-in) by name: a
+package declares its commands in the ``dmarionette.commands`` entry-point group, e.g. in its
+pyproject.toml::
+
+    [project.entry-points."dmarionette.commands"]
+    author = "fitting.cli:add_author_command"
+
+The entry's name is the command; its object is a function ``add(commands)`` that adds the
+command's subparser to ``commands`` (what ``ArgumentParser.add_subparsers`` returned) and sets
+the subparser's default ``handler``: a function ``handler(args) -> int`` that runs the command
+and returns its exit code. A ``SceneError``, ``ValueError`` or ``RuntimeError`` it raises is
+printed as ``error: ...`` and exits with 2, as for the built-in commands. Entries are loaded
+lazily: only the command a command line names (all of them for the top-level help or an
+unknown command), so ``dmarionette simulate`` never imports JAX. An entry that cannot be
+loaded (a missing extra) still appears as a command, which explains the problem and exits 2.
+
+Where the entries come from (``find_commands``): the installed packages' metadata
+(``importlib.metadata``; ``pip install -e '.[dev]'`` writes it, as CI does), and, for a
+source tree run without installing it (``PYTHONPATH=.``) or installed before a command was
+added, the same table read from the tree's own pyproject.toml (the installed metadata wins
+where both name a command). A plug-in cannot replace a built-in command. Where neither knows
+any plug-in, the top-level help and an unknown command say how to install them.
 """
 
 from __future__ import annotations
@@ -21,9 +43,22 @@ import argparse
 import json
 import sys
 import time
+import tomllib
+from collections.abc import Mapping, Sequence
+from importlib import metadata
 from pathlib import Path
 
-__all__ = ["main"]
+__all__ = ["COMMAND_GROUP", "find_commands", "main"]
+
+COMMAND_GROUP = "dmarionette.commands"
+"""The entry-point group in which packages declare their ``dmarionette`` commands."""
+
+SOURCE_TREE = Path(__file__).resolve().parents[1]
+"""The folder above this package: a source tree when it holds dmarionette's pyproject.toml."""
+
+_NO_PLUGINS = (f"no plug-in commands were found (entry-point group {COMMAND_GROUP!r}); fitting's author and "
+               "calibrate come with the installed package: pip install -e '.[fitting]' in the source tree, or "
+               "pip install 'dmarionette[fitting]'")
 
 
 def _add_simulate_options(parser: argparse.ArgumentParser) -> None:
@@ -43,7 +78,8 @@ def _add_simulate_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
+    """The parser of the built-in commands, and its subcommands (for the plug-ins to add to)."""
     parser = argparse.ArgumentParser(
         prog="dmarionette",
         description="A differentiable simulator of a string marionette (NVIDIA Warp).",
@@ -57,10 +93,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     simulate.add_argument("scene", help="a built-in scene name (see 'dmarionette scenes') or a TOML file")
     _add_simulate_options(simulate)
+    simulate.set_defaults(handler=lambda args: _run_simulate(args.scene, args))
     demo = sub.add_parser("demo", help="simulate the built-in default scene ('hanging': the marionette)",
                           description="Same as 'dmarionette simulate hanging'.")
     _add_simulate_options(demo)
-    sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
+    demo.set_defaults(handler=_run_demo)
+    scenes = sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
+    scenes.set_defaults(handler=_run_scenes)
     live = sub.add_parser(
         "live", help="live puppetry: a haptic device drives a bar at 1 kHz and feels the strings",
         description="Live puppetry (paper §3): the device tip drives a control bar through P' = S W P, "
@@ -110,10 +149,12 @@ def _parser() -> argparse.ArgumentParser:
     live.add_argument("--snapshot", type=Path, default=None,
                       help="write a picture (PNG) of the last frame here at the end; works with any --view "
                            "(and, like it, runs the physics in the worker thread)")
+    live.set_defaults(handler=_run_live)
     info = sub.add_parser("info", help="summarise a recorded session (MCAP)",
                           description="Summarise a recorded session: duration, topics with counts and rates, "
                                       "scene, bars, whether the recording was cut off (docs/session.md).")
     info.add_argument("session", type=Path, help="the .mcap file")
+    info.set_defaults(handler=_run_info)
     replay = sub.add_parser("replay", help="re-simulate a recorded session and compare",
                             description="Rebuild the session's scene from its metadata, drive its bars with the "
                                         "recorded bar poses, re-simulate, and report the gap between recorded "
@@ -121,6 +162,7 @@ def _parser() -> argparse.ArgumentParser:
     replay.add_argument("session", type=Path, help="the .mcap file")
     replay.add_argument("--out", type=Path, default=None, help="also write trajectory.npz and summary.json here")
     replay.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    replay.set_defaults(handler=_run_replay)
     bench = sub.add_parser("bench", help="measure what accuracy costs in time",
                            description="Benchmarks. 'accuracy': sweep particles per string, string step, "
                                        "puppet rate, float32/float64 strings, tension-only springs and contact "
@@ -134,6 +176,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=Path("out") / "bench", help="output folder")
     bench.add_argument("--fast-compile", action="store_true",
                        help="puppet kernels without optimisation (timings then mean less)")
+    bench.set_defaults(handler=_run_bench)
     export = sub.add_parser("export", help="export the puppet motion of a trajectory to BVH and glTF",
                             description="Write the puppet motion of a marionette trajectory file (from 'dmarionette "
                                         "simulate') as OUT/motion.bvh (joint tree, metres, degrees) and/or OUT/motion.glb "
@@ -149,67 +192,8 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--scene", default=None,
                         help="the scene (name or TOML file) whose puppet the trajectory was simulated with "
                              "(default: the scene the file names, else the default marionette)")
-    _add_author_parser(sub)
-    _add_calibrate_parser(sub)
-    return parser
-
-
-def _add_author_parser(sub) -> None:
-    author = sub.add_parser(
-        "author", help="keyframes -> bar motions that reach them (needs the fitting extra: jax, optimistix)",
-        description="Keyframe authoring (docs/authoring.md): find control-bar motions that make the puppet reach "
-                    "the poses of a keyframes file, by gradient-based optimisation through the whole simulation. "
-                    "Writes to OUT: authored_scene.toml (the optimised bars as keyframes; 'dmarionette simulate' "
-                    "and 'live' take it), initial_scene.toml, trajectory.npz (the simulator's replay), "
-                    "motion.bvh and motion.glb, animation_before.gif and animation_after.gif, convergence.png "
-                    "and summary.json (per-keyframe errors before and after, the solver history). Prints one "
-                    "line per solver step, then the summary's main numbers as JSON.")
-    author.add_argument("keyframes", type=Path, help="the keyframes TOML file")
-    author.add_argument("--out", type=Path, default=None, help="output folder (default: out/<keyframes file name>)")
-    author.add_argument("--max-steps", type=int, default=None,
-                        help="solver steps at most (default: the file's [solver] max_steps, else 60)")
-    author.add_argument("--method", choices=["bfgs", "lm", "gauss_newton"], default=None,
-                        help="bfgs: the scalar loss with reverse-mode gradients (default); lm / gauss_newton: the "
-                             "residual vector with a reverse-mode Jacobian (one backward pass per residual)")
-    author.add_argument("--checkpoint-steps", type=int, default=None,
-                        help="puppet steps per taped gradient segment (default: sqrt of the rollout's steps)")
-    author.add_argument("--no-animation", action="store_true", help="skip the before/after animations")
-    author.add_argument("--no-export", action="store_true", help="skip the BVH and glTF files")
-    author.add_argument("--fps", type=float, default=15.0, help="animation frames per second (default: 15)")
-    author.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
-    author.add_argument("--quiet", action="store_true", help="no progress lines")
-
-
-def _run_author(args: argparse.Namespace) -> int:
-    # fitting (JAX, optimistix) is imported here only: dmarionette never imports it at import time.
-    try:
-        import jax  # noqa: F401
-        import optimistix  # noqa: F401
-        import tomli_w  # noqa: F401
-    except ImportError as error:
-        raise RuntimeError(f"'dmarionette author' needs the fitting extra ({error.name} is missing): "
-                           "pip install 'dmarionette[fitting]'") from None
-    from fitting.author import author
-    from fitting.keyframes import load_keyframes
-
-    if args.max_steps is not None and args.max_steps < 1:
-        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
-    if args.checkpoint_steps is not None and args.checkpoint_steps < 1:
-        raise ValueError(f"--checkpoint-steps: got {args.checkpoint_steps}; expected an integer >= 1")
-    if not args.fps > 0.0:
-        raise ValueError(f"--fps: got {args.fps}; expected a positive number")
-    spec = load_keyframes(args.keyframes)
-    out = args.out if args.out is not None else Path("out") / args.keyframes.stem
-    summary = author(spec, out, max_steps=args.max_steps, method=args.method, progress=not args.quiet,
-                     animation=not args.no_animation, exports=not args.no_export,
-                     optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
-                     fps=args.fps)
-    keys = ("loss_before", "loss_after", "steps", "converged", "replay_gap", "seconds", "files")
-    print(json.dumps({k: summary[k] for k in keys}
-                     | {"max_keyframe_error_m": max(e["max_position_error_m"] for e in summary["keyframes_after"]),
-                        "max_keyframe_error_deg": max(e["max_joint_error_deg"] for e in summary["keyframes_after"])},
-                     indent=2))
-    return 0
+    export.set_defaults(handler=_run_export)
+    return parser, sub
 
 
 def _run_export(args: argparse.Namespace) -> int:
@@ -236,89 +220,6 @@ def _run_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_calibrate_parser(sub) -> None:
-    calibrate = sub.add_parser(
-        "calibrate", help="fit the strings' constants (eq. 2 k, k_d per string) to a recorded session",
-        description="Fit string constants to a recorded session (docs/calibration.md): the recorded bar poses "
-                    "drive the simulation, the recorded body centres and/or feedback forces are the targets. "
-                    "Prints the fitted values with standard errors (Gauss-Newton) and the residuals before and "
-                    "after; writes OUT/calibration.json, OUT/calibration.png and OUT/calibrated.toml (a scene "
-                    "with the fitted constants, for 'dmarionette simulate'). Needs the 'fitting' extra.")
-    calibrate.add_argument("session", type=Path, help="the .mcap session file")
-    calibrate.add_argument("--targets", choices=["bodies", "feedback", "both"], default="bodies",
-                           help="fit the recorded body centres (default), the bars' feedback (exact reaction), "
-                                "or both")
-    calibrate.add_argument("--params", default="k,k_d",
-                           help="constants to fit, comma-separated: k, k_d (eq. 2, per tied string), k_s (string "
-                                "stiffness); ':shared' fits one value for every string (default: k,k_d)")
-    calibrate.add_argument("--out", type=Path, default=None, help="output folder (default: out/calibrate/<session>)")
-    calibrate.add_argument("--max-steps", type=int, default=50, help="solver steps at most (default: 50)")
-    calibrate.add_argument("--solver", choices=["lm-fd", "lm-bwd", "bfgs"], default="lm-fd",
-                           help="lm-fd: Levenberg-Marquardt, Jacobian by central differences of the rollout "
-                                "(default, cheapest); lm-bwd: reverse-mode Jacobian on --rows residuals; bfgs: "
-                                "BFGS on the loss with its reverse-mode gradient")
-    calibrate.add_argument("--start", default=None,
-                           help="start values, e.g. 'k=250,k_d=2.5' (default: the session scene's constants)")
-    calibrate.add_argument("--noise-position", type=float, default=1e-3,
-                           help="noise scale of a body coordinate [m] (default 1e-3)")
-    calibrate.add_argument("--noise-force", type=float, default=1e-2,
-                           help="noise scale of a force component [N] (default 1e-2)")
-    calibrate.add_argument("--known-noise", action="store_true",
-                           help="the noise scales are the true standard deviations (else the residual variance "
-                                "is estimated per target)")
-    calibrate.add_argument("--duration", type=float, default=None, help="use only the first S seconds")
-    calibrate.add_argument("--rows", type=int, default=96, help="residuals kept by --solver lm-bwd (default 96)")
-    calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
-    calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
-    calibrate.add_argument("--quiet", action="store_true", help="no progress display")
-
-
-def _run_calibrate(args: argparse.Namespace) -> int:
-    try:  # the fitting extra (JAX, optimistix) is imported only here
-        from fitting.calibration_fit import calibrate_session
-        from fitting.calibration_report import format_table, write_outputs
-    except ImportError as error:
-        raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
-                           "pip install 'dmarionette[fitting]'") from None
-    start = None
-    if args.start:
-        start = {}
-        for item in args.start.split(","):
-            name, _, value = item.partition("=")
-            try:
-                start[name.strip()] = float(value)
-            except ValueError:
-                raise ValueError(f"--start: {item!r}: expected NAME=VALUE, e.g. k=250,k_d=2.5") from None
-    if args.max_steps < 1:
-        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
-    out = args.out if args.out is not None else Path("out") / "calibrate" / args.session.stem
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        print(f"calibrating {args.session} (the first run compiles the puppet kernels)", file=sys.stderr)
-        bar = tqdm(unit=" rollouts", desc="start", file=sys.stderr)
-
-    def progress(stage: str, count: int) -> None:
-        bar.set_description(stage, refresh=False)
-        bar.update(count - bar.n)
-
-    try:
-        result = calibrate_session(args.session, targets=args.targets, params=args.params, solver=args.solver,
-                                   max_steps=args.max_steps, start=start, noise_position=args.noise_position,
-                                   noise_force=args.noise_force, known_noise=args.known_noise,
-                                   duration=args.duration, rows=args.rows,
-                                   optimization_level=0 if args.fast_compile else 2,
-                                   progress=progress if bar is not None else None)
-    finally:
-        if bar is not None:
-            bar.close()
-    files = write_outputs(result, out, plot=not args.no_picture)
-    print(format_table(result))
-    print(json.dumps(files, indent=2))
-    return 0
-
-
 def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -339,14 +240,7 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
 
         files["picture"] = str(render_string_picture(out / "strings.png", trajectory, title=scene.description,
                                                      ground_height=scene.ground_height))
-    summary = summarize(trajectory, scene)
-    summary["files"] = files
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary, indent=2))
-    if not summary["all_finite"]:
-        print("error: the simulation produced a non-finite value", file=sys.stderr)
-        return 1
-    return 0
+    return _write_summary(out, summarize(trajectory, scene), files)
 
 
 def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
@@ -370,7 +264,11 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
             ball_radius=scene.ball.radius if scene.ball is not None else None, every=every)
         files["animation"] = str(path)
         files["animation_frames"] = frames
-    summary = summarize_marionette(trajectory, scene)
+    return _write_summary(out, summarize_marionette(trajectory, scene), files)
+
+
+def _write_summary(out: Path, summary: dict, files: dict) -> int:
+    """Writes OUT/summary.json (with the files written) and prints it; exit code 1 on a non-finite value."""
     summary["files"] = files
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(json.dumps(summary, indent=2))
@@ -475,50 +373,112 @@ def _run_live(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``dmarionette`` command."""
-    args = _parser().parse_args(argv)
+def _run_demo(args: argparse.Namespace) -> int:
+    from .scene.scene import DEFAULT_SCENE
+
+    return _run_simulate(DEFAULT_SCENE, args)
+
+
+def _run_scenes(args: argparse.Namespace) -> int:
+    from .scene.scene import builtin_scenes, load_scene
+
+    for name in builtin_scenes():
+        print(f"{name:12s} {load_scene(name).description}")
+    return 0
+
+
+def _run_info(args: argparse.Namespace) -> int:
+    from .io.session import format_session_info, session_info
+
+    print(format_session_info(session_info(args.session)))
+    return 0
+
+
+def _run_bench(args: argparse.Namespace) -> int:
+    from .marionette.accuracy import run_sweep, write_outputs
+
+    rows, summary = run_sweep(args.seconds, args.grid, 0 if args.fast_compile else 2, args.repeats,
+                              progress=lambda line: print(line, file=sys.stderr))
+    files = write_outputs(rows, summary, args.out)
+    print(files["table"].read_text())
+    print(json.dumps({k: str(v) for k, v in files.items()}))
+    return 0
+
+
+def find_commands(*, installed: bool = True,
+                  source_tree: Path | None = SOURCE_TREE) -> dict[str, metadata.EntryPoint]:
+    """The plug-in commands, not loaded: command name -> entry point (see the module docstring).
+
+    Args:
+        installed: read the installed packages' metadata (``importlib.metadata``).
+        source_tree: a folder whose pyproject.toml, when it is dmarionette's, declares entries too
+            (default: the folder above this package); None: none.
+
+    Returns:
+        The entries of the ``dmarionette.commands`` group; the installed metadata's where both name
+        a command.
+    """
+    found = {}
+    if installed:
+        found = {entry.name: entry for entry in metadata.entry_points(group=COMMAND_GROUP)}
+    pyproject = source_tree / "pyproject.toml" if source_tree is not None else None
+    if pyproject is not None and pyproject.is_file():
+        project = tomllib.loads(pyproject.read_text()).get("project", {})
+        if project.get("name") == "dmarionette":
+            for name, value in project.get("entry-points", {}).get(COMMAND_GROUP, {}).items():
+                found.setdefault(name, metadata.EntryPoint(name, value, COMMAND_GROUP))
+    return found
+
+
+def _add_plugin(sub, entry: metadata.EntryPoint) -> None:
+    """Adds a plug-in command; one that cannot be loaded becomes a command that says why."""
+    try:
+        add = entry.load()
+    except ImportError as error:
+        message = (f"'dmarionette {entry.name}' is a plug-in command ({entry.value}, entry-point group "
+                   f"{COMMAND_GROUP!r}) that could not be loaded: {error}; if a package is missing, install the "
+                   "extra that brings it, e.g. pip install 'dmarionette[fitting]'")
+        stub = sub.add_parser(entry.name, help=f"(not available: {error})", description=message)
+        stub.add_argument("arguments", nargs=argparse.REMAINDER, help="not read")
+
+        def unavailable(args: argparse.Namespace) -> int:
+            raise RuntimeError(message)
+
+        stub.set_defaults(handler=unavailable)
+        return
+    add(sub)
+
+
+def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.EntryPoint] | None = None) -> int:
+    """Entry point of the ``dmarionette`` command.
+
+    Args:
+        argv: the arguments (default: ``sys.argv[1:]``).
+        commands: the plug-in commands (default: ``find_commands()``).
+
+    Returns:
+        The exit code: 0 done, 1 a simulation produced a non-finite value, 2 an error (printed).
+    """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser, sub = _parser()
+    builtin = set(sub.choices)
+    plugins = find_commands() if commands is None else commands
+    named = next((a for a in argv if not a.startswith("-")), None)  # the command: the first positional
+    for name in sorted(plugins):
+        if name not in builtin and (named == name or named not in builtin):  # load only what may be used
+            _add_plugin(sub, plugins[name])
+    if not plugins:
+        parser.epilog = _NO_PLUGINS
+        if named is not None and named not in builtin:
+            parser.error(f"unknown command {named!r}; {_NO_PLUGINS}")
+    args = parser.parse_args(argv)
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
     from .scene.fields import SceneError
 
     try:
-        if args.command == "scenes":
-            from .scene.scene import builtin_scenes, load_scene
-
-            for name in builtin_scenes():
-                print(f"{name:12s} {load_scene(name).description}")
-            return 0
-        if args.command == "live":
-            return _run_live(args)
-        if args.command == "info":
-            from .io.session import format_session_info, session_info
-
-            print(format_session_info(session_info(args.session)))
-            return 0
-        if args.command == "replay":
-            return _run_replay(args)
-        if args.command == "calibrate":
-            return _run_calibrate(args)
-        if args.command == "bench":
-            from .marionette.accuracy import run_sweep, write_outputs
-
-            rows, summary = run_sweep(args.seconds, args.grid, 0 if args.fast_compile else 2, args.repeats,
-                                      progress=lambda line: print(line, file=sys.stderr))
-            files = write_outputs(rows, summary, args.out)
-            print(files["table"].read_text())
-            print(json.dumps({k: str(v) for k, v in files.items()}))
-            return 0
-        if args.command == "author":
-            return _run_author(args)
-        if args.command == "export":
-            return _run_export(args)
-        if args.command == "demo":
-            from .scene.scene import DEFAULT_SCENE
-
-            return _run_simulate(DEFAULT_SCENE, args)
-        return _run_simulate(args.scene, args)
+        return args.handler(args)
     except (SceneError, ValueError, RuntimeError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -30,6 +30,7 @@ from dmarionette.scene.fields import (
     read_int,
     read_str,
     read_table,
+    read_toml_file,
     read_vec3,
 )
 
@@ -150,14 +151,7 @@ _AUTHOR_KEYS = ["scene", "duration", "particle_count", "string_hz", "puppet_hz",
 def load_keyframes(path: str | Path) -> AuthorSpec:
     """Loads and validates a keyframes file (format: ``docs/authoring.md``)."""
     path = Path(path)
-    if not path.is_file():
-        raise KeyframeError(str(path), "(file)", str(path), "an existing keyframes TOML file")
-    try:
-        with path.open("rb") as f:
-            table = tomllib.load(f)
-    except tomllib.TOMLDecodeError as error:
-        raise KeyframeError(str(path), "(file)", "invalid TOML", f"valid TOML ({error})") from None
-    return keyframes_from_table(table, str(path))
+    return keyframes_from_table(read_toml_file(path, "an existing keyframes TOML file", KeyframeError), str(path))
 
 
 def keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:

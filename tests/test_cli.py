@@ -1,13 +1,15 @@
-"""The command line: help on every command, a short simulation's files, clean errors."""
+"""The command line: help on every command, a short simulation's files, clean errors, plug-in
+commands found through entry points."""
 
 import json
 import subprocess
 import sys
+from importlib import metadata
 
 import numpy as np
 import pytest
 
-from dmarionette.cli import main
+from dmarionette.cli import COMMAND_GROUP, find_commands, main
 from dmarionette.io.trajectory import read_trajectory
 
 
@@ -43,3 +45,86 @@ def test_bad_scene_gives_a_clear_error_and_no_traceback(tmp_path):
     assert run.returncode == 2
     assert "Traceback" not in run.stderr
     assert str(bad) in run.stderr and "'mass'" in run.stderr and "> 0" in run.stderr
+
+
+# ------------------------------------------------------------------ plug-in commands (entry points)
+
+FITTING_COMMANDS = {"author": "fitting.cli:add_author_command", "calibrate": "fitting.cli:add_calibrate_command"}
+
+
+def add_hello_command(commands):
+    """A plug-in command for the tests below: 'hello NAME' prints a greeting; exit code 7."""
+    hello = commands.add_parser("hello", help="greet NAME", description="Prints a greeting.")
+    hello.add_argument("name")
+    hello.add_argument("--refuse", action="store_true", help="raise a ValueError instead")
+
+    def run(args):
+        if args.refuse:
+            raise ValueError(f"--refuse: {args.name} is not greeted")
+        print(f"hello {args.name}")
+        return 7
+
+    hello.set_defaults(handler=run)
+
+
+def _plugins(**entries):
+    return {name: metadata.EntryPoint(name, value, COMMAND_GROUP) for name, value in entries.items()}
+
+
+def test_fitting_declares_its_commands_in_the_source_tree():
+    """pyproject.toml's entry points, which find_commands reads for a tree run without installing."""
+    found = find_commands(installed=False)
+    assert {name: entry.value for name, entry in found.items()} == FITTING_COMMANDS
+
+
+def test_the_installed_metadata_declares_the_same_commands():
+    installed = {entry.name: entry.value for entry in metadata.entry_points(group=COMMAND_GROUP)}
+    if not installed:
+        pytest.skip("dmarionette's metadata (with its entry points) is not installed: pip install -e '.[dev]'")
+    assert installed == FITTING_COMMANDS
+    assert find_commands() == find_commands(source_tree=None)
+
+
+def test_a_plugin_command_runs_through_its_entry_point(capsys):
+    plugins = _plugins(hello=f"{__name__}:add_hello_command")
+    assert main(["hello", "puppet"], commands=plugins) == 7
+    assert capsys.readouterr().out == "hello puppet\n"
+    assert main(["hello", "puppet", "--refuse"], commands=plugins) == 2
+    assert "error: --refuse: puppet is not greeted" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        main(["--help"], commands=plugins)
+    assert exit_.value.code == 0
+    assert "greet NAME" in capsys.readouterr().out
+
+
+def test_a_plugin_that_cannot_be_loaded_says_why(capsys):
+    plugins = _plugins(broken="no_such_plugin_module:add")
+    assert main(["broken", "anything", "--at-all"], commands=plugins) == 2
+    err = capsys.readouterr().err
+    assert "error: 'dmarionette broken' is a plug-in command (no_such_plugin_module:add" in err
+    assert "could not be loaded" in err and "no_such_plugin_module" in err and "pip install" in err
+    with pytest.raises(SystemExit):
+        main(["--help"], commands=plugins)
+    assert "(not available:" in capsys.readouterr().out
+
+
+def test_without_plugins_the_help_and_an_unknown_command_say_how_to_install_them(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--help"], commands={})
+    assert exit_.value.code == 0
+    assert "no plug-in commands were found" in capsys.readouterr().out.replace("\n", " ").replace("  ", " ")
+    with pytest.raises(SystemExit) as exit_:
+        main(["author", "keyframes.toml"], commands={})
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "unknown command 'author'" in err and "pip install -e '.[fitting]'" in err
+
+
+def test_only_the_command_named_is_loaded():
+    """A built-in command loads no plug-in (so no JAX); a plug-in command loads its own."""
+    code = ("import sys\nfrom dmarionette.cli import main\n"
+            "try:\n    main([sys.argv[1], '--help'])\nexcept SystemExit:\n    pass\n"
+            "print('fitting' in sys.modules, 'jax' in sys.modules, file=sys.stderr)")
+    for command, loaded in (("simulate", ["False", "False"]), ("author", ["True", "True"])):
+        run = subprocess.run([sys.executable, "-c", code, command], capture_output=True, text=True, check=True)
+        assert run.stderr.split()[-2:] == loaded, (command, run.stderr)

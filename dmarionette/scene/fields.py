@@ -9,7 +9,9 @@ at the Python boundary so that a user's mistake never reaches a kernel.
 from __future__ import annotations
 
 import math
+import tomllib
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 __all__ = [
@@ -21,6 +23,7 @@ __all__ = [
     "read_int",
     "read_str",
     "read_table",
+    "read_toml_file",
     "read_vec3",
 ]
 
@@ -44,6 +47,30 @@ class SceneError(ValueError):
         self.expected = expected
         got = "nothing (the key is missing)" if received is _MISSING else repr(received)
         super().__init__(f"{where}: key '{key}': got {got}; expected {expected}")
+
+
+def read_toml_file(path: Path, expected: str = "an existing TOML file",
+                   error: type[SceneError] = SceneError) -> dict[str, Any]:
+    """The table of a TOML file.
+
+    Args:
+        path: the file.
+        expected: what the message says was expected when the file does not exist.
+        error: the error raised (a ``SceneError`` subclass names the kind of file).
+
+    Returns:
+        The parsed table.
+
+    Raises:
+        SceneError: (or ``error``) the file does not exist or is not valid TOML.
+    """
+    if not path.is_file():
+        raise error(str(path), "(file)", str(path), expected)
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as err:
+        raise error(str(path), "(file)", "invalid TOML", f"valid TOML ({err})") from None
 
 
 def check_keys(table: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:

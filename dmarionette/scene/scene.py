@@ -41,12 +41,13 @@ from dmarionette.scene.fields import (
     read_int,
     read_str,
     read_table,
+    read_toml_file,
     read_vec3,
 )
 from dmarionette.scene.bars import ControlBar, bar_from_table
 from dmarionette.scene.strings import StringEffects, StringSpec
 
-__all__ = ["Scene", "StringMotion", "builtin_scenes", "load_scene", "scene_from_table"]
+__all__ = ["Scene", "StringMotion", "builtin_scenes", "load_scene", "resolve_puppet_table", "scene_from_table"]
 
 SCENE_DIR = Path(__file__).parent / "builtin"
 DEFAULT_SCENE = "hanging"
@@ -172,12 +173,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
                              f"a TOML file path or a built-in scene name: {builtin_scenes()}")
     if not path.is_file():
         raise SceneError(str(path), "scene", str(path), "an existing TOML file")
-    try:
-        with path.open("rb") as f:
-            table = tomllib.load(f)
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError(str(path), "(file)", "invalid TOML", f"valid TOML ({error})") from None
-    return scene_from_table(table, str(path))
+    return scene_from_table(read_toml_file(path), str(path))
 
 
 def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
@@ -220,7 +216,8 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     if "puppet" in table:
         from dmarionette.scene.puppet import puppet_from_table
 
-        puppet = puppet_from_table(_puppet_table(read_table(table, "puppet", source), source), f"{source}: [puppet]")
+        puppet = puppet_from_table(resolve_puppet_table(read_table(table, "puppet", source), source),
+                                   f"{source}: [puppet]")
     bars_table = read_table(table, "bars", source, {})
     bars = tuple(bar_from_table(n, read_table(bars_table, n, f"{source}: [bars]"), f"{source}: [bars.{n}]",
                                 Path(source).parent) for n in bars_table)
@@ -256,9 +253,19 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     return scene
 
 
-def _puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, Any]:
-    """``include = "puppet.toml"`` loads that file's ``[puppet]`` table (next to the scene or
-    built in); the other keys of the scene's ``[puppet]`` table override its top-level keys."""
+def resolve_puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, Any]:
+    """A scene's ``[puppet]`` table with its ``include`` resolved.
+
+    ``include = "puppet.toml"`` loads that file's ``[puppet]`` table (next to the scene or built
+    in); the other keys of the scene's ``[puppet]`` table override its top-level keys.
+
+    Args:
+        table: the scene's ``[puppet]`` table.
+        source: the scene file's path (an include is looked for next to it), for messages too.
+
+    Returns:
+        The table itself when it includes nothing, else the merged table.
+    """
     if "include" not in table:
         return table
     where = f"{source}: [puppet]"
@@ -275,6 +282,10 @@ def _puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, Any]:
     merged = dict(base)
     merged.update({k: v for k, v in table.items() if k != "include"})
     return merged
+
+
+# The old private spelling, until dmarionette/io/session/write.py imports resolve_puppet_table.
+_puppet_table = resolve_puppet_table
 
 
 def _read_initial_pose(table: Mapping[str, Any], where: str, puppet) -> dict[str, tuple[float, ...]]:

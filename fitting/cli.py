@@ -1,0 +1,165 @@
+"""fitting's commands of the ``dmarionette`` command line, plugged in through entry points.
+
+- ``dmarionette author KEYFRAMES``: bar motions that reach keyframe poses (docs/authoring.md);
+- ``dmarionette calibrate SESSION``: fit string constants to a recorded session (docs/calibration.md).
+
+``dmarionette`` never imports ``fitting``: pyproject.toml declares these functions in the
+``dmarionette.commands`` entry-point group, and ``dmarionette.cli`` loads the one a command line
+names (see its docstring for the contract). Each adds its subparser to dmarionette's
+subcommands, with ``handler`` set to the function that runs it and returns the exit code;
+a ``ValueError`` or ``RuntimeError`` it raises is printed as ``error: ...`` with exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["add_author_command", "add_calibrate_command"]
+
+
+def add_author_command(commands) -> None:
+    """Adds ``dmarionette author`` to ``commands`` (dmarionette's ``add_subparsers()``)."""
+    author = commands.add_parser(
+        "author", help="keyframes -> bar motions that reach them (needs the fitting extra: jax, optimistix)",
+        description="Keyframe authoring (docs/authoring.md): find control-bar motions that make the puppet reach "
+                    "the poses of a keyframes file, by gradient-based optimisation through the whole simulation. "
+                    "Writes to OUT: authored_scene.toml (the optimised bars as keyframes; 'dmarionette simulate' "
+                    "and 'live' take it), initial_scene.toml, trajectory.npz (the simulator's replay), "
+                    "motion.bvh and motion.glb, animation_before.gif and animation_after.gif, convergence.png "
+                    "and summary.json (per-keyframe errors before and after, the solver history). Prints one "
+                    "line per solver step, then the summary's main numbers as JSON.")
+    author.add_argument("keyframes", type=Path, help="the keyframes TOML file")
+    author.add_argument("--out", type=Path, default=None, help="output folder (default: out/<keyframes file name>)")
+    author.add_argument("--max-steps", type=int, default=None,
+                        help="solver steps at most (default: the file's [solver] max_steps, else 60)")
+    author.add_argument("--method", choices=["bfgs", "lm", "gauss_newton"], default=None,
+                        help="bfgs: the scalar loss with reverse-mode gradients (default); lm / gauss_newton: the "
+                             "residual vector with a reverse-mode Jacobian (one backward pass per residual)")
+    author.add_argument("--checkpoint-steps", type=int, default=None,
+                        help="puppet steps per taped gradient segment (default: sqrt of the rollout's steps)")
+    author.add_argument("--no-animation", action="store_true", help="skip the before/after animations")
+    author.add_argument("--no-export", action="store_true", help="skip the BVH and glTF files")
+    author.add_argument("--fps", type=float, default=15.0, help="animation frames per second (default: 15)")
+    author.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    author.add_argument("--quiet", action="store_true", help="no progress lines")
+    author.set_defaults(handler=_run_author)
+
+
+def _run_author(args: argparse.Namespace) -> int:
+    # Every package the command needs, checked before any work (tomli_w is imported only when writing).
+    try:
+        import jax  # noqa: F401
+        import optimistix  # noqa: F401
+        import tomli_w  # noqa: F401
+    except ImportError as error:
+        raise RuntimeError(f"'dmarionette author' needs the fitting extra ({error.name} is missing): "
+                           "pip install 'dmarionette[fitting]'") from None
+    from .author import author
+    from .keyframes import load_keyframes
+
+    if args.max_steps is not None and args.max_steps < 1:
+        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
+    if args.checkpoint_steps is not None and args.checkpoint_steps < 1:
+        raise ValueError(f"--checkpoint-steps: got {args.checkpoint_steps}; expected an integer >= 1")
+    if not args.fps > 0.0:
+        raise ValueError(f"--fps: got {args.fps}; expected a positive number")
+    spec = load_keyframes(args.keyframes)
+    out = args.out if args.out is not None else Path("out") / args.keyframes.stem
+    summary = author(spec, out, max_steps=args.max_steps, method=args.method, progress=not args.quiet,
+                     animation=not args.no_animation, exports=not args.no_export,
+                     optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
+                     fps=args.fps)
+    keys = ("loss_before", "loss_after", "steps", "converged", "replay_gap", "seconds", "files")
+    print(json.dumps({k: summary[k] for k in keys}
+                     | {"max_keyframe_error_m": max(e["max_position_error_m"] for e in summary["keyframes_after"]),
+                        "max_keyframe_error_deg": max(e["max_joint_error_deg"] for e in summary["keyframes_after"])},
+                     indent=2))
+    return 0
+
+
+def add_calibrate_command(commands) -> None:
+    """Adds ``dmarionette calibrate`` to ``commands`` (dmarionette's ``add_subparsers()``)."""
+    calibrate = commands.add_parser(
+        "calibrate", help="fit the strings' constants (eq. 2 k, k_d per string) to a recorded session",
+        description="Fit string constants to a recorded session (docs/calibration.md): the recorded bar poses "
+                    "drive the simulation, the recorded body centres and/or feedback forces are the targets. "
+                    "Prints the fitted values with standard errors (Gauss-Newton) and the residuals before and "
+                    "after; writes OUT/calibration.json, OUT/calibration.png and OUT/calibrated.toml (a scene "
+                    "with the fitted constants, for 'dmarionette simulate'). Needs the 'fitting' extra.")
+    calibrate.add_argument("session", type=Path, help="the .mcap session file")
+    calibrate.add_argument("--targets", choices=["bodies", "feedback", "both"], default="bodies",
+                           help="fit the recorded body centres (default), the bars' feedback (exact reaction), "
+                                "or both")
+    calibrate.add_argument("--params", default="k,k_d",
+                           help="constants to fit, comma-separated: k, k_d (eq. 2, per tied string), k_s (string "
+                                "stiffness); ':shared' fits one value for every string (default: k,k_d)")
+    calibrate.add_argument("--out", type=Path, default=None, help="output folder (default: out/calibrate/<session>)")
+    calibrate.add_argument("--max-steps", type=int, default=50, help="solver steps at most (default: 50)")
+    calibrate.add_argument("--solver", choices=["lm-fd", "lm-bwd", "bfgs"], default="lm-fd",
+                           help="lm-fd: Levenberg-Marquardt, Jacobian by central differences of the rollout "
+                                "(default, cheapest); lm-bwd: reverse-mode Jacobian on --rows residuals; bfgs: "
+                                "BFGS on the loss with its reverse-mode gradient")
+    calibrate.add_argument("--start", default=None,
+                           help="start values, e.g. 'k=250,k_d=2.5' (default: the session scene's constants)")
+    calibrate.add_argument("--noise-position", type=float, default=1e-3,
+                           help="noise scale of a body coordinate [m] (default 1e-3)")
+    calibrate.add_argument("--noise-force", type=float, default=1e-2,
+                           help="noise scale of a force component [N] (default 1e-2)")
+    calibrate.add_argument("--known-noise", action="store_true",
+                           help="the noise scales are the true standard deviations (else the residual variance "
+                                "is estimated per target)")
+    calibrate.add_argument("--duration", type=float, default=None, help="use only the first S seconds")
+    calibrate.add_argument("--rows", type=int, default=96, help="residuals kept by --solver lm-bwd (default 96)")
+    calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
+    calibrate.add_argument("--quiet", action="store_true", help="no progress display")
+    calibrate.set_defaults(handler=_run_calibrate)
+
+
+def _run_calibrate(args: argparse.Namespace) -> int:
+    try:  # the fitting extra (JAX, optimistix) is imported only here
+        from .calibration_fit import calibrate_session
+        from .calibration_report import format_table, write_outputs
+    except ImportError as error:
+        raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
+                           "pip install 'dmarionette[fitting]'") from None
+    start = None
+    if args.start:
+        start = {}
+        for item in args.start.split(","):
+            name, _, value = item.partition("=")
+            try:
+                start[name.strip()] = float(value)
+            except ValueError:
+                raise ValueError(f"--start: {item!r}: expected NAME=VALUE, e.g. k=250,k_d=2.5") from None
+    if args.max_steps < 1:
+        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
+    out = args.out if args.out is not None else Path("out") / "calibrate" / args.session.stem
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        print(f"calibrating {args.session} (the first run compiles the puppet kernels)", file=sys.stderr)
+        bar = tqdm(unit=" rollouts", desc="start", file=sys.stderr)
+
+    def progress(stage: str, count: int) -> None:
+        bar.set_description(stage, refresh=False)
+        bar.update(count - bar.n)
+
+    try:
+        result = calibrate_session(args.session, targets=args.targets, params=args.params, solver=args.solver,
+                                   max_steps=args.max_steps, start=start, noise_position=args.noise_position,
+                                   noise_force=args.noise_force, known_noise=args.known_noise,
+                                   duration=args.duration, rows=args.rows,
+                                   optimization_level=0 if args.fast_compile else 2,
+                                   progress=progress if bar is not None else None)
+    finally:
+        if bar is not None:
+            bar.close()
+    files = write_outputs(result, out, plot=not args.no_picture)
+    print(format_table(result))
+    print(json.dumps(files, indent=2))
+    return 0
