@@ -284,8 +284,6 @@ def resolve_puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, 
     return merged
 
 
-# The old private spelling, until dmarionette/io/session/write.py imports resolve_puppet_table.
-_puppet_table = resolve_puppet_table
 
 
 def _read_initial_pose(table: Mapping[str, Any], where: str, puppet) -> dict[str, tuple[float, ...]]:

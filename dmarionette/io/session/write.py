@@ -33,7 +33,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
 from dmarionette.scene.bars import read_bar_trajectory_csv
-from dmarionette.scene.scene import Scene, _puppet_table
+from dmarionette.scene.scene import Scene, resolve_puppet_table
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "SCHEMAS", "SessionWriter", "scene_constants", "session_metadata"]
 
@@ -153,7 +153,7 @@ def self_contained_table(scene_text: str, source: str) -> dict:
     """
     table = tomllib.loads(scene_text)
     if isinstance(table.get("puppet"), Mapping):
-        table["puppet"] = dict(_puppet_table(table["puppet"], source))
+        table["puppet"] = dict(resolve_puppet_table(table["puppet"], source))
     for name, bar in (table.get("bars") or {}).items():
         if isinstance(bar, Mapping) and "trajectory_file" in bar:
             file = Path(str(bar["trajectory_file"]))
