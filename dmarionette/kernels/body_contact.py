@@ -170,10 +170,30 @@ def compute_box_closest(u: wp.vec3d, half: wp.vec3d):
     return dist, n, q
 
 
+def _surface_contact(response):
+    @wp.func
+    def compute_surface_contact(
+        x: wp.vec3d, omega: wp.vec3d, vel: wp.vec3d, centre: wp.vec3d, n: wp.vec3d, dist: wp.float64,
+        radius: wp.float64, h: wp.float64,
+        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+    ):
+        """A body's sphere of ``radius`` at ``centre`` (a box corner: radius 0) against a static
+        surface, its centre ``dist`` out along the surface's outward normal ``n``: the contact
+        point, the force on the body there and its implicit 3x3 block. ``x``, ``omega``, ``vel``:
+        the body's centre, angular and linear velocity."""
+        d = radius - dist
+        p = centre - radius * n
+        v = vel + wp.cross(omega, p - x)
+        f, A = response(p, n, d, v, h, k, c, mu, v_eps, delta)
+        return p, f, A
+
+    return compute_surface_contact
+
+
 @functools.cache
 def _kernels(smooth: bool):
     normal_fn = compute_normal_smooth if smooth else compute_normal_hard
-    response = _contact_response(normal_fn)
+    surface_contact = _surface_contact(_contact_response(normal_fn))
     pair_response = _pair_response(normal_fn)
 
     @wp.kernel(module="unique")
@@ -182,7 +202,12 @@ def _kernels(smooth: bool):
         point_body: wp.array(dtype=wp.int32),
         point_local: wp.array(dtype=wp.vec3d),
         point_radius: wp.array(dtype=wp.float64),
-        params: wp.array(dtype=wp.float64),
+        contact_stiffness: wp.float64,
+        contact_damping: wp.float64,
+        contact_friction: wp.float64,
+        contact_friction_velocity: wp.float64,
+        contact_smooth_distance: wp.float64,
+        ground_height: wp.float64,
         # State in:
         body_pos: wp.array2d(dtype=wp.vec3d),
         body_rot: wp.array2d(dtype=wp.quatd),
@@ -194,16 +219,15 @@ def _kernels(smooth: bool):
         body_wrench: wp.array2d(dtype=spatial6),
         body_stiffness: wp.array2d(dtype=spatial66),
     ):
-        """Box corners and spheres against the plane y = params[5]."""
+        """Box corners and spheres against the plane y = ground_height."""
         w, i = wp.tid()
         b = point_body[i]
         x = body_pos[w, b]
         centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
         n = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
-        d = point_radius[i] - (centre[1] - params[5])
-        p = centre - point_radius[i] * n
-        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
-        f, A = response(p, n, d, v, h, params[0], params[1], params[2], params[3], params[4])
+        p, f, A = surface_contact(x, body_w[w, b], body_v[w, b], centre, n, centre[1] - ground_height,
+                                  point_radius[i], h, contact_stiffness, contact_damping, contact_friction,
+                                  contact_friction_velocity, contact_smooth_distance)
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
         wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
 
@@ -213,7 +237,11 @@ def _kernels(smooth: bool):
         point_body: wp.array(dtype=wp.int32),
         point_local: wp.array(dtype=wp.vec3d),
         point_radius: wp.array(dtype=wp.float64),
-        params: wp.array(dtype=wp.float64),
+        contact_stiffness: wp.float64,
+        contact_damping: wp.float64,
+        contact_friction: wp.float64,
+        contact_friction_velocity: wp.float64,
+        contact_smooth_distance: wp.float64,
         box_centre: wp.vec3d,
         box_half: wp.vec3d,
         # State in:
@@ -233,10 +261,9 @@ def _kernels(smooth: bool):
         x = body_pos[w, b]
         centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
         dist, n, q = compute_box_closest(centre - box_centre, box_half)
-        d = point_radius[i] - dist
-        p = centre - point_radius[i] * n
-        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
-        f, A = response(p, n, d, v, h, params[0], params[1], params[2], params[3], params[4])
+        p, f, A = surface_contact(x, body_w[w, b], body_v[w, b], centre, n, dist, point_radius[i], h,
+                                  contact_stiffness, contact_damping, contact_friction, contact_friction_velocity,
+                                  contact_smooth_distance)
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
         wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
 
@@ -249,7 +276,11 @@ def _kernels(smooth: bool):
         pair_mass: wp.array(dtype=wp.float64),
         ball_body: int,
         ball_radius: wp.float64,
-        params: wp.array(dtype=wp.float64),
+        contact_stiffness: wp.float64,
+        contact_damping: wp.float64,
+        contact_friction: wp.float64,
+        contact_friction_velocity: wp.float64,
+        contact_smooth_distance: wp.float64,
         # State in:
         body_pos: wp.array2d(dtype=wp.vec3d),
         body_rot: wp.array2d(dtype=wp.quatd),
@@ -284,7 +315,8 @@ def _kernels(smooth: bool):
         d = ball_radius - dist
         v_body = body_v[w, b] + wp.cross(body_w[w, b], p - x)
         v_ball = body_v[w, ball_body] + wp.cross(body_w[w, ball_body], p - c)
-        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], params[0], params[1], params[2], params[3], params[4])
+        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], contact_stiffness, contact_damping,
+                          contact_friction, contact_friction_velocity, contact_smooth_distance)
         wp.atomic_add(body_wrench, w, ball_body, compute_point_wrench(p, f))
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, -f))
 
@@ -307,8 +339,9 @@ class ContactSet:
         s: ContactSettings = model.contacts
         self.settings = s
         dev = model.device
-        self.params = wp.array(np.array([s.stiffness, s.damping, s.friction, s.friction_velocity,
-                                         s.smooth_distance, s.ground_height]), dtype=wp.float64, device=dev)
+        # The contact constants, as the kernels' named parameters.
+        self.constants = [wp.float64(v) for v in (s.stiffness, s.damping, s.friction, s.friction_velocity,
+                                                  s.smooth_distance)]
         body, local, radius = [], [], []
         for b, (shape, size) in enumerate(model.body_shape):
             if not model.body_contact[b]:
@@ -358,10 +391,10 @@ class ContactSet:
         bodies = [state.body_pos, state.body_rot, state.body_w, state.body_v]
         out = [state.body_wrench, state.body_stiffness]
         dev = self.model.device
-        pts = [self.point_body, self.point_local, self.point_radius, self.params]
+        pts = [self.point_body, self.point_local, self.point_radius, *self.constants]
         if s.ground:
-            wp.launch(ground, dim=(state.world_count, self.point_count), inputs=[*pts, *bodies, h],
-                      outputs=out, device=dev)
+            wp.launch(ground, dim=(state.world_count, self.point_count),
+                      inputs=[*pts, wp.float64(s.ground_height), *bodies, h], outputs=out, device=dev)
         if s.chair is not None:
             centre, half = s.chair
             wp.launch(box, dim=(state.world_count, self.point_count),
@@ -369,5 +402,5 @@ class ContactSet:
         if s.ball and self.ball_body >= 0:
             wp.launch(ball, dim=(state.world_count, self.pair_count),
                       inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.pair_mass, self.ball_body,
-                              wp.float64(self.model.ball.radius), self.params, *bodies, h],
+                              wp.float64(self.model.ball.radius), *self.constants, *bodies, h],
                       outputs=out, device=dev)

@@ -79,6 +79,8 @@ import warp as wp
 
 from .articulation_forces import compute_point_state
 from .articulation_math import compute_point_inertia, compute_point_wrench, spatial6, spatial66
+from .string_spring import string_spring_functions
+from .string_tie import compute_tie_anchor
 
 
 @functools.cache
@@ -89,6 +91,7 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
     (the mean of the previous step's tie forces is unrolled, as in
     :func:`apply_string_forces_to_anchors_kernel`, so that the reverse pass replays it)."""
     vec3 = wp.types.vector(3, scalar)
+    spring = string_spring_functions(wp.float64)  # the strings' values are widened as they are read
     FRICTION = bool(internal_friction)
     n = int(substeps)
 
@@ -153,7 +156,8 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         if length > zero:
             u = along / length
             uu = wp.outer(u, u)
-            tension = wp.max(wp.float64(string_stiffness[s]) * (segment - wp.float64(string_rest_length[s])), zero)
+            tension = spring.compute_string_tension(segment, wp.float64(string_stiffness[s]),
+                                                    wp.float64(string_rest_length[s]))
             stiffness = (tension / length) * (eye - uu)
             # Along the string: the tie and the whole string in series, ramped in from the §3.2
             # taut distance to the rest length (a continuous switch: a step in it would turn
@@ -248,7 +252,8 @@ def apply_string_forces_to_anchors_kernel(substeps: int):
         count = wp.float64(wp.static(float(n)))
         mean = mean / count
         velocity = tie_qd[wp.static(last), s]
-        spring_anchor_pos[0, i] = tie_q[wp.static(last), s] + mean / string_tie_stiffness[s] - (count * dt) * velocity
+        spring_anchor_pos[0, i] = (compute_tie_anchor(tie_q[wp.static(last), s], mean, string_tie_stiffness[s])
+                                   - (count * dt) * velocity)
         spring_anchor_vel[0, i] = velocity
 
     return apply_string_forces_to_anchors

@@ -43,66 +43,62 @@ def solve_string_system_kernels(scalar):
     mat33 = wp.types.matrix((3, 3), scalar)
 
     @wp.func
-    def compute_block_thomas(
+    def compute_back_substitution(
         string_start: wp.array(dtype=wp.int32),
         s: int,
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
         solution: wp.array(dtype=vec3),
     ):
+        """Back substitution ``x_j = d'_j - C'_j x_{j+1}`` of chain ``s`` (its top particle: 0)."""
         start = string_start[s]
         last = string_start[s + 1] - 1
-        # Forward elimination over the free particles start+1 .. last.
-        inv = wp.inverse(system_diag[start + 1])
-        scratch_c[start + 1] = inv * system_upper[start + 1]
-        scratch_d[start + 1] = inv * rhs[start + 1]
-        for p in range(start + 2, last + 1):
-            lower = wp.transpose(system_upper[p - 1])
-            inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
-            scratch_c[p] = inv * system_upper[p]
-            scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
-        # Back substitution.
         solution[last] = scratch_d[last]
         for i in range(last - start - 1):
             p = last - 1 - i
             solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
         solution[start] = vec3(scalar(0.0))
 
-    @wp.func
-    def compute_block_thomas_keep(
-        string_start: wp.array(dtype=wp.int32),
-        s: int,
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
-        pivot_inverse: wp.array(dtype=mat33),
-        scratch_c: wp.array(dtype=mat33),
-        scratch_d: wp.array(dtype=vec3),
-        solution: wp.array(dtype=vec3),
-    ):
-        """``compute_block_thomas`` (statement for statement: the same values, bit for bit)
-        that also keeps the pivot inverses ``(A_jj - L_j C'_{j-1})^{-1}`` for the adjoint.
-        A copy rather than a flag: a runtime flag cost the untaped solve 6 % (measured)."""
-        start = string_start[s]
-        last = string_start[s + 1] - 1
-        inv = wp.inverse(system_diag[start + 1])
-        pivot_inverse[start + 1] = inv
-        scratch_c[start + 1] = inv * system_upper[start + 1]
-        scratch_d[start + 1] = inv * rhs[start + 1]
-        for p in range(start + 2, last + 1):
-            lower = wp.transpose(system_upper[p - 1])
-            inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
-            pivot_inverse[p] = inv
-            scratch_c[p] = inv * system_upper[p]
-            scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
-        solution[last] = scratch_d[last]
-        for i in range(last - start - 1):
-            p = last - 1 - i
-            solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
-        solution[start] = vec3(scalar(0.0))
+    def block_thomas(keep: bool):
+        KEEP = keep
+
+        @wp.func
+        def compute_block_thomas(
+            string_start: wp.array(dtype=wp.int32),
+            s: int,
+            system_diag: wp.array(dtype=mat33),
+            system_upper: wp.array(dtype=mat33),
+            rhs: wp.array(dtype=vec3),
+            pivot_inverse: wp.array(dtype=mat33),
+            scratch_c: wp.array(dtype=mat33),
+            scratch_d: wp.array(dtype=vec3),
+            solution: wp.array(dtype=vec3),
+        ):
+            """The block Thomas solve of chain ``s``; built with ``keep`` it also keeps the pivot
+            inverses ``(A_jj - L_j C'_{j-1})^{-1}`` in ``pivot_inverse`` for the adjoint (the same
+            values, bit for bit); without, ``pivot_inverse`` is not touched. A compile-time
+            switch: a runtime flag cost the untaped solve 6 % (measured)."""
+            start = string_start[s]
+            last = string_start[s + 1] - 1
+            # Forward elimination over the free particles start+1 .. last.
+            inv = wp.inverse(system_diag[start + 1])
+            if wp.static(KEEP):
+                pivot_inverse[start + 1] = inv
+            scratch_c[start + 1] = inv * system_upper[start + 1]
+            scratch_d[start + 1] = inv * rhs[start + 1]
+            for p in range(start + 2, last + 1):
+                lower = wp.transpose(system_upper[p - 1])
+                inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
+                if wp.static(KEEP):
+                    pivot_inverse[p] = inv
+                scratch_c[p] = inv * system_upper[p]
+                scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
+            compute_back_substitution(string_start, s, scratch_c, scratch_d, solution)
+
+        return compute_block_thomas
+
+    compute_block_thomas = block_thomas(False)
+    compute_block_thomas_keep = block_thomas(True)
 
     @wp.func
     def compute_block_substitution(
@@ -123,11 +119,7 @@ def solve_string_system_kernels(scalar):
         for p in range(start + 2, last + 1):
             lower = wp.transpose(system_upper[p - 1])
             scratch_d[p] = pivot_inverse[p] * (rhs[p] - lower * scratch_d[p - 1])
-        solution[last] = scratch_d[last]
-        for i in range(last - start - 1):
-            p = last - 1 - i
-            solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
-        solution[start] = vec3(scalar(0.0))
+        compute_back_substitution(string_start, s, scratch_c, scratch_d, solution)
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve_string_system(
@@ -143,8 +135,9 @@ def solve_string_system_kernels(scalar):
         particle_dv: wp.array(dtype=vec3),
     ):
         s = wp.tid()
+        # (keeps nothing: its pivot_inverse argument, here scratch_c, is not touched)
         compute_block_thomas(
-            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
         )
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -236,8 +229,9 @@ def solve_string_system_kernels(scalar):
         particle_dv: wp.array(dtype=vec3),
     ):
         s = wp.tid()
+        # (keeps nothing: its pivot_inverse argument, here scratch_c, is not touched)
         compute_block_thomas(
-            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
         )
         for _pass in range(MAX_ACTIVE_SET_PASSES):
             added = eval_segment_activation(
@@ -247,7 +241,7 @@ def solve_string_system_kernels(scalar):
             if added == 0:
                 break
             compute_block_thomas(
-                string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+                string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
             )
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -259,14 +253,18 @@ def solve_string_system_kernels(scalar):
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         particle_dv: wp.array(dtype=vec3),
-        particle_dv_grad: wp.array(dtype=vec3),
-        # State out:
+        # State out (scratch):
         scratch_d: wp.array(dtype=vec3),
         scratch_rhs_bar: wp.array(dtype=vec3),
+        # Adjoint in and out (read, then consumed: zeroed, as Warp's adjoint of a store does):
+        particle_dv_grad: wp.array(dtype=vec3),
+        # Adjoint out (accumulated):
         system_diag_grad: wp.array(dtype=mat33),
         system_upper_grad: wp.array(dtype=mat33),
         system_rhs_grad: wp.array(dtype=vec3),
     ):
+        """``b_bar = A^{-1} x_bar`` and ``A_bar = -b_bar x^T`` on the stored blocks (module doc),
+        added to the gradients of the system; ``x_bar`` (``particle_dv_grad``) is consumed."""
         s = wp.tid()
         start = string_start[s]
         last = string_start[s + 1] - 1
