@@ -8,7 +8,7 @@ The system is symmetric positive definite (see ``compute_string_spring``), so no
 is needed.
 
 ``solve_string_system_active`` is the same solve with the tension-only springs' active set
-resolved (``string_terms.compute_string_spring``): a segment that was slack at the start of
+resolved (``string_spring.compute_string_spring_tension_only``): a segment that was slack at the start of
 the step is not in the system; if the solution ends it taut, its block (``K``, assembled as
 ``eval_string_system`` would) is added to the chain's system in place and the chain is
 solved again, until no further segment ends taut (each pass only adds segments, so it ends;
@@ -161,7 +161,7 @@ def solve_string_system_kernels(scalar):
         )
 
     @wp.func
-    def eval_segment_activation(
+    def compute_segment_activation(
         string_start: wp.array(dtype=wp.int32),
         s: int,
         rest_length: scalar,
@@ -234,7 +234,7 @@ def solve_string_system_kernels(scalar):
             string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
         )
         for _pass in range(MAX_ACTIVE_SET_PASSES):
-            added = eval_segment_activation(
+            added = compute_segment_activation(
                 string_start, s, string_rest_length[s], particle_q, particle_qd, top_q, dt,
                 segment_jacobian_active, particle_dv, segment_active, system_diag, system_upper, system_rhs,
             )
