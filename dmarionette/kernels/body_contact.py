@@ -38,7 +38,7 @@ from dmarionette.kernels.articulation_math import (
     spatial66,
 )
 
-__all__ = ["ContactSet", "ContactSettings"]
+__all__ = ["ContactConstants", "ContactSet", "ContactSettings"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,25 @@ class ContactSettings:
     friction: float = 0.6
     friction_velocity: float = 0.01
     smooth_distance: float = 0.5e-3
+
+
+@wp.struct
+class ContactConstants:
+    """The constants every contact kernel reads (from :class:`ContactSettings`), as one named parameter.
+
+    Attributes:
+        stiffness: normal stiffness per contact point [N/m].
+        damping: normal damping per contact point [N s/m].
+        friction: Coulomb coefficient.
+        friction_velocity: regularisation velocity ``v_eps`` of the friction [m/s].
+        smooth_distance: softplus width ``delta`` [m] (smooth option).
+    """
+
+    stiffness: wp.float64
+    damping: wp.float64
+    friction: wp.float64
+    friction_velocity: wp.float64
+    smooth_distance: wp.float64
 
 
 @wp.func
@@ -109,9 +128,14 @@ def _contact_response(normal_fn):
     @wp.func
     def compute_contact_response(
         p: wp.vec3d, n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64,
-        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+        contact: ContactConstants,
     ):
         """Force on the body the normal points into, and its implicit 3x3 block."""
+        k = contact.stiffness
+        c = contact.damping
+        mu = contact.friction
+        v_eps = contact.friction_velocity
+        delta = contact.smooth_distance
         vn = wp.dot(v_rel, n)
         fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
         vt = v_rel - vn * n
@@ -128,11 +152,16 @@ def _pair_response(normal_fn):
     @wp.func
     def compute_pair_response(
         n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64, m_eff: wp.float64,
-        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+        contact: ContactConstants,
     ) -> wp.vec3d:
         """Force between two moving bodies, implicit through an effective mass ``m_eff``:
         the force that the 1-D implicit step of a point of mass ``m_eff`` would feel, so
         that both bodies get exactly opposite impulses (momentum is conserved)."""
+        k = contact.stiffness
+        c = contact.damping
+        mu = contact.friction
+        v_eps = contact.friction_velocity
+        delta = contact.smooth_distance
         vn = wp.dot(v_rel, n)
         fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
         vt = v_rel - vn * n
@@ -175,7 +204,7 @@ def _surface_contact(response):
     def compute_surface_contact(
         x: wp.vec3d, omega: wp.vec3d, vel: wp.vec3d, centre: wp.vec3d, n: wp.vec3d, dist: wp.float64,
         radius: wp.float64, h: wp.float64,
-        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+        contact: ContactConstants,
     ):
         """A body's sphere of ``radius`` at ``centre`` (a box corner: radius 0) against a static
         surface, its centre ``dist`` out along the surface's outward normal ``n``: the contact
@@ -184,7 +213,7 @@ def _surface_contact(response):
         d = radius - dist
         p = centre - radius * n
         v = vel + wp.cross(omega, p - x)
-        f, A = response(p, n, d, v, h, k, c, mu, v_eps, delta)
+        f, A = response(p, n, d, v, h, contact)
         return p, f, A
 
     return compute_surface_contact
@@ -202,11 +231,7 @@ def _kernels(smooth: bool):
         point_body: wp.array(dtype=wp.int32),
         point_local: wp.array(dtype=wp.vec3d),
         point_radius: wp.array(dtype=wp.float64),
-        contact_stiffness: wp.float64,
-        contact_damping: wp.float64,
-        contact_friction: wp.float64,
-        contact_friction_velocity: wp.float64,
-        contact_smooth_distance: wp.float64,
+        contact: ContactConstants,
         ground_height: wp.float64,
         # State in:
         body_pos: wp.array2d(dtype=wp.vec3d),
@@ -226,8 +251,7 @@ def _kernels(smooth: bool):
         centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
         n = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
         p, f, A = surface_contact(x, body_w[w, b], body_v[w, b], centre, n, centre[1] - ground_height,
-                                  point_radius[i], h, contact_stiffness, contact_damping, contact_friction,
-                                  contact_friction_velocity, contact_smooth_distance)
+                                  point_radius[i], h, contact)
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
         wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
 
@@ -237,11 +261,7 @@ def _kernels(smooth: bool):
         point_body: wp.array(dtype=wp.int32),
         point_local: wp.array(dtype=wp.vec3d),
         point_radius: wp.array(dtype=wp.float64),
-        contact_stiffness: wp.float64,
-        contact_damping: wp.float64,
-        contact_friction: wp.float64,
-        contact_friction_velocity: wp.float64,
-        contact_smooth_distance: wp.float64,
+        contact: ContactConstants,
         box_centre: wp.vec3d,
         box_half: wp.vec3d,
         # State in:
@@ -261,9 +281,7 @@ def _kernels(smooth: bool):
         x = body_pos[w, b]
         centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
         dist, n, q = compute_box_closest(centre - box_centre, box_half)
-        p, f, A = surface_contact(x, body_w[w, b], body_v[w, b], centre, n, dist, point_radius[i], h,
-                                  contact_stiffness, contact_damping, contact_friction, contact_friction_velocity,
-                                  contact_smooth_distance)
+        p, f, A = surface_contact(x, body_w[w, b], body_v[w, b], centre, n, dist, point_radius[i], h, contact)
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
         wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
 
@@ -276,11 +294,7 @@ def _kernels(smooth: bool):
         pair_mass: wp.array(dtype=wp.float64),
         ball_body: int,
         ball_radius: wp.float64,
-        contact_stiffness: wp.float64,
-        contact_damping: wp.float64,
-        contact_friction: wp.float64,
-        contact_friction_velocity: wp.float64,
-        contact_smooth_distance: wp.float64,
+        contact: ContactConstants,
         # State in:
         body_pos: wp.array2d(dtype=wp.vec3d),
         body_rot: wp.array2d(dtype=wp.quatd),
@@ -315,8 +329,7 @@ def _kernels(smooth: bool):
         d = ball_radius - dist
         v_body = body_v[w, b] + wp.cross(body_w[w, b], p - x)
         v_ball = body_v[w, ball_body] + wp.cross(body_w[w, ball_body], p - c)
-        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], contact_stiffness, contact_damping,
-                          contact_friction, contact_friction_velocity, contact_smooth_distance)
+        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], contact)
         wp.atomic_add(body_wrench, w, ball_body, compute_point_wrench(p, f))
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, -f))
 
@@ -339,9 +352,9 @@ class ContactSet:
         s: ContactSettings = model.contacts
         self.settings = s
         dev = model.device
-        # The contact constants, as the kernels' named parameters.
-        self.constants = [wp.float64(v) for v in (s.stiffness, s.damping, s.friction, s.friction_velocity,
-                                                  s.smooth_distance)]
+        self.constants = ContactConstants()
+        for name in ("stiffness", "damping", "friction", "friction_velocity", "smooth_distance"):
+            setattr(self.constants, name, getattr(s, name))
         body, local, radius = [], [], []
         for b, (shape, size) in enumerate(model.body_shape):
             if not model.body_contact[b]:
@@ -391,7 +404,7 @@ class ContactSet:
         bodies = [state.body_pos, state.body_rot, state.body_w, state.body_v]
         out = [state.body_wrench, state.body_stiffness]
         dev = self.model.device
-        pts = [self.point_body, self.point_local, self.point_radius, *self.constants]
+        pts = [self.point_body, self.point_local, self.point_radius, self.constants]
         if s.ground:
             wp.launch(ground, dim=(state.world_count, self.point_count),
                       inputs=[*pts, wp.float64(s.ground_height), *bodies, h], outputs=out, device=dev)
@@ -402,5 +415,5 @@ class ContactSet:
         if s.ball and self.ball_body >= 0:
             wp.launch(ball, dim=(state.world_count, self.pair_count),
                       inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.pair_mass, self.ball_body,
-                              wp.float64(self.model.ball.radius), *self.constants, *bodies, h],
+                              wp.float64(self.model.ball.radius), self.constants, *bodies, h],
                       outputs=out, device=dev)

@@ -32,6 +32,8 @@ Between two puppet steps (``H = n h``: ``n`` string steps of ``h``):
   moves it at ``V`` (``articulation_forces.eval_body_point_springs``), so it is handed
   ``A - H V``. On the predicted path the body gets exactly the impulse the strings
   gave (momentum is exchanged exactly); off it, the error is the stiff tie's, implicit.
+  (Eq. 2 itself is ``string_tie.compute_tie_force``, the anchor ``string_tie.compute_tie_anchor``;
+  the string's tension in the linear model is ``string_spring.compute_string_tension``.)
 
 Handing the body the string's *end particle* as the anchor instead would tie the body to
 its own extrapolation: the light end particle only tracks the predicted path, and the
