@@ -22,7 +22,6 @@ Effects not asked for are neither compiled nor launched: each contact kind is it
 kernel, and the hard/smooth choice is a compile-time closure.
 """
 
-from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
@@ -38,7 +37,7 @@ from dmarionette.kernels.articulation_math import (
     spatial66,
 )
 
-__all__ = ["ContactConstants", "ContactSet", "ContactSettings"]
+__all__ = ["ContactConstants", "ContactSet", "ContactSettings", "GroundPlane", "StaticBox"]
 
 
 @dataclass(frozen=True)
@@ -199,91 +198,83 @@ def compute_box_closest(u: wp.vec3d, half: wp.vec3d):
     return dist, n, q
 
 
-def _surface_contact(response):
-    @wp.func
-    def compute_surface_contact(
-        x: wp.vec3d, omega: wp.vec3d, vel: wp.vec3d, centre: wp.vec3d, n: wp.vec3d, dist: wp.float64,
-        radius: wp.float64, h: wp.float64,
-        contact: ContactConstants,
-    ):
-        """A body's sphere of ``radius`` at ``centre`` (a box corner: radius 0) against a static
-        surface, its centre ``dist`` out along the surface's outward normal ``n``: the contact
-        point, the force on the body there and its implicit 3x3 block. ``x``, ``omega``, ``vel``:
-        the body's centre, angular and linear velocity."""
-        d = radius - dist
-        p = centre - radius * n
-        v = vel + wp.cross(omega, p - x)
-        f, A = response(p, n, d, v, h, contact)
-        return p, f, A
+@wp.struct
+class GroundPlane:
+    """The ground: the plane ``y = height`` [m], its outward normal up."""
 
-    return compute_surface_contact
+    height: wp.float64
+
+
+@wp.struct
+class StaticBox:
+    """A static axis-aligned box (the chair): centre and half extents [m]."""
+
+    centre: wp.vec3d
+    half: wp.vec3d
+
+
+@wp.func
+def compute_ground_distance(centre: wp.vec3d, ground: GroundPlane):
+    """Signed distance of a point above the ground, and the ground's outward normal."""
+    return centre[1] - ground.height, wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+
+
+@wp.func
+def compute_box_distance(centre: wp.vec3d, box: StaticBox):
+    """Signed distance of a point outside a static box, and the box's outward normal there."""
+    dist, n, q = compute_box_closest(centre - box.centre, box.half)
+    return dist, n
+
+
+def _static_surface_kernel(name: str, Surface, surface_distance, response):
+    """Builds the contact kernel of box corners and spheres against one kind of static surface
+    (``Surface``, a struct, and its ``surface_distance(centre, surface) -> (dist, n)``)."""
+
+    @wp.kernel(module="unique", name=name)
+    def eval_body_surface_contact(
+        # Model:
+        point_body: wp.array(dtype=wp.int32),
+        point_local: wp.array(dtype=wp.vec3d),
+        point_radius: wp.array(dtype=wp.float64),
+        contact: ContactConstants,
+        surface: Surface,
+        # State in:
+        body_pos: wp.array2d(dtype=wp.vec3d),
+        body_rot: wp.array2d(dtype=wp.quatd),
+        body_w: wp.array2d(dtype=wp.vec3d),
+        body_v: wp.array2d(dtype=wp.vec3d),
+        # Control:
+        h: wp.float64,
+        # State out:
+        body_wrench: wp.array2d(dtype=spatial6),
+        body_stiffness: wp.array2d(dtype=spatial66),
+    ):
+        """Box corners and spheres (``point_radius`` 0 for a corner) against a static surface:
+        the ground plane or the chair's box."""
+        w, i = wp.tid()
+        b = point_body[i]
+        x = body_pos[w, b]
+        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
+        dist, n = surface_distance(centre, surface)
+        d = point_radius[i] - dist
+        p = centre - point_radius[i] * n
+        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
+        f, A = response(p, n, d, v, h, contact)
+        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
+        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
+
+    return eval_body_surface_contact
 
 
 @functools.cache
 def _kernels(smooth: bool):
     normal_fn = compute_normal_smooth if smooth else compute_normal_hard
-    surface_contact = _surface_contact(_contact_response(normal_fn))
+    response = _contact_response(normal_fn)
     pair_response = _pair_response(normal_fn)
-
-    @wp.kernel(module="unique")
-    def eval_body_ground_contact(
-        # Model:
-        point_body: wp.array(dtype=wp.int32),
-        point_local: wp.array(dtype=wp.vec3d),
-        point_radius: wp.array(dtype=wp.float64),
-        contact: ContactConstants,
-        ground_height: wp.float64,
-        # State in:
-        body_pos: wp.array2d(dtype=wp.vec3d),
-        body_rot: wp.array2d(dtype=wp.quatd),
-        body_w: wp.array2d(dtype=wp.vec3d),
-        body_v: wp.array2d(dtype=wp.vec3d),
-        # Control:
-        h: wp.float64,
-        # State out:
-        body_wrench: wp.array2d(dtype=spatial6),
-        body_stiffness: wp.array2d(dtype=spatial66),
-    ):
-        """Box corners and spheres against the plane y = ground_height."""
-        w, i = wp.tid()
-        b = point_body[i]
-        x = body_pos[w, b]
-        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
-        n = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
-        p, f, A = surface_contact(x, body_w[w, b], body_v[w, b], centre, n, centre[1] - ground_height,
-                                  point_radius[i], h, contact)
-        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
-        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
-
-    @wp.kernel(module="unique")
-    def eval_body_box_contact(
-        # Model:
-        point_body: wp.array(dtype=wp.int32),
-        point_local: wp.array(dtype=wp.vec3d),
-        point_radius: wp.array(dtype=wp.float64),
-        contact: ContactConstants,
-        box_centre: wp.vec3d,
-        box_half: wp.vec3d,
-        # State in:
-        body_pos: wp.array2d(dtype=wp.vec3d),
-        body_rot: wp.array2d(dtype=wp.quatd),
-        body_w: wp.array2d(dtype=wp.vec3d),
-        body_v: wp.array2d(dtype=wp.vec3d),
-        # Control:
-        h: wp.float64,
-        # State out:
-        body_wrench: wp.array2d(dtype=spatial6),
-        body_stiffness: wp.array2d(dtype=spatial66),
-    ):
-        """Box corners and spheres against a static axis-aligned box (the chair)."""
-        w, i = wp.tid()
-        b = point_body[i]
-        x = body_pos[w, b]
-        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
-        dist, n, q = compute_box_closest(centre - box_centre, box_half)
-        p, f, A = surface_contact(x, body_w[w, b], body_v[w, b], centre, n, dist, point_radius[i], h, contact)
-        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
-        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
+    eval_body_ground_contact = _static_surface_kernel("eval_body_ground_contact", GroundPlane,
+                                                      compute_ground_distance, response)
+    eval_body_box_contact = _static_surface_kernel("eval_body_box_contact", StaticBox, compute_box_distance,
+                                                   response)
 
     @wp.kernel(module="unique")
     def eval_body_ball_contact(
@@ -355,6 +346,12 @@ class ContactSet:
         self.constants = ContactConstants()
         for name in ("stiffness", "damping", "friction", "friction_velocity", "smooth_distance"):
             setattr(self.constants, name, getattr(s, name))
+        self.ground = GroundPlane()
+        self.ground.height = s.ground_height
+        self.chair = StaticBox()
+        if s.chair is not None:
+            self.chair.centre = wp.vec3d(*s.chair[0])
+            self.chair.half = wp.vec3d(*s.chair[1])
         body, local, radius = [], [], []
         for b, (shape, size) in enumerate(model.body_shape):
             if not model.body_contact[b]:
@@ -407,11 +404,10 @@ class ContactSet:
         pts = [self.point_body, self.point_local, self.point_radius, self.constants]
         if s.ground:
             wp.launch(ground, dim=(state.world_count, self.point_count),
-                      inputs=[*pts, wp.float64(s.ground_height), *bodies, h], outputs=out, device=dev)
+                      inputs=[*pts, self.ground, *bodies, h], outputs=out, device=dev)
         if s.chair is not None:
-            centre, half = s.chair
             wp.launch(box, dim=(state.world_count, self.point_count),
-                      inputs=[*pts, wp.vec3d(*centre), wp.vec3d(*half), *bodies, h], outputs=out, device=dev)
+                      inputs=[*pts, self.chair, *bodies, h], outputs=out, device=dev)
         if s.ball and self.ball_body >= 0:
             wp.launch(ball, dim=(state.world_count, self.pair_count),
                       inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.pair_mass, self.ball_body,
