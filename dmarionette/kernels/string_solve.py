@@ -121,44 +121,33 @@ def solve_string_system_kernels(scalar):
             scratch_d[p] = pivot_inverse[p] * (rhs[p] - lower * scratch_d[p - 1])
         compute_back_substitution(string_start, s, scratch_c, scratch_d, solution)
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def solve_string_system(
-        # Model:
-        string_start: wp.array(dtype=wp.int32),
-        # State in:
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        system_rhs: wp.array(dtype=vec3),
-        # State out:
-        scratch_c: wp.array(dtype=mat33),
-        scratch_d: wp.array(dtype=vec3),
-        particle_dv: wp.array(dtype=vec3),
-    ):
-        s = wp.tid()
-        # (keeps nothing: its pivot_inverse argument, here scratch_c, is not touched)
-        compute_block_thomas(
-            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
-        )
+    def solve_kernel(name: str, compute_solve):
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def solve_string_system_recorded(
-        # Model:
-        string_start: wp.array(dtype=wp.int32),
-        # State in:
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        system_rhs: wp.array(dtype=vec3),
-        # State out (the factorisation, kept for the adjoint):
-        pivot_inverse: wp.array(dtype=mat33),
-        scratch_c: wp.array(dtype=mat33),
-        scratch_d: wp.array(dtype=vec3),
-        particle_dv: wp.array(dtype=vec3),
-    ):
-        """``solve_string_system`` (the same values, bit for bit) keeping the pivot inverses."""
-        s = wp.tid()
-        compute_block_thomas_keep(
-            string_start, s, system_diag, system_upper, system_rhs, pivot_inverse, scratch_c, scratch_d, particle_dv
-        )
+        @wp.kernel(module="unique", enable_backward=False, name=name)
+        def solve_string_system(
+            # Model:
+            string_start: wp.array(dtype=wp.int32),
+            # State in:
+            system_diag: wp.array(dtype=mat33),
+            system_upper: wp.array(dtype=mat33),
+            system_rhs: wp.array(dtype=vec3),
+            # State out (``pivot_inverse``: the factorisation kept for the adjoint, recorded solve only):
+            pivot_inverse: wp.array(dtype=mat33),
+            scratch_c: wp.array(dtype=mat33),
+            scratch_d: wp.array(dtype=vec3),
+            particle_dv: wp.array(dtype=vec3),
+        ):
+            """Block Thomas, one chain per thread; ``solve_string_system_recorded`` (the same values,
+            bit for bit) also keeps the pivot inverses, ``solve_string_system`` leaves them."""
+            s = wp.tid()
+            compute_solve(
+                string_start, s, system_diag, system_upper, system_rhs, pivot_inverse, scratch_c, scratch_d, particle_dv
+            )
+
+        return solve_string_system
+
+    solve_string_system = solve_kernel("solve_string_system", compute_block_thomas)
+    solve_string_system_recorded = solve_kernel("solve_string_system_recorded", compute_block_thomas_keep)
 
     @wp.func
     def compute_segment_activation(

@@ -186,7 +186,7 @@ class SolverStringImplicit:
                 self._solve,
                 dim=m.string_count,
                 inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
-                outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv],
+                outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv],
                 device=m.device,
             )
             return
