@@ -66,7 +66,8 @@ def eval_body_point_springs(
     body_wrench: wp.array2d(dtype=spatial6),
     body_stiffness: wp.array2d(dtype=spatial66),
 ):
-    """Paper eq. 2, ``f = -k (x - x_a) - k_d (v - v_a)``, implicit in ``x`` and ``v``.
+    """Paper eq. 2, ``f = -k (x - x_a) - k_d (v - v_a)`` (``string_tie.compute_tie_force``), implicit
+    in ``x`` and ``v``.
 
     The force added is the linearised backward-Euler one,
     ``-k (x - x_a) - (k_d + h k) (v - v_a)``, and ``(h k_d + h^2 k) J^T J`` enters the
