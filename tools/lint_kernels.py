@@ -5,7 +5,7 @@ Usage::
     python tools/lint_kernels.py [PATH ...]      # files or folders; default: dmarionette/
 
 Prints one ``file:line kernel: problem`` line per violation and exits with status 1 if
-there is any (0 when clean, 2 on a file it cannot parse). Standard library only (``ast``).
+there is any (0 when clean, 2 on a path that is missing or a file it cannot parse). Standard library only (``ast``).
 
 What it checks, for every function decorated with ``@wp.kernel`` / ``@wp.kernel(...)``
 (also ``warp.kernel``, and kernels defined inside factory functions):
@@ -256,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     root = Path(__file__).resolve().parent.parent
     paths = [Path(a) for a in argv] or [root / "dmarionette"]
+    missing = [p for p in paths if not p.exists()]
+    if missing:
+        print(f"{missing[0]}: no such file or folder")
+        return 2
     try:
         problems = lint_paths(paths)
     except SyntaxError as e:
