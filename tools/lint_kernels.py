@@ -5,7 +5,8 @@ Usage::
     python tools/lint_kernels.py [PATH ...]      # files or folders; default: dmarionette/
 
 Prints one ``file:line kernel: problem`` line per violation and exits with status 1 if
-there is any (0 when clean, 2 on a path that is missing or a file it cannot parse). Standard library only (``ast``).
+there is any (0 when clean, 2 on a path that is missing or a file it cannot parse).
+Standard library only (``ast``).
 
 What it checks, for every function decorated with ``@wp.kernel`` / ``@wp.kernel(...)``
 (also ``warp.kernel``, and kernels defined inside factory functions):
