@@ -17,6 +17,7 @@ from dmarionette.kernels.articulation_math import (
     spatial6,
     spatial66,
 )
+from dmarionette.kernels.string_tie import compute_tie_force
 
 
 @wp.kernel
@@ -65,7 +66,8 @@ def eval_body_point_springs(
     body_wrench: wp.array2d(dtype=spatial6),
     body_stiffness: wp.array2d(dtype=spatial66),
 ):
-    """Paper eq. 2, ``f = -k (x - x_a) - k_d (v - v_a)``, implicit in ``x`` and ``v``.
+    """Paper eq. 2, ``f = -k (x - x_a) - k_d (v - v_a)`` (``string_tie.compute_tie_force``), implicit
+    in ``x`` and ``v``.
 
     The force added is the linearised backward-Euler one,
     ``-k (x - x_a) - (k_d + h k) (v - v_a)``, and ``(h k_d + h^2 k) J^T J`` enters the
@@ -78,7 +80,8 @@ def eval_body_point_springs(
     k = spring_stiffness[s]
     kd = spring_damping[s]
     x, v = compute_point_state(body_pos[w, b], body_rot[w, b], body_w[w, b], body_v[w, b], spring_point[s])
-    f = -k * (x - spring_anchor_pos[w, s]) - (kd + h * k) * (v - spring_anchor_vel[w, s])
+    # Eq. 2 against the anchor, with the damping of the linearised backward-Euler step.
+    f = compute_tie_force(x, v, spring_anchor_pos[w, s], spring_anchor_vel[w, s], k, kd + h * k)
     spring_force[w, s] = f
     wp.atomic_add(body_wrench, w, b, compute_point_wrench(x, f))
     c = h * kd + h * h * k

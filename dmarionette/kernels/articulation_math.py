@@ -61,6 +61,20 @@ def compute_cross_force(m: spatial6, f: spatial6) -> spatial6:
 
 
 @wp.func
+def compute_spatial_blocks(top_left: wp.mat33d, top_right: wp.mat33d, bottom_left: wp.mat33d,
+                           bottom_right: wp.mat33d) -> spatial66:
+    """The 6x6 matrix of four 3x3 blocks ``[[top_left, top_right], [bottom_left, bottom_right]]``."""
+    M = spatial66()
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = top_left[i, j]
+            M[i, j + 3] = top_right[i, j]
+            M[i + 3, j] = bottom_left[i, j]
+            M[i + 3, j + 3] = bottom_right[i, j]
+    return M
+
+
+@wp.func
 def compute_spatial_inertia(mass: wp.float64, inertia: wp.vec3d, rot: wp.quatd, com: wp.vec3d) -> spatial66:
     """Spatial inertia about the world origin of a body.
 
@@ -75,16 +89,7 @@ def compute_spatial_inertia(mass: wp.float64, inertia: wp.vec3d, rot: wp.quatd, 
     C = wp.skew(com)
     top_left = Ic - mass * C * C
     top_right = mass * C
-    M = spatial66()
-    for i in range(3):
-        for j in range(3):
-            M[i, j] = top_left[i, j]
-            M[i, j + 3] = top_right[i, j]
-            M[i + 3, j] = top_right[j, i]
-    M[3, 3] = mass
-    M[4, 4] = mass
-    M[5, 5] = mass
-    return M
+    return compute_spatial_blocks(top_left, top_right, wp.transpose(top_right), wp.diag(wp.vec3d(mass, mass, mass)))
 
 
 @wp.func
@@ -95,17 +100,7 @@ def compute_point_inertia(point: wp.vec3d, A: wp.mat33d) -> spatial66:
     composite-rigid-body matrix.
     """
     C = wp.skew(point)
-    tl = C * A * (-C)
-    tr = C * A
-    bl = A * (-C)
-    M = spatial66()
-    for i in range(3):
-        for j in range(3):
-            M[i, j] = tl[i, j]
-            M[i, j + 3] = tr[i, j]
-            M[i + 3, j] = bl[i, j]
-            M[i + 3, j + 3] = A[i, j]
-    return M
+    return compute_spatial_blocks(C * A * (-C), C * A, A * (-C), A)
 
 
 @wp.func

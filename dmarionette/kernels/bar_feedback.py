@@ -12,7 +12,9 @@
 - **exact reaction**: the force the string exerts on its top particle, i.e. on the bar's
   attach point: the first segment's spring force plus its internal friction.
 
-One thread per string, atomically summed per bar, so the kernel is differentiable.
+One thread per string, atomically summed per bar, so the kernel is differentiable. The
+exact reaction is :func:`bar_reaction_function`'s ``compute_bar_reaction``, also the force
+of the bar work meter (``marionette/energy.py``).
 """
 
 import functools
@@ -20,6 +22,29 @@ import functools
 import warp as wp
 
 from .string_terms import string_terms
+
+
+@functools.cache
+def bar_reaction_function(scalar, internal_friction: bool, tension_only: bool = False):
+    """Builds ``compute_bar_reaction(x_top, x_next, v_top, v_next, stiffness, rest_length, friction)``
+    for the strings' float type ``scalar``: the force a string exerts on its top particle (so on
+    the bar), the first segment's spring (``string_spring``, the variant of ``tension_only``)
+    plus, if ``internal_friction``, its internal friction (paper terms 1 and 2)."""
+    t = string_terms(scalar, tension_only)
+    vec3 = t.vec3
+    FRICTION = bool(internal_friction)
+
+    @wp.func
+    def compute_bar_reaction(x_top: vec3, x_next: vec3, v_top: vec3, v_next: vec3, stiffness: scalar,
+                             rest_length: scalar, friction: scalar):
+        """The exact reaction [N] of a string on its top particle."""
+        reaction, _k, _taut = t.compute_string_spring(x_top, x_next, stiffness, rest_length)
+        if wp.static(FRICTION):
+            f_f, _d = t.compute_internal_friction(v_top, v_next, friction)
+            reaction += f_f
+        return reaction
+
+    return compute_bar_reaction
 
 
 def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool = False, bar_scalar=None):
@@ -40,10 +65,9 @@ def eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool
 
 @functools.cache
 def _eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: bool, bar_scalar):
-    t = string_terms(scalar, tension_only)
-    vec3 = t.vec3
+    vec3 = wp.types.vector(3, scalar)
     bar_vec3 = vec3 if bar_scalar is scalar else wp.types.vector(3, bar_scalar)
-    FRICTION = internal_friction
+    compute_bar_reaction = bar_reaction_function(scalar, internal_friction, tension_only)
     WIDEN = bar_scalar is not scalar
 
     @wp.kernel(module="unique")
@@ -88,14 +112,9 @@ def _eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: boo
                     - feedback_damping * (bar_qd[bar] - particle_qd[last])
                 )
             wp.atomic_add(bar_feedback, bar, f)
-        reaction, _k, _taut = t.compute_string_spring(
-            particle_q[first], particle_q[first + 1], string_stiffness[s], string_rest_length[s]
-        )
-        if wp.static(FRICTION):
-            f_f, _d = t.compute_internal_friction(
-                particle_qd[first], particle_qd[first + 1], string_internal_friction[s]
-            )
-            reaction += f_f
+        reaction = compute_bar_reaction(particle_q[first], particle_q[first + 1], particle_qd[first],
+                                        particle_qd[first + 1], string_stiffness[s], string_rest_length[s],
+                                        string_internal_friction[s])
         if wp.static(WIDEN):
             wp.atomic_add(bar_reaction, bar, bar_vec3(reaction))
         else:

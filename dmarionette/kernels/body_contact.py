@@ -22,7 +22,6 @@ Effects not asked for are neither compiled nor launched: each contact kind is it
 kernel, and the hard/smooth choice is a compile-time closure.
 """
 
-from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
@@ -38,7 +37,7 @@ from dmarionette.kernels.articulation_math import (
     spatial66,
 )
 
-__all__ = ["ContactSet", "ContactSettings"]
+__all__ = ["ContactConstants", "ContactSet", "ContactSettings", "GroundPlane", "StaticBox"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +67,25 @@ class ContactSettings:
     friction: float = 0.6
     friction_velocity: float = 0.01
     smooth_distance: float = 0.5e-3
+
+
+@wp.struct
+class ContactConstants:
+    """The constants every contact kernel reads (from :class:`ContactSettings`), as one named parameter.
+
+    Attributes:
+        stiffness: normal stiffness per contact point [N/m].
+        damping: normal damping per contact point [N s/m].
+        friction: Coulomb coefficient.
+        friction_velocity: regularisation velocity ``v_eps`` of the friction [m/s].
+        smooth_distance: softplus width ``delta`` [m] (smooth option).
+    """
+
+    stiffness: wp.float64
+    damping: wp.float64
+    friction: wp.float64
+    friction_velocity: wp.float64
+    smooth_distance: wp.float64
 
 
 @wp.func
@@ -109,9 +127,14 @@ def _contact_response(normal_fn):
     @wp.func
     def compute_contact_response(
         p: wp.vec3d, n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64,
-        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+        contact: ContactConstants,
     ):
         """Force on the body the normal points into, and its implicit 3x3 block."""
+        k = contact.stiffness
+        c = contact.damping
+        mu = contact.friction
+        v_eps = contact.friction_velocity
+        delta = contact.smooth_distance
         vn = wp.dot(v_rel, n)
         fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
         vt = v_rel - vn * n
@@ -128,11 +151,16 @@ def _pair_response(normal_fn):
     @wp.func
     def compute_pair_response(
         n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64, m_eff: wp.float64,
-        k: wp.float64, c: wp.float64, mu: wp.float64, v_eps: wp.float64, delta: wp.float64,
+        contact: ContactConstants,
     ) -> wp.vec3d:
         """Force between two moving bodies, implicit through an effective mass ``m_eff``:
         the force that the 1-D implicit step of a point of mass ``m_eff`` would feel, so
         that both bodies get exactly opposite impulses (momentum is conserved)."""
+        k = contact.stiffness
+        c = contact.damping
+        mu = contact.friction
+        v_eps = contact.friction_velocity
+        delta = contact.smooth_distance
         vn = wp.dot(v_rel, n)
         fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
         vt = v_rel - vn * n
@@ -170,75 +198,83 @@ def compute_box_closest(u: wp.vec3d, half: wp.vec3d):
     return dist, n, q
 
 
+@wp.struct
+class GroundPlane:
+    """The ground: the plane ``y = height`` [m], its outward normal up."""
+
+    height: wp.float64
+
+
+@wp.struct
+class StaticBox:
+    """A static axis-aligned box (the chair): centre and half extents [m]."""
+
+    centre: wp.vec3d
+    half: wp.vec3d
+
+
+@wp.func
+def compute_ground_distance(centre: wp.vec3d, ground: GroundPlane):
+    """Signed distance of a point above the ground, and the ground's outward normal."""
+    return centre[1] - ground.height, wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+
+
+@wp.func
+def compute_box_distance(centre: wp.vec3d, box: StaticBox):
+    """Signed distance of a point outside a static box, and the box's outward normal there."""
+    dist, n, q = compute_box_closest(centre - box.centre, box.half)
+    return dist, n
+
+
+def _static_surface_kernel(name: str, Surface, surface_distance, response):
+    """Builds the contact kernel of box corners and spheres against one kind of static surface
+    (``Surface``, a struct, and its ``surface_distance(centre, surface) -> (dist, n)``)."""
+
+    @wp.kernel(module="unique", name=name)
+    def eval_body_surface_contact(
+        # Model:
+        point_body: wp.array(dtype=wp.int32),
+        point_local: wp.array(dtype=wp.vec3d),
+        point_radius: wp.array(dtype=wp.float64),
+        contact: ContactConstants,
+        surface: Surface,
+        # State in:
+        body_pos: wp.array2d(dtype=wp.vec3d),
+        body_rot: wp.array2d(dtype=wp.quatd),
+        body_w: wp.array2d(dtype=wp.vec3d),
+        body_v: wp.array2d(dtype=wp.vec3d),
+        # Control:
+        h: wp.float64,
+        # State out:
+        body_wrench: wp.array2d(dtype=spatial6),
+        body_stiffness: wp.array2d(dtype=spatial66),
+    ):
+        """Box corners and spheres (``point_radius`` 0 for a corner) against a static surface:
+        the ground plane or the chair's box."""
+        w, i = wp.tid()
+        b = point_body[i]
+        x = body_pos[w, b]
+        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
+        dist, n = surface_distance(centre, surface)
+        d = point_radius[i] - dist
+        p = centre - point_radius[i] * n
+        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
+        f, A = response(p, n, d, v, h, contact)
+        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
+        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
+
+    return eval_body_surface_contact
+
+
 @functools.cache
 def _kernels(smooth: bool):
     normal_fn = compute_normal_smooth if smooth else compute_normal_hard
     response = _contact_response(normal_fn)
     pair_response = _pair_response(normal_fn)
-
-    @wp.kernel(module="unique")
-    def eval_body_ground_contact(
-        # Model:
-        point_body: wp.array(dtype=wp.int32),
-        point_local: wp.array(dtype=wp.vec3d),
-        point_radius: wp.array(dtype=wp.float64),
-        params: wp.array(dtype=wp.float64),
-        # State in:
-        body_pos: wp.array2d(dtype=wp.vec3d),
-        body_rot: wp.array2d(dtype=wp.quatd),
-        body_w: wp.array2d(dtype=wp.vec3d),
-        body_v: wp.array2d(dtype=wp.vec3d),
-        # Control:
-        h: wp.float64,
-        # State out:
-        body_wrench: wp.array2d(dtype=spatial6),
-        body_stiffness: wp.array2d(dtype=spatial66),
-    ):
-        """Box corners and spheres against the plane y = params[5]."""
-        w, i = wp.tid()
-        b = point_body[i]
-        x = body_pos[w, b]
-        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
-        n = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
-        d = point_radius[i] - (centre[1] - params[5])
-        p = centre - point_radius[i] * n
-        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
-        f, A = response(p, n, d, v, h, params[0], params[1], params[2], params[3], params[4])
-        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
-        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
-
-    @wp.kernel(module="unique")
-    def eval_body_box_contact(
-        # Model:
-        point_body: wp.array(dtype=wp.int32),
-        point_local: wp.array(dtype=wp.vec3d),
-        point_radius: wp.array(dtype=wp.float64),
-        params: wp.array(dtype=wp.float64),
-        box_centre: wp.vec3d,
-        box_half: wp.vec3d,
-        # State in:
-        body_pos: wp.array2d(dtype=wp.vec3d),
-        body_rot: wp.array2d(dtype=wp.quatd),
-        body_w: wp.array2d(dtype=wp.vec3d),
-        body_v: wp.array2d(dtype=wp.vec3d),
-        # Control:
-        h: wp.float64,
-        # State out:
-        body_wrench: wp.array2d(dtype=spatial6),
-        body_stiffness: wp.array2d(dtype=spatial66),
-    ):
-        """Box corners and spheres against a static axis-aligned box (the chair)."""
-        w, i = wp.tid()
-        b = point_body[i]
-        x = body_pos[w, b]
-        centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
-        dist, n, q = compute_box_closest(centre - box_centre, box_half)
-        d = point_radius[i] - dist
-        p = centre - point_radius[i] * n
-        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
-        f, A = response(p, n, d, v, h, params[0], params[1], params[2], params[3], params[4])
-        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
-        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
+    eval_body_ground_contact = _static_surface_kernel("eval_body_ground_contact", GroundPlane,
+                                                      compute_ground_distance, response)
+    eval_body_box_contact = _static_surface_kernel("eval_body_box_contact", StaticBox, compute_box_distance,
+                                                   response)
 
     @wp.kernel(module="unique")
     def eval_body_ball_contact(
@@ -249,7 +285,7 @@ def _kernels(smooth: bool):
         pair_mass: wp.array(dtype=wp.float64),
         ball_body: int,
         ball_radius: wp.float64,
-        params: wp.array(dtype=wp.float64),
+        contact: ContactConstants,
         # State in:
         body_pos: wp.array2d(dtype=wp.vec3d),
         body_rot: wp.array2d(dtype=wp.quatd),
@@ -284,7 +320,7 @@ def _kernels(smooth: bool):
         d = ball_radius - dist
         v_body = body_v[w, b] + wp.cross(body_w[w, b], p - x)
         v_ball = body_v[w, ball_body] + wp.cross(body_w[w, ball_body], p - c)
-        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], params[0], params[1], params[2], params[3], params[4])
+        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], contact)
         wp.atomic_add(body_wrench, w, ball_body, compute_point_wrench(p, f))
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, -f))
 
@@ -307,8 +343,15 @@ class ContactSet:
         s: ContactSettings = model.contacts
         self.settings = s
         dev = model.device
-        self.params = wp.array(np.array([s.stiffness, s.damping, s.friction, s.friction_velocity,
-                                         s.smooth_distance, s.ground_height]), dtype=wp.float64, device=dev)
+        self.constants = ContactConstants()
+        for name in ("stiffness", "damping", "friction", "friction_velocity", "smooth_distance"):
+            setattr(self.constants, name, getattr(s, name))
+        self.ground = GroundPlane()
+        self.ground.height = s.ground_height
+        self.chair = StaticBox()
+        if s.chair is not None:
+            self.chair.centre = wp.vec3d(*s.chair[0])
+            self.chair.half = wp.vec3d(*s.chair[1])
         body, local, radius = [], [], []
         for b, (shape, size) in enumerate(model.body_shape):
             if not model.body_contact[b]:
@@ -358,16 +401,15 @@ class ContactSet:
         bodies = [state.body_pos, state.body_rot, state.body_w, state.body_v]
         out = [state.body_wrench, state.body_stiffness]
         dev = self.model.device
-        pts = [self.point_body, self.point_local, self.point_radius, self.params]
+        pts = [self.point_body, self.point_local, self.point_radius, self.constants]
         if s.ground:
-            wp.launch(ground, dim=(state.world_count, self.point_count), inputs=[*pts, *bodies, h],
-                      outputs=out, device=dev)
+            wp.launch(ground, dim=(state.world_count, self.point_count),
+                      inputs=[*pts, self.ground, *bodies, h], outputs=out, device=dev)
         if s.chair is not None:
-            centre, half = s.chair
             wp.launch(box, dim=(state.world_count, self.point_count),
-                      inputs=[*pts, wp.vec3d(*centre), wp.vec3d(*half), *bodies, h], outputs=out, device=dev)
+                      inputs=[*pts, self.chair, *bodies, h], outputs=out, device=dev)
         if s.ball and self.ball_body >= 0:
             wp.launch(ball, dim=(state.world_count, self.pair_count),
                       inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.pair_mass, self.ball_body,
-                              wp.float64(self.model.ball.radius), self.params, *bodies, h],
+                              wp.float64(self.model.ball.radius), self.constants, *bodies, h],
                       outputs=out, device=dev)

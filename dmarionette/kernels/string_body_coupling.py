@@ -32,6 +32,8 @@ Between two puppet steps (``H = n h``: ``n`` string steps of ``h``):
   moves it at ``V`` (``articulation_forces.eval_body_point_springs``), so it is handed
   ``A - H V``. On the predicted path the body gets exactly the impulse the strings
   gave (momentum is exchanged exactly); off it, the error is the stiff tie's, implicit.
+  (Eq. 2 itself is ``string_tie.compute_tie_force``, the anchor ``string_tie.compute_tie_anchor``;
+  the string's tension in the linear model is ``string_spring.compute_string_tension``.)
 
 Handing the body the string's *end particle* as the anchor instead would tie the body to
 its own extrapolation: the light end particle only tracks the predicted path, and the
@@ -79,6 +81,8 @@ import warp as wp
 
 from .articulation_forces import compute_point_state
 from .articulation_math import compute_point_inertia, compute_point_wrench, spatial6, spatial66
+from .string_spring import string_spring_functions
+from .string_tie import compute_tie_anchor
 
 
 @functools.cache
@@ -89,6 +93,7 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
     (the mean of the previous step's tie forces is unrolled, as in
     :func:`apply_string_forces_to_anchors_kernel`, so that the reverse pass replays it)."""
     vec3 = wp.types.vector(3, scalar)
+    spring = string_spring_functions(wp.float64)  # the strings' values are widened as they are read
     FRICTION = bool(internal_friction)
     n = int(substeps)
 
@@ -153,7 +158,8 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         if length > zero:
             u = along / length
             uu = wp.outer(u, u)
-            tension = wp.max(wp.float64(string_stiffness[s]) * (segment - wp.float64(string_rest_length[s])), zero)
+            tension = spring.compute_string_tension(segment, wp.float64(string_stiffness[s]),
+                                                    wp.float64(string_rest_length[s]))
             stiffness = (tension / length) * (eye - uu)
             # Along the string: the tie and the whole string in series, ramped in from the §3.2
             # taut distance to the rest length (a continuous switch: a step in it would turn
@@ -248,7 +254,8 @@ def apply_string_forces_to_anchors_kernel(substeps: int):
         count = wp.float64(wp.static(float(n)))
         mean = mean / count
         velocity = tie_qd[wp.static(last), s]
-        spring_anchor_pos[0, i] = tie_q[wp.static(last), s] + mean / string_tie_stiffness[s] - (count * dt) * velocity
+        spring_anchor_pos[0, i] = (compute_tie_anchor(tie_q[wp.static(last), s], mean, string_tie_stiffness[s])
+                                   - (count * dt) * velocity)
         spring_anchor_vel[0, i] = velocity
 
     return apply_string_forces_to_anchors

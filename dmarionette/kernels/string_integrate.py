@@ -12,6 +12,8 @@ import functools
 
 import warp as wp
 
+from .string_tie import compute_tie_force
+
 
 @functools.cache
 def integrate_string_kernels(scalar):
@@ -71,10 +73,9 @@ def integrate_string_kernels(scalar):
         x = particle_q[last]
         v = particle_qd[last]
         tied = string_tied[s]
-        # Paper eq. 2: f_body = -k (x_body - x_string) - k_d (v_body - v_string).
-        tie_force[s] = -tied * (
-            string_tie_stiffness[s] * (tie_q[s] - x) + string_tie_damping[s] * (tie_qd[s] - v)
-        )
+        # Paper eq. 2, the force on the body (0 for a cut tie: ``tied`` is 1 or 0).
+        tie_force[s] = compute_tie_force(tie_q[s], tie_qd[s], x, v, tied * string_tie_stiffness[s],
+                                         tied * string_tie_damping[s])
         # Paper §3.2: taut when the first-to-last distance exceeds a threshold.
         taut = int(0)
         if wp.length(x - particle_q[first]) > string_taut_distance[s]:

@@ -8,7 +8,7 @@ The system is symmetric positive definite (see ``compute_string_spring``), so no
 is needed.
 
 ``solve_string_system_active`` is the same solve with the tension-only springs' active set
-resolved (``string_terms.compute_string_spring``): a segment that was slack at the start of
+resolved (``string_spring.compute_string_spring_tension_only``): a segment that was slack at the start of
 the step is not in the system; if the solution ends it taut, its block (``K``, assembled as
 ``eval_string_system`` would) is added to the chain's system in place and the chain is
 solved again, until no further segment ends taut (each pass only adds segments, so it ends;
@@ -43,66 +43,62 @@ def solve_string_system_kernels(scalar):
     mat33 = wp.types.matrix((3, 3), scalar)
 
     @wp.func
-    def compute_block_thomas(
+    def compute_back_substitution(
         string_start: wp.array(dtype=wp.int32),
         s: int,
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
         solution: wp.array(dtype=vec3),
     ):
+        """Back substitution ``x_j = d'_j - C'_j x_{j+1}`` of chain ``s`` (its top particle: 0)."""
         start = string_start[s]
         last = string_start[s + 1] - 1
-        # Forward elimination over the free particles start+1 .. last.
-        inv = wp.inverse(system_diag[start + 1])
-        scratch_c[start + 1] = inv * system_upper[start + 1]
-        scratch_d[start + 1] = inv * rhs[start + 1]
-        for p in range(start + 2, last + 1):
-            lower = wp.transpose(system_upper[p - 1])
-            inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
-            scratch_c[p] = inv * system_upper[p]
-            scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
-        # Back substitution.
         solution[last] = scratch_d[last]
         for i in range(last - start - 1):
             p = last - 1 - i
             solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
         solution[start] = vec3(scalar(0.0))
 
-    @wp.func
-    def compute_block_thomas_keep(
-        string_start: wp.array(dtype=wp.int32),
-        s: int,
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
-        pivot_inverse: wp.array(dtype=mat33),
-        scratch_c: wp.array(dtype=mat33),
-        scratch_d: wp.array(dtype=vec3),
-        solution: wp.array(dtype=vec3),
-    ):
-        """``compute_block_thomas`` (statement for statement: the same values, bit for bit)
-        that also keeps the pivot inverses ``(A_jj - L_j C'_{j-1})^{-1}`` for the adjoint.
-        A copy rather than a flag: a runtime flag cost the untaped solve 6 % (measured)."""
-        start = string_start[s]
-        last = string_start[s + 1] - 1
-        inv = wp.inverse(system_diag[start + 1])
-        pivot_inverse[start + 1] = inv
-        scratch_c[start + 1] = inv * system_upper[start + 1]
-        scratch_d[start + 1] = inv * rhs[start + 1]
-        for p in range(start + 2, last + 1):
-            lower = wp.transpose(system_upper[p - 1])
-            inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
-            pivot_inverse[p] = inv
-            scratch_c[p] = inv * system_upper[p]
-            scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
-        solution[last] = scratch_d[last]
-        for i in range(last - start - 1):
-            p = last - 1 - i
-            solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
-        solution[start] = vec3(scalar(0.0))
+    def block_thomas(keep: bool):
+        KEEP = keep
+
+        @wp.func
+        def compute_block_thomas(
+            string_start: wp.array(dtype=wp.int32),
+            s: int,
+            system_diag: wp.array(dtype=mat33),
+            system_upper: wp.array(dtype=mat33),
+            rhs: wp.array(dtype=vec3),
+            pivot_inverse: wp.array(dtype=mat33),
+            scratch_c: wp.array(dtype=mat33),
+            scratch_d: wp.array(dtype=vec3),
+            solution: wp.array(dtype=vec3),
+        ):
+            """The block Thomas solve of chain ``s``; built with ``keep`` it also keeps the pivot
+            inverses ``(A_jj - L_j C'_{j-1})^{-1}`` in ``pivot_inverse`` for the adjoint (the same
+            values, bit for bit); without, ``pivot_inverse`` is not touched. A compile-time
+            switch: a runtime flag cost the untaped solve 6 % (measured)."""
+            start = string_start[s]
+            last = string_start[s + 1] - 1
+            # Forward elimination over the free particles start+1 .. last.
+            inv = wp.inverse(system_diag[start + 1])
+            if wp.static(KEEP):
+                pivot_inverse[start + 1] = inv
+            scratch_c[start + 1] = inv * system_upper[start + 1]
+            scratch_d[start + 1] = inv * rhs[start + 1]
+            for p in range(start + 2, last + 1):
+                lower = wp.transpose(system_upper[p - 1])
+                inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
+                if wp.static(KEEP):
+                    pivot_inverse[p] = inv
+                scratch_c[p] = inv * system_upper[p]
+                scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
+            compute_back_substitution(string_start, s, scratch_c, scratch_d, solution)
+
+        return compute_block_thomas
+
+    compute_block_thomas = block_thomas(False)
+    compute_block_thomas_keep = block_thomas(True)
 
     @wp.func
     def compute_block_substitution(
@@ -123,52 +119,38 @@ def solve_string_system_kernels(scalar):
         for p in range(start + 2, last + 1):
             lower = wp.transpose(system_upper[p - 1])
             scratch_d[p] = pivot_inverse[p] * (rhs[p] - lower * scratch_d[p - 1])
-        solution[last] = scratch_d[last]
-        for i in range(last - start - 1):
-            p = last - 1 - i
-            solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
-        solution[start] = vec3(scalar(0.0))
+        compute_back_substitution(string_start, s, scratch_c, scratch_d, solution)
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def solve_string_system(
-        # Model:
-        string_start: wp.array(dtype=wp.int32),
-        # State in:
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        system_rhs: wp.array(dtype=vec3),
-        # State out:
-        scratch_c: wp.array(dtype=mat33),
-        scratch_d: wp.array(dtype=vec3),
-        particle_dv: wp.array(dtype=vec3),
-    ):
-        s = wp.tid()
-        compute_block_thomas(
-            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
-        )
+    def solve_kernel(name: str, compute_solve):
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def solve_string_system_recorded(
-        # Model:
-        string_start: wp.array(dtype=wp.int32),
-        # State in:
-        system_diag: wp.array(dtype=mat33),
-        system_upper: wp.array(dtype=mat33),
-        system_rhs: wp.array(dtype=vec3),
-        # State out (the factorisation, kept for the adjoint):
-        pivot_inverse: wp.array(dtype=mat33),
-        scratch_c: wp.array(dtype=mat33),
-        scratch_d: wp.array(dtype=vec3),
-        particle_dv: wp.array(dtype=vec3),
-    ):
-        """``solve_string_system`` (the same values, bit for bit) keeping the pivot inverses."""
-        s = wp.tid()
-        compute_block_thomas_keep(
-            string_start, s, system_diag, system_upper, system_rhs, pivot_inverse, scratch_c, scratch_d, particle_dv
-        )
+        @wp.kernel(module="unique", enable_backward=False, name=name)
+        def solve_string_system(
+            # Model:
+            string_start: wp.array(dtype=wp.int32),
+            # State in:
+            system_diag: wp.array(dtype=mat33),
+            system_upper: wp.array(dtype=mat33),
+            system_rhs: wp.array(dtype=vec3),
+            # State out (``pivot_inverse``: the factorisation kept for the adjoint, recorded solve only):
+            pivot_inverse: wp.array(dtype=mat33),
+            scratch_c: wp.array(dtype=mat33),
+            scratch_d: wp.array(dtype=vec3),
+            particle_dv: wp.array(dtype=vec3),
+        ):
+            """Block Thomas, one chain per thread; ``solve_string_system_recorded`` (the same values,
+            bit for bit) also keeps the pivot inverses, ``solve_string_system`` leaves them."""
+            s = wp.tid()
+            compute_solve(
+                string_start, s, system_diag, system_upper, system_rhs, pivot_inverse, scratch_c, scratch_d, particle_dv
+            )
+
+        return solve_string_system
+
+    solve_string_system = solve_kernel("solve_string_system", compute_block_thomas)
+    solve_string_system_recorded = solve_kernel("solve_string_system_recorded", compute_block_thomas_keep)
 
     @wp.func
-    def eval_segment_activation(
+    def compute_segment_activation(
         string_start: wp.array(dtype=wp.int32),
         s: int,
         rest_length: scalar,
@@ -236,18 +218,19 @@ def solve_string_system_kernels(scalar):
         particle_dv: wp.array(dtype=vec3),
     ):
         s = wp.tid()
+        # (keeps nothing: its pivot_inverse argument, here scratch_c, is not touched)
         compute_block_thomas(
-            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+            string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
         )
         for _pass in range(MAX_ACTIVE_SET_PASSES):
-            added = eval_segment_activation(
+            added = compute_segment_activation(
                 string_start, s, string_rest_length[s], particle_q, particle_qd, top_q, dt,
                 segment_jacobian_active, particle_dv, segment_active, system_diag, system_upper, system_rhs,
             )
             if added == 0:
                 break
             compute_block_thomas(
-                string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_d, particle_dv
+                string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
             )
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -259,14 +242,18 @@ def solve_string_system_kernels(scalar):
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         particle_dv: wp.array(dtype=vec3),
-        particle_dv_grad: wp.array(dtype=vec3),
-        # State out:
+        # State out (scratch):
         scratch_d: wp.array(dtype=vec3),
         scratch_rhs_bar: wp.array(dtype=vec3),
+        # Adjoint in and out (read, then consumed: zeroed, as Warp's adjoint of a store does):
+        particle_dv_grad: wp.array(dtype=vec3),
+        # Adjoint out (accumulated):
         system_diag_grad: wp.array(dtype=mat33),
         system_upper_grad: wp.array(dtype=mat33),
         system_rhs_grad: wp.array(dtype=vec3),
     ):
+        """``b_bar = A^{-1} x_bar`` and ``A_bar = -b_bar x^T`` on the stored blocks (module doc),
+        added to the gradients of the system; ``x_bar`` (``particle_dv_grad``) is consumed."""
         s = wp.tid()
         start = string_start[s]
         last = string_start[s + 1] - 1

@@ -13,9 +13,10 @@ writes, per particle, the diagonal block, the block coupling it to the next part
 
 The spring (the costliest term) has its own kernel, ``eval_string_spring``, evaluated
 once per segment; every other term of a particle is evaluated in ``eval_string_system``,
-one ``@wp.func`` per physical term (see :mod:`string_terms`), rather than one kernel per
-term: on the CPU a launch costs more than the arithmetic of a cheap term for 300
-particles, and the step must run at 1 kHz with room to spare. Effects a scene turns off
+one ``@wp.func`` per physical term (see :mod:`string_terms`; the tie, eq. 2, is
+:mod:`string_tie`'s), rather than one kernel per term: on the CPU a launch costs more
+than the arithmetic of a cheap term for 300 particles, and the step must run at 1 kHz
+with room to spare. Effects a scene turns off
 are removed at code generation with ``wp.static``: the kernel built for that scene does
 not contain them.
 """
@@ -32,7 +33,7 @@ from .string_terms import string_terms
 def eval_string_spring_kernel(scalar, tension_only: bool = False):
     """Builds ``eval_string_spring``: per segment ``(p, p+1)``, the (tension-only) force on ``p``,
     ``K_pp`` if the segment is active, else the block it would use once activated (see
-    ``string_terms.compute_string_spring``; the printed spring is always active)."""
+    ``string_spring``; the printed spring is always active)."""
     t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
 

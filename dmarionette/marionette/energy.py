@@ -69,7 +69,7 @@ import functools
 import numpy as np
 import warp as wp
 
-from dmarionette.kernels.string_terms import string_terms
+from dmarionette.kernels.bar_feedback import bar_reaction_function
 from dmarionette.rotations import quat_to_matrix
 from dmarionette.strings.model import StringModel, string_energy
 
@@ -89,18 +89,9 @@ _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in 
 
 @functools.cache
 def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
-    t = string_terms(scalar, tension_only)
-    vec3 = t.vec3
-    FRICTION = internal_friction
-
-    @wp.func
-    def compute_top_force(x0: vec3, x1: vec3, v0: vec3, v1: vec3, k: scalar, d: scalar, c: scalar):
-        # The force of the state itself, as the feedback's exact reaction.
-        f, _k, _taut = t.compute_string_spring(x0, x1, k, d)
-        if wp.static(FRICTION):
-            f_f, _d = t.compute_internal_friction(v0, v1, c)
-            f = f + f_f
-        return f
+    vec3 = wp.types.vector(3, scalar)
+    # The force of the state itself, as the feedback's exact reaction.
+    compute_top_force = bar_reaction_function(scalar, internal_friction, tension_only)
 
     @wp.kernel(module="unique")
     def eval_bar_work(

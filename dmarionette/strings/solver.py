@@ -213,7 +213,7 @@ class SolverStringImplicit:
                 self._solve,
                 dim=m.string_count,
                 inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
-                outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv],
+                outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv],
                 device=m.device,
             )
             return
@@ -232,10 +232,9 @@ class SolverStringImplicit:
             wp.launch(
                 self._solve_adjoint,
                 dim=m.string_count,
-                inputs=[m.string_start, ws.system_upper, ws.scratch_inverse, ws.scratch_c, ws.particle_dv,
-                        ws.particle_dv.grad],
+                inputs=[m.string_start, ws.system_upper, ws.scratch_inverse, ws.scratch_c, ws.particle_dv],
                 outputs=[
-                    ws.scratch_d, ws.scratch_rhs_bar,
+                    ws.scratch_d, ws.scratch_rhs_bar, ws.particle_dv.grad,
                     ws.system_diag.grad, ws.system_upper.grad, ws.system_rhs.grad,
                 ],
                 device=m.device,

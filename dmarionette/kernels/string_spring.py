@@ -1,0 +1,138 @@
+"""The segment spring between neighbouring particles of a string (paper §2.2, term 1), defined once.
+
+Two variants, chosen per scene (``StringEffects.tension_only``): the paper's printed spring
+``f_a = -k_s (|x_a - x_b| - d) u`` (default) and the tension-only one
+``f_a = -k_s max(|x_a - x_b| - d, 0) u``; both return the force on ``a``, the Jacobian block
+``K_aa = df_a/dx_a`` (``K_ab = -K_aa``) and whether the segment is in the implicit system.
+:func:`compute_string_tension` is the tension-only spring's magnitude, also read by the
+coupling's linear model of a string (``string_body_coupling.eval_string_response``).
+
+Users: the segment pass of the string step (``string_system.eval_string_spring``), the
+exact reaction on the bar (``bar_feedback.compute_bar_reaction``: the bar feedback and the
+bar work of ``marionette/energy.py``), and the coupling response. The active-set solve of
+the tension-only springs (``string_solve``) adds the blocks this spring returns.
+
+Built per float type by :func:`string_spring_functions` (cached), as the other string terms
+(``string_terms``).
+"""
+
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+__all__ = ["string_spring_functions"]
+
+
+@functools.cache
+def string_spring_functions(scalar) -> SimpleNamespace:
+    """Builds the segment-spring functions for the float type ``scalar`` (``wp.float32``/``wp.float64``).
+
+    Returns:
+        A namespace with ``compute_string_spring_printed``, ``compute_string_spring_tension_only``
+        and ``compute_string_tension``.
+    """
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.func
+    def compute_string_tension(length: scalar, stiffness: scalar, rest_length: scalar):
+        """Tension [N] of a tension-only segment of length ``length``: ``k_s max(l - d, 0)``."""
+        return stiffness * wp.max(length - rest_length, scalar(0.0))
+
+    @wp.func
+    def compute_string_spring_printed(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+        """Spring between neighbours a and b, paper term 1 as printed: ``f_a = -k_s (|x_a - x_b| - d) u``
+        (it also pushes when the segment is shorter than ``d``).
+
+        Returns the force on ``a``, ``K_aa = df_a/dx_a`` (and ``K_ab = -K_aa``), and ``1`` (the
+        segment is always in the implicit system).
+
+        Deliberate deviation from an exact Newton linearisation: the geometric
+        (transverse) part of the Jacobian, ``(1 - d/l)(I - u u^T)``, is clamped at zero
+        while the segment is compressed (``l < d``). The force itself is exact; only the
+        system matrix differs, and it stays symmetric positive definite, so the
+        block-tridiagonal solve never meets an indefinite pivot when a slack string
+        buckles (Choi & Ko, SIGGRAPH 2002).
+        """
+        e = x_a - x_b
+        length = wp.length(e)
+        u = e / length
+        force = -stiffness * (length - rest_length) * u
+        # -k_s (u u^T + c (I - u u^T)) = -k_s c I - k_s (1 - c) u u^T, with c clamped at 0.
+        geometric = wp.max(scalar(1.0) - rest_length / length, scalar(0.0))
+        eye = wp.identity(n=3, dtype=scalar)
+        jacobian = wp.outer(-stiffness * (scalar(1.0) - geometric) * u, u) - (stiffness * geometric) * eye
+        return force, jacobian, int(1)
+
+    @wp.func
+    def compute_string_spring_tension_only(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+        """Spring between neighbours a and b, paper term 1, made tension-only:
+        ``f_a = -k_s max(|x_a - x_b| - d, 0) u``, ``u = (x_a - x_b) / |x_a - x_b|``.
+
+        Returns the force on ``a``, the Jacobian block ``K_aa`` the implicit step uses when
+        the segment is *active* in the step (``K_ab = -K_aa``), and whether the segment is
+        taut now (``1``/``0``).
+
+        **Deliberate deviation from the paper** (chosen with ``StringEffects(tension_only=True)``,
+        scene key ``[effects] tension_only = true``; the default is the printed spring,
+        ``compute_string_spring_printed``, see the last paragraph): the paper prints
+        ``-k_s (|x_a - x_b| - d) u``, which also pushes when the segment is shorter than its
+        rest length. A real string does not push: with the printed spring a straight string
+        lowered onto the ground acts as a rod and drives its lower particles 0.3 m through the
+        ground penalty (``tests/test_hard_cases_strings.py``). Here the potential is
+        ``1/2 k_s max(l - d, 0)^2`` (``strings.model.string_energy``), which is convex in the
+        positions (the printed spring's is not). For a taut segment (``l > d``) force and
+        Jacobian are the paper's, so taut strings behave exactly as before.
+
+        **Linearising across the kink** (backward Euler takes ``K`` at the start of the step):
+        a segment is active in a step if it is taut at the start *or at the end* of the
+        step; the end is found by the solve (``kernels/string_solve``, an active-set loop:
+        solve, activate the segments that end taut, solve again). An active segment uses
+
+        - taut: the exact ``K = -k_s (u u^T + (1 - d/l)(I - u u^T))``;
+        - slack now, taut at the end: the axial ``K = -k_s u u^T`` (the force is still the
+          exact zero): over the step a spring of rest length ``l``, whose energy starts at
+          the true 0 and ends at ``1/2 k_s (l' - l)^2 >= 1/2 k_s max(l' - d, 0)^2``.
+
+        So every active segment's step sees a quadratic surrogate that equals the true
+        potential at the start and bounds it from above at the end, and an inactive segment
+        is slack at both ends (no force, no energy). Switching ``K`` on only once a segment
+        *is* taut (or is predicted taut from ``x + dt v``) lets it stretch by up to
+        ``dt |v_a - v_b|`` in a step with no force acting, and ``1/2 k_s stretch^2`` appears
+        from nothing (measured: a string without internal friction went unstable while
+        hanging still, 4 m/s within 50 ms, NaN after 0.4 s). The energy must count only ``1/2 k_s max(l - d, 0)^2`` too: the
+        printed potential also counts compressed segments, energy a tension-only string does
+        not store. The geometric (transverse) factor ``(1 - d/l)`` is
+        non-negative wherever it is used, so the system matrix stays symmetric positive
+        definite and the block-tridiagonal solve never meets an indefinite pivot (Choi & Ko,
+        SIGGRAPH 2002, clamp it for the same reason).
+
+        **Why it is not the default:** it is a change of the paper's model (the printed spring
+        pushes), and it costs 5-22 % per string step. It passes the hard cases tried with it,
+        strings alone and in a marionette, with the puppet at the string rate and at 30 Hz
+        (``tests/test_hard_cases_strings.py``, ``tests/test_tension_only_marionette.py``;
+        at 30 Hz it was refused while the coupling extrapolated the tie path as ``x + H v``,
+        ``settings_check``).
+        """
+        e = x_a - x_b
+        length = wp.length(e)
+        zero = scalar(0.0)
+        u = vec3(zero)
+        if length > zero:
+            u = e / length  # coincident particles (a string folded onto itself): no direction, no force
+        force = -compute_string_tension(length, stiffness, rest_length) * u
+        taut = int(0)
+        jacobian = wp.outer(-stiffness * u, u)
+        if length > rest_length:
+            taut = 1
+            geometric = scalar(1.0) - rest_length / length
+            eye = wp.identity(n=3, dtype=scalar)
+            jacobian = wp.outer(-stiffness * (scalar(1.0) - geometric) * u, u) - (stiffness * geometric) * eye
+        return force, jacobian, taut
+
+    return SimpleNamespace(
+        compute_string_spring_printed=compute_string_spring_printed,
+        compute_string_spring_tension_only=compute_string_spring_tension_only,
+        compute_string_tension=compute_string_tension,
+    )
