@@ -29,6 +29,7 @@ solve stores nothing more.
 
 
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -273,3 +274,16 @@ def solve_string_system_kernels(scalar):
             particle_dv_grad[p] = vec3(scalar(0.0))  # consumed, as Warp's own adjoints do
 
     return solve_string_system, solve_string_system_active, solve_string_system_recorded, solve_string_system_adjoint
+
+
+@wp.kernel
+def copy_particle_dv(
+    # State in:
+    src: wp.array(dtype=Any),
+    # State out:
+    dst: wp.array(dtype=Any),
+):
+    """``dst = src``: the taped tension-only step takes the velocity change of its unrecorded
+    active-set pass (launched off the tape; ``strings/solver.py`` says why)."""
+    i = wp.tid()
+    dst[i] = src[i]

@@ -25,7 +25,6 @@ scene key              meaning                           kernel constant (n part
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 
 import numpy as np

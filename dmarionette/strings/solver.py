@@ -28,12 +28,11 @@ gradient changes by rounding only).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import warp as wp
 
 from dmarionette.kernels.string_integrate import integrate_string_kernels
-from dmarionette.kernels.string_solve import solve_string_system_kernels
+from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_system_kernels
 from dmarionette.kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
 
@@ -82,13 +81,6 @@ class StringWorkspace:
                 scratch_inverse=zeros(model.mat33, False),
                 active_set=cls.allocate(model, False) if active_set else None,
             )
-
-
-@wp.kernel
-def copy_particle_dv(src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
-    """``dst = src`` (launched off the tape: the taped tension-only step's ``dv``, module doc)."""
-    i = wp.tid()
-    dst[i] = src[i]
 
 
 class SolverStringImplicit:
