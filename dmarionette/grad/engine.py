@@ -46,6 +46,7 @@ import numpy as np
 import warp as wp
 
 from dmarionette.capture import CapturedChunk, ping_pong
+from dmarionette.grad.carried import carried_arrays
 from dmarionette.grad.tape import TapedSegment
 from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, SolverMarionette, bar_inputs
 from dmarionette.strings.rollout import upload_values
@@ -134,17 +135,11 @@ class Checkpoint:
 
     @classmethod
     def of(cls, state) -> Checkpoint:
-        return cls(state.strings.particle_q.numpy().copy(), state.strings.particle_qd.numpy().copy(),
-                   state.puppet.joint_q.numpy().copy(), state.puppet.joint_qd.numpy().copy(),
-                   state.tie_target.numpy().copy(), state.tie_force.numpy().copy())
+        return cls(**{name: array.numpy().copy() for name, array in carried_arrays(state).items()})
 
     def load(self, state) -> None:
-        upload_values(state.strings.particle_q, self.particle_q)
-        upload_values(state.strings.particle_qd, self.particle_qd)
-        upload_values(state.puppet.joint_q, self.joint_q)
-        upload_values(state.puppet.joint_qd, self.joint_qd)
-        upload_values(state.tie_target, self.tie_target)
-        upload_values(state.tie_force, self.tie_force)
+        for name, array in carried_arrays(state).items():
+            upload_values(array, getattr(self, name))
 
 
 class _PlainChunk:

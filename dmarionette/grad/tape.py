@@ -25,6 +25,7 @@ import numpy as np
 import warp as wp
 
 from dmarionette.capture import CapturedChunk
+from dmarionette.grad.carried import carried_arrays
 from dmarionette.marionette.solver import MarionetteControl
 from dmarionette.marionette.workspace import PuppetPoints
 from dmarionette.strings.rollout import upload_values
@@ -75,20 +76,12 @@ class StateAdjoint:
     """Adjoint of the carried state at a segment boundary (host arrays, ``Checkpoint`` layout)."""
 
     def __init__(self, state):
-        self.particle_q = state.strings.particle_q.grad.numpy().copy()
-        self.particle_qd = state.strings.particle_qd.grad.numpy().copy()
-        self.joint_q = state.puppet.joint_q.grad.numpy().copy()
-        self.joint_qd = state.puppet.joint_qd.grad.numpy().copy()
-        self.tie_target = state.tie_target.grad.numpy().copy()
-        self.tie_force = state.tie_force.grad.numpy().copy()
+        for name, array in carried_arrays(state).items():
+            setattr(self, name, array.grad.numpy().copy())
 
     def seed(self, state) -> None:
-        _add_grad(state.strings.particle_q, self.particle_q)
-        _add_grad(state.strings.particle_qd, self.particle_qd)
-        _add_grad(state.puppet.joint_q, self.joint_q)
-        _add_grad(state.puppet.joint_qd, self.joint_qd)
-        _add_grad(state.tie_target, self.tie_target)
-        _add_grad(state.tie_force, self.tie_force)
+        for name, array in carried_arrays(state).items():
+            _add_grad(array, getattr(self, name))
 
 
 def _add_grad(array: wp.array, values) -> None:

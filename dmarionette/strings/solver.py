@@ -200,24 +200,17 @@ class SolverStringImplicit:
 
     def solve_string_system(self, ws: StringWorkspace, tape) -> None:
         m = self.model
-        if tape is None:
-            wp.launch(
-                self._solve,
-                dim=m.string_count,
-                inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
-                outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv],
-                device=m.device,
-            )
-            return
-        # Under a tape: the same solve keeping its factorisation for the adjoint below.
+        # Under a tape: the same solve keeping its factorisation, for the adjoint recorded below.
         wp.launch(
-            self._solve_recorded,
+            self._solve if tape is None else self._solve_recorded,
             dim=m.string_count,
             inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
             outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
-            record_tape=False,
+            record_tape=tape is None,
         )
+        if tape is None:
+            return
 
         def backward():
             # Reads the factorisation the recorded solve kept in ws (scratch_inverse, scratch_c).
