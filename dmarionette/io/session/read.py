@@ -28,7 +28,8 @@ from dmarionette.scene.bars import BarTrajectory
 from dmarionette.scene.scene import Scene, scene_from_table
 from dmarionette.io.session.write import FORMAT, FORMAT_VERSION
 
-__all__ = ["Session", "format_session_info", "read_session", "session_bar_trajectories", "session_info"]
+__all__ = ["Session", "decode_session_metadata", "format_session_info", "read_session", "read_session_records",
+           "session_bar_trajectories", "session_info"]
 
 _MAGIC = b"\x89MCAP0\r\n"
 _INT_FIELDS = {"buttons", "taut"}
@@ -94,6 +95,19 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
         elif isinstance(record, Header):
             records.header = record
     return records
+
+
+def read_session_records(path: str | Path) -> _Records:
+    """The raw ``mcap`` records of a session file (``header``, ``metadata`` by name, ``schemas``
+    and ``channels`` by id, ``messages`` by channel id, ``truncated``), read up to the last
+    complete record; for tools that rewrite a file (:mod:`dmarionette.io.session.index`)."""
+    return _read_records(Path(path))
+
+
+def decode_session_metadata(path: str | Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
+    """The decoded ``"dmarionette"`` record and the ``"scene"`` record of ``records``;
+    ``ValueError`` naming ``path`` when the file is not a dmarionette session."""
+    return _session_metadata(Path(path), records)
 
 
 def _session_metadata(path: Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
@@ -224,7 +238,9 @@ def read_session(path: str | Path, *, topics: Iterable[str] | None = None, load_
             extra[name] = {k: _json_or_text(v) for k, v in values.items()}
     channels = {}
     for channel_id, messages in records.messages.items():
-        channels[records.channels[channel_id].topic] = _decode_topic(messages)
+        channel = records.channels[channel_id]
+        if channel.message_encoding == "json":  # the Foxglove channels (protobuf) are for viewers
+            channels[channel.topic] = _decode_topic(messages)
     scene = _load_scene(path, scene_record) if load_scene else None
     return Session(path=path, metadata=meta, scene_record=scene_record, extra_metadata=extra, scene=scene,
                    channels=channels, truncated=records.truncated)
@@ -264,8 +280,9 @@ def session_info(path: str | Path) -> dict[str, Any]:
     records = _read_records(path)
     meta, scene_record = _session_metadata(path, records)
     topics = {}
+    origin = int(meta.get("log_time_origin_ns", 0))  # version 1: log time = simulated time
     for channel_id, channel in sorted(records.channels.items()):
-        times = np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.int64) * 1e-9
+        times = (np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.int64) - origin) * 1e-9
         count = len(times)
         span = float(times.max() - times.min()) if count else 0.0
         topics[channel.topic] = {"count": count, "rate_hz": (count - 1) / span if count > 1 and span > 0 else 0.0,
