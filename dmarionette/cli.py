@@ -114,6 +114,14 @@ def _parser() -> argparse.ArgumentParser:
                           description="Summarise a recorded session: duration, topics with counts and rates, "
                                       "scene, bars, whether the recording was cut off (docs/session.md).")
     info.add_argument("session", type=Path, help="the .mcap file")
+    session = sub.add_parser("session", help="session file tools (index)", description="Session file tools.")
+    session_index = session.add_subparsers(dest="session_command", required=True).add_parser(
+        "index", help="rewrite a session chunked, indexed and zstd-compressed (after a crash; old sessions)",
+        description="Rewrite a session file chunked, indexed and zstd-compressed, as a recording that closes "
+                    "normally is; for a file left by a crash (everything up to its last complete record) or an "
+                    "old session (the Foxglove channels are added from its bar poses and puppet states).")
+    session_index.add_argument("session", type=Path, help="the .mcap file (rewritten in place unless --out)")
+    session_index.add_argument("--out", type=Path, default=None, help="write the indexed file here instead")
     replay = sub.add_parser("replay", help="re-simulate a recorded session and compare",
                             description="Rebuild the session's scene from its metadata, drive its bars with the "
                                         "recorded bar poses, re-simulate, and report the gap between recorded "
@@ -140,8 +148,9 @@ def _parser() -> argparse.ArgumentParser:
                                         "(binary glTF 2.0: body meshes and an animation), for Blender "
                                         "(docs/export.md). Prints the written files as JSON.")
     export.add_argument("trajectory", type=Path, help="the trajectory.npz file")
-    export.add_argument("--format", choices=["bvh", "gltf", "all"], default="all",
-                        help="what to write (default: all)")
+    export.add_argument("--format", choices=["bvh", "gltf", "usd", "all"], default="all",
+                        help="what to write (default: all; USD, OUT/motion.usda, needs the usd extra and is "
+                             "part of 'all' only when pxr imports)")
     export.add_argument("--out", type=Path, default=None,
                         help="output folder (default: the trajectory file's folder)")
     export.add_argument("--fps", type=float, default=None,
@@ -232,6 +241,16 @@ def _run_export(args: argparse.Namespace) -> int:
         files["bvh"] = str(export_bvh(trajectory, out / "motion.bvh", fps=args.fps))
     if args.format in ("gltf", "all"):
         files["gltf"] = str(export_gltf(trajectory, out / "motion.glb"))
+    if args.format in ("usd", "all"):
+        from .io.export.usd import export_usd, usd_available
+
+        if usd_available():
+            files["usd"] = str(export_usd(trajectory, out / "motion.usda"))
+        elif args.format == "usd":
+            print(f"error: {usd_available.hint}", file=sys.stderr)
+            return 2
+        else:
+            files["usd"] = f"skipped: {usd_available.hint}"
     print(json.dumps(files, indent=2))
     return 0
 
@@ -496,6 +515,11 @@ def main(argv: list[str] | None = None) -> int:
             from .io.session import format_session_info, session_info
 
             print(format_session_info(session_info(args.session)))
+            return 0
+        if args.command == "session":
+            from .io.session.index import index_session
+
+            print(json.dumps(index_session(args.session, args.out), indent=2))
             return 0
         if args.command == "replay":
             return _run_replay(args)
