@@ -85,6 +85,8 @@ def export_usd(trajectory: Any, path: str | Path, *, strings: bool = True) -> Pa
     motion = body_motion(trajectory, where)
     fps = _frame_rate(motion.frame_time)
     codes = motion.frame_time * fps
+    whole = np.round(codes)
+    codes = np.where(np.abs(codes - whole) < 1e-6, whole, codes)  # frame k at code k, not 30.999999999999996
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.exists():
         path.unlink()
