@@ -23,7 +23,7 @@ import dmarionette as dm
 from dmarionette.cli import main
 from dmarionette.io.session import SessionWriter, read_session, record_simulation, session_info
 from dmarionette.io.session.read import read_session_records
-from dmarionette.rotations import quat_to_matrix
+from dmarionette.rotations import euler_to_matrix, quat_to_matrix
 
 rerun_chunk = pytest.importorskip("rerun.chunk", reason="needs rerun-sdk")
 pytest.importorskip("foxglove_schemas_protobuf", reason="needs foxglove-schemas-protobuf")
@@ -122,6 +122,8 @@ def test_foxglove_transforms_hold_the_recorded_poses(recorded):
         pose = session.channels["/bar/main/pose"]
         i = int(np.searchsorted(pose["t"], state["t"][k] + 1e-12) - 1)
         np.testing.assert_array_equal([bar.translation.x, bar.translation.y, bar.translation.z], pose["position"][i])
+        q = np.array([bar.rotation.x, bar.rotation.y, bar.rotation.z, bar.rotation.w])
+        np.testing.assert_allclose(quat_to_matrix(q), euler_to_matrix(pose["rotation"][i]), atol=1e-12)
 
 
 def test_the_scene_update_draws_bodies_strings_and_forces(recorded):
@@ -262,6 +264,23 @@ def test_session_index_converts_an_old_session(recorded, tmp_path, capsys):
         assert [(t.child_frame_id, t.translation, t.rotation) for t in a.transforms] == \
                [(t.child_frame_id, t.translation, t.rotation) for t in w.transforms]
     assert len(_rerun_transforms(out)) == len(_rerun_transforms(path))
+
+
+def test_a_failed_rewrite_on_close_leaves_the_unchunked_file(recorded, tmp_path, monkeypatch):
+    import dmarionette.io.session.index as index
+
+    def broken(*args, **kwargs):
+        raise ImportError("no zstandard")
+
+    monkeypatch.setattr(index, "_write_indexed", broken)
+    session = read_session(recorded[1])
+    writer = SessionWriter(tmp_path / "take.mcap", session.scene, session.scene_record["toml"])
+    writer.write_bar_pose("main", 0.0, [0, 1, 0], [0, 0, 0])
+    with pytest.warns(UserWarning, match=r"take\.mcap: left unchunked.*no zstandard.*session index"):
+        writer.close()
+    assert [p.name for p in tmp_path.iterdir()] == ["take.mcap"]  # no temporary file left
+    assert not read_session(tmp_path / "take.mcap").truncated
+    assert _summary(tmp_path / "take.mcap")[0].statistics.chunk_count == 0
 
 
 def test_session_index_refuses_a_file_that_is_not_a_session(tmp_path, capsys):

@@ -132,6 +132,21 @@ def index_session(path: str | Path, output: str | Path | None = None, *, foxglov
                 notes.append("indexed only: no /puppet/state to draw the Foxglove channels from")
 
     temporary = output.with_name(output.name + ".indexing")
+    try:
+        messages = _write_indexed(temporary, records, metadata, shift, added, chunk_bytes)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    os.replace(temporary, output)
+    if records.truncated:
+        notes.insert(0, "the input was cut off (no footer): everything up to its last complete record is kept")
+    return {"path": str(output), "messages": messages, "truncated": records.truncated,
+            "converted_from": version if version < FORMAT_VERSION else None, "foxglove_added": len(added),
+            "notes": notes}
+
+
+def _write_indexed(temporary: Path, records, metadata: dict, shift: int, added: list, chunk_bytes: int) -> int:
+    """Writes the chunked, indexed, zstd file; returns the number of messages."""
     with temporary.open("wb") as f:
         writer = Writer(f, chunk_size=int(chunk_bytes), compression=CompressionType.ZSTD, use_chunking=True)
         header = records.header
@@ -159,9 +174,4 @@ def index_session(path: str | Path, output: str | Path | None = None, *, foxglov
         for log_time, publish_time, channel, sequence, data in messages:
             writer.add_message(channel, log_time, data, publish_time, sequence)
         writer.finish()
-    os.replace(temporary, output)
-    if records.truncated:
-        notes.insert(0, "the input was cut off (no footer): everything up to its last complete record is kept")
-    return {"path": str(output), "messages": len(messages), "truncated": records.truncated,
-            "converted_from": version if version < FORMAT_VERSION else None, "foxglove_added": len(added),
-            "notes": notes}
+    return len(messages)

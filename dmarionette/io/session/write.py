@@ -29,6 +29,7 @@ import os
 import threading
 import time
 import tomllib
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -455,7 +456,11 @@ class SessionWriter:
         if self._index_on_close:
             from dmarionette.io.session.index import index_session
 
-            index_session(self.path)
+            try:
+                index_session(self.path)
+            except Exception as error:  # noqa: BLE001 - the unchunked file is complete and stays
+                warnings.warn(f"{self.path}: left unchunked, not indexed ({type(error).__name__}: {error}); "
+                              "'dmarionette session index FILE' rewrites it", stacklevel=2)
 
     @property
     def topics(self) -> list[str]:
