@@ -6,7 +6,8 @@
 - ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop
   (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time;
-- ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md);
+- ``dmarionette export TRAJECTORY``: the puppet motion as BVH, glTF and USD (docs/export.md);
+- ``dmarionette session index FILE``: a session chunked, indexed, zstd (docs/session.md);
 - ``dmarionette author KEYFRAMES``: bar motions that reach keyframe poses (docs/authoring.md;
   needs the ``fitting`` extra, imported only by this command);
 - ``dmarionette calibrate SESSION``: fit string constants to a recorded session (docs/calibration.md;
@@ -142,7 +143,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=Path("out") / "bench", help="output folder")
     bench.add_argument("--fast-compile", action="store_true",
                        help="puppet kernels without optimisation (timings then mean less)")
-    export = sub.add_parser("export", help="export the puppet motion of a trajectory to BVH and glTF",
+    export = sub.add_parser("export", help="export the puppet motion of a trajectory to BVH, glTF and USD",
                             description="Write the puppet motion of a marionette trajectory file (from 'dmarionette "
                                         "simulate') as OUT/motion.bvh (joint tree, metres, degrees) and/or OUT/motion.glb "
                                         "(binary glTF 2.0: body meshes and an animation), for Blender "
