@@ -134,7 +134,7 @@ def test_info_counts_messages_and_rates(synthetic_file):
         assert info["topics"][topic]["count"] == expected, topic
     assert info["topics"]["/bar/main/pose"]["rate_hz"] == pytest.approx(1000.0)
     assert info["topics"]["/puppet/state"]["rate_hz"] == pytest.approx(1000.0 / 33)
-    assert info["messages"] == 9 * steps + 3 * frames  # and /foxglove/transforms, /foxglove/scene per frame
+    assert info["messages"] == 9 * steps + 4 * frames  # and /foxglove/transforms, scene, points per frame
     json.dumps(info)  # JSON-ready
 
 

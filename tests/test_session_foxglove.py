@@ -60,10 +60,12 @@ def _check_indexed(path, frames, steps):
     assert indexed == channel_ids, "every channel has message indexes"
     schemas = {summary.schemas[c.schema_id].name: summary.schemas[c.schema_id].encoding
                for c in summary.channels.values()}
-    assert schemas["foxglove.FrameTransforms"] == "protobuf" and schemas["foxglove.SceneUpdate"] == "protobuf"
+    assert schemas["foxglove.FrameTransforms"] == schemas["foxglove.SceneUpdate"] == "protobuf"
+    assert schemas["foxglove.PointCloud"] == "protobuf"
     assert schemas["dmarionette.PuppetState"] == "jsonschema" and schemas["dmarionette.BarPose"] == "jsonschema"
     counts = _counts(summary)
     assert counts["/puppet/state"] == counts["/foxglove/transforms"] == counts["/foxglove/scene"] == frames
+    assert counts["/foxglove/points"] == frames
     assert counts["/bar/main/pose"] == counts["/bar/hand/pose"] == steps + 1
     assert counts["/strings/taut"] == counts["/bar/main/feedback"] == steps
     return summary, metadata
@@ -189,6 +191,28 @@ def test_rerun_reads_the_transforms_as_transform3d(recorded):
     np.testing.assert_allclose(last[3], state["body_rot"][-1, head], atol=1e-6)
 
 
+def test_rerun_draws_the_bodies_and_string_ends_as_points3d(recorded):
+    trajectory, path = recorded
+    session = read_session(path)
+    state = session.channels["/puppet/state"]
+    chunks = [c for c in rerun_chunk.McapReader(path).stream().to_chunks()
+              if c.entity_path == "/foxglove/points" and c.timeline_names]
+    batches = [c.to_record_batch() for c in chunks]
+    positions = [p for b in batches for p in b.column("Points3D:positions").to_pylist()]
+    frames = [f for b in batches for f in b.column("CoordinateFrame:frame").to_pylist()]
+    assert len(positions) == len(state["t"]) and all(f == ["world"] for f in frames)
+    bodies = len(session.bodies)
+    assert all(len(p) == bodies + 2 * len(session.strings) for p in positions)
+    for k in (0, len(positions) - 1):
+        np.testing.assert_array_equal(np.array(positions[k][:bodies]), state["body_pos"][k].astype(np.float32))
+    # the string ends: the last point of the head string is the head's attach point
+    point = {p.name: p for p in session.scene.puppet.points}["head"]
+    b = session.bodies.index(point.body)
+    bottom = state["body_pos"][-1, b] + quat_to_matrix(state["body_rot"][-1, b]) @ np.asarray(point.position)
+    head = session.strings.index("head")
+    np.testing.assert_allclose(positions[-1][bodies + 2 * head + 1], bottom, rtol=1e-6, atol=1e-7)
+
+
 def test_session_index_rewrites_a_file_left_by_a_crash(recorded, tmp_path):
     """A copy taken while the writer is open (no footer) is indexed; everything in it is kept."""
     trajectory, path = recorded
@@ -245,7 +269,7 @@ def test_session_index_converts_an_old_session(recorded, tmp_path, capsys):
     out = tmp_path / "converted.mcap"
     assert main(["session", "index", str(old), "--out", str(out)]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["converted_from"] == 1 and report["foxglove_added"] == 2 * len(trajectory.frame_time)
+    assert report["converted_from"] == 1 and report["foxglove_added"] == 3 * len(trajectory.frame_time)
     _check_indexed(out, len(trajectory.frame_time), len(trajectory.step_time))
     converted, original = read_session(out), read_session(path)
     created = converted.metadata["log_time_origin_ns"]

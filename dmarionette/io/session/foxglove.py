@@ -10,6 +10,9 @@ Foxglove schemas in protobuf, not in JSON), one message each per puppet state:
   to its frame), one per bar (a thin box along its attach points), ``strings`` (a straight line
   per string from its bar attach point to its body point, red when taut) and ``forces`` (an arrow
   per bar: the exact reaction of its strings, 1 cm per newton).
+- ``/foxglove/points`` (``foxglove.PointCloud``, frame ``world``): the body centres, then each
+  string's two ends (bar attach point, body point), x y z float32: what Rerun draws (its
+  importer turns ``PointCloud`` into ``Points3D``; it converts no ``SceneUpdate``).
 
 Everything is computed from what the session's own channels hold (bar poses, puppet states,
 feedback, taut flags), so an old session gets these channels too (``index_session``).
@@ -22,6 +25,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf import descriptor_pb2
 from google.protobuf.duration_pb2 import Duration
@@ -31,8 +36,10 @@ from dmarionette.rotations import euler_to_matrix
 __all__ = ["FOXGLOVE_TOPICS", "FoxglovePuppet", "file_descriptor_set"]
 
 #: topic -> schema name of the Foxglove channels.
-FOXGLOVE_TOPICS = {"/foxglove/transforms": "foxglove.FrameTransforms", "/foxglove/scene": "foxglove.SceneUpdate"}
-_MESSAGES = {"foxglove.FrameTransforms": FrameTransforms, "foxglove.SceneUpdate": SceneUpdate}
+FOXGLOVE_TOPICS = {"/foxglove/transforms": "foxglove.FrameTransforms", "/foxglove/scene": "foxglove.SceneUpdate",
+                   "/foxglove/points": "foxglove.PointCloud"}
+_MESSAGES = {"foxglove.FrameTransforms": FrameTransforms, "foxglove.SceneUpdate": SceneUpdate,
+             "foxglove.PointCloud": PointCloud}
 _Y_UP_TO_Z_UP = (np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5))  # (x, y, z, w): +90 deg about x
 _FORCE_SCALE = 0.01  # arrow length [m] per newton
 _BAR_COLOR = (0.55, 0.35, 0.2, 1.0)
@@ -134,14 +141,7 @@ class FoxglovePuppet:
         for entity in message.entities:
             _stamp(entity.timestamp, log_time)
         strings = self._entity(message, log_time, "world", "strings", frame_locked=False)
-        bar_rotation = {name: euler_to_matrix(np.asarray(angles, float)) for name, (_, angles) in bar_poses.items()}
-        for i, (name, bar) in enumerate(zip(self.strings, self.string_bars)):
-            end = self.string_points[i]
-            if bar not in bar_poses or end is None or name not in self.bar_attach.get(bar, {}):
-                continue
-            top = np.asarray(bar_poses[bar][0], float) + bar_rotation[bar] @ self.bar_attach[bar][name]
-            body, local = end
-            bottom = np.asarray(body_pos[body], float) + _rotate(body_rot[body], local)
+        for i, top, bottom in self.string_ends(bar_poses, body_pos, body_rot):
             line = strings.lines.add()
             line.type = line.LINE_STRIP
             line.thickness = 0.004
@@ -162,6 +162,34 @@ class FoxglovePuppet:
             arrow.shaft_length, arrow.shaft_diameter = 0.8 * length, 0.01
             arrow.head_length, arrow.head_diameter = 0.2 * length, 0.025
             _set_color(arrow.color, (0.1, 0.4, 1.0, 1.0))
+        return message.SerializeToString()
+
+    def string_ends(self, bar_poses: Mapping[str, tuple], body_pos, body_rot) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """``(string index, top, bottom)`` [m], world, of each string whose bar pose and body point are known."""
+        bar_rotation = {name: euler_to_matrix(np.asarray(angles, float)) for name, (_, angles) in bar_poses.items()}
+        ends = []
+        for i, (name, bar) in enumerate(zip(self.strings, self.string_bars)):
+            end = self.string_points[i]
+            if bar not in bar_poses or end is None or name not in self.bar_attach.get(bar, {}):
+                continue
+            top = np.asarray(bar_poses[bar][0], float) + bar_rotation[bar] @ self.bar_attach[bar][name]
+            body, local = end
+            ends.append((i, top, np.asarray(body_pos[body], float) + _rotate(body_rot[body], local)))
+        return ends
+
+    def points(self, log_time: int, t: float, bar_poses: Mapping[str, tuple], body_pos, body_rot) -> bytes:
+        """``foxglove.PointCloud`` at ``log_time`` [ns], frame ``world``: body centres, then the two
+        ends of each string (float32 x, y, z)."""
+        message = PointCloud()
+        _stamp(message.timestamp, log_time)
+        message.frame_id = "world"
+        _set_pose(message.pose, (0, 0, 0), (0, 0, 0, 1))
+        message.point_stride = 12
+        for k, axis in enumerate("xyz"):
+            message.fields.add(name=axis, offset=4 * k, type=PackedElementField.FLOAT32)
+        ends = [p for _, top, bottom in self.string_ends(bar_poses, body_pos, body_rot) for p in (top, bottom)]
+        points = np.concatenate([np.asarray(body_pos, np.float64).reshape(-1, 3), np.reshape(ends, (-1, 3))])
+        message.data = points.astype("<f4").tobytes()
         return message.SerializeToString()
 
     def _shapes(self, bars: tuple[str, ...]) -> SceneUpdate:

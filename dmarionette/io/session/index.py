@@ -79,6 +79,7 @@ def _foxglove_messages(path: Path, meta: dict[str, Any], origin: int) -> list[tu
         out.append(("/foxglove/transforms", "foxglove.FrameTransforms", log_time, builder.transforms(*args)))
         out.append(("/foxglove/scene", "foxglove.SceneUpdate", log_time,
                     builder.scene_update(*args, reactions=reactions, taut=flags)))
+        out.append(("/foxglove/points", "foxglove.PointCloud", log_time, builder.points(*args)))
     return out
 
 

@@ -263,7 +263,7 @@ class SessionWriter:
         compression: ``"none"``, ``"zstd"`` or ``"lz4"``, for chunks only (the last two need
             the ``zstandard`` / ``lz4`` packages, on the reading machine too).
         fsync: also ``os.fsync`` at each flush (survives a power cut, costs a disk sync).
-        foxglove: also write ``/foxglove/transforms`` and ``/foxglove/scene`` at each puppet
+        foxglove: also write ``/foxglove/transforms``, ``/foxglove/scene`` and ``/foxglove/points`` at each puppet
             state (needs ``foxglove-schemas-protobuf``; without it they are left out).
         index_on_close: when closed normally, rewrite the file chunked, indexed and
             zstd-compressed (:func:`dmarionette.io.session.index.index_session`).
@@ -402,6 +402,7 @@ class SessionWriter:
             self._write("/foxglove/transforms", "foxglove", t, self._foxglove.transforms(*args))
             self._write("/foxglove/scene", "foxglove", t,
                         self._foxglove.scene_update(*args, reactions=dict(self._reactions), taut=self._taut))
+            self._write("/foxglove/points", "foxglove", t, self._foxglove.points(*args))
 
     def write_metadata(self, name: str, values: Mapping[str, Any]) -> None:
         """An extra metadata record (e.g. ``"device"``: its spec, the mapping ``S``, ``W``, the
