@@ -6,8 +6,7 @@
 - ``dmarionette live [SCENE]``: live puppetry with a haptic device in the 1 kHz servo loop
   (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time;
-- ``dmarionette export TRAJECTORY``: the puppet motion as BVH, glTF and USD (docs/export.md);
-- ``dmarionette session index FILE``: a session chunked, indexed, zstd (docs/session.md);
+- ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md);
 - ``dmarionette author KEYFRAMES``: bar motions that reach keyframe poses (docs/authoring.md;
   needs the ``fitting`` extra, imported only by this command);
 - ``dmarionette calibrate SESSION``: fit string constants to a recorded session (docs/calibration.md;
@@ -123,6 +122,7 @@ def _parser() -> argparse.ArgumentParser:
                     "old session (the Foxglove channels are added from its bar poses and puppet states).")
     session_index.add_argument("session", type=Path, help="the .mcap file (rewritten in place unless --out)")
     session_index.add_argument("--out", type=Path, default=None, help="write the indexed file here instead")
+    session_index.set_defaults(handler=_run_session_index)
     replay = sub.add_parser("replay", help="re-simulate a recorded session and compare",
                             description="Rebuild the session's scene from its metadata, drive its bars with the "
                                         "recorded bar poses, re-simulate, and report the gap between recorded "
@@ -143,7 +143,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=Path("out") / "bench", help="output folder")
     bench.add_argument("--fast-compile", action="store_true",
                        help="puppet kernels without optimisation (timings then mean less)")
-    export = sub.add_parser("export", help="export the puppet motion of a trajectory to BVH, glTF and USD",
+    export = sub.add_parser("export", help="export the puppet motion of a trajectory to BVH and glTF",
                             description="Write the puppet motion of a marionette trajectory file (from 'dmarionette "
                                         "simulate') as OUT/motion.bvh (joint tree, metres, degrees) and/or OUT/motion.glb "
                                         "(binary glTF 2.0: body meshes and an animation), for Blender "
@@ -219,6 +219,13 @@ def _run_author(args: argparse.Namespace) -> int:
                      | {"max_keyframe_error_m": max(e["max_position_error_m"] for e in summary["keyframes_after"]),
                         "max_keyframe_error_deg": max(e["max_joint_error_deg"] for e in summary["keyframes_after"])},
                      indent=2))
+    return 0
+
+
+def _run_session_index(args: argparse.Namespace) -> int:
+    from .io.session.index import index_session
+
+    print(json.dumps(index_session(args.session, args.out), indent=2))
     return 0
 
 
@@ -518,10 +525,7 @@ def main(argv: list[str] | None = None) -> int:
             print(format_session_info(session_info(args.session)))
             return 0
         if args.command == "session":
-            from .io.session.index import index_session
-
-            print(json.dumps(index_session(args.session, args.out), indent=2))
-            return 0
+            return args.handler(args)
         if args.command == "replay":
             return _run_replay(args)
         if args.command == "calibrate":

@@ -266,6 +266,10 @@ def test_session_index_converts_an_old_session(recorded, tmp_path, capsys):
     old = tmp_path / "old.mcap"
     meta = _as_format_1(path, old)
     assert not any(t.startswith("/foxglove/") for t in _counts(_summary(old)[0]))
+    as_recorded = read_session(old)  # format 1 still reads: log time = simulated time
+    np.testing.assert_array_equal(as_recorded.channels["/puppet/state"]["log_time"],
+                                  np.round(as_recorded.channels["/puppet/state"]["t"] * 1e9).astype(np.int64))
+    assert session_info(old)["start"] == 0.0 and session_info(old)["end"] == pytest.approx(trajectory.step_time[-1])
     out = tmp_path / "converted.mcap"
     assert main(["session", "index", str(old), "--out", str(out)]) == 0
     report = json.loads(capsys.readouterr().out)
