@@ -311,6 +311,24 @@ def test_a_failed_rewrite_on_close_leaves_the_unchunked_file(recorded, tmp_path,
     assert _summary(tmp_path / "take.mcap")[0].statistics.chunk_count == 0
 
 
+@pytest.mark.parametrize("fraction", [0.3, 0.5, 0.9])
+def test_an_indexed_file_cut_short_reads_back_a_prefix(recorded, tmp_path, fraction):
+    """Cut inside a zstd chunk: the reader decompresses what is there and stops at the last
+    complete record; at equal times the messages keep the order they were written in."""
+    _, path = recorded
+    whole = read_session(path)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: int(path.stat().st_size * fraction)])
+    session = read_session(cut)
+    assert session.truncated
+    pose, state = session.channels["/bar/main/pose"], session.channels["/puppet/state"]
+    assert len(pose["t"]) > 10
+    np.testing.assert_array_equal(pose["position"], whole.channels["/bar/main/pose"]["position"][:len(pose["t"])])
+    np.testing.assert_array_equal(state["body_pos"], whole.channels["/puppet/state"]["body_pos"][:len(state["t"])])
+    # written per step: bar poses, then feedback, taut, then the puppet state; the cut keeps that
+    assert session.channels["/bar/main/feedback"]["t"][-1] >= state["t"][-1]
+
+
 def test_session_index_refuses_a_file_that_is_not_a_session(tmp_path, capsys):
     bad = tmp_path / "notes.mcap"
     bad.write_text("not an mcap file")

@@ -158,8 +158,8 @@ def _write_indexed(temporary: Path, records, metadata: dict, shift: int, added: 
         channel_ids = {old: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
                                                     dict(c.metadata))
                        for old, c in records.channels.items()}
-        messages = [(m.log_time + shift, m.publish_time + shift, channel_ids[cid], m.sequence, m.data)
-                    for cid, ms in records.messages.items() for m in ms]
+        messages = [(m.log_time + shift, m.publish_time + shift, channel_ids[m.channel_id], m.sequence, m.data)
+                    for m in records.in_file_order]
         if added:
             from dmarionette.io.session.foxglove import FOXGLOVE_TOPICS, file_descriptor_set
 
@@ -171,7 +171,7 @@ def _write_indexed(temporary: Path, records, metadata: dict, shift: int, added: 
             for topic, _, log_time, data in added:
                 messages.append((log_time, log_time, ids[topic], sequence[topic], data))
                 sequence[topic] += 1
-        messages.sort(key=lambda m: m[0])  # stable: each channel keeps its order
+        messages.sort(key=lambda m: m[0])  # stable: at equal times, the order they were written in
         for log_time, publish_time, channel, sequence, data in messages:
             writer.add_message(channel, log_time, data, publish_time, sequence)
         writer.finish()

@@ -47,6 +47,7 @@ class _Records:
     truncated: bool
     size: int
     error: str | None = None
+    in_file_order: list[Message] = dataclasses.field(default_factory=list)  # every message read, as written
 
 
 def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
@@ -69,10 +70,12 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
             break
         offset += 9 + length
     end = offset
+    # A chunk cut off (an indexed file cut short): the records its compressed prefix holds.
+    tail = _cut_chunk_records(data, offset) if truncated and offset + 9 <= len(data) else b""
     wanted = None if topics is None else set(topics)
     records = _Records(header=None, metadata={}, channels={}, schemas={}, messages=defaultdict(list),
                        truncated=truncated, size=len(data))
-    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end]), skip_magic=True).records)
+    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end] + tail), skip_magic=True).records)
     while True:
         try:
             record = next(reader)
@@ -86,6 +89,7 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
             channel = records.channels.get(record.channel_id)
             if channel is not None and (wanted is None or channel.topic in wanted):
                 records.messages[record.channel_id].append(record)
+                records.in_file_order.append(record)
         elif isinstance(record, Channel):
             records.channels[record.id] = record
         elif isinstance(record, Schema):
@@ -95,6 +99,35 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
         elif isinstance(record, Header):
             records.header = record
     return records
+
+
+def _cut_chunk_records(data: bytes, offset: int) -> bytes:
+    """The complete-or-not inner records of the cut-off Chunk record at ``offset`` (the parser
+    stops at the last complete one), decompressed as far as the bytes go; ``b""`` if it is not
+    a chunk or its compression cannot be streamed."""
+    if data[offset] != Opcode.CHUNK:
+        return b""
+    body = data[offset + 9:]
+    head = 8 + 8 + 8 + 4  # start, end, uncompressed size, crc
+    if len(body) < head + 4:
+        return b""
+    (name_length,) = struct.unpack_from("<I", body, head)
+    start = head + 4 + name_length + 8  # compression name, records length
+    if len(body) < start:
+        return b""
+    compression, records = body[head + 4:head + 4 + name_length].decode(errors="replace"), body[start:]
+    if compression == "":
+        return records
+    if compression == "zstd":
+        try:
+            import zstandard
+        except ImportError:
+            return b""
+        try:
+            return zstandard.ZstdDecompressor().decompressobj().decompress(records)
+        except zstandard.ZstdError:
+            return b""
+    return b""  # lz4: not streamed here
 
 
 def read_session_records(path: str | Path) -> _Records:
