@@ -1,7 +1,10 @@
 """The puppet in Foxglove's well-known schemas, so Foxglove's 3D panel and Rerun draw a session.
 
-Two channels, protobuf-encoded (``foxglove-schemas-protobuf``; Rerun's MCAP importer decodes
-Foxglove schemas in protobuf, not in JSON), one message each per puppet state:
+Three channels, protobuf-encoded (``foxglove-schemas-protobuf``; Rerun's MCAP importer decodes
+Foxglove schemas in protobuf, not in JSON), one message each per puppet state. The methods
+take ``(log_time [ns], t [s], bar_poses, body_pos, body_rot)``: ``t``, the simulated time, is
+not in Foxglove's schemas (the JSON channels hold it); the messages are stamped with the log
+time.
 
 - ``/foxglove/transforms`` (``foxglove.FrameTransforms``): ``map`` -> ``world`` (a quarter turn
   about x: the simulator's y-up world shown z-up), ``world`` -> ``body/NAME`` for every body and

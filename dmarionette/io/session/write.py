@@ -3,7 +3,8 @@
 One JSON message per channel and time step, with a JSON Schema per message type, so the
 ``mcap`` CLI, Foxglove and the ``mcap`` Python reader open the file as it is; beside them, at
 the puppet rate, the bodies, bars, strings and forces in Foxglove's well-known schemas
-(protobuf, :mod:`dmarionette.io.session.foxglove`), which Foxglove's 3D panel and Rerun draw.
+(``/foxglove/transforms``, ``/foxglove/scene``, ``/foxglove/points``; protobuf,
+:mod:`dmarionette.io.session.foxglove`), which Foxglove's 3D panel and Rerun draw.
 Log times are wall-clock nanoseconds: the time the session started (``log_time_origin_ns``
 in the metadata) plus the simulated time; every message holds the simulated time ``t`` too.
 When the writer closes normally the file is rewritten chunked, indexed and zstd-compressed
