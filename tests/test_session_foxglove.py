@@ -329,6 +329,19 @@ def test_an_indexed_file_cut_short_reads_back_a_prefix(recorded, tmp_path, fract
     assert session.channels["/bar/main/feedback"]["t"][-1] >= state["t"][-1]
 
 
+def test_an_indexed_file_cut_anywhere_reads_back_a_prefix(recorded, tmp_path):
+    _, path = recorded
+    data = path.read_bytes()
+    whole = read_session(path).channels["/bar/main/pose"]["position"]
+    cut = tmp_path / "cut.mcap"
+    for end in np.linspace(30_000, len(data) - 1, 41).astype(int):  # past the metadata (scene, constants)
+        cut.write_bytes(data[:end])
+        session = read_session(cut)
+        assert session.truncated
+        pose = session.channels.get("/bar/main/pose", {"position": np.zeros((0, 3))})["position"]
+        np.testing.assert_array_equal(pose, whole[:len(pose)], err_msg=f"cut at {end}")
+
+
 def test_session_index_refuses_a_file_that_is_not_a_session(tmp_path, capsys):
     bad = tmp_path / "notes.mcap"
     bad.write_text("not an mcap file")

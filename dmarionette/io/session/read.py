@@ -102,9 +102,8 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
 
 
 def _cut_chunk_records(data: bytes, offset: int) -> bytes:
-    """The complete-or-not inner records of the cut-off Chunk record at ``offset`` (the parser
-    stops at the last complete one), decompressed as far as the bytes go; ``b""`` if it is not
-    a chunk or its compression cannot be streamed."""
+    """The complete inner records of the cut-off Chunk record at ``offset``, decompressed as far
+    as the bytes go; ``b""`` if it is not a chunk or its compression cannot be streamed."""
     if data[offset] != Opcode.CHUNK:
         return b""
     body = data[offset + 9:]
@@ -116,18 +115,24 @@ def _cut_chunk_records(data: bytes, offset: int) -> bytes:
     if len(body) < start:
         return b""
     compression, records = body[head + 4:head + 4 + name_length].decode(errors="replace"), body[start:]
-    if compression == "":
-        return records
     if compression == "zstd":
         try:
             import zstandard
         except ImportError:
             return b""
         try:
-            return zstandard.ZstdDecompressor().decompressobj().decompress(records)
+            records = zstandard.ZstdDecompressor().decompressobj().decompress(records)
         except zstandard.ZstdError:
             return b""
-    return b""  # lz4: not streamed here
+    elif compression != "":
+        return b""  # lz4: not streamed here
+    end = 0  # up to the last complete record
+    while end + 9 <= len(records):
+        (length,) = struct.unpack_from("<Q", records, end + 1)
+        if end + 9 + length > len(records):
+            break
+        end += 9 + length
+    return records[:end]
 
 
 def read_session_records(path: str | Path) -> _Records:
