@@ -155,6 +155,15 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                                       "scene, bars, whether the recording was cut off (docs/session.md).")
     info.add_argument("session", type=Path, help="the .mcap file")
     info.set_defaults(handler=_run_info)
+    session = sub.add_parser("session", help="session file tools (index)", description="Session file tools.")
+    session_index = session.add_subparsers(dest="session_command", required=True).add_parser(
+        "index", help="rewrite a session chunked, indexed and zstd-compressed (after a crash; old sessions)",
+        description="Rewrite a session file chunked, indexed and zstd-compressed, as a recording that closes "
+                    "normally is; for a file left by a crash (everything up to its last complete record) or an "
+                    "old session (the Foxglove channels are added from its bar poses and puppet states).")
+    session_index.add_argument("session", type=Path, help="the .mcap file (rewritten in place unless --out)")
+    session_index.add_argument("--out", type=Path, default=None, help="write the indexed file here instead")
+    session_index.set_defaults(handler=_run_session_index)
     replay = sub.add_parser("replay", help="re-simulate a recorded session and compare",
                             description="Rebuild the session's scene from its metadata, drive its bars with the "
                                         "recorded bar poses, re-simulate, and report the gap between recorded "
@@ -183,8 +192,9 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                                         "(binary glTF 2.0: body meshes and an animation), for Blender "
                                         "(docs/export.md). Prints the written files as JSON.")
     export.add_argument("trajectory", type=Path, help="the trajectory.npz file")
-    export.add_argument("--format", choices=["bvh", "gltf", "all"], default="all",
-                        help="what to write (default: all)")
+    export.add_argument("--format", choices=["bvh", "gltf", "usd", "all"], default="all",
+                        help="what to write (default: all; USD, OUT/motion.usda, needs the usd extra and is "
+                             "part of 'all' only when pxr imports)")
     export.add_argument("--out", type=Path, default=None,
                         help="output folder (default: the trajectory file's folder)")
     export.add_argument("--fps", type=float, default=None,
@@ -194,6 +204,13 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                              "(default: the scene the file names, else the default marionette)")
     export.set_defaults(handler=_run_export)
     return parser, sub
+
+
+def _run_session_index(args: argparse.Namespace) -> int:
+    from .io.session.index import index_session
+
+    print(json.dumps(index_session(args.session, args.out), indent=2))
+    return 0
 
 
 def _run_export(args: argparse.Namespace) -> int:
@@ -216,6 +233,16 @@ def _run_export(args: argparse.Namespace) -> int:
         files["bvh"] = str(export_bvh(trajectory, out / "motion.bvh", fps=args.fps))
     if args.format in ("gltf", "all"):
         files["gltf"] = str(export_gltf(trajectory, out / "motion.glb"))
+    if args.format in ("usd", "all"):
+        from .io.export.usd import export_usd, usd_available
+
+        if usd_available():
+            files["usd"] = str(export_usd(trajectory, out / "motion.usda"))
+        elif args.format == "usd":
+            print(f"error: {usd_available.hint}", file=sys.stderr)
+            return 2
+        else:
+            files["usd"] = f"skipped: {usd_available.hint}"
     print(json.dumps(files, indent=2))
     return 0
 

@@ -1,4 +1,4 @@
-"""What the motion exporters (BVH, glTF) share: the checked body motion, quaternions, the puppet.
+"""What the motion exporters (BVH, glTF, USD) share: the checked body motion, quaternions, the puppet.
 
 The exporters read a :class:`~dmarionette.marionette.rollout.MarionetteTrajectory` (or any
 object with the same ``frame_time``, ``body_pos``, ``body_rot``, ``body_names`` and
@@ -17,17 +17,19 @@ from typing import Any
 
 import numpy as np
 
-from dmarionette.rotations import quat_to_matrix
+from dmarionette.rotations import matrix_to_quat, quat_to_matrix
 from dmarionette.scene.puppet import PuppetDescription, load_puppet
 
 __all__ = [
     "JOINT_GAP_TOLERANCE",
     "BodyMotion",
     "ExportError",
+    "bar_tracks",
     "body_motion",
     "check_puppet_matches",
     "read_marionette_trajectory",
     "resolve_puppet",
+    "string_tracks",
 ]
 
 JOINT_GAP_TOLERANCE = 1e-6
@@ -260,3 +262,36 @@ def _scene_puppet(source: Any) -> PuppetDescription | None:
         return load_scene(source).puppet
     except SceneError:
         return None
+
+
+def bar_tracks(trajectory: Any, frames: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``(name, positions (F, 3), rotations (F, 4))`` of each control bar the trajectory has."""
+    get = (lambda k: trajectory.get(k)) if isinstance(trajectory, dict) else (lambda k: getattr(trajectory, k, None))
+    names, pos, rot = get("bar_names"), get("bar_pos"), get("bar_rot")
+    if names is None or pos is None or rot is None or not len(names):
+        return []
+    pos, rot = np.asarray(pos, dtype=np.float64), np.asarray(rot, dtype=np.float64)
+    if pos.shape[:2] != (frames, len(names)) or rot.shape[:2] != (frames, len(names)) or not (
+            np.all(np.isfinite(pos)) and np.all(np.isfinite(rot))):
+        return []
+    return [(str(n), pos[:, b], matrix_to_quat(rot[:, b])) for b, n in enumerate(names)]
+
+
+def string_tracks(trajectory: Any, frames: int, where: str) -> list[tuple[str, np.ndarray]] | None:
+    """``(name, particle positions (F, n, 3))`` per string, or None when the trajectory has no strings."""
+    get = (lambda k: trajectory.get(k)) if isinstance(trajectory, dict) else (lambda k: getattr(trajectory, k, None))
+    q, start, names = get("particle_q"), get("string_start"), get("string_names")
+    if q is None or start is None:
+        return None
+    q = np.asarray(q, dtype=np.float64)
+    start = np.asarray(start).astype(np.int64)
+    count = len(start) - 1
+    names = [str(n) for n in names] if names is not None else [str(i) for i in range(count)]
+    if q.ndim != 3 or q.shape[0] != frames or q.shape[2] != 3:
+        raise ExportError(f"{where}: field 'particle_q': got shape {q.shape}; expected ({frames}, P, 3)")
+    if count < 1 or start[0] != 0 or start[-1] != q.shape[1] or np.any(np.diff(start) < 2) or len(names) != count:
+        raise ExportError(f"{where}: field 'string_start': got {start.tolist()}; expected increasing first-particle "
+                          f"indices from 0 to {q.shape[1]}, at least 2 particles a string, one per string name")
+    if not np.all(np.isfinite(q)):
+        raise ExportError(f"{where}: field 'particle_q': got non-finite values; expected finite positions [m]")
+    return [(names[s], q[:, start[s]:start[s + 1]]) for s in range(count)]

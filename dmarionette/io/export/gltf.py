@@ -46,7 +46,9 @@ from typing import Any
 import numpy as np
 
 from dmarionette.io.export.common import BodyMotion, ExportError, body_motion
-from dmarionette.rotations import continuous_quats, matrix_to_quat
+from dmarionette.io.export.common import bar_tracks as _bars
+from dmarionette.io.export.common import string_tracks as _strings
+from dmarionette.rotations import continuous_quats
 
 __all__ = ["box_mesh", "export_gltf", "sphere_mesh"]
 
@@ -175,39 +177,6 @@ def _float32_times(motion: BodyMotion, where: str) -> np.ndarray:
                           f"{motion.frame_time[f + 1]!r} s) are equal in float32; expected times that stay strictly "
                           "increasing in float32 (glTF keyframe times)")
     return times
-
-
-def _bars(trajectory: Any, frames: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """``(name, positions (F, 3), rotations (F, 4))`` of each control bar the trajectory has."""
-    get = (lambda k: trajectory.get(k)) if isinstance(trajectory, dict) else (lambda k: getattr(trajectory, k, None))
-    names, pos, rot = get("bar_names"), get("bar_pos"), get("bar_rot")
-    if names is None or pos is None or rot is None or not len(names):
-        return []
-    pos, rot = np.asarray(pos, dtype=np.float64), np.asarray(rot, dtype=np.float64)
-    if pos.shape[:2] != (frames, len(names)) or rot.shape[:2] != (frames, len(names)) or not (
-            np.all(np.isfinite(pos)) and np.all(np.isfinite(rot))):
-        return []
-    return [(str(n), pos[:, b], matrix_to_quat(rot[:, b])) for b, n in enumerate(names)]
-
-
-def _strings(trajectory: Any, frames: int, where: str) -> list[tuple[str, np.ndarray]] | None:
-    """``(name, particle positions (F, n, 3))`` per string, or None when the trajectory has no strings."""
-    get = (lambda k: trajectory.get(k)) if isinstance(trajectory, dict) else (lambda k: getattr(trajectory, k, None))
-    q, start, names = get("particle_q"), get("string_start"), get("string_names")
-    if q is None or start is None:
-        return None
-    q = np.asarray(q, dtype=np.float64)
-    start = np.asarray(start).astype(np.int64)
-    count = len(start) - 1
-    names = [str(n) for n in names] if names is not None else [str(i) for i in range(count)]
-    if q.ndim != 3 or q.shape[0] != frames or q.shape[2] != 3:
-        raise ExportError(f"{where}: field 'particle_q': got shape {q.shape}; expected ({frames}, P, 3)")
-    if count < 1 or start[0] != 0 or start[-1] != q.shape[1] or np.any(np.diff(start) < 2) or len(names) != count:
-        raise ExportError(f"{where}: field 'string_start': got {start.tolist()}; expected increasing first-particle "
-                          f"indices from 0 to {q.shape[1]}, at least 2 particles a string, one per string name")
-    if not np.all(np.isfinite(q)):
-        raise ExportError(f"{where}: field 'particle_q': got non-finite values; expected finite positions [m]")
-    return [(names[s], q[:, start[s]:start[s + 1]]) for s in range(count)]
 
 
 def _add_strings(builder: _GlbBuilder, document: dict, strings: list[tuple[str, np.ndarray]]) -> list:

@@ -28,7 +28,8 @@ from dmarionette.scene.bars import BarTrajectory
 from dmarionette.scene.scene import Scene, scene_from_table
 from dmarionette.io.session.write import FORMAT, FORMAT_VERSION
 
-__all__ = ["Session", "format_session_info", "read_session", "session_bar_trajectories", "session_info"]
+__all__ = ["Session", "decode_session_metadata", "format_session_info", "read_session", "read_session_records",
+           "session_bar_trajectories", "session_info"]
 
 _MAGIC = b"\x89MCAP0\r\n"
 _INT_FIELDS = {"buttons", "taut"}
@@ -46,6 +47,7 @@ class _Records:
     truncated: bool
     size: int
     error: str | None = None
+    in_file_order: list[Message] = dataclasses.field(default_factory=list)  # every message read, as written
 
 
 def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
@@ -68,10 +70,12 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
             break
         offset += 9 + length
     end = offset
+    # A chunk cut off (an indexed file cut short): the records its compressed prefix holds.
+    tail = _cut_chunk_records(data, offset) if truncated and offset + 9 <= len(data) else b""
     wanted = None if topics is None else set(topics)
     records = _Records(header=None, metadata={}, channels={}, schemas={}, messages=defaultdict(list),
                        truncated=truncated, size=len(data))
-    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end]), skip_magic=True).records)
+    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end] + tail), skip_magic=True).records)
     while True:
         try:
             record = next(reader)
@@ -85,6 +89,7 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
             channel = records.channels.get(record.channel_id)
             if channel is not None and (wanted is None or channel.topic in wanted):
                 records.messages[record.channel_id].append(record)
+                records.in_file_order.append(record)
         elif isinstance(record, Channel):
             records.channels[record.id] = record
         elif isinstance(record, Schema):
@@ -94,6 +99,53 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
         elif isinstance(record, Header):
             records.header = record
     return records
+
+
+def _cut_chunk_records(data: bytes, offset: int) -> bytes:
+    """The complete inner records of the cut-off Chunk record at ``offset``, decompressed as far
+    as the bytes go; ``b""`` if it is not a chunk or its compression cannot be streamed."""
+    if data[offset] != Opcode.CHUNK:
+        return b""
+    body = data[offset + 9:]
+    head = 8 + 8 + 8 + 4  # start, end, uncompressed size, crc
+    if len(body) < head + 4:
+        return b""
+    (name_length,) = struct.unpack_from("<I", body, head)
+    start = head + 4 + name_length + 8  # compression name, records length
+    if len(body) < start:
+        return b""
+    compression, records = body[head + 4:head + 4 + name_length].decode(errors="replace"), body[start:]
+    if compression == "zstd":
+        try:
+            import zstandard
+        except ImportError:
+            return b""
+        try:
+            records = zstandard.ZstdDecompressor().decompressobj().decompress(records)
+        except zstandard.ZstdError:
+            return b""
+    elif compression != "":
+        return b""  # lz4: not streamed here
+    end = 0  # up to the last complete record
+    while end + 9 <= len(records):
+        (length,) = struct.unpack_from("<Q", records, end + 1)
+        if end + 9 + length > len(records):
+            break
+        end += 9 + length
+    return records[:end]
+
+
+def read_session_records(path: str | Path) -> _Records:
+    """The raw ``mcap`` records of a session file (``header``, ``metadata`` by name, ``schemas``
+    and ``channels`` by id, ``messages`` by channel id, ``truncated``), read up to the last
+    complete record; for tools that rewrite a file (:mod:`dmarionette.io.session.index`)."""
+    return _read_records(Path(path))
+
+
+def decode_session_metadata(path: str | Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
+    """The decoded ``"dmarionette"`` record and the ``"scene"`` record of ``records``;
+    ``ValueError`` naming ``path`` when the file is not a dmarionette session."""
+    return _session_metadata(Path(path), records)
 
 
 def _session_metadata(path: Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
@@ -224,7 +276,9 @@ def read_session(path: str | Path, *, topics: Iterable[str] | None = None, load_
             extra[name] = {k: _json_or_text(v) for k, v in values.items()}
     channels = {}
     for channel_id, messages in records.messages.items():
-        channels[records.channels[channel_id].topic] = _decode_topic(messages)
+        channel = records.channels[channel_id]
+        if channel.message_encoding == "json":  # the Foxglove channels (protobuf) are for viewers
+            channels[channel.topic] = _decode_topic(messages)
     scene = _load_scene(path, scene_record) if load_scene else None
     return Session(path=path, metadata=meta, scene_record=scene_record, extra_metadata=extra, scene=scene,
                    channels=channels, truncated=records.truncated)
@@ -264,8 +318,9 @@ def session_info(path: str | Path) -> dict[str, Any]:
     records = _read_records(path)
     meta, scene_record = _session_metadata(path, records)
     topics = {}
+    origin = int(meta.get("log_time_origin_ns", 0))  # version 1: log time = simulated time
     for channel_id, channel in sorted(records.channels.items()):
-        times = np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.int64) * 1e-9
+        times = (np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.int64) - origin) * 1e-9
         count = len(times)
         span = float(times.max() - times.min()) if count else 0.0
         topics[channel.topic] = {"count": count, "rate_hz": (count - 1) / span if count > 1 and span > 0 else 0.0,

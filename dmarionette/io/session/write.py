@@ -1,8 +1,14 @@
 """Writing a session: an MCAP file of what a puppetry run sent and received (docs/session.md).
 
 One JSON message per channel and time step, with a JSON Schema per message type, so the
-``mcap`` CLI, Foxglove and the ``mcap`` Python reader open the file as it is. Log times are
-the simulated time in nanoseconds. The scene (its TOML text, made self-contained) and every
+``mcap`` CLI, Foxglove and the ``mcap`` Python reader open the file as it is; beside them, at
+the puppet rate, the bodies, bars, strings and forces in Foxglove's well-known schemas
+(``/foxglove/transforms``, ``/foxglove/scene``, ``/foxglove/points``; protobuf,
+:mod:`dmarionette.io.session.foxglove`), which Foxglove's 3D panel and Rerun draw.
+Log times are wall-clock nanoseconds: the time the session started (``log_time_origin_ns``
+in the metadata) plus the simulated time; every message holds the simulated time ``t`` too.
+When the writer closes normally the file is rewritten chunked, indexed and zstd-compressed
+(:func:`dmarionette.io.session.index.index_session`). The scene (its TOML text, made self-contained) and every
 constant go first, as metadata records, so even a file cut off after a second holds them.
 
 Crash safety: by default the file is unchunked: every record goes to the file's buffer as it
@@ -24,6 +30,7 @@ import os
 import threading
 import time
 import tomllib
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -38,7 +45,7 @@ from dmarionette.scene.scene import Scene, resolve_puppet_table
 __all__ = ["FORMAT", "FORMAT_VERSION", "SCHEMAS", "SessionWriter", "scene_constants", "session_metadata"]
 
 FORMAT = "dmarionette-session"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: wall-clock log times (log_time_origin_ns), Foxglove channels
 
 
 def _vector(n: int, description: str, items: dict | None = None) -> dict:
@@ -46,7 +53,7 @@ def _vector(n: int, description: str, items: dict | None = None) -> dict:
             "description": description}
 
 
-_T = {"type": "number", "description": "simulated time [s] (the log time is the same in ns)"}
+_T = {"type": "number", "description": "simulated time [s] (the log time is log_time_origin_ns + t in ns)"}
 
 def _message_schema(name: str, description: str, properties: dict, required: list[str]) -> dict:
     """JSON Schema of one message type: an object with the simulated time ``t`` and ``properties``."""
@@ -136,6 +143,15 @@ def _floats(values) -> list:
     return np.asarray(values, dtype=np.float64).tolist()
 
 
+def _foxglove_puppet(metadata: dict, scene: Scene):
+    """The Foxglove message builder, or ``None`` without ``foxglove-schemas-protobuf``."""
+    try:
+        from dmarionette.io.session.foxglove import FoxglovePuppet
+    except ImportError:
+        return None
+    return FoxglovePuppet(metadata, scene)
+
+
 def _version() -> str:
     try:
         from importlib.metadata import version
@@ -204,7 +220,7 @@ def _joint_q_layout(scene: Scene) -> list:
     return layout
 
 
-def session_metadata(scene: Scene, *, recorder: str) -> dict[str, Any]:
+def session_metadata(scene: Scene, *, recorder: str, log_time_origin_ns: int = 0) -> dict[str, Any]:
     """The ``"dmarionette"`` metadata record (each value is stored as JSON text)."""
     bodies = [b.name for b in scene.puppet.bodies] + (["ball"] if scene.ball is not None else []) \
         if scene.puppet is not None else []
@@ -215,7 +231,8 @@ def session_metadata(scene: Scene, *, recorder: str) -> dict[str, Any]:
         "version": _version(),
         "recorder": recorder,
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "time": "log_time = publish_time = simulated time [ns]; every message also holds t [s]",
+        "time": "log_time = publish_time = log_time_origin_ns + simulated time [ns]; every message also holds t [s]",
+        "log_time_origin_ns": int(log_time_origin_ns),
         "string_hz": scene.string_hz,
         "puppet_hz": scene.puppet_hz,
         "puppet_substeps": max(1, round(scene.string_hz / scene.puppet_hz)),
@@ -247,11 +264,15 @@ class SessionWriter:
         compression: ``"none"``, ``"zstd"`` or ``"lz4"``, for chunks only (the last two need
             the ``zstandard`` / ``lz4`` packages, on the reading machine too).
         fsync: also ``os.fsync`` at each flush (survives a power cut, costs a disk sync).
+        foxglove: also write ``/foxglove/transforms``, ``/foxglove/scene`` and ``/foxglove/points`` at each puppet
+            state (needs ``foxglove-schemas-protobuf``; without it they are left out).
+        index_on_close: when closed normally, rewrite the file chunked, indexed and
+            zstd-compressed (:func:`dmarionette.io.session.index.index_session`).
     """
 
     def __init__(self, path: str | Path, scene: Scene, scene_text: str, *, flush_seconds: float = 1.0,
                  recorder: str = "live", chunk_bytes: int | None = None, compression: str = "none",
-                 fsync: bool = False):
+                 fsync: bool = False, foxglove: bool = True, index_on_close: bool = True):
         if not flush_seconds > 0.0:
             raise ValueError(f"flush_seconds: got {flush_seconds}; expected a positive number of seconds")
         kinds = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
@@ -264,7 +285,14 @@ class SessionWriter:
         # Everything that can fail on a bad scene comes before the file is created.
         scene_record = {"name": scene.name, "source": str(scene.source), "toml": scene_text,
                         "table_json": json.dumps(self_contained_table(scene_text, str(scene.source)))}
-        metadata = {k: json.dumps(v) for k, v in session_metadata(scene, recorder=recorder).items()}
+        self.log_time_origin_ns = time.time_ns()  # wall clock at the start; log time = origin + t
+        meta = session_metadata(scene, recorder=recorder, log_time_origin_ns=self.log_time_origin_ns)
+        metadata = {k: json.dumps(v) for k, v in meta.items()}
+        self._foxglove = _foxglove_puppet(meta, scene) if foxglove else None
+        self._index_on_close = index_on_close
+        self._bar_poses: dict[str, tuple] = {}
+        self._reactions: dict[str, list] = {}
+        self._taut: list | None = None
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("wb", buffering=8192)  # reaches the OS every 8 KiB
         # Chunks need Writer.flush (finish the chunk in progress), which came with newer mcap
@@ -278,6 +306,14 @@ class SessionWriter:
         self._schema_ids = {name: self._writer.register_schema(name, SchemaEncoding.JSONSchema,
                                                                json.dumps(schema).encode())
                             for name, schema in SCHEMAS.items()}
+        self._foxglove_topics: dict[str, str] = {}
+        if self._foxglove is not None:
+            from dmarionette.io.session.foxglove import FOXGLOVE_TOPICS, file_descriptor_set
+
+            self._foxglove_topics = dict(FOXGLOVE_TOPICS)
+            for topic, name in FOXGLOVE_TOPICS.items():
+                schema = self._writer.register_schema(name, SchemaEncoding.Protobuf, file_descriptor_set(name))
+                self._schema_ids[name] = schema
         self._channels: dict[str, int] = {}
         self._sequence: dict[str, int] = {}
         self._lock = threading.Lock()
@@ -294,18 +330,19 @@ class SessionWriter:
     def _channel(self, topic: str, kind: str) -> int:
         channel = self._channels.get(topic)
         if channel is None:
-            channel = self._writer.register_channel(topic, MessageEncoding.JSON,
-                                                    self._schema_ids[_TOPIC_SCHEMA[kind]])
+            schema = _TOPIC_SCHEMA.get(kind) or self._foxglove_topics[topic]
+            encoding = MessageEncoding.Protobuf if schema.startswith("foxglove.") else MessageEncoding.JSON
+            channel = self._writer.register_channel(topic, encoding, self._schema_ids[schema])
             self._channels[topic] = channel
             self._sequence[topic] = 0
         return channel
 
-    def _write(self, topic: str, kind: str, t: float, message: dict) -> None:
+    def _write(self, topic: str, kind: str, t: float, message: dict | bytes) -> None:
         if not (t >= 0.0 and math.isfinite(t)):
             raise ValueError(f"{self.path}: {topic}: time t = {t!r}; expected a finite time >= 0 [s] "
                              "(MCAP log times are unsigned nanoseconds)")
-        data = _encode(message)
-        log_time = int(round(t * 1e9))
+        data = message if isinstance(message, bytes) else _encode(message)
+        log_time = self.log_time_origin_ns + int(round(t * 1e9))
         with self._lock:
             if self._closed:
                 raise ValueError(f"{self.path}: the session is closed")
@@ -338,24 +375,35 @@ class SessionWriter:
 
     def write_bar_pose(self, bar: str, t: float, position, rotation_deg) -> None:
         """``/bar/BAR/pose``: bar centre [m] and XYZ Euler angles [deg] at ``t`` [s], world frame."""
-        self._write(f"/bar/{bar}/pose", "bar/pose", t, {"t": float(t), "position": _floats(position),
-                                                         "rotation": _floats(rotation_deg)})
+        message = {"t": float(t), "position": _floats(position), "rotation": _floats(rotation_deg)}
+        self._write(f"/bar/{bar}/pose", "bar/pose", t, message)
+        self._bar_poses[bar] = (message["position"], message["rotation"])
 
     def write_feedback(self, bar: str, t: float, eq4, reaction) -> None:
         """``/bar/BAR/feedback``: eq. 4 feedback and exact reaction [N] on the bar, world frame."""
-        self._write(f"/bar/{bar}/feedback", "bar/feedback", t, {"t": float(t), "eq4": _floats(eq4),
-                                                                 "reaction": _floats(reaction)})
+        message = {"t": float(t), "eq4": _floats(eq4), "reaction": _floats(reaction)}
+        self._write(f"/bar/{bar}/feedback", "bar/feedback", t, message)
+        self._reactions[bar] = message["reaction"]
 
     def write_taut(self, t: float, flags) -> None:
         """``/strings/taut``: one 0/1 flag per string (scene order) at ``t`` [s]."""
-        self._write("/strings/taut", "strings/taut", t, {"t": float(t), "taut": [int(bool(f)) for f in flags]})
+        message = {"t": float(t), "taut": [int(bool(f)) for f in flags]}
+        self._write("/strings/taut", "strings/taut", t, message)
+        self._taut = message["taut"]
 
     def write_puppet_state(self, t: float, joint_q, body_pos, body_rot) -> None:
         """``/puppet/state``: ``joint_q`` ``(q,)``, ``body_pos`` [m] ``(bodies, 3)``, ``body_rot``
         (x, y, z, w) ``(bodies, 4)`` at ``t`` [s]."""
-        self._write("/puppet/state", "puppet/state", t, {"t": float(t), "joint_q": _floats(joint_q),
-                                                          "body_pos": _floats(body_pos),
-                                                          "body_rot": _floats(body_rot)})
+        message = {"t": float(t), "joint_q": _floats(joint_q), "body_pos": _floats(body_pos),
+                   "body_rot": _floats(body_rot)}
+        self._write("/puppet/state", "puppet/state", t, message)
+        if self._foxglove is not None:  # the puppet in Foxglove's schemas, with the latest bar poses
+            log_time = self.log_time_origin_ns + int(round(float(t) * 1e9))
+            args = (log_time, float(t), dict(self._bar_poses), message["body_pos"], message["body_rot"])
+            self._write("/foxglove/transforms", "foxglove", t, self._foxglove.transforms(*args))
+            self._write("/foxglove/scene", "foxglove", t,
+                        self._foxglove.scene_update(*args, reactions=dict(self._reactions), taut=self._taut))
+            self._write("/foxglove/points", "foxglove", t, self._foxglove.points(*args))
 
     def write_metadata(self, name: str, values: Mapping[str, Any]) -> None:
         """An extra metadata record (e.g. ``"device"``: its spec, the mapping ``S``, ``W``, the
@@ -407,6 +455,14 @@ class SessionWriter:
         if self._fsync:
             os.fsync(self._file.fileno())
         self._file.close()
+        if self._index_on_close:
+            from dmarionette.io.session.index import index_session
+
+            try:
+                index_session(self.path)
+            except Exception as error:  # noqa: BLE001 - the unchunked file is complete and stays
+                warnings.warn(f"{self.path}: left unchunked, not indexed ({type(error).__name__}: {error}); "
+                              "'dmarionette session index FILE' rewrites it", stacklevel=2)
 
     @property
     def topics(self) -> list[str]:
