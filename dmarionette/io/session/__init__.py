@@ -22,8 +22,8 @@ from dmarionette.io.session.read import session_info as session_info
 from dmarionette.io.session.replay import record_simulation as record_simulation
 from dmarionette.io.session.replay import replay_session as replay_session
 from dmarionette.io.session.replay import scene_for_replay as scene_for_replay
-from dmarionette.io.session.write import FORMAT as FORMAT
-from dmarionette.io.session.write import FORMAT_VERSION as FORMAT_VERSION
+from dmarionette.io.session.format import FORMAT as FORMAT
+from dmarionette.io.session.format import FORMAT_VERSION as FORMAT_VERSION
 from dmarionette.io.session.write import SCHEMAS as SCHEMAS
 from dmarionette.io.session.write import SessionWriter as SessionWriter
 

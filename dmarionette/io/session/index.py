@@ -25,7 +25,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
 from dmarionette.io.session.read import decode_session_metadata, read_session, read_session_records
-from dmarionette.io.session.write import FORMAT_VERSION
+from dmarionette.io.session.format import FORMAT_VERSION
 
 __all__ = ["CHUNK_BYTES", "index_session"]
 

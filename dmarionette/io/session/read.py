@@ -26,7 +26,7 @@ from mcap.stream_reader import StreamReader
 
 from dmarionette.scene.bars import BarTrajectory
 from dmarionette.scene.scene import Scene, scene_from_table
-from dmarionette.io.session.write import FORMAT, FORMAT_VERSION
+from dmarionette.io.session.format import FORMAT, FORMAT_VERSION
 
 __all__ = ["Session", "decode_session_metadata", "format_session_info", "read_session", "read_session_records",
            "session_bar_trajectories", "session_info"]

@@ -39,13 +39,12 @@ import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
+from dmarionette.io.session.format import FORMAT, FORMAT_VERSION
 from dmarionette.scene.bars import read_bar_trajectory_csv
 from dmarionette.scene.scene import Scene, resolve_puppet_table
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "SCHEMAS", "SessionWriter", "scene_constants", "session_metadata"]
 
-FORMAT = "dmarionette-session"
-FORMAT_VERSION = 2  # 2: wall-clock log times (log_time_origin_ns), Foxglove channels
 
 
 def _vector(n: int, description: str, items: dict | None = None) -> dict:
