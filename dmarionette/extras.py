@@ -23,7 +23,7 @@ __all__ = ["EXTRAS", "MissingExtraError", "check_extras", "check_command_extras"
 EXTRAS: dict[str, tuple[tuple[str, str], ...]] = {
     # extra: (module to look up, the package that brings it), as in pyproject.toml's optional-dependencies
     "io": (("mcap", "mcap"),),
-    "viz": (("matplotlib", "matplotlib"), ("imageio", "imageio")),
+    "viz": (("matplotlib", "matplotlib"), ("imageio", "imageio"), ("PIL", "pillow")),
     "mp4": (("imageio_ffmpeg", "imageio-ffmpeg"),),
     "view": (("viser", "viser"),),
     "fitting": (("jax", "jax"), ("optimistix", "optimistix"), ("tomli_w", "tomli-w"), ("mcap", "mcap")),

@@ -25,7 +25,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["CUDA_DRIVER_NOTICE", "CompileProgress", "init_warp", "load_kernels", "versions"]
+__all__ = ["CUDA_DRIVER_NOTICE", "FIRST_RUN_S", "CompileProgress", "build_marionette", "filter_native_stderr",
+           "init_warp", "load_kernels", "versions"]
 
 CUDA_DRIVER_NOTICE = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver."
 """The start of the line Warp 1.19's native library prints on a machine without the NVIDIA driver."""
@@ -35,16 +36,22 @@ def init_warp() -> None:
     """``wp.init()`` without Warp's CUDA-driver notice on a CPU-only machine; other output passes."""
     import warp as wp
 
+    filter_native_stderr(wp.init)
+
+
+def filter_native_stderr(call: Callable[[], object]) -> None:
+    """Runs ``call`` with file descriptor 2 captured, then writes what it printed to stderr without
+    the lines that start with :data:`CUDA_DRIVER_NOTICE`."""
     sys.stderr.flush()
     try:
         saved = os.dup(2)
     except OSError:  # no usable stderr descriptor (embedded interpreters): nothing to filter
-        wp.init()
+        call()
         return
     with tempfile.TemporaryFile(mode="w+b") as captured:
         os.dup2(captured.fileno(), 2)
         try:
-            wp.init()
+            call()
         finally:
             sys.stderr.flush()
             os.dup2(saved, 2)
@@ -79,6 +86,7 @@ def versions() -> str:
 
 
 _HASH = re.compile(r"_[0-9a-f]{7,}$")
+_BUILDING = re.compile(r"_p\d+_t\d+$")  # Warp's temporary folder of a module being compiled
 
 
 def _module_label(entry: str) -> str:
@@ -127,7 +135,7 @@ class CompileProgress:
 
     def compiled(self) -> list[str]:
         """Module names of the kernel-cache entries that appeared since the block started."""
-        return sorted({_module_label(e) for e in self._entries() - self._before})
+        return sorted({_module_label(e) for e in self._entries() - self._before if not _BUILDING.search(e)})
 
     def __enter__(self) -> CompileProgress:
         if self.quiet:

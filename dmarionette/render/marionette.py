@@ -74,8 +74,9 @@ def frame_extent(trajectory: MarionetteTrajectory, *, chair=None, ball_radius: f
     lo = (bodies - reach[None, :, None]).reshape(-1, 3).min(axis=0)
     hi = (bodies + reach[None, :, None]).reshape(-1, 3).max(axis=0)
     if trajectory.bar_pos.size:
-        bars = trajectory.bar_pos.reshape(-1, 3)
-        lo, hi = np.minimum(lo, bars.min(axis=0) - _BAR_HALF_LENGTH), np.maximum(hi, bars.max(axis=0) + _BAR_HALF_LENGTH)
+        along = _BAR_HALF_LENGTH * trajectory.bar_rot[..., :, 0]  # the bar's own x axis in the world
+        ends = np.concatenate([(trajectory.bar_pos - along).reshape(-1, 3), (trajectory.bar_pos + along).reshape(-1, 3)])
+        lo, hi = np.minimum(lo, ends.min(axis=0)), np.maximum(hi, ends.max(axis=0))
     if chair is not None:
         c, h = np.asarray(chair[0], dtype=float), np.asarray(chair[1], dtype=float)
         lo, hi = np.minimum(lo, c - h), np.maximum(hi, c + h)
