@@ -89,9 +89,17 @@ _HASH = re.compile(r"_[0-9a-f]{7,}$")
 _BUILDING = re.compile(r"_p\d+_t\d+$")  # Warp's temporary folder of a module being compiled
 
 
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return 0.0
+
+
 def _module_label(entry: str) -> str:
     """A kernel-cache entry's module name: ``wp_dmarionette.kernels.x_f800b57`` -> ``dmarionette.kernels.x``."""
     name = entry[3:] if entry.startswith("wp_") else entry
+    name = name.split("__locals__")[-1]  # a kernel made by a factory: its own name
     while _HASH.search(name):
         name = _HASH.sub("", name)
     return name
@@ -135,7 +143,9 @@ class CompileProgress:
 
     def compiled(self) -> list[str]:
         """Module names of the kernel-cache entries that appeared since the block started."""
-        return sorted({_module_label(e) for e in self._entries() - self._before if not _BUILDING.search(e)})
+        new = [e for e in self._entries() - self._before if not _BUILDING.search(e)]
+        new.sort(key=lambda e: _mtime(Path(self.cache_dir) / e))
+        return list(dict.fromkeys(_module_label(e) for e in new))  # oldest first
 
     def __enter__(self) -> CompileProgress:
         if self.quiet:
@@ -230,18 +240,21 @@ def load_kernels(obj, device, on_module: Callable[[int, int, str], None] | None 
     return len(modules)
 
 
-FIRST_RUN_S = {0: 15.0, 1: 60.0, 2: 100.0}
-"""About how long the first run compiles the marionette's kernels [s] by optimisation level (measured:
-~85-125 s at level 2 on a 2-core machine, ~10-15 s at level 0 (``--fast-compile``))."""
+FIRST_RUN_S = {0: 30.0, 1: 70.0, 2: 120.0}
+"""About how long the first run compiles the marionette's kernels [s] by optimisation level. Measured
+on a busy 2-core machine with an empty kernel cache: 126 s for ``MarionetteModel(hanging)`` at level 2
+(the issue's fresh machine: ~85 s), 36 s for all 15 modules at level 0 (``--fast-compile``)."""
 
 
 def build_marionette(scene, *, optimization_level: int = 2, quiet: bool = False):
     """``MarionetteModel(scene)`` with its kernels compiled (or loaded from the cache) under a progress bar.
 
-    The puppet's generated kernels compile while the model is built; the string, coupling and contact
-    kernels are then loaded one module at a time (``wp.load_module``), so the first step compiles nothing.
+    The puppet's generated kernels compile while the model is built; the string, coupling, feedback and
+    contact kernels a ``SolverMarionette`` launches are then loaded one module at a time
+    (``wp.load_module``; their factories are cached, so they are the kernels the simulation launches),
+    so the first step compiles nothing.
     """
-    from dmarionette.marionette.solver import MarionetteModel
+    from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
 
     with CompileProgress("the marionette's Warp kernels", FIRST_RUN_S.get(optimization_level, 100.0),
                          quiet=quiet) as progress:
@@ -251,5 +264,5 @@ def build_marionette(scene, *, optimization_level: int = 2, quiet: bool = False)
         def on_module(index: int, count: int, name: str) -> None:
             progress.step = f"kernel {index + 1}/{count}: {name}"
 
-        load_kernels(model, model.device, on_module)
+        load_kernels(SolverMarionette(model), model.device, on_module)  # the solver holds the model too
     return model
