@@ -75,10 +75,19 @@ def test_the_views_frame_the_puppet_bars_and_ball():
     lo, hi = frame_extent(_trajectory(), margin=0.0)
     assert lo[1] == pytest.approx(0.5 - 0.5 * np.linalg.norm([0.1, 0.2, 0.05])) and hi[1] == pytest.approx(1.2)
     assert hi[0] - lo[0] < 0.5 and hi[2] - lo[2] < 0.5  # a small puppet gets a small frame
-    lo, hi = frame_extent(_trajectory(ball=True), ball_radius=0.05, margin=0.0)
+    lo, hi = frame_extent(_trajectory(ball=True), ball_radius=0.05, margin=0.0, ball_reach=3.0)
     assert hi[2] == pytest.approx(0.1 + 2.0 + 0.05)  # the ball is in the picture
+    puppet_hi = frame_extent(_trajectory(), margin=0.0)[1]
+    lo, hi = frame_extent(_trajectory(ball=True), ball_radius=0.05, margin=0.0, ball_reach=0.5)
+    assert hi[2] == pytest.approx(puppet_hi[2] + 0.5 + 0.05)  # kicked away: it leaves the picture
     lo, hi = frame_extent(_trajectory(), chair=((0.0, 0.2, -1.0), (0.2, 0.2, 0.2)), margin=0.1)
     assert lo[2] == pytest.approx(-1.3)
+
+
+def test_a_ball_scene_renders(tmp_path):
+    path, count = render_marionette_animation(tmp_path / "b.gif", _trajectory(ball=True), ball_radius=0.05,
+                                              every=3)
+    assert count == 11 and Image.open(path).n_frames == 11
 
 
 def test_an_mp4_has_every_frame(tmp_path):

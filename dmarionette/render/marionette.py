@@ -64,9 +64,10 @@ def _bar_polyline(trajectory: MarionetteTrajectory, f: int) -> np.ndarray:
 
 
 def frame_extent(trajectory: MarionetteTrajectory, *, chair=None, ball_radius: float | None = None,
-                 margin: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+                 margin: float = 0.08, ball_reach: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """The box the views show [m]: the puppet's bodies (with their size) and the bars over the whole
-    run, the chair and the ball when present, grown by ``margin``. Returns ``(lo, hi)``, each ``(3,)``."""
+    run, the chair, and the ball where it is within ``ball_reach`` of them (a ball kicked away leaves
+    the picture; the view then says where it is), grown by ``margin``. Returns ``(lo, hi)``, each ``(3,)``."""
     has_ball = ball_radius is not None
     bodies = trajectory.body_pos[:, :-1] if has_ball else trajectory.body_pos
     reach = np.array([0.5 * float(np.linalg.norm(size)) if shape == "box" else float(size[0])
@@ -81,7 +82,7 @@ def frame_extent(trajectory: MarionetteTrajectory, *, chair=None, ball_radius: f
         c, h = np.asarray(chair[0], dtype=float), np.asarray(chair[1], dtype=float)
         lo, hi = np.minimum(lo, c - h), np.maximum(hi, c + h)
     if has_ball:
-        ball = trajectory.body_pos[:, -1]
+        ball = np.clip(trajectory.body_pos[:, -1], lo - ball_reach, hi + ball_reach)
         lo, hi = np.minimum(lo, ball.min(axis=0) - ball_radius), np.maximum(hi, ball.max(axis=0) + ball_radius)
     return lo - margin, hi + margin
 
@@ -156,10 +157,12 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
         strings = [animated(ax.plot([], [], lw=0.9)[0]) for _ in trajectory.string_names]
         bodies = animated(ax.plot([], [], color="steelblue", lw=1.0)[0])
         bars = animated(ax.plot([], [], color="saddlebrown", lw=4, solid_capstyle="butt")[0])
-        ball = None
+        ball = away = None
         if ball_radius is not None:
             ball = animated(ax.add_patch(plt.Circle((0, 0), ball_radius, color="crimson", alpha=0.6)))
-        view_artists.append((axis, strings, bodies, bars, ball))
+            away = animated(ax.text(0.02, 0.98, "", transform=ax.transAxes, fontsize=7, color="crimson",
+                                    va="top"))
+        view_artists.append((axis, strings, bodies, bars, ball, away))
     views[0].set_ylabel("y [m]")
 
     colours = plt.get_cmap("tab10")
@@ -194,7 +197,7 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
         fig.canvas.restore_region(background)
         step = min(len(trajectory.string_taut) - 1, max(0, f * trajectory.frame_steps - 1))
         body_line, bar_line = _polyline(trajectory, f), _bar_polyline(trajectory, f)
-        for axis, strings, bodies, bars, ball in view_artists:
+        for axis, strings, bodies, bars, ball, away in view_artists:
             for s, line in enumerate(strings):
                 a, b = trajectory.string_start[s], trajectory.string_start[s + 1]
                 line.set_data(trajectory.particle_q[f, a:b, axis], trajectory.particle_q[f, a:b, 1])
@@ -202,7 +205,10 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
             bodies.set_data(body_line[:, axis], body_line[:, 1])
             bars.set_data(bar_line[:, axis], bar_line[:, 1])
             if ball is not None:
-                ball.center = (trajectory.body_pos[f, -1, axis], trajectory.body_pos[f, -1, 1])
+                centre = trajectory.body_pos[f, -1]
+                ball.center = (centre[axis], centre[1])
+                outside = not lo[axis] <= centre[axis] <= hi[axis]
+                away.set_text(f"ball out of view at {'xyz'[axis]} = {centre[axis]:.2f} m" if outside else "")
         t = float(trajectory.frame_time[f])
         for values, cursor, dots in panels:
             cursor.set_xdata([t, t])
@@ -211,7 +217,7 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
         heading.set_text(f"{title}   t = {t:.2f} s")
         for artist in moving:
             (fig if artist is heading else artist.axes).draw_artist(artist)
-        return np.asarray(fig.canvas.buffer_rgba())[:, :, :3]
+        return np.asarray(fig.canvas.buffer_rgba())  # (height, width, 4), the canvas's own buffer
 
     count = 0
     bar = tqdm(total=len(frames), unit="frame", desc=f"rendering {path.name}", disable=not progress)
@@ -219,8 +225,9 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
         if path.suffix == ".gif":
             images = []
             for f in frames:
-                images.append(Image.fromarray(draw(f)).quantize(colors=256, method=Image.Quantize.FASTOCTREE,
-                                                                dither=Image.Dither.NONE))
+                rgba = draw(f)  # no copy: Pillow reads the canvas's buffer, the palette image is new
+                image = Image.frombuffer("RGBA", (rgba.shape[1], rgba.shape[0]), rgba, "raw", "RGBA", 0, 1)
+                images.append(image.quantize(colors=255, method=Image.Quantize.FASTOCTREE, dither=Image.Dither.NONE))
                 bar.update()
             delays = gif_delays_ms(len(images), fps)
             images[0].save(path, save_all=True, append_images=images[1:], duration=delays, loop=0,
@@ -234,7 +241,7 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
                 raise RuntimeError("MP4 animations need imageio-ffmpeg: pip install -e '.[mp4]'") from None
             with imageio.get_writer(path, fps=fps, macro_block_size=8) as writer:
                 for f in frames:
-                    writer.append_data(draw(f).copy())
+                    writer.append_data(draw(f)[:, :, :3].copy())
                     count += 1
                     bar.update()
     finally:
