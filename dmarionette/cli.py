@@ -290,7 +290,6 @@ def _run_replay(args: argparse.Namespace) -> int:
     build_marionette(read_session(args.session).scene, optimization_level=level, quiet=args.quiet)  # compiles
     trajectory, report = replay_session(args.session, optimization_level=level, progress=not args.quiet)
     if args.out is not None:
-        from .io.session import read_session
         from .io.trajectory import summarize_marionette, write_marionette_trajectory
 
         scene = read_session(args.session).scene
