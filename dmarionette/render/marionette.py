@@ -10,7 +10,7 @@ Fast: the figure is drawn once; each frame restores that background and draws on
 that move (blitting on the Agg canvas), then the RGB buffer goes to Pillow (GIF) or imageio-ffmpeg
 (MP4). Exact timing: a GIF stores delays in 10 ms units, so frame ``k``'s delay is the difference
 of the rounded cumulative times, ``round(100 (k+1) / fps) - round(100 k / fps)`` centiseconds
-(15 fps: 70, 60, 70, 70, 60, … ms): the animation's length is the simulated time to within 10 ms.
+(15 fps: 70, 60, 70, 70, 60, … ms): the animation's length is the simulated time to within 5 ms.
 """
 
 from __future__ import annotations
