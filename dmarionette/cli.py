@@ -48,6 +48,9 @@ from collections.abc import Mapping, Sequence
 from importlib import metadata
 from pathlib import Path
 
+from .extras import check_command_extras
+from .first_run import build_marionette, init_warp, versions
+
 __all__ = ["COMMAND_GROUP", "find_commands", "main"]
 
 COMMAND_GROUP = "dmarionette.commands"
@@ -75,7 +78,7 @@ def _add_simulate_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fast-compile", action="store_true",
                         help="compile the puppet kernels without optimisation: ~10 s instead of ~1 min on "
                              "the first run, slower to run")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or compile messages")
 
 
 def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
@@ -84,6 +87,7 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
         prog="dmarionette",
         description="A differentiable simulator of a string marionette (NVIDIA Warp).",
     )
+    parser.add_argument("--version", action="version", version=versions())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     simulate = sub.add_parser(
         "simulate", help="run a scene headless and write its trajectory, summary and picture",
@@ -171,6 +175,7 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
     replay.add_argument("session", type=Path, help="the .mcap file")
     replay.add_argument("--out", type=Path, default=None, help="also write trajectory.npz and summary.json here")
     replay.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    replay.add_argument("--quiet", action="store_true", help="no progress bars or compile messages")
     replay.set_defaults(handler=_run_replay)
     bench = sub.add_parser("bench", help="measure what accuracy costs in time",
                            description="Benchmarks. 'accuracy': sweep particles per string, string step, "
@@ -271,13 +276,12 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
 
 
 def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
-    from .marionette.solver import MarionetteModel
     from .marionette.rollout import simulate_marionette
     from .io.trajectory import summarize_marionette, write_marionette_trajectory
 
     if not args.quiet:
         print("building the marionette (the first run compiles the puppet kernels)", file=sys.stderr)
-    model = MarionetteModel(scene, optimization_level=0 if args.fast_compile else 2)
+    model = build_marionette(scene, optimization_level=0 if args.fast_compile else 2, quiet=args.quiet)
     duration = scene.duration if args.duration is None else args.duration
     trajectory = simulate_marionette(model, duration, progress=not args.quiet)
     files = {"trajectory": str(write_marionette_trajectory(out / "trajectory.npz", trajectory, scene))}
@@ -288,7 +292,8 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
         path, frames = render_marionette_animation(
             out / f"animation.{args.animation}", trajectory, title=scene.description,
             ground_height=scene.ground_height, chair=scene.chair,
-            ball_radius=scene.ball.radius if scene.ball is not None else None, every=every)
+            ball_radius=scene.ball.radius if scene.ball is not None else None, every=every,
+            progress=not args.quiet)
         files["animation"] = str(path)
         files["animation_frames"] = frames
     return _write_summary(out, summarize_marionette(trajectory, scene), files)
@@ -306,11 +311,12 @@ def _write_summary(out: Path, summary: dict, files: dict) -> int:
 
 
 def _run_replay(args: argparse.Namespace) -> int:
-    from .io.session import replay_session
+    from .io.session import read_session, replay_session
 
-    trajectory, report = replay_session(args.session, optimization_level=0 if args.fast_compile else 2)
+    level = 0 if args.fast_compile else 2
+    build_marionette(read_session(args.session).scene, optimization_level=level, quiet=args.quiet)  # compiles
+    trajectory, report = replay_session(args.session, optimization_level=level, progress=not args.quiet)
     if args.out is not None:
-        from .io.session import read_session
         from .io.trajectory import summarize_marionette, write_marionette_trajectory
 
         scene = read_session(args.session).scene
@@ -322,7 +328,6 @@ def _run_replay(args: argparse.Namespace) -> int:
 
 def _run_live(args: argparse.Namespace) -> int:
     from .live.run import resolve_physics, run_live
-    from .marionette.solver import MarionetteModel
     from .scene.scene import load_scene
 
     scene = load_scene(args.scene)
@@ -359,7 +364,7 @@ def _run_live(args: argparse.Namespace) -> int:
     if args.snapshot is not None and args.snapshot.suffix.lower() != ".png":
         raise ValueError(f"--snapshot: got {str(args.snapshot)!r}; expected a .png file name")
     level = 0 if args.fast_compile else 2
-    model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
+    model = build_marionette(scene, optimization_level=level)  # compiles here; the child then loads the cache
     from .live.view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
 
     def on_start(info: dict) -> None:
@@ -499,12 +504,14 @@ def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.Entr
         if named is not None and named not in builtin:
             parser.error(f"unknown command {named!r}; {_NO_PLUGINS}")
     args = parser.parse_args(argv)
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
     from .scene.fields import SceneError
 
     try:
+        check_command_extras(args)  # a missing extra: one line, exit 2, before any work
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
+        init_warp()  # without the CUDA-driver notice on a CPU-only machine
         return args.handler(args)
     except (SceneError, ValueError, RuntimeError) as error:
         print(f"error: {error}", file=sys.stderr)

@@ -78,6 +78,9 @@ class LivePhysicsFactory:
         import warp as wp
 
         wp.config.log_level = wp.LOG_WARNING
+        from dmarionette.first_run import init_warp
+
+        init_warp()  # this fresh interpreter's Warp, without the CUDA-driver notice on a CPU-only machine
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.scene.scene import load_scene
 
