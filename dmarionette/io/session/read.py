@@ -20,15 +20,23 @@ from typing import Any
 
 import numpy as np
 from mcap.exceptions import EndOfFile, McapError
-from mcap.opcode import Opcode
 from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from dmarionette.scene.bars import BarTrajectory
 from dmarionette.scene.scene import Scene, scene_from_table
+from dmarionette.io.session.validate import (
+    SessionError,
+    check_integrity,
+    check_message,
+    check_metadata,
+    check_scene_consistency,
+    decode_message,
+    schema_of_topic,
+)
 from dmarionette.io.session.write import FORMAT, FORMAT_VERSION
 
-__all__ = ["Session", "format_session_info", "read_session", "session_bar_trajectories", "session_info"]
+__all__ = ["Session", "SessionError", "format_session_info", "read_session", "session_bar_trajectories", "session_info"]
 
 _MAGIC = b"\x89MCAP0\r\n"
 _INT_FIELDS = {"buttons", "taut"}
@@ -45,42 +53,38 @@ class _Records:
     messages: dict[int, list[Message]]
     truncated: bool
     size: int
-    error: str | None = None
+    notes: list[str] = dataclasses.field(default_factory=list)
 
 
 def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
     """Reads the data section of ``path`` record by record; tolerant of a cut-off end."""
     if not path.is_file():
-        raise ValueError(f"{path}: no such session file")
-    data = path.read_bytes()
+        raise SessionError.text(path, "no such session file")
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise SessionError(str(path), "(file)", f"an unreadable file ({error.strerror or error})",
+                           "a readable session file") from None
     if not data.startswith(_MAGIC):
-        raise ValueError(f"{path}: not an MCAP file (it does not start with the MCAP magic bytes "
-                         f"{_MAGIC!r}; got {data[:8]!r}); a session is the .mcap file written by --record")
-    # Walk the record lengths: the data section ends at DataEnd (or the footer, or the cut).
-    offset, end, truncated = len(_MAGIC), len(data), True
-    while offset + 9 <= len(data):
-        opcode = data[offset]
-        (length,) = struct.unpack_from("<Q", data, offset + 1)
-        if offset + 9 + length > len(data):
-            break  # the last record was cut off
-        if opcode in (Opcode.DATA_END, Opcode.FOOTER):
-            truncated = not data.endswith(_MAGIC) or len(data) < offset + 9 + length + len(_MAGIC)
-            break
-        offset += 9 + length
-    end = offset
+        raise SessionError.text(path, f"not an MCAP file (it does not start with the MCAP magic bytes "
+                                f"{_MAGIC!r}; got {data[:8]!r}); a session is the .mcap file written by --record")
+    # Walk the record lengths: the data section ends at DataEnd (or the footer, or the cut);
+    # a damaged file (a record that does not parse, a CRC that does not match) is refused.
+    end, truncated, notes = check_integrity(path, data)
     wanted = None if topics is None else set(topics)
     records = _Records(header=None, metadata={}, channels={}, schemas={}, messages=defaultdict(list),
-                       truncated=truncated, size=len(data))
-    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end]), skip_magic=True).records)
+                       truncated=truncated, size=len(data), notes=notes)
+    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end]), skip_magic=True, validate_crcs=True).records)
     while True:
         try:
             record = next(reader)
         except (StopIteration, EndOfFile):
             break
-        except McapError as error:  # a damaged record: keep what came before it
-            records.truncated = True
-            records.error = str(error)
-            break
+        except (McapError, ValueError, struct.error, UnicodeDecodeError) as error:
+            # Every record up to ``end`` is complete: one that does not parse (or whose chunk CRC
+            # does not match) is damage, not a cut.
+            raise SessionError(str(path), "(file)", f"a damaged MCAP record ({type(error).__name__}: {error})",
+                               "a well-formed MCAP file: this one is damaged") from None
         if isinstance(record, Message):
             channel = records.channels.get(record.channel_id)
             if channel is not None and (wanted is None or channel.topic in wanted):
@@ -97,44 +101,49 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
 
 
 def _session_metadata(path: Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
-    """The decoded ``"dmarionette"`` record and the ``"scene"`` record; clear errors if absent."""
+    """The decoded ``"dmarionette"`` record and the ``"scene"`` record, type-checked; clear errors if absent."""
     topics = sorted({c.topic for c in records.channels.values()})
     if "dmarionette" not in records.metadata and records.truncated and not records.channels:
-        raise ValueError(f"{path}: an MCAP file cut off after {records.size} bytes, before its metadata records "
-                         "(a recording that crashed at once): nothing to read")
+        raise SessionError.text(path, f"an MCAP file cut off after {records.size} bytes, before its metadata "
+                                "records (a recording that crashed at once): nothing to read")
     if "dmarionette" not in records.metadata:
-        raise ValueError(f"{path}: an MCAP file, but not a dmarionette session: it has no 'dmarionette' "
-                         f"metadata record (metadata found: {sorted(records.metadata)}; topics: {topics})")
-    raw = records.metadata["dmarionette"]
-    try:
-        meta = {k: json.loads(v) for k, v in raw.items()}
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: the 'dmarionette' metadata record is not JSON ({error})") from None
-    if meta.get("format") != FORMAT:
-        raise ValueError(f"{path}: the 'dmarionette' metadata record names format {meta.get('format')!r}; "
-                         f"expected {FORMAT!r}")
-    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
-        raise ValueError(f"{path}: session format version {meta.get('format_version')}; this dmarionette reads "
-                         f"up to version {FORMAT_VERSION} (upgrade dmarionette)")
-    missing = [k for k in ("string_hz", "puppet_hz", "bars", "strings", "bodies", "constants") if k not in meta]
-    if missing:
-        raise ValueError(f"{path}: the 'dmarionette' metadata record lacks {missing}")
+        raise SessionError.text(path, f"an MCAP file, but not a dmarionette session: it has no 'dmarionette' "
+                                f"metadata record (metadata found: {sorted(records.metadata)}; topics: {topics})")
+    meta = {}
+    for key, value in records.metadata["dmarionette"].items():
+        try:
+            meta[key] = json.loads(value)
+        except json.JSONDecodeError as error:
+            raise SessionError(f"{path}: metadata record 'dmarionette'", key, value,
+                               f"a JSON value ({error})") from None
+    required = ("string_hz", "puppet_hz", "bars", "strings", "bodies", "constants")
+    missing = [k for k in required if k not in meta]
+    if missing and meta.get("format") == FORMAT:
+        raise SessionError.text(path, f"the 'dmarionette' metadata record lacks {missing}")
     scene = records.metadata.get("scene")
     if scene is None or "toml" not in scene:
-        raise ValueError(f"{path}: a dmarionette session without its 'scene' metadata record (or without its "
-                         f"'toml' key): the scene cannot be rebuilt")
+        raise SessionError.text(path, "a dmarionette session without its 'scene' metadata record (or without "
+                                "its 'toml' key): the scene cannot be rebuilt")
+    check_metadata(path, meta, FORMAT, FORMAT_VERSION)
     return meta, scene
 
 
 def _stack(values: list) -> np.ndarray:
     try:
         return np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError):  # ragged (should not happen): keep the lists
+    except (TypeError, ValueError):  # ragged (an unchecked topic): keep the lists
         return np.asarray(values, dtype=object)
 
 
-def _decode_topic(messages: list[Message]) -> dict[str, np.ndarray]:
-    decoded = [json.loads(m.data) for m in messages]
+def _decode_topic(path: Path, topic: str, messages: list[Message], meta: dict[str, Any]) -> dict[str, np.ndarray]:
+    """A topic's messages as arrays; the dmarionette topics are checked message by message."""
+    kind = schema_of_topic(topic, meta["bars"])
+    decoded = []
+    for i, m in enumerate(messages):
+        message = decode_message(path, topic, i, m.data, m.log_time)
+        if kind is not None:
+            check_message(path, topic, kind, i, message, m.log_time, meta)
+        decoded.append(message)
     fields: dict[str, np.ndarray] = {"log_time": np.array([m.log_time for m in messages], dtype=np.int64)}
     keys = dict.fromkeys(k for d in decoded for k in d)  # optional fields too (missing: NaN)
     for key in keys:
@@ -160,6 +169,7 @@ class Session:
         channels: topic -> field -> array: ``log_time`` [ns] ``(N,)``, ``t`` [s] ``(N,)`` and each
             message field stacked (``position`` ``(N, 3)``, ``body_pos`` ``(N, bodies, 3)``, ...).
         truncated: the file has no footer (cut off by a crash, or still being written).
+        notes: lines worth showing (cut off; a damaged summary section; ...).
     """
 
     path: Path
@@ -169,6 +179,7 @@ class Session:
     scene: Scene | None
     channels: dict[str, dict[str, np.ndarray]]
     truncated: bool
+    notes: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def bars(self) -> list[str]:
@@ -224,10 +235,22 @@ def read_session(path: str | Path, *, topics: Iterable[str] | None = None, load_
             extra[name] = {k: _json_or_text(v) for k, v in values.items()}
     channels = {}
     for channel_id, messages in records.messages.items():
-        channels[records.channels[channel_id].topic] = _decode_topic(messages)
-    scene = _load_scene(path, scene_record) if load_scene else None
+        topic = records.channels[channel_id].topic
+        channels[topic] = _decode_topic(path, topic, messages, meta)
+    scene = None
+    if load_scene:
+        scene = _load_scene(path, scene_record)
+        check_scene_consistency(path, meta, scene)
     return Session(path=path, metadata=meta, scene_record=scene_record, extra_metadata=extra, scene=scene,
-                   channels=channels, truncated=records.truncated)
+                   channels=channels, truncated=records.truncated, notes=_notes(records))
+
+
+def _notes(records: _Records) -> list[str]:
+    notes = list(records.notes)
+    if records.truncated:
+        notes.insert(0, "cut off: no footer (the recording crashed or is still being written); "
+                        "everything up to the last complete record is read")
+    return notes
 
 
 def _json_or_text(value: str) -> Any:
@@ -242,10 +265,20 @@ def _load_scene(path: Path, scene_record: dict[str, str]) -> Scene:
     import tomllib
 
     source = f"{path}#scene"
+    where = f"{path}: metadata record 'scene'"
     if "table_json" in scene_record:
-        table = json.loads(scene_record["table_json"])
+        try:
+            table = json.loads(scene_record["table_json"])
+        except json.JSONDecodeError as error:
+            raise SessionError(where, "table_json", scene_record["table_json"],
+                               f"the scene's table as JSON ({error})") from None
+        if not isinstance(table, dict):
+            raise SessionError(where, "table_json", table, "the scene's table as a JSON object")
     else:
-        table = tomllib.loads(scene_record["toml"])
+        try:
+            table = tomllib.loads(scene_record["toml"])
+        except tomllib.TOMLDecodeError as error:
+            raise SessionError(where, "toml", scene_record["toml"], f"the scene's TOML text ({error})") from None
     return scene_from_table(table, source)
 
 
@@ -274,10 +307,7 @@ def session_info(path: str | Path) -> dict[str, Any]:
     starts = [v["start"] for v in topics.values() if v["start"] is not None]
     ends = [v["end"] for v in topics.values() if v["end"] is not None]
     device = any(t.startswith("/device/") and v["count"] for t, v in topics.items())
-    notes = []
-    if records.truncated:
-        notes.append("cut off: no footer (the recording crashed or is still being written); "
-                     "everything up to the last complete record is read")
+    notes = _notes(records)
     if not device:
         notes.append("no device channels (/device/*): "
                      + ("a simulated session" if meta.get("recorder") == "simulation" else "no device was recorded"))
@@ -333,6 +363,7 @@ def session_bar_trajectories(session: Session) -> dict[str, BarTrajectory]:
         t, position, rotation = t[finite], position[finite], rotation[finite]
         keep = np.concatenate([[True], t[1:] > np.maximum.accumulate(t)[:-1]]) if len(t) else np.zeros(0, bool)
         if not keep.any():
-            continue
+            raise SessionError(f"{session.path}: channel /bar/{bar}/pose", "position/rotation", "no finite pose "
+                               f"in its {len(channel['t'])} messages", "at least one pose with finite numbers")
         trajectories[bar] = BarTrajectory(t[keep], position[keep], rotation[keep])
     return trajectories
