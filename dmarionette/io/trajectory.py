@@ -76,6 +76,7 @@ def check_trajectory_arrays(arrays: dict, where: str, kind: str = "strings", *,
                                   f"{sorted(arrays)}); expected every array of docs/trajectory.md for a {kind} "
                                   "trajectory")
     sizes: dict[str, int] = {}
+    source: dict[str, str] = {}  # symbol -> the array that set it
     for name, (shape, dtype) in spec.items():
         array = np.asarray(arrays[name])
         ok_kind = array.size == 0 or array.dtype.kind in ({"i", "u", "b"} if dtype == "i" else {"f"} if dtype == "f" else {"U"})
@@ -92,10 +93,11 @@ def check_trajectory_arrays(arrays: dict, where: str, kind: str = "strings", *,
                 expected = sizes["S"] + 1 if "S" in sizes else None
             else:
                 expected = sizes.setdefault(symbol, size)
+                source.setdefault(symbol, name)
             if expected is not None and size != expected:
-                known = ", ".join(f"{k} = {v}" for k, v in sizes.items())
+                origin = source.get("S" if symbol == "S1" else symbol, "?")
                 raise TrajectoryFileError(f"{where}: array '{name}': got shape {array.shape}; expected {wanted} "
-                                          f"with {known} (from the other arrays)")
+                                          f"with {symbol} = {expected} (as array '{origin}' has it)")
         if dtype == "f" and not allow_non_finite and not np.all(np.isfinite(array)):
             bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
             raise TrajectoryFileError(f"{where}: array '{name}': got a non-finite value at index {list(bad)}; "
@@ -188,6 +190,7 @@ def read_npz_arrays(path: str | Path) -> dict:
     """The arrays of a NumPy ``.npz`` file; :class:`TrajectoryFileError` naming the file when it
     is missing, not an archive, or damaged."""
     import zipfile
+    import zlib
 
     path = Path(path)
     if not path.is_file():
@@ -200,7 +203,7 @@ def read_npz_arrays(path: str | Path) -> dict:
     try:
         with np.load(path, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, NotImplementedError) as error:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, NotImplementedError, zlib.error) as error:
         raise TrajectoryFileError(f"{path}: cannot be read as a NumPy .npz archive ({type(error).__name__}: "
                                   f"{error}); expected a trajectory file from 'dmarionette simulate'") from None
 

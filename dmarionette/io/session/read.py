@@ -70,20 +70,23 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
                                 f"{_MAGIC!r}; got {data[:8]!r}); a session is the .mcap file written by --record")
     # Walk the record lengths: the data section ends at DataEnd (or the footer, or the cut);
     # a damaged file (a record that does not parse, a CRC that does not match) is refused.
-    end, truncated, notes = check_integrity(path, data)
+    end, truncated, notes, offsets = check_integrity(path, data)
     wanted = None if topics is None else set(topics)
     records = _Records(header=None, metadata={}, channels={}, schemas={}, messages=defaultdict(list),
                        truncated=truncated, size=len(data), notes=notes)
     reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end]), skip_magic=True, validate_crcs=True).records)
+    count = 0
     while True:
         try:
             record = next(reader)
+            count += 1
         except (StopIteration, EndOfFile):
             break
         except (McapError, ValueError, struct.error, UnicodeDecodeError) as error:
             # Every record up to ``end`` is complete: one that does not parse (or whose chunk CRC
             # does not match) is damage, not a cut.
-            raise SessionError(str(path), "(file)", f"a damaged MCAP record ({type(error).__name__}: {error})",
+            at = f" at byte {offsets[count]}" if count < len(offsets) else ""
+            raise SessionError(str(path), "(file)", f"a damaged MCAP record{at} ({type(error).__name__}: {error})",
                                "a well-formed MCAP file: this one is damaged") from None
         if isinstance(record, Message):
             channel = records.channels.get(record.channel_id)
@@ -233,14 +236,14 @@ def read_session(path: str | Path, *, topics: Iterable[str] | None = None, load_
     for name, values in records.metadata.items():
         if name not in ("dmarionette", "scene"):
             extra[name] = {k: _json_or_text(v) for k, v in values.items()}
+    scene = None
+    if load_scene:  # first: messages are checked against metadata that matches the scene
+        scene = _load_scene(path, scene_record)
+        check_scene_consistency(path, meta, scene)
     channels = {}
     for channel_id, messages in records.messages.items():
         topic = records.channels[channel_id].topic
         channels[topic] = _decode_topic(path, topic, messages, meta)
-    scene = None
-    if load_scene:
-        scene = _load_scene(path, scene_record)
-        check_scene_consistency(path, meta, scene)
     return Session(path=path, metadata=meta, scene_record=scene_record, extra_metadata=extra, scene=scene,
                    channels=channels, truncated=records.truncated, notes=_notes(records))
 

@@ -65,7 +65,7 @@ def missing() -> Any:
 # File structure ------------------------------------------------------------------------------
 
 
-def check_integrity(path: Path, data: bytes) -> tuple[int, bool, list[str]]:
+def check_integrity(path: Path, data: bytes) -> tuple[int, bool, list[str], list[int]]:
     """Walks the MCAP records of ``data``: where the data section ends, whether the file was cut
     off, and notes; refuses a damaged file.
 
@@ -76,15 +76,16 @@ def check_integrity(path: Path, data: bytes) -> tuple[int, bool, list[str]]:
     a crash (no footer) is read up to its last complete record.
 
     Returns:
-        ``(end, truncated, notes)``: the offset of the end of the last data record, whether the
-        file was cut off, and lines worth showing.
+        ``(end, truncated, notes, offsets)``: the offset of the end of the last data record,
+        whether the file was cut off, lines worth showing, and the byte offset of each data
+        record (to say where a record that does not parse is).
 
     Raises:
         SessionError: a record with an unknown opcode, a complete file whose records do not
             reach its footer, or a data-section CRC that does not match.
     """
     complete = len(data) >= 2 * len(_MAGIC) and data.endswith(_MAGIC)
-    offset, notes = len(_MAGIC), []
+    offset, notes, offsets = len(_MAGIC), [], []
     while offset + 9 <= len(data):
         opcode = data[offset]
         (length,) = struct.unpack_from("<Q", data, offset + 1)
@@ -96,7 +97,7 @@ def check_integrity(path: Path, data: bytes) -> tuple[int, bool, list[str]]:
                 raise SessionError(f"{path}", "(file)", f"a record at byte {offset} whose length ({length} bytes) "
                                    f"runs past the end of the file ({len(data)} bytes)",
                                    "a well-formed MCAP file: this one is damaged")
-            return offset, True, notes  # the last record was cut off by a crash
+            return offset, True, notes, offsets  # the last record was cut off by a crash
         if opcode == _OPCODE_DATA_END:
             if length >= 4:
                 (crc,) = struct.unpack_from("<I", data, offset + 9)
@@ -106,18 +107,19 @@ def check_integrity(path: Path, data: bytes) -> tuple[int, bool, list[str]]:
                                        f"section)", f"the CRC stored in its DataEnd record (0x{crc:08x}): the file "
                                        "is damaged between its start and byte " f"{offset}")
             if not complete:
-                notes.append("the file does not end with the MCAP magic bytes (its footer is cut off or damaged); "
-                             "its data section is intact")
-                return offset, True, notes
+                notes.append("the file's data section is complete (it reaches its DataEnd record) but the file "
+                             "does not end with the MCAP magic bytes: its summary or footer is cut off or damaged")
+                return offset, False, notes, offsets
             _check_summary(data, notes)
-            return offset, False, notes
+            return offset, False, notes, offsets
         if opcode == _OPCODE_FOOTER:
-            return offset, not complete, notes
+            return offset, not complete, notes, offsets
+        offsets.append(offset)
         offset += 9 + length
     if complete:
         raise SessionError(f"{path}", "(file)", f"records that end at byte {offset} without a DataEnd or Footer "
                            "record", "a well-formed MCAP file: this one is damaged")
-    return offset, True, notes
+    return offset, True, notes, offsets
 
 
 def _check_summary(data: bytes, notes: list[str]) -> None:
