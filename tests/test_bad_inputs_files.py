@@ -326,7 +326,7 @@ def test_a_non_finite_result_is_refused_before_it_is_written(scenes, tmp_path):
     assert not (tmp_path / "bad.npz").exists()
     flagged = write_trajectory(tmp_path / "flagged.npz", blown, strings, allow_non_finite=True)
     assert read_trajectory(flagged, allow_non_finite=True)["metadata"]["finite"] is False
-    with pytest.raises(TrajectoryFileError, match=r"flagged\.npz: array 'particle_q'.*non-finite.*\[3, 4, 1\]"):
+    with pytest.raises(TrajectoryFileError, match=r"flagged\.npz: field 'particle_q'.*non-finite.*\[3, 4, 1\]"):
         read_trajectory(flagged)
     m = synthetic_marionette_trajectory()
     m.tie_force = m.tie_force.copy()
@@ -337,20 +337,20 @@ def test_a_non_finite_result_is_refused_before_it_is_written(scenes, tmp_path):
 
 
 @pytest.mark.parametrize("change, fragment", [
-    (lambda a: a.pop("tie_force"), r"arrays \['tie_force'\]: got nothing"),
-    (lambda a: a.update(particle_q=a["particle_q"][:, :, :2]), r"array 'particle_q': got shape \(6, 6, 2\)"),
-    (lambda a: a.update(tie_force=a["tie_force"][:-1]), r"array 'tie_force': got shape \(14, 2, 3\).*T = 15 \(as array 'step_time'"),
-    (lambda a: a.update(top_q=a["top_q"][:, :1]), r"array 'tie_force'.*S = 1 \(as array 'top_q' has it\)"),
-    (lambda a: a.update(string_names=np.array([1, 2])), r"array 'string_names': got dtype int64; expected strings"),
-    (lambda a: a.update(frame_time=a["frame_time"].astype(str)), r"array 'frame_time': got dtype <U"),
-    (lambda a: a.update(energy=np.full(6, np.inf)), r"array 'energy': got a non-finite value at index \[0\]"),
-    (lambda a: a.update(step_time=a["step_time"][::-1].copy()), r"array 'step_time'.*strictly increasing"),
-    (lambda a: a.update(string_start=np.array([0, 1, 6])), r"array 'string_start'"),
-    (lambda a: a.update(metadata=np.array("{not json")), r"array 'metadata': not valid JSON"),
-    (lambda a: a.update(metadata=np.array(json.dumps({"format": "x"}))), r"metadata 'format': got 'x'"),
+    (lambda a: a.pop("tie_force"), r"fields \['tie_force'\]: got nothing"),
+    (lambda a: a.update(particle_q=a["particle_q"][:, :, :2]), r"field 'particle_q': got shape \(6, 6, 2\)"),
+    (lambda a: a.update(tie_force=a["tie_force"][:-1]), r"field 'tie_force': got shape \(14, 2, 3\).*T = 15 \(as field 'step_time'"),
+    (lambda a: a.update(top_q=a["top_q"][:, :1]), r"field 'tie_force'.*S = 1 \(as field 'top_q' has it\)"),
+    (lambda a: a.update(string_names=np.array([1, 2])), r"field 'string_names': got dtype int64; expected strings"),
+    (lambda a: a.update(frame_time=a["frame_time"].astype(str)), r"field 'frame_time': got dtype <U"),
+    (lambda a: a.update(energy=np.full(6, np.inf)), r"field 'energy': got a non-finite value at index \[0\]"),
+    (lambda a: a.update(step_time=a["step_time"][::-1].copy()), r"field 'step_time'.*strictly increasing"),
+    (lambda a: a.update(string_start=np.array([0, 1, 6])), r"field 'string_start'"),
+    (lambda a: a.update(metadata=np.array("{not json")), r"field 'metadata': not valid JSON"),
+    (lambda a: a.update(metadata=np.array(json.dumps({"format": "x"}))), r"field 'metadata.format': got 'x'"),
     (lambda a: a.update(metadata=np.array(json.dumps({**json.loads(str(a["metadata"])), "string_dt": -1}))),
-     r"metadata 'string_dt': got -1"),
-    (lambda a: a.pop("metadata"), r"array 'metadata': got nothing"),
+     r"field 'metadata.string_dt': got -1"),
+    (lambda a: a.pop("metadata"), r"field 'metadata': got nothing"),
 ])
 def test_a_bad_string_trajectory_file_is_refused_naming_the_array(scenes, tmp_path, change, fragment):
     good = write_trajectory(tmp_path / "good.npz", synthetic_string_trajectory(), scenes[0])
@@ -362,9 +362,9 @@ def test_a_bad_string_trajectory_file_is_refused_naming_the_array(scenes, tmp_pa
 
 
 @pytest.mark.parametrize("change, fragment", [
-    (lambda a: a.update(body_pos=a["body_pos"][:, :1]), r"array 'body_rot'.*B = 1 \(as array 'body_pos' has it\)"),
-    (lambda a: a.update(bar_feedback=a["bar_feedback"][:3]), r"array 'bar_feedback'"),
-    (lambda a: a.update(body_rot=np.full_like(a["body_rot"], np.nan)), r"array 'body_rot'.*non-finite"),
+    (lambda a: a.update(body_pos=a["body_pos"][:, :1]), r"field 'body_rot'.*B = 1 \(as field 'body_pos' has it\)"),
+    (lambda a: a.update(bar_feedback=a["bar_feedback"][:3]), r"field 'bar_feedback'"),
+    (lambda a: a.update(body_rot=np.full_like(a["body_rot"], np.nan)), r"field 'body_rot'.*non-finite"),
     (lambda a: a.update(metadata=np.array(json.dumps({**json.loads(str(a["metadata"])), "body_shape": 5}))),
      r"metadata.body_shape': got 5"),
     (lambda a: a.update(metadata=np.array(json.dumps({**json.loads(str(a["metadata"])), "kind": "x"}))),

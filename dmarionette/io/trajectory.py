@@ -72,7 +72,7 @@ def check_trajectory_arrays(arrays: dict, where: str, kind: str = "strings", *,
     spec = dict(_MARIONETTE_ARRAYS if kind == "marionette" else {**_STRING_ARRAYS, "energy": (("F",), "f")})
     missing = sorted(n for n in spec if n not in arrays)
     if missing:
-        raise TrajectoryFileError(f"{where}: arrays {missing}: got nothing (missing; the file has "
+        raise TrajectoryFileError(f"{where}: fields {missing}: got nothing (missing; the file has "
                                   f"{sorted(arrays)}); expected every array of docs/trajectory.md for a {kind} "
                                   "trajectory")
     sizes: dict[str, int] = {}
@@ -82,10 +82,10 @@ def check_trajectory_arrays(arrays: dict, where: str, kind: str = "strings", *,
         ok_kind = array.size == 0 or array.dtype.kind in ({"i", "u", "b"} if dtype == "i" else {"f"} if dtype == "f" else {"U"})
         if not ok_kind:
             what = {"i": "integers", "f": "floating-point numbers", "U": "strings"}[dtype]
-            raise TrajectoryFileError(f"{where}: array '{name}': got dtype {array.dtype}; expected {what}")
+            raise TrajectoryFileError(f"{where}: field '{name}': got dtype {array.dtype}; expected {what}")
         wanted = "(" + ", ".join(map(str, shape)) + ")"
         if array.ndim != len(shape):
-            raise TrajectoryFileError(f"{where}: array '{name}': got shape {array.shape}; expected {wanted}")
+            raise TrajectoryFileError(f"{where}: field '{name}': got shape {array.shape}; expected {wanted}")
         for axis, (symbol, size) in enumerate(zip(shape, array.shape)):
             if isinstance(symbol, int):
                 expected = symbol
@@ -96,27 +96,27 @@ def check_trajectory_arrays(arrays: dict, where: str, kind: str = "strings", *,
                 source.setdefault(symbol, name)
             if expected is not None and size != expected:
                 origin = source.get("S" if symbol == "S1" else symbol, "?")
-                raise TrajectoryFileError(f"{where}: array '{name}': got shape {array.shape}; expected {wanted} "
-                                          f"with {symbol} = {expected} (as array '{origin}' has it)")
+                raise TrajectoryFileError(f"{where}: field '{name}': got shape {array.shape}; expected {wanted} "
+                                          f"with {symbol} = {expected} (as field '{origin}' has it)")
         if dtype == "f" and not allow_non_finite and not np.all(np.isfinite(array)):
             bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
-            raise TrajectoryFileError(f"{where}: array '{name}': got a non-finite value at index {list(bad)}; "
+            raise TrajectoryFileError(f"{where}: field '{name}': got a non-finite value at index {list(bad)}; "
                                       "expected finite numbers")
     if sizes.get("F", 0) < 1 or sizes.get("S", 0) < 1:
-        raise TrajectoryFileError(f"{where}: arrays 'frame_time'/'string_names': got {sizes.get('F', 0)} frames "
+        raise TrajectoryFileError(f"{where}: fields 'frame_time'/'string_names': got {sizes.get('F', 0)} frames "
                                   f"and {sizes.get('S', 0)} strings; expected at least one of each")
     start = np.asarray(arrays["string_start"])
     if start[0] != 0 or start[-1] != sizes["P"] or np.any(np.diff(start) < 2):
-        raise TrajectoryFileError(f"{where}: array 'string_start': got {start.tolist()}; expected 0, then "
+        raise TrajectoryFileError(f"{where}: field 'string_start': got {start.tolist()}; expected 0, then "
                                   f"increasing by at least 2 particles per string, up to the {sizes['P']} particles")
     if kind == "marionette" and sizes["N"] > sizes["K"]:
-        raise TrajectoryFileError(f"{where}: array 'bar_names': got {sizes['N']} names; expected at most "
+        raise TrajectoryFileError(f"{where}: field 'bar_names': got {sizes['N']} names; expected at most "
                                   f"{sizes['K']} (the bars of bar_pos)")
     for name in ("frame_time", "step_time"):
         t = np.asarray(arrays[name])
         if len(t) > 1 and not np.all(np.diff(t) > 0):
             k = int(np.argmin(np.diff(t)))
-            raise TrajectoryFileError(f"{where}: array '{name}': got {t[k]} then {t[k + 1]} at {k}, {k + 1}; "
+            raise TrajectoryFileError(f"{where}: field '{name}': got {t[k]} then {t[k + 1]} at {k}, {k + 1}; "
                                       "expected strictly increasing times [s]")
 
 
@@ -211,23 +211,23 @@ def read_npz_arrays(path: str | Path) -> dict:
 def read_trajectory_metadata(arrays: dict, where: str) -> dict:
     """The decoded, checked ``metadata`` array of a trajectory file."""
     if "metadata" not in arrays:
-        raise TrajectoryFileError(f"{where}: array 'metadata': got nothing (missing; the file has "
+        raise TrajectoryFileError(f"{where}: field 'metadata': got nothing (missing; the file has "
                                   f"{sorted(arrays)}); expected a dmarionette trajectory file")
     raw = arrays["metadata"]
     if raw.dtype.kind != "U" or raw.ndim != 0:
-        raise TrajectoryFileError(f"{where}: array 'metadata': got dtype {raw.dtype}, shape {raw.shape}; expected "
+        raise TrajectoryFileError(f"{where}: field 'metadata': got dtype {raw.dtype}, shape {raw.shape}; expected "
                                   "one string of JSON")
     try:
         metadata = json.loads(str(raw))
     except json.JSONDecodeError as error:
-        raise TrajectoryFileError(f"{where}: array 'metadata': not valid JSON ({error})") from None
+        raise TrajectoryFileError(f"{where}: field 'metadata': not valid JSON ({error})") from None
     if not isinstance(metadata, dict) or metadata.get("format") != "dmarionette-trajectory":
         got = metadata.get("format") if isinstance(metadata, dict) else metadata
-        raise TrajectoryFileError(f"{where}: metadata 'format': got {got!r}; expected 'dmarionette-trajectory' "
+        raise TrajectoryFileError(f"{where}: field 'metadata.format': got {got!r}; expected 'dmarionette-trajectory' "
                                   "(not a dmarionette trajectory file)")
     version = metadata.get("format_version")
     if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
-        raise TrajectoryFileError(f"{where}: metadata 'format_version': got {version!r}; expected an integer "
+        raise TrajectoryFileError(f"{where}: field 'metadata.format_version': got {version!r}; expected an integer "
                                   f"from 1 to {FORMAT_VERSION}")
     keys = {"string_dt": "a step [s] > 0", "frame_steps": "an integer >= 1"}
     if metadata.get("kind") == "marionette":
@@ -239,7 +239,7 @@ def read_trajectory_metadata(arrays: dict, where: str) -> dict:
         else:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and value > 0
         if not ok:
-            raise TrajectoryFileError(f"{where}: metadata '{key}': got {value!r}; expected {what}")
+            raise TrajectoryFileError(f"{where}: field 'metadata.{key}': got {value!r}; expected {what}")
     return metadata
 
 

@@ -90,7 +90,11 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
                                "a well-formed MCAP file: this one is damaged") from None
         if isinstance(record, Message):
             channel = records.channels.get(record.channel_id)
-            if channel is not None and (wanted is None or channel.topic in wanted):
+            if channel is None:  # the writer registers every channel before its first message
+                raise SessionError(str(path), "(file)", f"a message at byte {offsets[count - 1]} on channel id "
+                                   f"{record.channel_id}, which no Channel record before it defines",
+                                   "a well-formed MCAP file: this one is damaged")
+            if wanted is None or channel.topic in wanted:
                 records.messages[record.channel_id].append(record)
         elif isinstance(record, Channel):
             records.channels[record.id] = record

@@ -292,7 +292,7 @@ def check_message(path: Path, topic: str, kind: str, index: int, message: dict, 
     where = f"{path}: channel {topic}, message #{index + 1} (log time {log_time * 1e-9:.6g} s)"
     if not _is_number(t, nullable=False) or not math.isfinite(t) or t < 0.0:
         raise SessionError(where, "t", t, "a finite time >= 0 [s]")
-    if abs(t * 1e9 - log_time) > max(1.0, 1e-9 * abs(t) * 1e9):
+    if abs(t * 1e9 - log_time) > 0.5 + 1e-15 * t * 1e9:  # the writer stores log_time = round(t * 1e9)
         raise SessionError(where, "t", t, f"the message's log time ({log_time * 1e-9:.9g} s)")
     coordinates = sum(e[2] for e in meta.get("joint_q_layout", [])) if "joint_q_layout" in meta else None
     for key, (shape, required) in _FIELDS[kind].items():
