@@ -305,7 +305,7 @@ def session_info(path: str | Path) -> dict[str, Any]:
     meta, scene_record = _session_metadata(path, records)
     topics = {}
     for channel_id, channel in sorted(records.channels.items()):
-        times = np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.int64) * 1e-9
+        times = np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.float64) * 1e-9
         count = len(times)
         span = float(times.max() - times.min()) if count else 0.0
         topics[channel.topic] = {"count": count, "rate_hz": (count - 1) / span if count > 1 and span > 0 else 0.0,
