@@ -182,6 +182,8 @@ def _meta(key, value):
     ("constants", [], "a table of the scene's constants"),
     ("string_bars", ["main"], "one bar name (or null) per string"),
     ("joint_q_layout", "x", "joint, type, coordinate count"),
+    ("bar_attach", {"main": {"head": [0, 0]}}, "attach point"),
+    ("puppet_substeps", 0, "an integer >= 1"),
     ("bodies", ["torso"], "the embedded scene's bodies"),
     ("strings", ["a", "b", "c", "d", "e", "f"], "the embedded scene's strings"),
     ("string_hz", ..., "a JSON value"),

@@ -201,6 +201,20 @@ def check_metadata(path: Path, meta: Mapping[str, Any], format_name: str, format
         if not isinstance(value, list) or len(value) != len(strings) or \
                 not all(v is None or v in bars for v in value):
             raise SessionError(where, "string_bars", value, f"one bar name (or null) per string ({len(strings)})")
+    if "bar_attach" in meta:
+        value = meta["bar_attach"]
+        ok = isinstance(value, dict) and sorted(value) == sorted(bars) and all(
+            isinstance(points, dict) and all(
+                isinstance(p, list) and len(p) == 3 and all(_is_number(c, nullable=False) and math.isfinite(c)
+                                                            for c in p) for p in points.values())
+            for points in value.values())
+        if not ok:
+            raise SessionError(where, "bar_attach", value, f"per bar ({bars}) a table: string -> attach point "
+                               "[x, y, z] in the bar frame [m]")
+    if "puppet_substeps" in meta:
+        value = meta["puppet_substeps"]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise SessionError(where, "puppet_substeps", value, "an integer >= 1")
     if "joint_q_layout" in meta:
         layout = meta["joint_q_layout"]
         ok = isinstance(layout, list) and all(
