@@ -75,6 +75,8 @@ TESTED_RANGES: dict[str, TestedRange] = {
     "ball_mass": TestedRange(1e-5, 1e3, "kg", "the ball in the tests is 0.08 kg"),
     "ball_radius": TestedRange(1e-4, 10.0, "m", "the ball in the tests has a 0.06 m radius"),
     "joint_damping": TestedRange(0.0, 1e4, "N m s/rad", "the tests use 0 to 0.05"),
+    # [motion]
+    "motion_frequency": TestedRange(0.0, 1e3, "Hz", "the scenes sway at 0.5 to 5 Hz"),
 }
 """Constant -> the range tested for it (see the module doc)."""
 
@@ -131,6 +133,11 @@ def check_tested_ranges(scene) -> None:
         for joint in scene.puppet.joints:
             _check(joint.damping, f"{source}: [puppet.joints.{joint.name}]", "damping", "joint_damping")
         _check_position(scene.puppet.root_position, f"{source}: [puppet]", "root_position")
+    _check_position(scene.motion.amplitude, f"{source}: [motion]", "amplitude")
+    _check(scene.motion.frequency, f"{source}: [motion]", "frequency", "motion_frequency")
+    if scene.chair is not None:
+        for key, value in zip(("centre", "half_extents"), scene.chair):
+            _check_position(value, f"{source}: [chair]", key)
     if scene.ball is not None:
         _check(scene.ball.mass, f"{source}: [ball]", "mass", "ball_mass")
         _check(scene.ball.radius, f"{source}: [ball]", "radius", "ball_radius")
