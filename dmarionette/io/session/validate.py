@@ -17,7 +17,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 __all__ = ["SessionError", "check_integrity", "check_message", "check_metadata", "check_scene_consistency",
            "decode_message", "schema_of_topic"]
@@ -55,11 +54,6 @@ class SessionError(ValueError):
 def _short(value: Any) -> str:
     text = value if isinstance(value, str) and value.startswith(("bytes", "a ", "an ", "CRC")) else repr(value)
     return text if len(text) <= 200 else text[:200] + "..."
-
-
-def missing() -> Any:
-    """The marker for a missing value (the message says so)."""
-    return _MISSING
 
 
 # File structure ------------------------------------------------------------------------------
@@ -338,13 +332,3 @@ def check_message(path: Path, topic: str, kind: str, index: int, message: dict, 
             what = f"a list of {shape[0]} numbers"
         if not ok:
             raise SessionError(where, key, value, what)
-
-
-def check_channel_times(path: Path, topic: str, t: np.ndarray) -> None:
-    """Refuses a channel whose times go backwards (the recorder writes them in order)."""
-    if len(t) > 1:
-        bad = np.nonzero(np.diff(t) < 0.0)[0]
-        if len(bad):
-            k = int(bad[0]) + 1
-            raise SessionError(f"{path}: channel {topic}, message #{k + 1}", "t", float(t[k]),
-                               f"a time >= the previous message's ({float(t[k - 1])} s)")
