@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 import zipfile
 
 import mujoco
@@ -234,6 +235,8 @@ def test_a_session_message_of_a_wrong_type_or_length_is_refused(session_file, tm
         read_session(bad)
     message = str(info.value)
     assert f"channel {topic}, message #2" in message and f"key '{key}'" in message and fragment in message
+    with pytest.raises(SessionError, match=f"message #2.*key '{re.escape(key)}'"):
+        session_info(bad)  # a damaged message does not pass `dmarionette info`
 
 
 def test_nan_bar_poses_are_refused_by_name(session_file, tmp_path):

@@ -289,8 +289,12 @@ def _load_scene(path: Path, scene_record: dict[str, str]) -> Scene:
     return scene_from_table(table, source)
 
 
-def session_info(path: str | Path) -> dict[str, Any]:
-    """A summary of a session file, without decoding its messages.
+def session_info(path: str | Path, *, check_messages: bool = True) -> dict[str, Any]:
+    """A summary of a session file.
+
+    Its structure and metadata are checked as :func:`read_session` checks them and, with
+    ``check_messages`` (default), every message of a dmarionette topic too (decoded, not
+    kept), so a damaged file does not pass ``dmarionette info``.
 
     Returns:
         A JSON-ready dict: ``path``, ``bytes``, ``truncated`` (cut off: no footer),
@@ -299,10 +303,21 @@ def session_info(path: str | Path) -> dict[str, Any]:
         ``duration`` [s], ``messages``, ``topics`` (topic -> ``count``, ``rate_hz`` (mean),
         ``start``, ``end`` [s]), ``device_channels`` (whether device samples/forces were
         recorded) and ``notes`` (lines worth showing).
+
+    Raises:
+        SessionError: as :func:`read_session` (without rebuilding the scene).
     """
     path = Path(path)
     records = _read_records(path)
     meta, scene_record = _session_metadata(path, records)
+    if check_messages:
+        for channel_id, messages in records.messages.items():
+            topic = records.channels[channel_id].topic
+            kind = schema_of_topic(topic, meta["bars"])
+            if kind is not None:
+                for i, m in enumerate(messages):
+                    check_message(path, topic, kind, i, decode_message(path, topic, i, m.data, m.log_time),
+                                  m.log_time, meta)
     topics = {}
     for channel_id, channel in sorted(records.channels.items()):
         times = np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.float64) * 1e-9
