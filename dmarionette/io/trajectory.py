@@ -121,7 +121,12 @@ def check_trajectory_arrays(arrays: dict, where: str, kind: str = "strings", *,
 
 
 def first_non_finite(trajectory) -> tuple[str, tuple[int, ...], float | None] | None:
-    """The first non-finite value of a trajectory: ``(array, index, time [s])``, or ``None``."""
+    """The earliest non-finite value of a trajectory: ``(array, index, time [s])``, or ``None``.
+
+    Frame arrays and string-step arrays are compared by time, so the quantity named is the
+    first to blow up (a step's tie force before the next frame's particles).
+    """
+    found = []
     for name in ("frame_time", "step_time", *_FRAME_ARRAYS, *_STEP_ARRAYS):
         value = getattr(trajectory, name, None)
         if value is None:
@@ -129,10 +134,14 @@ def first_non_finite(trajectory) -> tuple[str, tuple[int, ...], float | None] | 
         array = np.asarray(value, dtype=np.float64)
         if not np.all(np.isfinite(array)):
             bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
+            if name in ("frame_time", "step_time"):
+                return name, bad, None
             times = trajectory.frame_time if name in _FRAME_ARRAYS else trajectory.step_time
-            time = float(times[bad[0]]) if name not in ("frame_time", "step_time") else None
-            return name, bad, time
-    return None
+            found.append((float(times[bad[0]]), name, bad))
+    if not found:
+        return None
+    time, name, bad = min(found, key=lambda f: f[0])
+    return name, bad, time
 
 
 def check_trajectory_finite(trajectory, what: str = "trajectory") -> None:
