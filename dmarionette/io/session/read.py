@@ -245,11 +245,15 @@ def read_session(path: str | Path, *, topics: Iterable[str] | None = None, load_
         scene = _load_scene(path, scene_record)
         check_scene_consistency(path, meta, scene)
     channels = {}
+    notes = _notes(records)
     for channel_id, messages in records.messages.items():
-        topic = records.channels[channel_id].topic
-        channels[topic] = _decode_topic(path, topic, messages, meta)
+        channel = records.channels[channel_id]
+        if channel.message_encoding != "json" and schema_of_topic(channel.topic, meta["bars"]) is None:
+            notes.append(f"channel {channel.topic} ({channel.message_encoding} messages, not JSON) is not decoded")
+            continue
+        channels[channel.topic] = _decode_topic(path, channel.topic, messages, meta)
     return Session(path=path, metadata=meta, scene_record=scene_record, extra_metadata=extra, scene=scene,
-                   channels=channels, truncated=records.truncated, notes=_notes(records))
+                   channels=channels, truncated=records.truncated, notes=notes)
 
 
 def _notes(records: _Records) -> list[str]:
