@@ -271,6 +271,10 @@ def test_overwritten_bytes_are_refused_with_where(session_file, tmp_path):
         assert str(bad) in str(info.value) and ("damaged" in str(info.value) or "not JSON" in str(info.value))
         with pytest.raises(SessionError):
             session_info(bad)
+    # One byte of a schema record's inner length: the record swallows the ones after it.
+    bad.write_bytes(_flip(data, data.index(b"jsonschema") + 10, 1))
+    with pytest.raises(SessionError, match=r"damaged MCAP record at byte \d+ \(or the one before it"):
+        read_session(bad)
 
 
 def test_the_data_section_crc_is_checked_when_the_writer_stored_one(tmp_path):

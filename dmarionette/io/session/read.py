@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
 from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
@@ -76,22 +77,35 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
                        truncated=truncated, size=len(data), notes=notes)
     reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end]), skip_magic=True, validate_crcs=True).records)
     count = 0
+    chunked = any(data[o] == Opcode.CHUNK for o in offsets)
+    expected = None if chunked else sum(1 for o in offsets if data[o] < 0x80)  # private records are skipped
+    offsets = [] if chunked else [o for o in offsets if data[o] < 0x80]
     while True:
         try:
             record = next(reader)
             count += 1
-        except (StopIteration, EndOfFile):
+        except StopIteration:
+            if expected is not None and count < expected:  # a record swallowed the ones after it
+                raise SessionError(str(path), "(file)", f"records that stop parsing at byte {offsets[count]} "
+                                   f"({count} of {expected} read)", "a well-formed MCAP file: this one is "
+                                   "damaged") from None
             break
-        except (McapError, ValueError, struct.error, UnicodeDecodeError) as error:
+        except (EndOfFile, McapError, ValueError, struct.error, UnicodeDecodeError) as error:
             # Every record up to ``end`` is complete: one that does not parse (or whose chunk CRC
             # does not match) is damage, not a cut.
-            at = f" at byte {offsets[count]}" if count < len(offsets) else ""
+            if isinstance(error, EndOfFile) and (expected is None or count >= expected):
+                break  # every record read
+            at = ""
+            if count < len(offsets):  # the record there, or the one before it read too far
+                at = f" at byte {offsets[count]}" + (f" (or the one before it, at byte {offsets[count - 1]})"
+                                                    if count else "")
             raise SessionError(str(path), "(file)", f"a damaged MCAP record{at} ({type(error).__name__}: {error})",
                                "a well-formed MCAP file: this one is damaged") from None
         if isinstance(record, Message):
             channel = records.channels.get(record.channel_id)
             if channel is None:  # the writer registers every channel before its first message
-                raise SessionError(str(path), "(file)", f"a message at byte {offsets[count - 1]} on channel id "
+                at = f" at byte {offsets[count - 1]}" if count - 1 < len(offsets) else ""
+                raise SessionError(str(path), "(file)", f"a message{at} on channel id "
                                    f"{record.channel_id}, which no Channel record before it defines",
                                    "a well-formed MCAP file: this one is damaged")
             if wanted is None or channel.topic in wanted:
