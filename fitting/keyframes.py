@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -43,6 +42,14 @@ BAR_DOFS = ("x", "y", "z", "rx", "ry", "rz")
 
 DEVICES = ("omni", "falcon", "none")
 """Device specs the workspace and force terms can use (``none``: no such terms)."""
+
+
+MAX_TARGET_DISTANCE = 100.0
+"""Largest coordinate [m] of a point or body target (the puppet is about 1 m tall; a target of
+1e300 m made the fit fail after 45 s with an infinite loss)."""
+
+MAX_TARGET_ANGLE_DEG = 720.0
+"""Largest joint target angle [deg] (two turns)."""
 
 
 class KeyframeError(SceneError):
@@ -207,8 +214,7 @@ def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scen
     name = read_str(head, "scene", where)
     candidate = Path(name) if Path(name).is_absolute() else folder / name
     base = load_scene(candidate if candidate.is_file() else name)
-    with open(base.source, "rb") as f:
-        scene_table = tomllib.load(f)
+    scene_table = read_toml_file(Path(base.source), "an existing scene TOML file")
     if "puppet" not in scene_table or not scene_table.get("bars"):
         raise KeyframeError(where, "scene", name, "a scene with a [puppet] and [bars] (a marionette)")
     if "particle_count" in head:
@@ -301,6 +307,9 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
                                     f"a list of {n} angle{'s' if n > 1 else ''} in degrees (one per joint axis)")
             if not all(math.isfinite(a) for a in angles):
                 raise KeyframeError(f"{where}.joints", name, angles, "finite angles (no NaN or infinity)")
+            if not all(abs(a) <= MAX_TARGET_ANGLE_DEG for a in angles):
+                raise KeyframeError(f"{where}.joints", name, angles,
+                                    f"angles within +-{MAX_TARGET_ANGLE_DEG:g} degrees (two turns either way)")
             joints[name] = tuple(float(a) for a in angles)
         points = _read_positions(read_table(entry, "points", where, {}), f"{where}.points", point_names, "point")
         bodies = _read_positions(read_table(entry, "bodies", where, {}), f"{where}.bodies", body_names, "body")
@@ -317,6 +326,10 @@ def _read_positions(table: Mapping[str, Any], where: str, allowed: list[str], wh
         if name not in allowed:
             raise KeyframeError(where, name, table[name], f"the name of a puppet {what}, one of {allowed}")
         positions[name] = read_vec3(table, name, where)
+        if not all(abs(c) <= MAX_TARGET_DISTANCE for c in positions[name]):
+            raise KeyframeError(where, name, list(positions[name]),
+                                f"a position within +-{MAX_TARGET_DISTANCE:g} m of the origin on every axis (the "
+                                "puppet's scale: a target beyond it makes the loss overflow)")
     return positions
 
 

@@ -10,14 +10,161 @@ import numpy as np
 from dmarionette.scene.scene import Scene
 from dmarionette.strings.simulate import StringTrajectory
 
-__all__ = ["FORMAT_VERSION", "read_trajectory", "summarize", "write_trajectory"]
+__all__ = ["FORMAT_VERSION", "NonFiniteTrajectoryError", "TrajectoryFileError", "check_trajectory_arrays",
+           "check_trajectory_finite", "first_non_finite", "read_trajectory", "summarize", "write_trajectory"]
 
 FORMAT_VERSION = 1
 
 
-def write_trajectory(path: str | Path, trajectory: StringTrajectory, scene: Scene) -> Path:
-    """Writes ``trajectory`` to ``path`` (``.npz``); every array is named as in docs/trajectory.md."""
+class TrajectoryFileError(ValueError):
+    """A trajectory file (``.npz``) that cannot be read as one: the message names the file, the
+    array (or metadata key), what was found and what was expected."""
+
+
+class NonFiniteTrajectoryError(RuntimeError):
+    """A simulated trajectory with a non-finite value, refused before it is written.
+
+    Attributes:
+        quantity: the array (``"particle_q"``, ``"tie_force"``, ...).
+        index: the index of the first non-finite value.
+        time: the simulated time [s] of that frame or step.
+    """
+
+    def __init__(self, quantity: str, index: tuple[int, ...], time: float | None, what: str):
+        self.quantity, self.index, self.time = quantity, index, time
+        when = f" at t = {time:.6g} s" if time is not None else ""
+        super().__init__(f"{what}: the simulation produced a non-finite value: {quantity}{list(index)}{when} "
+                         "(the first one; the run blew up, so nothing was written: check the scene's constants "
+                         "and rates, see docs/scenes.md)")
+
+
+# Arrays of a trajectory file: name -> (shape in symbols, dtype kind). F frames, T string steps,
+# S strings, P particles, B bodies, K bars (at least 1), Q generalised coordinates, S1 = S + 1.
+_STRING_ARRAYS = {
+    "frame_time": (("F",), "f"), "particle_q": (("F", "P", 3), "f"), "top_q": (("F", "S", 3), "f"),
+    "step_time": (("T",), "f"), "tie_force": (("T", "S", 3), "f"), "string_taut": (("T", "S"), "i"),
+    "string_names": (("S",), "U"), "string_start": (("S1",), "i"), "string_rest_length": (("S",), "f"),
+}
+_MARIONETTE_ARRAYS = {
+    **_STRING_ARRAYS, "joint_q": (("F", "Q"), "f"), "body_pos": (("F", "B", 3), "f"),
+    "body_rot": (("F", "B", 4), "f"), "bar_pos": (("F", "K", 3), "f"), "bar_rot": (("F", "K", 3, 3), "f"),
+    "bar_feedback": (("T", "K", 3), "f"), "bar_reaction": (("T", "K", 3), "f"), "body_names": (("B",), "U"),
+    "bar_names": (("N",), "U"),
+}
+_FRAME_ARRAYS = ("particle_q", "top_q", "joint_q", "body_pos", "body_rot", "bar_pos", "bar_rot", "energy")
+_STEP_ARRAYS = ("tie_force", "bar_feedback", "bar_reaction")
+
+
+def check_trajectory_arrays(arrays: dict, where: str, kind: str = "strings", *,
+                            allow_non_finite: bool = False) -> None:
+    """Checks the arrays of a trajectory file: present, dtypes, shapes consistent with each other
+    (frames, steps, strings, particles, bodies, bars), finite, times strictly increasing.
+
+    Args:
+        arrays: array name -> array (as ``np.load`` gives them).
+        where: names the file in messages.
+        kind: ``"strings"`` or ``"marionette"``.
+        allow_non_finite: accept NaN or infinity in the float arrays.
+
+    Raises:
+        TrajectoryFileError: naming the file and the first array that is wrong.
+    """
+    spec = dict(_MARIONETTE_ARRAYS if kind == "marionette" else {**_STRING_ARRAYS, "energy": (("F",), "f")})
+    missing = sorted(n for n in spec if n not in arrays)
+    if missing:
+        raise TrajectoryFileError(f"{where}: fields {missing}: got nothing (missing; the file has "
+                                  f"{sorted(arrays)}); expected every array of docs/trajectory.md for a {kind} "
+                                  "trajectory")
+    sizes: dict[str, int] = {}
+    source: dict[str, str] = {}  # symbol -> the array that set it
+    for name, (shape, dtype) in spec.items():
+        array = np.asarray(arrays[name])
+        ok_kind = array.size == 0 or array.dtype.kind in ({"i", "u", "b"} if dtype == "i" else {"f"} if dtype == "f" else {"U"})
+        if not ok_kind:
+            what = {"i": "integers", "f": "floating-point numbers", "U": "strings"}[dtype]
+            raise TrajectoryFileError(f"{where}: field '{name}': got dtype {array.dtype}; expected {what}")
+        wanted = "(" + ", ".join(map(str, shape)) + ")"
+        if array.ndim != len(shape):
+            raise TrajectoryFileError(f"{where}: field '{name}': got shape {array.shape}; expected {wanted}")
+        for axis, (symbol, size) in enumerate(zip(shape, array.shape)):
+            if isinstance(symbol, int):
+                expected = symbol
+            elif symbol == "S1":
+                expected = sizes["S"] + 1 if "S" in sizes else None
+            else:
+                expected = sizes.setdefault(symbol, size)
+                source.setdefault(symbol, name)
+            if expected is not None and size != expected:
+                origin = source.get("S" if symbol == "S1" else symbol, "?")
+                raise TrajectoryFileError(f"{where}: field '{name}': got shape {array.shape}; expected {wanted} "
+                                          f"with {symbol} = {expected} (as field '{origin}' has it)")
+        if dtype == "f" and not allow_non_finite and not np.all(np.isfinite(array)):
+            bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
+            raise TrajectoryFileError(f"{where}: field '{name}': got a non-finite value at index {list(bad)}; "
+                                      "expected finite numbers")
+    if sizes.get("F", 0) < 1 or sizes.get("S", 0) < 1:
+        raise TrajectoryFileError(f"{where}: fields 'frame_time'/'string_names': got {sizes.get('F', 0)} frames "
+                                  f"and {sizes.get('S', 0)} strings; expected at least one of each")
+    start = np.asarray(arrays["string_start"])
+    if start[0] != 0 or start[-1] != sizes["P"] or np.any(np.diff(start) < 2):
+        raise TrajectoryFileError(f"{where}: field 'string_start': got {start.tolist()}; expected 0, then "
+                                  f"increasing by at least 2 particles per string, up to the {sizes['P']} particles")
+    if kind == "marionette" and sizes["N"] > sizes["K"]:
+        raise TrajectoryFileError(f"{where}: field 'bar_names': got {sizes['N']} names; expected at most "
+                                  f"{sizes['K']} (the bars of bar_pos)")
+    for name in ("frame_time", "step_time"):
+        t = np.asarray(arrays[name])
+        if len(t) > 1 and not np.all(np.diff(t) > 0):
+            k = int(np.argmin(np.diff(t)))
+            raise TrajectoryFileError(f"{where}: field '{name}': got {t[k]} then {t[k + 1]} at {k}, {k + 1}; "
+                                      "expected strictly increasing times [s]")
+
+
+def first_non_finite(trajectory) -> tuple[str, tuple[int, ...], float | None] | None:
+    """The earliest non-finite value of a trajectory: ``(array, index, time [s])``, or ``None``.
+
+    Frame arrays and string-step arrays are compared by time, so the quantity named is the
+    first to blow up (a step's tie force before the next frame's particles).
+    """
+    found = []
+    for name in ("frame_time", "step_time", *_FRAME_ARRAYS, *_STEP_ARRAYS):
+        value = getattr(trajectory, name, None)
+        if value is None:
+            continue
+        array = np.asarray(value, dtype=np.float64)
+        if not np.all(np.isfinite(array)):
+            bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
+            if name in ("frame_time", "step_time"):
+                return name, bad, None
+            times = trajectory.frame_time if name in _FRAME_ARRAYS else trajectory.step_time
+            found.append((float(times[bad[0]]), name, bad))
+    if not found:
+        return None
+    time, name, bad = min(found, key=lambda f: f[0])
+    return name, bad, time
+
+
+def check_trajectory_finite(trajectory, what: str = "trajectory") -> None:
+    """Raises :class:`NonFiniteTrajectoryError` with the first non-finite quantity and its time.
+
+    The CLI calls it (through the writers) before anything is written.
+    """
+    found = first_non_finite(trajectory)
+    if found is not None:
+        raise NonFiniteTrajectoryError(*found, what)
+
+
+def write_trajectory(path: str | Path, trajectory: StringTrajectory, scene: Scene, *,
+                     allow_non_finite: bool = False) -> Path:
+    """Writes ``trajectory`` to ``path`` (``.npz``); every array is named as in docs/trajectory.md.
+
+    Raises:
+        NonFiniteTrajectoryError: the trajectory has a NaN or infinity (nothing is written),
+            unless ``allow_non_finite`` (then the metadata says ``"finite": false``).
+    """
     path = Path(path)
+    if not allow_non_finite:
+        check_trajectory_finite(trajectory, f"{scene.source}")
     path.parent.mkdir(parents=True, exist_ok=True)
     metadata = {
         "format": "dmarionette-trajectory",
@@ -29,6 +176,8 @@ def write_trajectory(path: str | Path, trajectory: StringTrajectory, scene: Scen
         "precision": scene.precision,
         "effects": {k: bool(v) for k, v in vars(scene.effects).items()},
     }
+    if allow_non_finite:
+        metadata["finite"] = first_non_finite(trajectory) is None
     np.savez_compressed(
         path,
         metadata=np.array(json.dumps(metadata)),
@@ -46,14 +195,75 @@ def write_trajectory(path: str | Path, trajectory: StringTrajectory, scene: Scen
     return path
 
 
-def read_trajectory(path: str | Path) -> dict:
-    """Reads a trajectory file into a dict of arrays plus ``metadata`` (a dict)."""
-    with np.load(Path(path), allow_pickle=False) as data:
-        out = {key: data[key] for key in data.files}
-    out["metadata"] = json.loads(str(out["metadata"]))
-    if out["metadata"].get("format") != "dmarionette-trajectory":
-        raise ValueError(f"{path}: not a dmarionette trajectory file (metadata format is "
-                         f"{out['metadata'].get('format')!r})")
+def read_npz_arrays(path: str | Path) -> dict:
+    """The arrays of a NumPy ``.npz`` file; :class:`TrajectoryFileError` naming the file when it
+    is missing, not an archive, or damaged."""
+    import zipfile
+    import zlib
+
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryFileError(f"{path}: no such file; expected a trajectory file (trajectory.npz from "
+                                  "'dmarionette simulate')")
+    if not zipfile.is_zipfile(path):
+        raise TrajectoryFileError(f"{path}: not a NumPy .npz archive (not a zip file: {path.stat().st_size} bytes "
+                                  "that do not start like one); expected a trajectory file from 'dmarionette "
+                                  "simulate'")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, NotImplementedError, zlib.error) as error:
+        raise TrajectoryFileError(f"{path}: cannot be read as a NumPy .npz archive ({type(error).__name__}: "
+                                  f"{error}); expected a trajectory file from 'dmarionette simulate'") from None
+
+
+def read_trajectory_metadata(arrays: dict, where: str) -> dict:
+    """The decoded, checked ``metadata`` array of a trajectory file."""
+    if "metadata" not in arrays:
+        raise TrajectoryFileError(f"{where}: field 'metadata': got nothing (missing; the file has "
+                                  f"{sorted(arrays)}); expected a dmarionette trajectory file")
+    raw = arrays["metadata"]
+    if raw.dtype.kind != "U" or raw.ndim != 0:
+        raise TrajectoryFileError(f"{where}: field 'metadata': got dtype {raw.dtype}, shape {raw.shape}; expected "
+                                  "one string of JSON")
+    try:
+        metadata = json.loads(str(raw))
+    except json.JSONDecodeError as error:
+        raise TrajectoryFileError(f"{where}: field 'metadata': not valid JSON ({error})") from None
+    if not isinstance(metadata, dict) or metadata.get("format") != "dmarionette-trajectory":
+        got = metadata.get("format") if isinstance(metadata, dict) else metadata
+        raise TrajectoryFileError(f"{where}: field 'metadata.format': got {got!r}; expected 'dmarionette-trajectory' "
+                                  "(not a dmarionette trajectory file)")
+    version = metadata.get("format_version")
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        raise TrajectoryFileError(f"{where}: field 'metadata.format_version': got {version!r}; expected an integer "
+                                  f"from 1 to {FORMAT_VERSION}")
+    keys = {"string_dt": "a step [s] > 0", "frame_steps": "an integer >= 1"}
+    if metadata.get("kind") == "marionette":
+        keys["puppet_dt"] = "a step [s] > 0"
+    for key, what in keys.items():
+        value = metadata.get(key)
+        if key == "frame_steps":
+            ok = isinstance(value, int) and not isinstance(value, bool) and value >= 1
+        else:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and value > 0
+        if not ok:
+            raise TrajectoryFileError(f"{where}: field 'metadata.{key}': got {value!r}; expected {what}")
+    return metadata
+
+
+def read_trajectory(path: str | Path, *, allow_non_finite: bool = False) -> dict:
+    """Reads a trajectory file into a dict of arrays plus ``metadata`` (a dict).
+
+    Raises:
+        TrajectoryFileError: (a ``ValueError``) the file is missing, damaged, not a trajectory
+            file, or an array is missing, of the wrong dtype or shape, inconsistent with the
+            others, or not finite (unless ``allow_non_finite``).
+    """
+    out = read_npz_arrays(path)
+    out["metadata"] = read_trajectory_metadata(out, str(path))
+    check_trajectory_arrays(out, str(path), "marionette" if out["metadata"].get("kind") == "marionette"
+                            else "strings", allow_non_finite=allow_non_finite)
     return out
 
 
@@ -87,9 +297,16 @@ def summarize(trajectory: StringTrajectory, scene: Scene) -> dict:
     }
 
 
-def write_marionette_trajectory(path: str | Path, trajectory, scene: Scene) -> Path:
-    """Writes a :class:`~dmarionette.marionette.rollout.MarionetteTrajectory` (docs/trajectory.md)."""
+def write_marionette_trajectory(path: str | Path, trajectory, scene: Scene, *,
+                                allow_non_finite: bool = False) -> Path:
+    """Writes a :class:`~dmarionette.marionette.rollout.MarionetteTrajectory` (docs/trajectory.md).
+
+    Raises:
+        NonFiniteTrajectoryError: as :func:`write_trajectory`.
+    """
     path = Path(path)
+    if not allow_non_finite:
+        check_trajectory_finite(trajectory, f"{scene.source}")
     path.parent.mkdir(parents=True, exist_ok=True)
     metadata = {
         "format": "dmarionette-trajectory",
@@ -104,6 +321,8 @@ def write_marionette_trajectory(path: str | Path, trajectory, scene: Scene) -> P
         "effects": {**{k: bool(v) for k, v in vars(scene.effects).items()}, **scene.body_effects},
         "body_shape": [[shape, list(size)] for shape, size in trajectory.body_shape],
     }
+    if allow_non_finite:
+        metadata["finite"] = first_non_finite(trajectory) is None
     arrays = {name: getattr(trajectory, name) for name in (
         "frame_time", "particle_q", "joint_q", "body_pos", "body_rot", "bar_pos", "bar_rot", "top_q",
         "step_time", "tie_force", "bar_feedback", "bar_reaction", "string_start", "string_rest_length")}

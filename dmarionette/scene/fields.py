@@ -71,6 +71,11 @@ def read_toml_file(path: Path, expected: str = "an existing TOML file",
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as err:
         raise error(str(path), "(file)", "invalid TOML", f"valid TOML ({err})") from None
+    except UnicodeDecodeError as err:
+        raise error(str(path), "(file)", f"bytes that are not UTF-8 ({err.reason} at byte {err.start})",
+                    "a TOML file in UTF-8") from None
+    except OSError as err:
+        raise error(str(path), "(file)", f"an unreadable file ({err.strerror or err})", expected) from None
 
 
 def check_keys(table: Mapping[str, Any], allowed: Iterable[str], where: str) -> None:

@@ -40,7 +40,6 @@ with the world frame, so the rest position of a child is
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +53,7 @@ from dmarionette.scene.fields import (
     read_float,
     read_str,
     read_table,
+    read_toml_file,
     read_vec3,
 )
 
@@ -200,11 +200,7 @@ def load_puppet(path: str | Path | None = None) -> PuppetDescription:
         SceneError: when the file lacks a ``[puppet]`` table or the table is malformed.
     """
     path = Path(path) if path is not None else default_puppet_path()
-    with open(path, "rb") as f:
-        try:
-            data = tomllib.load(f)
-        except tomllib.TOMLDecodeError as err:
-            raise SceneError(str(path), "<file>", str(err), "valid TOML") from err
+    data = read_toml_file(path, "an existing puppet TOML file")
     table = read_table(data, "puppet", f"{path}")
     return puppet_from_table(table, f"{path}: [puppet]")
 

@@ -176,8 +176,16 @@ def load_scene(name_or_path: str | Path) -> Scene:
     return scene_from_table(read_toml_file(path), str(path))
 
 
-def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
-    """Validates a parsed scene table; ``source`` names it in errors (a file path)."""
+def scene_from_table(table: Mapping[str, Any], source: str, *, allow_untested: bool = False) -> Scene:
+    """Validates a parsed scene table; ``source`` names it in errors (a file path).
+
+    Constants outside the ranges the simulator has been tested for
+    (:data:`dmarionette.scene.limits.TESTED_RANGES`) are refused unless ``allow_untested``
+    (or the scene's ``[solver] allow_untested = true``); a ``[scene] duration`` whose
+    trajectory would not fit in memory is refused with the estimate.
+    """
+    if not isinstance(table, Mapping):
+        raise SceneError(source, "(file)", type(table).__name__, "a table of scene tables")
     check_keys(table, ["scene", "rates", "solver", "effects", "world", "string_defaults", "strings",
                        "motion", "puppet", "bars", "feedback", "contact", "chair", "ball", "initial_pose"],
                f"{source}: top level")
@@ -195,8 +203,9 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
     puppet_hz = read_float(rates, "puppet_hz", where, 30.0, positive=True, maximum=string_hz)
 
     solver = read_table(table, "solver", source, {})
-    check_keys(solver, ["precision"], f"{source}: [solver]")
+    check_keys(solver, ["precision", "allow_untested"], f"{source}: [solver]")
     precision = read_choice(solver, "precision", f"{source}: [solver]", ["float64", "float32"], "float64")
+    allow_untested = read_bool(solver, "allow_untested", f"{source}: [solver]", False) or allow_untested
 
     effects_table = read_table(table, "effects", source, {})
     where = f"{source}: [effects]"
@@ -245,8 +254,12 @@ def scene_from_table(table: Mapping[str, Any], source: str) -> Scene:
                  feedback_damping=read_float(feedback, "damping", where, 0.5, minimum=0.0),
                  contact=contact, chair=chair, ball=ball, initial_pose=initial_pose)
     # Settings the simulator was measured not to handle are refused here, with the reason.
+    from dmarionette.scene.limits import check_duration, check_tested_ranges
     from dmarionette.scene.settings_check import check_marionette_settings, check_string_settings
 
+    if not allow_untested:
+        check_tested_ranges(scene)
+    check_duration(scene, duration, f"{source}: [scene]")
     check_string_settings(scene)
     if puppet is not None:
         check_marionette_settings(scene)
@@ -275,8 +288,7 @@ def resolve_puppet_table(table: Mapping[str, Any], source: str) -> Mapping[str, 
         path = SCENE_DIR / name
     if not path.is_file():
         raise SceneError(where, "include", name, f"a puppet file next to the scene or built in ({SCENE_DIR})")
-    with path.open("rb") as f:
-        base = tomllib.load(f).get("puppet")
+    base = read_toml_file(path, "a puppet TOML file").get("puppet")
     if not isinstance(base, Mapping):
         raise SceneError(str(path), "puppet", None, "a [puppet] table")
     merged = dict(base)
@@ -351,6 +363,12 @@ def _read_strings(table: Mapping[str, Any], source: str, defaults: dict[str, Any
     if not isinstance(entries, list) or not entries or not all(isinstance(e, Mapping) for e in entries):
         raise SceneError(f"{source}: top level", "strings", entries if entries is not None else None,
                          "one or more [[strings]] tables")
+    known = [e.get("name") for e in entries]
+    for bar in bars:  # before the strings are read: a misspelt attach name is named as such
+        for name in bar.attach:
+            if name not in known:
+                raise SceneError(f"{source}: [bars.{bar.name}.attach]", name, list(bar.attach[name]),
+                                 f"the name of a string, one of {sorted(str(n) for n in known)}")
     on_bar = {name: bar for bar in bars for name in bar.attach}
     point_names = [p.name for p in puppet.points] if puppet is not None else []
     specs, body_points, names = [], [], set()

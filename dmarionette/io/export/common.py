@@ -10,8 +10,6 @@ glTF); body positions are the centres of mass [m], y up.
 from __future__ import annotations
 
 import dataclasses
-import json
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -207,45 +205,37 @@ def read_marionette_trajectory(path: str | Path):
     """
     from dmarionette.marionette.rollout import MarionetteTrajectory
 
+    from dmarionette.io.trajectory import (
+        TrajectoryFileError,
+        check_trajectory_arrays,
+        read_npz_arrays,
+        read_trajectory_metadata,
+    )
+
     path = Path(path)
-    if not path.is_file():
-        raise ExportError(f"{path}: no such file; expected a trajectory file (trajectory.npz from "
-                          "'dmarionette simulate')")
-    if not zipfile.is_zipfile(path):
-        raise ExportError(f"{path}: not a NumPy .npz archive (not a zip file: {path.stat().st_size} bytes that do "
-                          "not start like one); expected a trajectory file from 'dmarionette simulate'")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
-        raise ExportError(f"{path}: cannot be read as a NumPy .npz archive ({type(error).__name__}: {error}); "
-                          "expected a trajectory file from 'dmarionette simulate'") from None
-    if "metadata" not in arrays:
-        raise ExportError(f"{path}: field 'metadata': got nothing (missing; fields are {sorted(arrays)}); "
-                          "expected a dmarionette trajectory file")
-    try:
-        metadata = json.loads(str(arrays["metadata"]))
-    except json.JSONDecodeError as error:
-        raise ExportError(f"{path}: field 'metadata': not valid JSON ({error})") from None
-    if not isinstance(metadata, dict) or metadata.get("format") != "dmarionette-trajectory":
-        got = metadata.get("format") if isinstance(metadata, dict) else metadata
-        raise ExportError(f"{path}: field 'metadata.format': got {got!r}; expected 'dmarionette-trajectory'")
-    if metadata.get("kind") != "marionette":
-        raise ExportError(f"{path}: field 'metadata.kind': got {metadata.get('kind')!r}; expected 'marionette' "
-                          "(this trajectory has strings only, no puppet motion to export)")
+        arrays = read_npz_arrays(path)
+        metadata = read_trajectory_metadata(arrays, str(path))
+        if metadata.get("kind") != "marionette":
+            raise ExportError(f"{path}: field 'metadata.kind': got {metadata.get('kind')!r}; expected 'marionette' "
+                              "(this trajectory has strings only, no puppet motion to export)")
+        check_trajectory_arrays(arrays, str(path), "marionette")
+    except TrajectoryFileError as error:
+        raise ExportError(str(error)) from None
     fields = [f.name for f in dataclasses.fields(MarionetteTrajectory)]
     stored = [n for n in fields if n not in ("body_shape", "string_dt", "puppet_dt", "frame_steps", "wall_seconds")]
-    missing = sorted(n for n in stored if n not in arrays)
-    if missing:
-        raise ExportError(f"{path}: fields {missing}: got nothing (missing); expected every field of "
-                          "docs/trajectory.md for a marionette")
     values = {n: arrays[n] for n in stored}
     for key in ("string_names", "body_names", "bar_names"):
         values[key] = [str(s) for s in values[key]]
-    for key in ("body_shape", "string_dt", "puppet_dt", "frame_steps"):
-        if key not in metadata:
-            raise ExportError(f"{path}: field 'metadata.{key}': got nothing (missing); expected it for a marionette")
-    values["body_shape"] = [(str(s), tuple(float(v) for v in size)) for s, size in metadata["body_shape"]]
+    raw_shapes = metadata.get("body_shape")
+    try:
+        values["body_shape"] = [(str(s), tuple(float(v) for v in size)) for s, size in raw_shapes]
+    except (TypeError, ValueError):
+        raise ExportError(f"{path}: field 'metadata.body_shape': got {raw_shapes!r}; expected one [shape, [sx, sy, "
+                          "sz]] per body") from None
+    if len(values["body_shape"]) != len(values["body_names"]):
+        raise ExportError(f"{path}: field 'metadata.body_shape': got {len(values['body_shape'])} entries; expected "
+                          f"one per body ({len(values['body_names'])})")
     trajectory = MarionetteTrajectory(string_dt=float(metadata["string_dt"]), puppet_dt=float(metadata["puppet_dt"]),
                                       frame_steps=int(metadata["frame_steps"]), wall_seconds=float("nan"), **values)
     trajectory.puppet = _scene_puppet(metadata.get("scene_source"))

@@ -26,12 +26,22 @@ from mcap.stream_reader import StreamReader
 
 from dmarionette.scene.bars import BarTrajectory
 from dmarionette.scene.scene import Scene, scene_from_table
+from dmarionette.io.session.validate import (
+    SessionError,
+    check_integrity,
+    check_message,
+    check_metadata,
+    check_scene_consistency,
+    decode_message,
+    schema_of_topic,
+)
 from dmarionette.io.session.format import FORMAT, FORMAT_VERSION
 
-__all__ = ["Session", "decode_session_metadata", "format_session_info", "read_session", "read_session_records",
-           "session_bar_trajectories", "session_info"]
+__all__ = ["Session", "SessionError", "decode_session_metadata", "format_session_info", "read_session",
+           "read_session_records", "session_bar_trajectories", "session_info"]
 
 _MAGIC = b"\x89MCAP0\r\n"
+FOXGLOVE_PREFIX = "/foxglove/"  # the writer's viewer channels (protobuf, io/session/foxglove.py)
 _INT_FIELDS = {"buttons", "taut"}
 
 
@@ -46,48 +56,64 @@ class _Records:
     messages: dict[int, list[Message]]
     truncated: bool
     size: int
-    error: str | None = None
+    notes: list[str] = dataclasses.field(default_factory=list)
     in_file_order: list[Message] = dataclasses.field(default_factory=list)  # every message read, as written
 
 
 def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
     """Reads the data section of ``path`` record by record; tolerant of a cut-off end."""
     if not path.is_file():
-        raise ValueError(f"{path}: no such session file")
-    data = path.read_bytes()
+        raise SessionError.text(path, "no such session file")
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise SessionError(str(path), "(file)", f"an unreadable file ({error.strerror or error})",
+                           "a readable session file") from None
     if not data.startswith(_MAGIC):
-        raise ValueError(f"{path}: not an MCAP file (it does not start with the MCAP magic bytes "
-                         f"{_MAGIC!r}; got {data[:8]!r}); a session is the .mcap file written by --record")
-    # Walk the record lengths: the data section ends at DataEnd (or the footer, or the cut).
-    offset, end, truncated = len(_MAGIC), len(data), True
-    while offset + 9 <= len(data):
-        opcode = data[offset]
-        (length,) = struct.unpack_from("<Q", data, offset + 1)
-        if offset + 9 + length > len(data):
-            break  # the last record was cut off
-        if opcode in (Opcode.DATA_END, Opcode.FOOTER):
-            truncated = not data.endswith(_MAGIC) or len(data) < offset + 9 + length + len(_MAGIC)
-            break
-        offset += 9 + length
-    end = offset
-    # A chunk cut off (an indexed file cut short): the records its compressed prefix holds.
-    tail = _cut_chunk_records(data, offset) if truncated and offset + 9 <= len(data) else b""
+        raise SessionError.text(path, f"not an MCAP file (it does not start with the MCAP magic bytes "
+                                f"{_MAGIC!r}; got {data[:8]!r}); a session is the .mcap file written by --record")
+    # Walk the record lengths: the data section ends at DataEnd (or the footer, or the cut);
+    # a damaged file (a record that does not parse, a CRC that does not match) is refused.
+    end, truncated, notes, offsets = check_integrity(path, data)
     wanted = None if topics is None else set(topics)
     records = _Records(header=None, metadata={}, channels={}, schemas={}, messages=defaultdict(list),
-                       truncated=truncated, size=len(data))
-    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end] + tail), skip_magic=True).records)
+                       truncated=truncated, size=len(data), notes=notes)
+    # A chunk cut off (an indexed file cut short): the records its compressed prefix holds.
+    tail = _cut_chunk_records(data, end) if truncated and end + 9 <= len(data) else b""
+    reader = iter(StreamReader(io.BytesIO(data[len(_MAGIC):end] + tail), skip_magic=True, validate_crcs=True).records)
+    count = 0
+    chunked = any(data[o] == Opcode.CHUNK for o in offsets)
+    expected = None if chunked else sum(1 for o in offsets if data[o] < 0x80)  # private records are skipped
+    offsets = [] if chunked else [o for o in offsets if data[o] < 0x80]
     while True:
         try:
             record = next(reader)
-        except (StopIteration, EndOfFile):
+            count += 1
+        except StopIteration:
+            if expected is not None and count < expected:  # a record swallowed the ones after it
+                raise SessionError(str(path), "(file)", f"records that stop parsing at byte {offsets[count]} "
+                                   f"({count} of {expected} read)", "a well-formed MCAP file: this one is "
+                                   "damaged") from None
             break
-        except McapError as error:  # a damaged record: keep what came before it
-            records.truncated = True
-            records.error = str(error)
-            break
+        except (EndOfFile, McapError, ValueError, struct.error, UnicodeDecodeError) as error:
+            # Every record up to ``end`` is complete: one that does not parse (or whose chunk CRC
+            # does not match) is damage, not a cut.
+            if isinstance(error, EndOfFile) and (expected is None or count >= expected):
+                break  # every record read
+            at = ""
+            if count < len(offsets):  # the record there, or the one before it read too far
+                at = f" at byte {offsets[count]}" + (f" (or the one before it, at byte {offsets[count - 1]})"
+                                                    if count else "")
+            raise SessionError(str(path), "(file)", f"a damaged MCAP record{at} ({type(error).__name__}: {error})",
+                               "a well-formed MCAP file: this one is damaged") from None
         if isinstance(record, Message):
             channel = records.channels.get(record.channel_id)
-            if channel is not None and (wanted is None or channel.topic in wanted):
+            if channel is None:  # the writer registers every channel before its first message
+                at = f" at byte {offsets[count - 1]}" if count - 1 < len(offsets) else ""
+                raise SessionError(str(path), "(file)", f"a message{at} on channel id "
+                                   f"{record.channel_id}, which no Channel record before it defines",
+                                   "a well-formed MCAP file: this one is damaged")
+            if wanted is None or channel.topic in wanted:
                 records.messages[record.channel_id].append(record)
                 records.in_file_order.append(record)
         elif isinstance(record, Channel):
@@ -149,44 +175,50 @@ def decode_session_metadata(path: str | Path, records: _Records) -> tuple[dict[s
 
 
 def _session_metadata(path: Path, records: _Records) -> tuple[dict[str, Any], dict[str, str]]:
-    """The decoded ``"dmarionette"`` record and the ``"scene"`` record; clear errors if absent."""
+    """The decoded ``"dmarionette"`` record and the ``"scene"`` record, type-checked; clear errors if absent."""
     topics = sorted({c.topic for c in records.channels.values()})
     if "dmarionette" not in records.metadata and records.truncated and not records.channels:
-        raise ValueError(f"{path}: an MCAP file cut off after {records.size} bytes, before its metadata records "
-                         "(a recording that crashed at once): nothing to read")
+        raise SessionError.text(path, f"an MCAP file cut off after {records.size} bytes, before its metadata "
+                                "records (a recording that crashed at once): nothing to read")
     if "dmarionette" not in records.metadata:
-        raise ValueError(f"{path}: an MCAP file, but not a dmarionette session: it has no 'dmarionette' "
-                         f"metadata record (metadata found: {sorted(records.metadata)}; topics: {topics})")
-    raw = records.metadata["dmarionette"]
-    try:
-        meta = {k: json.loads(v) for k, v in raw.items()}
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: the 'dmarionette' metadata record is not JSON ({error})") from None
-    if meta.get("format") != FORMAT:
-        raise ValueError(f"{path}: the 'dmarionette' metadata record names format {meta.get('format')!r}; "
-                         f"expected {FORMAT!r}")
-    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
-        raise ValueError(f"{path}: session format version {meta.get('format_version')}; this dmarionette reads "
-                         f"up to version {FORMAT_VERSION} (upgrade dmarionette)")
-    missing = [k for k in ("string_hz", "puppet_hz", "bars", "strings", "bodies", "constants") if k not in meta]
-    if missing:
-        raise ValueError(f"{path}: the 'dmarionette' metadata record lacks {missing}")
+        raise SessionError.text(path, f"an MCAP file, but not a dmarionette session: it has no 'dmarionette' "
+                                f"metadata record (metadata found: {sorted(records.metadata)}; topics: {topics})")
+    meta = {}
+    for key, value in records.metadata["dmarionette"].items():
+        try:
+            meta[key] = json.loads(value)
+        except json.JSONDecodeError as error:
+            raise SessionError(f"{path}: metadata record 'dmarionette'", key, value,
+                               f"a JSON value ({error})") from None
+    required = ("string_hz", "puppet_hz", "bars", "strings", "bodies", "constants")
+    missing = [k for k in required if k not in meta]
+    if missing and meta.get("format") == FORMAT:
+        raise SessionError.text(path, f"the 'dmarionette' metadata record lacks {missing}")
     scene = records.metadata.get("scene")
     if scene is None or "toml" not in scene:
-        raise ValueError(f"{path}: a dmarionette session without its 'scene' metadata record (or without its "
-                         f"'toml' key): the scene cannot be rebuilt")
+        raise SessionError.text(path, "a dmarionette session without its 'scene' metadata record (or without "
+                                "its 'toml' key): the scene cannot be rebuilt")
+    check_metadata(path, meta, FORMAT, FORMAT_VERSION)
     return meta, scene
 
 
 def _stack(values: list) -> np.ndarray:
     try:
         return np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError):  # ragged (should not happen): keep the lists
+    except (TypeError, ValueError):  # ragged (an unchecked topic): keep the lists
         return np.asarray(values, dtype=object)
 
 
-def _decode_topic(messages: list[Message]) -> dict[str, np.ndarray]:
-    decoded = [json.loads(m.data) for m in messages]
+def _decode_topic(path: Path, topic: str, messages: list[Message], meta: dict[str, Any]) -> dict[str, np.ndarray]:
+    """A topic's messages as arrays; the dmarionette topics are checked message by message."""
+    kind = schema_of_topic(topic, meta["bars"])
+    decoded = []
+    origin = int(meta.get("log_time_origin_ns", 0))  # format 1: log time = simulated time
+    for i, m in enumerate(messages):
+        message = decode_message(path, topic, i, m.data, m.log_time - origin)
+        if kind is not None:
+            check_message(path, topic, kind, i, message, m.log_time - origin, meta)
+        decoded.append(message)
     fields: dict[str, np.ndarray] = {"log_time": np.array([m.log_time for m in messages], dtype=np.int64)}
     keys = dict.fromkeys(k for d in decoded for k in d)  # optional fields too (missing: NaN)
     for key in keys:
@@ -212,6 +244,7 @@ class Session:
         channels: topic -> field -> array: ``log_time`` [ns] ``(N,)``, ``t`` [s] ``(N,)`` and each
             message field stacked (``position`` ``(N, 3)``, ``body_pos`` ``(N, bodies, 3)``, ...).
         truncated: the file has no footer (cut off by a crash, or still being written).
+        notes: lines worth showing (cut off; a damaged summary section; ...).
     """
 
     path: Path
@@ -221,6 +254,7 @@ class Session:
     scene: Scene | None
     channels: dict[str, dict[str, np.ndarray]]
     truncated: bool
+    notes: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def bars(self) -> list[str]:
@@ -274,14 +308,29 @@ def read_session(path: str | Path, *, topics: Iterable[str] | None = None, load_
     for name, values in records.metadata.items():
         if name not in ("dmarionette", "scene"):
             extra[name] = {k: _json_or_text(v) for k, v in values.items()}
+    scene = None
+    if load_scene:  # first: messages are checked against metadata that matches the scene
+        scene = _load_scene(path, scene_record)
+        check_scene_consistency(path, meta, scene)
     channels = {}
+    notes = _notes(records)
     for channel_id, messages in records.messages.items():
         channel = records.channels[channel_id]
-        if channel.message_encoding == "json":  # the Foxglove channels (protobuf) are for viewers
-            channels[channel.topic] = _decode_topic(messages)
-    scene = _load_scene(path, scene_record) if load_scene else None
+        if channel.message_encoding != "json" and schema_of_topic(channel.topic, meta["bars"]) is None:
+            if not channel.topic.startswith(FOXGLOVE_PREFIX):  # the viewers' channels are not ours to decode
+                notes.append(f"channel {channel.topic} ({channel.message_encoding} messages, not JSON) is not decoded")
+            continue
+        channels[channel.topic] = _decode_topic(path, channel.topic, messages, meta)
     return Session(path=path, metadata=meta, scene_record=scene_record, extra_metadata=extra, scene=scene,
-                   channels=channels, truncated=records.truncated)
+                   channels=channels, truncated=records.truncated, notes=notes)
+
+
+def _notes(records: _Records) -> list[str]:
+    notes = list(records.notes)
+    if records.truncated:
+        notes.insert(0, "cut off: no footer (the recording crashed or is still being written); "
+                        "everything up to the last complete record is read")
+    return notes
 
 
 def _json_or_text(value: str) -> Any:
@@ -296,15 +345,29 @@ def _load_scene(path: Path, scene_record: dict[str, str]) -> Scene:
     import tomllib
 
     source = f"{path}#scene"
+    where = f"{path}: metadata record 'scene'"
     if "table_json" in scene_record:
-        table = json.loads(scene_record["table_json"])
+        try:
+            table = json.loads(scene_record["table_json"])
+        except json.JSONDecodeError as error:
+            raise SessionError(where, "table_json", scene_record["table_json"],
+                               f"the scene's table as JSON ({error})") from None
+        if not isinstance(table, dict):
+            raise SessionError(where, "table_json", table, "the scene's table as a JSON object")
     else:
-        table = tomllib.loads(scene_record["toml"])
+        try:
+            table = tomllib.loads(scene_record["toml"])
+        except tomllib.TOMLDecodeError as error:
+            raise SessionError(where, "toml", scene_record["toml"], f"the scene's TOML text ({error})") from None
     return scene_from_table(table, source)
 
 
-def session_info(path: str | Path) -> dict[str, Any]:
-    """A summary of a session file, without decoding its messages.
+def session_info(path: str | Path, *, check_messages: bool = True) -> dict[str, Any]:
+    """A summary of a session file.
+
+    Its structure and metadata are checked as :func:`read_session` checks them and, with
+    ``check_messages`` (default), every message of a dmarionette topic too (decoded, not
+    kept), so a damaged file does not pass ``dmarionette info``.
 
     Returns:
         A JSON-ready dict: ``path``, ``bytes``, ``truncated`` (cut off: no footer),
@@ -313,12 +376,24 @@ def session_info(path: str | Path) -> dict[str, Any]:
         ``duration`` [s], ``messages``, ``topics`` (topic -> ``count``, ``rate_hz`` (mean),
         ``start``, ``end`` [s]), ``device_channels`` (whether device samples/forces were
         recorded) and ``notes`` (lines worth showing).
+
+    Raises:
+        SessionError: as :func:`read_session` (without rebuilding the scene).
     """
     path = Path(path)
     records = _read_records(path)
     meta, scene_record = _session_metadata(path, records)
+    origin = int(meta.get("log_time_origin_ns", 0))  # format 1: log time = simulated time
+    if check_messages:
+        for channel_id, messages in records.messages.items():
+            topic = records.channels[channel_id].topic
+            kind = schema_of_topic(topic, meta["bars"])
+            if kind is not None:
+                for i, m in enumerate(messages):
+                    log_time = m.log_time - origin
+                    check_message(path, topic, kind, i, decode_message(path, topic, i, m.data, log_time),
+                                  log_time, meta)
     topics = {}
-    origin = int(meta.get("log_time_origin_ns", 0))  # version 1: log time = simulated time
     for channel_id, channel in sorted(records.channels.items()):
         times = (np.array([m.log_time for m in records.messages.get(channel_id, [])], dtype=np.int64) - origin) * 1e-9
         count = len(times)
@@ -329,10 +404,7 @@ def session_info(path: str | Path) -> dict[str, Any]:
     starts = [v["start"] for v in topics.values() if v["start"] is not None]
     ends = [v["end"] for v in topics.values() if v["end"] is not None]
     device = any(t.startswith("/device/") and v["count"] for t, v in topics.items())
-    notes = []
-    if records.truncated:
-        notes.append("cut off: no footer (the recording crashed or is still being written); "
-                     "everything up to the last complete record is read")
+    notes = _notes(records)
     if not device:
         notes.append("no device channels (/device/*): "
                      + ("a simulated session" if meta.get("recorder") == "simulation" else "no device was recorded"))
@@ -388,6 +460,7 @@ def session_bar_trajectories(session: Session) -> dict[str, BarTrajectory]:
         t, position, rotation = t[finite], position[finite], rotation[finite]
         keep = np.concatenate([[True], t[1:] > np.maximum.accumulate(t)[:-1]]) if len(t) else np.zeros(0, bool)
         if not keep.any():
-            continue
+            raise SessionError(f"{session.path}: channel /bar/{bar}/pose", "position/rotation", "no finite pose "
+                               f"in its {len(channel['t'])} messages", "at least one pose with finite numbers")
         trajectories[bar] = BarTrajectory(t[keep], position[keep], rotation[keep])
     return trajectories

@@ -134,7 +134,7 @@ def _at(times: np.ndarray, sim_times: np.ndarray, values: np.ndarray) -> np.ndar
 
 
 def replay_session(path: str | Path, *, optimization_level: int = 2, progress: bool = False,
-                   device=None) -> tuple[MarionetteTrajectory, dict[str, Any]]:
+                   device=None, require_puppet_state: bool = True) -> tuple[MarionetteTrajectory, dict[str, Any]]:
     """Re-simulates a recorded session from its recorded bar poses.
 
     Args:
@@ -142,6 +142,9 @@ def replay_session(path: str | Path, *, optimization_level: int = 2, progress: b
         optimization_level: Warp optimisation of the puppet kernels (0 compiles fast).
         progress: show a progress bar.
         device: the Warp device (``None``: Warp's default).
+        require_puppet_state: refuse a session without ``/puppet/state`` messages (there is
+            nothing to compare the replay with); with ``False`` it is re-simulated and the
+            report's ``notes`` say that nothing was compared.
 
     Returns:
         The re-simulated trajectory (frames at the puppet rate), and a report (JSON-ready):
@@ -149,15 +152,19 @@ def replay_session(path: str | Path, *, optimization_level: int = 2, progress: b
         (distance between recorded and re-simulated body centres at the recorded puppet
         times; ``None`` without ``/puppet/state``), per body ``rms_body_gap_per_body``,
         ``rms_feedback_gap`` [N] (recorded vs re-simulated eq. 4, when recorded),
-        ``wall_seconds``, ``truncated``.
+        ``wall_seconds``, ``truncated``, ``notes`` (lines worth showing: cut off, bar poses
+        ending before the recorded puppet states, nothing compared).
 
     Raises:
-        ValueError: not a session, or the channels replay needs (``/bar/BAR/pose`` for every
-            bar) are missing.
+        ValueError: (a :class:`~dmarionette.io.session.read.SessionError`) not a session, a
+            damaged one, or the channels replay needs (``/bar/BAR/pose`` for every bar, and
+            ``/puppet/state`` unless ``require_puppet_state=False``) are missing.
     """
     start = time.perf_counter()
     session = read_session(path)
     scene = scene_for_replay(session)
+    if require_puppet_state:
+        session.require(["/puppet/state"], "replay (to compare the re-simulated puppet with the recorded one)")
     model = MarionetteModel(scene, optimization_level=optimization_level, device=device)
     if not scene.bars:
         raise ValueError(f"{session.path}: the session's scene has no [bars.*]: nothing drives a replay")
@@ -173,9 +180,17 @@ def replay_session(path: str | Path, *, optimization_level: int = 2, progress: b
                          f"step ({model.puppet_dt} s): nothing to replay")
     duration = (steps - 0.5) * model.puppet_dt
     trajectory = simulate_marionette(model, duration, progress=progress, frame_hz=1.0 / model.puppet_dt)
+    notes = list(session.notes)
+    if puppet is None or not len(puppet["t"]):
+        notes.append("no /puppet/state messages: nothing to compare the replay with")
+    elif puppet["t"].max() > trajectory.frame_time[-1] + model.puppet_dt + 1e-9:
+        notes.append(f"the bar poses end at t = {min(ends[:len(scene.bars)]):.6g} s but the recorded puppet goes on "
+                     f"to t = {puppet['t'].max():.6g} s: only the first {trajectory.frame_time[-1]:.6g} s are "
+                     "replayed and compared")
     report: dict[str, Any] = {"path": str(session.path), "scene": scene.name, "duration": float(trajectory.frame_time[-1]),
                               "truncated": session.truncated, "frames_compared": 0, "rms_body_gap": None,
-                              "max_body_gap": None, "rms_body_gap_per_body": None, "rms_feedback_gap": None}
+                              "max_body_gap": None, "rms_body_gap_per_body": None, "rms_feedback_gap": None,
+                              "notes": notes}
     if puppet is not None and len(puppet["t"]):
         inside = puppet["t"] <= trajectory.frame_time[-1] + 1e-9
         t = puppet["t"][inside]
