@@ -34,10 +34,12 @@ def puppet_table() -> dict:
     return copy.deepcopy(tomllib.loads((SCENE_DIR / "puppet.toml").read_text())["puppet"])
 
 
-def write_session(path: Path, *, steps: int = STEPS, enable_data_crcs: bool = False) -> Path:
-    """A small valid session of the ``hanging`` scene: 70 string steps, every dmarionette channel."""
+def write_session(path: Path, *, steps: int = STEPS, enable_data_crcs: bool = False, indexed: bool = False) -> Path:
+    """A small valid session of the ``hanging`` scene: 70 string steps, every dmarionette channel;
+    unchunked as a crash leaves it (the byte-level damage tests walk its records), or ``indexed``
+    (chunked, zstd) as a recording that closed normally."""
     scene = dm.load_scene("hanging")
-    with SessionWriter(path, scene, Path(scene.source).read_text()) as writer:
+    with SessionWriter(path, scene, Path(scene.source).read_text(), index_on_close=indexed) as writer:
         for k in range(steps):
             t = k * 1e-3
             for b, bar in enumerate(BARS):

@@ -277,6 +277,19 @@ def test_overwritten_bytes_are_refused_with_where(session_file, tmp_path):
         read_session(bad)
 
 
+def test_overwritten_bytes_of_an_indexed_session_are_refused(tmp_path):
+    """A recording that closed normally is chunked and zstd-compressed: a byte flipped inside a
+    chunk fails its decompression or its CRC, and the file is refused as damaged."""
+    path = write_session(tmp_path / "indexed.mcap", indexed=True)
+    read_session(path)
+    data = path.read_bytes()
+    chunk = data.index(b"zstd")  # the first chunk's compression name; its compressed records follow
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(_flip(data, chunk + 40))
+    with pytest.raises(SessionError, match="damaged"):
+        read_session(bad)
+
+
 def test_the_data_section_crc_is_checked_when_the_writer_stored_one(tmp_path):
     path = write_session(tmp_path / "crc.mcap", enable_data_crcs=True)
     read_session(path)

@@ -40,6 +40,11 @@ from dmarionette.io.session.format import FORMAT, FORMAT_VERSION
 __all__ = ["Session", "SessionError", "decode_session_metadata", "format_session_info", "read_session",
            "read_session_records", "session_bar_trajectories", "session_info"]
 
+try:  # a zstd chunk that does not decompress is damage too (sessions are indexed with zstd)
+    from zstandard import ZstdError
+except ImportError:  # without zstandard such chunks are not read at all
+    ZstdError = ValueError
+
 _MAGIC = b"\x89MCAP0\r\n"
 FOXGLOVE_PREFIX = "/foxglove/"  # the writer's viewer channels (protobuf, io/session/foxglove.py)
 _INT_FIELDS = {"buttons", "taut"}
@@ -95,7 +100,7 @@ def _read_records(path: Path, topics: Iterable[str] | None = None) -> _Records:
                                    f"({count} of {expected} read)", "a well-formed MCAP file: this one is "
                                    "damaged") from None
             break
-        except (EndOfFile, McapError, ValueError, struct.error, UnicodeDecodeError) as error:
+        except (EndOfFile, McapError, ValueError, struct.error, UnicodeDecodeError, ZstdError) as error:
             # Every record up to ``end`` is complete: one that does not parse (or whose chunk CRC
             # does not match) is damage, not a cut.
             if isinstance(error, EndOfFile) and (expected is None or count >= expected):
