@@ -43,6 +43,7 @@ any plug-in, the top-level help and an unknown command say how to install them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -51,7 +52,7 @@ from collections.abc import Mapping, Sequence
 from importlib import metadata
 from pathlib import Path
 
-from .cli_checks import Outputs, integer, number
+from .cli_checks import Outputs, PromptInterrupt, integer, number, refuse_empty_option_values
 
 __all__ = ["COMMAND_GROUP", "find_commands", "main"]
 
@@ -342,9 +343,13 @@ def _run_live(args: argparse.Namespace) -> int:
                     view=args.view != "none" or args.snapshot is not None, devices=len(devices))
     if args.snapshot is not None and args.snapshot.suffix.lower() != ".png":
         raise ValueError(f"--snapshot: got {str(args.snapshot)!r}; expected a .png file name")
-    from .cli_checks import check_trajectory_fits, live_input_bytes
+    from .cli_checks import check_host, check_trajectory_fits, live_input_bytes
 
     check_trajectory_fits("--duration", args.duration, live_input_bytes(scene, args.duration))
+    if args.session is not None and not args.session.is_file():
+        raise ValueError(f"--session: got {str(args.session)!r}; expected an existing session file (.mcap)")
+    if args.view == "browser":
+        check_host("--view-host", args.view_host)
     for flag, path in (("--record", args.record), ("--snapshot", args.snapshot)):
         if path is not None:
             args.outputs.file(flag, path)
@@ -490,28 +495,37 @@ def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.Entr
         parser.epilog = _NO_PLUGINS
         if named is not None and named not in builtin:
             parser.error(f"unknown command {named!r}; {_NO_PLUGINS}")
+    refuse_empty_option_values(parser, argv)
     args = parser.parse_args(argv)
     args.outputs = Outputs()  # the handler checks its outputs with it before the work (cli_checks)
+    # Ctrl-C stops within a second even inside a kernel compile; live: its servo loop handles it (motors off).
+    prompt = PromptInterrupt(args.outputs) if args.command != "live" else contextlib.nullcontext()
     try:
-        import warp as wp
-
-        wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
-        from .cli_checks import NonFiniteError
-        from .scene.fields import SceneError
-
-        try:
-            return args.handler(args)
-        except NonFiniteError as error:
-            args.outputs.discard()
-            print(f"error: {error}", file=sys.stderr)
-            return 1
-        except (SceneError, ValueError, RuntimeError) as error:
-            args.outputs.discard()
-            print(f"error: {error}", file=sys.stderr)
-            return 2
+        with prompt:
+            return _run_handler(args)
     except KeyboardInterrupt:
         print(args.outputs.interrupted(), file=sys.stderr)
         return 130
+
+
+def _run_handler(args: argparse.Namespace) -> int:
+    """Runs the command; its errors printed (exit code 2; 1 for a non-finite result)."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
+    from .cli_checks import NonFiniteError
+    from .scene.fields import SceneError
+
+    try:
+        return args.handler(args)
+    except NonFiniteError as error:
+        args.outputs.discard()
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    except (SceneError, ValueError, RuntimeError) as error:
+        args.outputs.discard()
+        print(f"error: {error}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["NonFiniteError", "Outputs", "check_finite", "check_trajectory_fits", "first_non_finite", "format_bytes", "integer", "live_input_bytes",
-           "memory_limit_bytes", "number", "start_values", "trajectory_bytes"]
+__all__ = ["NonFiniteError", "Outputs", "PromptInterrupt", "check_finite", "check_host", "check_trajectory_fits", "first_non_finite", "format_bytes", "integer", "live_input_bytes",
+           "memory_limit_bytes", "number", "refuse_empty_option_values", "start_values", "trajectory_bytes"]
 
 
 def _range_text(low: float | None, high: float | None, low_open: bool, unit: str, kind: str) -> str:
@@ -100,10 +100,33 @@ def start_values(text: str) -> dict[str, float]:
             number_ = float(value)
         except ValueError:
             number_ = None
-        if not equals or not name.strip() or number_ is None or not math.isfinite(number_):
-            raise argparse.ArgumentTypeError(f"{item!r}: expected NAME=VALUE with a finite value, e.g. k=250,k_d=2.5")
+        if not equals or not name.strip() or number_ is None or not (math.isfinite(number_) and number_ > 0.0):
+            raise argparse.ArgumentTypeError(f"{item!r}: expected NAME=VALUE with a finite value > 0 (the constants "
+                                             "are positive), e.g. k=250,k_d=2.5")
         values[name.strip()] = number_
     return values
+
+
+def refuse_empty_option_values(parser: argparse.ArgumentParser, argv) -> None:
+    """Refuses ``--flag=--``, which Python 3.11's argparse turns into ``[]`` without calling ``type``.
+
+    (``--flag --`` is already refused: argparse reads the ``--`` as the end of the options.)
+    """
+    for arg in argv:
+        name, equals, value = arg.partition("=")
+        if name.startswith("--") and equals and value == "--":
+            parser.error(f"argument {name}: got '--'; expected a value")
+
+
+def check_host(flag: str, host: str) -> None:
+    """Refuses an address the view could not listen on (one that does not resolve), before the work."""
+    import socket
+
+    try:
+        socket.getaddrinfo(host, None)
+    except (OSError, UnicodeError) as error:
+        raise ValueError(f"{flag}: got {host!r}; expected an address of this machine (e.g. 127.0.0.1, 0.0.0.0 or "
+                         f"localhost): {getattr(error, 'strerror', None) or error}") from None
 
 
 # ----------------------------------------------------------------------------------- outputs
@@ -329,3 +352,84 @@ def check_finite(trajectory) -> None:
         raise NonFiniteError(f"the simulation produced a non-finite value: {name} first at t = {at:.6g} s (index "
                              f"{index}); nothing written (a scene constant far outside the tested range diverges, "
                              "docs/scenes.md)")
+
+
+class PromptInterrupt:
+    """Ctrl-C that stops the command within ``grace`` seconds, even inside a long C call.
+
+    Python raises ``KeyboardInterrupt`` only between bytecodes of the main thread, so a Ctrl-C
+    during a kernel compile (tens of seconds in one call into the compiler) would wait for it.
+    Inside this context the SIGINT handler's wake-up file (``signal.set_wakeup_fd``, written by
+    the C-level handler whatever thread takes the signal) is read by a watcher thread: the usual
+    ``KeyboardInterrupt`` still stops the command (its own cleanup runs), and if the command has
+    not stopped ``grace`` seconds after the signal, the watcher prints ``outputs.interrupted()``
+    and ends the process with exit code 130.
+
+    Not for ``live``: its servo loop turns the motors off on ``KeyboardInterrupt`` and must be
+    left the time to. Does nothing outside the main thread, when SIGINT has a handler other than
+    Python's default, or when a wake-up file is already set (an event loop's).
+    """
+
+    def __init__(self, outputs: Outputs, grace: float = 0.8):
+        self.outputs = outputs
+        self.grace = grace
+        self._active = False
+
+    def __enter__(self) -> PromptInterrupt:
+        import signal
+        import socket
+        import threading
+
+        if (threading.current_thread() is not threading.main_thread()
+                or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+            return self
+        self._read, self._write = socket.socketpair()
+        self._write.setblocking(False)
+        self._read.settimeout(0.05)
+        previous = signal.set_wakeup_fd(self._write.fileno(), warn_on_full_buffer=False)
+        if previous != -1:  # someone else's: put it back, do nothing
+            signal.set_wakeup_fd(previous)
+            self._read.close()
+            self._write.close()
+            return self
+        self._lock = threading.Lock()
+        self._finished = threading.Event()
+        self._active = True
+        self._thread = threading.Thread(target=self._watch, name="dmarionette-interrupt", daemon=True)
+        self._thread.start()
+        return self
+
+    def _watch(self) -> None:
+        import signal
+        import socket
+        import sys
+
+        while not self._finished.is_set():
+            try:
+                data = self._read.recv(64)
+            except (TimeoutError, socket.timeout):
+                continue
+            except OSError:
+                return
+            if signal.SIGINT not in data:
+                continue
+            if self._finished.wait(self.grace):
+                return
+            with self._lock:
+                if self._finished.is_set():
+                    return
+                print(self.outputs.interrupted(), file=sys.stderr, flush=True)
+                os._exit(130)
+
+    def __exit__(self, *exc) -> None:
+        if not self._active:
+            return
+        import signal
+
+        with self._lock:
+            self._finished.set()
+        self._thread.join()
+        signal.set_wakeup_fd(-1)
+        self._read.close()
+        self._write.close()
+        self._active = False
