@@ -33,16 +33,20 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["NonFiniteError", "Outputs", "PromptInterrupt", "check_finite", "check_host", "check_trajectory_fits", "first_non_finite", "format_bytes", "integer", "live_input_bytes",
-           "memory_limit_bytes", "number", "refuse_empty_option_values", "start_values", "trajectory_bytes"]
+__all__ = ["NonFiniteError", "Outputs", "PromptInterrupt", "check_finite", "check_host", "check_trajectory_fits",
+           "first_non_finite", "format_bytes", "integer", "live_input_bytes", "memory_limit_bytes", "number",
+           "refuse_empty_option_values", "start_values", "trajectory_bytes"]
 
 
 def _range_text(low: float | None, high: float | None, low_open: bool, unit: str, kind: str) -> str:
+    def show(x: float) -> str:
+        return str(x) if isinstance(x, int) else f"{x:g}"
+
     parts = []
     if low is not None:
-        parts.append(f"{'>' if low_open else '>='} {low:g}")
+        parts.append(f"{'>' if low_open else '>='} {show(low)}")
     if high is not None:
-        parts.append(f"<= {high:g}")
+        parts.append(f"<= {show(high)}")
     text = f"{kind} {' and '.join(parts)}" if parts else kind
     return f"{text} [{unit}]" if unit else text
 
@@ -202,7 +206,8 @@ class Outputs:
                 continue
             except OSError as error:
                 self.discard()
-                raise ValueError(f"{flag}: cannot create the folder {str(folder)!r}: {error.strerror or error}") from None
+                raise ValueError(f"{flag}: cannot create the folder {str(folder)!r}: "
+                                 f"{error.strerror or error}") from None
             self._created.append(folder)
 
     def _probe(self, flag: str, folder: Path, what: str | None = None) -> None:

@@ -35,16 +35,17 @@ def add_author_command(commands) -> None:
                     "line per solver step, then the summary's main numbers as JSON.")
     author.add_argument("keyframes", type=Path, help="the keyframes TOML file")
     author.add_argument("--out", type=Path, default=None, help="output folder (default: out/<keyframes file name>)")
-    author.add_argument("--max-steps", type=integer(1), default=None,
+    author.add_argument("--max-steps", type=integer(1, 100_000), default=None,
                         help="solver steps at most (default: the file's [solver] max_steps, else 60)")
     author.add_argument("--method", choices=["bfgs", "lm", "gauss_newton"], default=None,
                         help="bfgs: the scalar loss with reverse-mode gradients (default); lm / gauss_newton: the "
                              "residual vector with a reverse-mode Jacobian (one backward pass per residual)")
-    author.add_argument("--checkpoint-steps", type=integer(1), default=None,
+    author.add_argument("--checkpoint-steps", type=integer(1, 1_000_000), default=None,
                         help="puppet steps per taped gradient segment (default: sqrt of the rollout's steps)")
     author.add_argument("--no-animation", action="store_true", help="skip the before/after animations")
     author.add_argument("--no-export", action="store_true", help="skip the BVH and glTF files")
-    author.add_argument("--fps", type=number(0.1, 1000.0, unit="Hz"), default=15.0, help="animation frames per second (default: 15)")
+    author.add_argument("--fps", type=number(0.1, 1000.0, unit="Hz"), default=15.0,
+                        help="animation frames per second (default: 15)")
     author.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     author.add_argument("--quiet", action="store_true", help="no progress lines")
     author.set_defaults(handler=_run_author)
@@ -93,7 +94,8 @@ def add_calibrate_command(commands) -> None:
                            help="constants to fit, comma-separated: k, k_d (eq. 2, per tied string), k_s (string "
                                 "stiffness); ':shared' fits one value for every string (default: k,k_d)")
     calibrate.add_argument("--out", type=Path, default=None, help="output folder (default: out/calibrate/<session>)")
-    calibrate.add_argument("--max-steps", type=integer(1), default=50, help="solver steps at most (default: 50)")
+    calibrate.add_argument("--max-steps", type=integer(1, 100_000), default=50,
+                           help="solver steps at most (default: 50)")
     calibrate.add_argument("--solver", choices=["lm-fd", "lm-bwd", "bfgs"], default="lm-fd",
                            help="lm-fd: Levenberg-Marquardt, Jacobian by central differences of the rollout "
                                 "(default, cheapest); lm-bwd: reverse-mode Jacobian on --rows residuals; bfgs: "
@@ -107,8 +109,10 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--known-noise", action="store_true",
                            help="the noise scales are the true standard deviations (else the residual variance "
                                 "is estimated per target)")
-    calibrate.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=None, help="use only the first S seconds")
-    calibrate.add_argument("--rows", type=integer(1), default=96, help="residuals kept by --solver lm-bwd (default 96)")
+    calibrate.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=None,
+                           help="use only the first S seconds")
+    calibrate.add_argument("--rows", type=integer(1, 1_000_000), default=96,
+                           help="residuals kept by --solver lm-bwd (default 96)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
@@ -123,7 +127,8 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
                            "pip install 'dmarionette[fitting]'") from None
     start = args.start or None
-    out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / "calibrate" / args.session.stem)
+    default = Path("out") / "calibrate" / args.session.stem
+    out = _outputs(args).folder("--out", args.out if args.out is not None else default)
     bar = None
     if not args.quiet:
         from tqdm import tqdm
