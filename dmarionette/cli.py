@@ -43,7 +43,6 @@ any plug-in, the top-level help and an unknown command say how to install them.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 import time
@@ -355,6 +354,7 @@ def _run_live(args: argparse.Namespace) -> int:
             args.outputs.file(flag, path)
     level = 0 if args.fast_compile else 2
     model = MarionetteModel(scene, optimization_level=level)  # compiles here; the child then loads the cache
+    args.interrupt.disarm()  # from here devices open and the servo loop turns the motors off on Ctrl-C
     from .live.view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
 
     def on_start(info: dict) -> None:
@@ -498,10 +498,10 @@ def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.Entr
     refuse_empty_option_values(parser, argv)
     args = parser.parse_args(argv)
     args.outputs = Outputs()  # the handler checks its outputs with it before the work (cli_checks)
-    # Ctrl-C stops within a second even inside a kernel compile; live: its servo loop handles it (motors off).
-    prompt = PromptInterrupt(args.outputs) if args.command != "live" else contextlib.nullcontext()
+    # Ctrl-C stops within a second even inside a kernel compile (live disarms it before it opens the devices).
+    args.interrupt = PromptInterrupt(args.outputs)
     try:
-        with prompt:
+        with args.interrupt:
             return _run_handler(args)
     except KeyboardInterrupt:
         print(args.outputs.interrupted(), file=sys.stderr)

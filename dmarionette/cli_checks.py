@@ -370,15 +370,22 @@ class PromptInterrupt:
     not stopped ``grace`` seconds after the signal, the watcher prints ``outputs.interrupted()``
     and ends the process with exit code 130.
 
-    Not for ``live``: its servo loop turns the motors off on ``KeyboardInterrupt`` and must be
-    left the time to. Does nothing outside the main thread, when SIGINT has a handler other than
-    Python's default, or when a wake-up file is already set (an event loop's).
+    ``live`` calls :meth:`disarm` once its kernels are compiled, before it opens the devices:
+    from there its servo loop turns the motors off on ``KeyboardInterrupt`` and closes its
+    physics processes, and must be left the time to. Does nothing outside
+    the main thread, when SIGINT has a handler other than Python's default, or when a wake-up
+    file is already set (an event loop's).
     """
 
     def __init__(self, outputs: Outputs, grace: float = 0.8):
         self.outputs = outputs
         self.grace = grace
         self._active = False
+        self._armed = True
+
+    def disarm(self) -> None:
+        """From now on Ctrl-C only raises ``KeyboardInterrupt`` (the command's own cleanup takes its time)."""
+        self._armed = False
 
     def __enter__(self) -> PromptInterrupt:
         import signal
@@ -423,6 +430,8 @@ class PromptInterrupt:
             with self._lock:
                 if self._finished.is_set():
                     return
+                if not self._armed:
+                    continue
                 print(self.outputs.interrupted(), file=sys.stderr, flush=True)
                 os._exit(130)
 

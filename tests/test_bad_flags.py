@@ -283,7 +283,7 @@ def test_outputs_discard_removes_only_the_folders_it_created(tmp_path):
     assert (tmp_path / "a").is_dir() and not (tmp_path / "a" / "b").exists()
 
 
-def _interrupt(argv, tmp_path, ready: bytes, env=None) -> tuple[int, float, float, str]:
+def _interrupt(argv, tmp_path, ready: bytes, env=None, wait: float = 0.5) -> tuple[int, float, float, str]:
     """Starts ``dmarionette ARGV`` and sends SIGINT once stderr matches ``ready``.
 
     Returns (exit code, seconds from the signal to the "interrupted" line, to the exit, stderr).
@@ -307,7 +307,7 @@ def _interrupt(argv, tmp_path, ready: bytes, env=None) -> tuple[int, float, floa
     reader.start()
     try:
         assert started.wait(120), bytes(err).decode(errors="replace")
-        time.sleep(0.5)
+        time.sleep(wait)
         sent = time.monotonic()
         process.send_signal(signal.SIGINT)
         code = process.wait(30)
@@ -330,12 +330,40 @@ def test_sigint_stops_a_running_simulation_within_a_second(tmp_path):
     assert not out.exists()
 
 
-def test_sigint_during_a_kernel_compile_stops_within_a_second(tmp_path):
+@pytest.mark.parametrize("command", ["demo", "live"])
+def test_sigint_during_a_kernel_compile_stops_within_a_second(command, tmp_path):
     """SIGINT while Warp compiles the puppet kernels (one long call into the compiler; an empty kernel cache)."""
     out = tmp_path / "out"
-    code, said, stopped, err = _interrupt(["demo", "--fast-compile", "--out", out], tmp_path,
-                                          rb"building the marionette", env={"WARP_CACHE_PATH": str(tmp_path / "cache")})
+    argv = ["demo", "--fast-compile", "--out", out] if command == "demo" else [
+        "live", "--fast-compile", "--duration", "5", "--record", out / "s.mcap"]
+    code, said, stopped, err = _interrupt(argv, tmp_path, rb"building the marionette" if command == "demo" else b"",
+                                          env={"WARP_CACHE_PATH": str(tmp_path / "cache")}, wait=3.0)
     assert code == 130, err
     assert said < 1.0 and stopped < SLACK * 1.0, (said, stopped)
     assert "Traceback" not in err and err.rstrip().splitlines()[-1] == "interrupted; nothing written", err
     assert not out.exists()
+
+
+def test_sigint_during_live_turns_the_motors_off_and_keeps_the_recording(tmp_path):
+    """SIGINT in the servo loop: the loop stops the device (as before), then one line names the recording kept."""
+    from dmarionette.io.session import read_session
+
+    record = tmp_path / "s.mcap"
+    code, said, stopped, err = _interrupt(["live", "--fast-compile", "--duration", "60", "--record", record],
+                                          tmp_path, rb"servo loop starting", wait=1.0)
+    assert code == 130, err
+    assert said < 1.0 and stopped < SLACK * 1.0, (said, stopped)
+    assert "Traceback" not in err, err
+    assert err.rstrip().splitlines()[-1].startswith("interrupted; kept") and str(record) in err, err
+    # The recording kept is readable (motors off on Ctrl-C: tests/test_hw_servo.py, with a device that records it).
+    assert len(read_session(record).channels["/device/main/force"]["t"]) > 0
+
+
+def test_live_inputs_are_checked_before_the_kernels_compile(tmp_path, capsys, no_work):
+    """A --session that does not exist, a --view-host that does not resolve: refused before the work."""
+    code, err = _run(["live", "--device", "replay", "--session", tmp_path / "none.mcap"], capsys)
+    assert code == 2 and err.startswith("error: --session: got ") and "expected an existing session file" in err, err
+    code, err = _run(["live", "--view", "browser", "--view-host", "999.1.1.1"], capsys)
+    assert code == 2 and err.startswith("error: --view-host: got '999.1.1.1'; expected an address"), err
+    code, err = _run(["live", "--duration=--"], capsys)
+    assert code == 2 and "argument --duration: got '--'; expected a value" in err, err
