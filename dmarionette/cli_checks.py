@@ -377,7 +377,7 @@ class PromptInterrupt:
     file is already set (an event loop's).
     """
 
-    def __init__(self, outputs: Outputs, grace: float = 0.8):
+    def __init__(self, outputs: Outputs, grace: float = 0.5):
         self.outputs = outputs
         self.grace = grace
         self._active = False

@@ -316,7 +316,9 @@ def _interrupt(argv, tmp_path, ready: bytes, env=None, wait: float = 0.5) -> tup
         process.kill()
         process.wait()
     reader.join(5)
-    return code, (said[0] - sent) if said else math.inf, stopped, bytes(err).decode(errors="replace")
+    said = (said[0] - sent) if said else math.inf
+    print(f"{argv[0]}: SIGINT -> the line {said:.3f} s, the exit {stopped:.3f} s")  # pytest -s shows it
+    return code, said, stopped, bytes(err).decode(errors="replace")
 
 
 def test_sigint_stops_a_running_simulation_within_a_second(tmp_path):
