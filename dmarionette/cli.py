@@ -24,13 +24,14 @@ The entry's name is the command; its object is a function ``add(commands)`` that
 command's subparser to ``commands`` (what ``ArgumentParser.add_subparsers`` returned) and sets
 the subparser's default ``handler``: a function ``handler(args) -> int`` that runs the command
 and returns its exit code. A ``SceneError``, ``ValueError`` or ``RuntimeError`` it raises is
-printed as ``error: ...`` and exits with 2, as for the built-in commands;
-a ``dmarionette.cli_checks.NonFiniteError`` exits with 1 and Ctrl-C with 130 (one line: what was kept).
-``args.outputs`` (a ``dmarionette.cli_checks.Outputs``) checks the command's output folders and files
-before its work (``args.outputs.folder("--out", path)``) and removes what it created if the command fails. Entries are loaded
-lazily: only the command a command line names (all of them for the top-level help or an
-unknown command), so ``dmarionette simulate`` never imports JAX. An entry that cannot be
-loaded (a missing extra) still appears as a command, which explains the problem and exits 2.
+printed as ``error: ...`` and exits with 2, as for the built-in commands; a
+``dmarionette.cli_checks.NonFiniteError`` exits with 1, and Ctrl-C with 130 (one line: what was
+kept). ``args.outputs`` (a ``dmarionette.cli_checks.Outputs``) checks the command's output folders
+and files before its work (``args.outputs.folder("--out", path)``) and removes what it created if
+the command fails. Entries are loaded lazily: only the command a command line names (all of
+them for the top-level help or an unknown command), so ``dmarionette simulate`` never imports
+JAX. An entry that cannot be loaded (a missing extra) still appears as a command, which
+explains the problem and exits 2.
 
 Where the entries come from (``find_commands``): the installed packages' metadata
 (``importlib.metadata``; ``pip install -e '.[dev]'`` writes it, as CI does), and, for a
@@ -76,7 +77,8 @@ def _add_simulate_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-picture", action="store_true", help="skip the picture / animation")
     parser.add_argument("--animation", choices=["gif", "mp4"], default="gif",
                         help="animation format for scenes with a puppet (default: gif)")
-    parser.add_argument("--fps", type=number(0.1, 1000.0, unit="Hz"), default=15.0, help="animation frames per second (default: 15)")
+    parser.add_argument("--fps", type=number(0.1, 1000.0, unit="Hz"), default=15.0,
+                        help="animation frames per second (default: 15)")
     parser.add_argument("--fast-compile", action="store_true",
                         help="compile the puppet kernels without optimisation: ~10 s instead of ~1 min on "
                              "the first run, slower to run")
@@ -121,7 +123,8 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
     live.add_argument("--session", type=Path, default=None, help="the recorded session --device replay plays")
     live.add_argument("--bar", action="append", default=None,
                       help="the bar the device drives (default: main); once per --device")
-    live.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=10.0, help="seconds to run (default: 10)")
+    live.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=10.0,
+                      help="seconds to run (default: 10)")
     live.add_argument("--record", type=Path, default=None, help="write the session to this MCAP file")
     live.add_argument("--feedback", choices=["reaction", "eq4"], default="reaction",
                       help="force sent: the strings' pull on the bar (default) or the paper's eq. 4 as printed")
@@ -150,7 +153,8 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                       help="TCP port of the browser view (default 8080; 0: any free port; a taken port: the next)")
     live.add_argument("--view-host", default="127.0.0.1",
                       help="address the browser view listens on (default 127.0.0.1, this machine only)")
-    live.add_argument("--view-hz", type=number(0.0, 1000.0, low_open=True, unit="Hz"), default=40.0, help="view updates per second (default 40)")
+    live.add_argument("--view-hz", type=number(0.0, 1000.0, low_open=True, unit="Hz"), default=40.0,
+                      help="view updates per second (default 40)")
     live.add_argument("--snapshot", type=Path, default=None,
                       help="write a picture (PNG) of the last frame here at the end; works with any --view "
                            "(and, like it, runs the physics in the worker thread)")

@@ -31,8 +31,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 __all__ = ["NonFiniteError", "Outputs", "PromptInterrupt", "check_finite", "check_host", "check_trajectory_fits",
            "first_non_finite", "format_bytes", "integer", "live_input_bytes", "memory_limit_bytes", "number",
            "refuse_empty_option_values", "start_values", "trajectory_bytes"]
@@ -324,6 +322,8 @@ def first_non_finite(trajectory) -> tuple[str, float, int] | None:
     Every floating-point array whose first axis is the frames (``frame_time``) or the string
     steps (``step_time``) is scanned; the earliest time wins.
     """
+    import numpy as np
+
     fields = {f.name: getattr(trajectory, f.name) for f in dataclasses.fields(trajectory)}
     clocks = {"frame_time": fields.get("frame_time"), "step_time": fields.get("step_time")}
     first = None
