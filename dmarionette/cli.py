@@ -24,10 +24,14 @@ The entry's name is the command; its object is a function ``add(commands)`` that
 command's subparser to ``commands`` (what ``ArgumentParser.add_subparsers`` returned) and sets
 the subparser's default ``handler``: a function ``handler(args) -> int`` that runs the command
 and returns its exit code. A ``SceneError``, ``ValueError`` or ``RuntimeError`` it raises is
-printed as ``error: ...`` and exits with 2, as for the built-in commands. Entries are loaded
-lazily: only the command a command line names (all of them for the top-level help or an
-unknown command), so ``dmarionette simulate`` never imports JAX. An entry that cannot be
-loaded (a missing extra) still appears as a command, which explains the problem and exits 2.
+printed as ``error: ...`` and exits with 2, as for the built-in commands; a
+``dmarionette.cli_checks.NonFiniteError`` exits with 1, and Ctrl-C with 130 (one line: what was
+kept). ``args.outputs`` (a ``dmarionette.cli_checks.Outputs``) checks the command's output folders
+and files before its work (``args.outputs.folder("--out", path)``) and removes what it created if
+the command fails. Entries are loaded lazily: only the command a command line names (all of
+them for the top-level help or an unknown command), so ``dmarionette simulate`` never imports
+JAX. An entry that cannot be loaded (a missing extra) still appears as a command, which
+explains the problem and exits 2.
 
 Where the entries come from (``find_commands``): the installed packages' metadata
 (``importlib.metadata``; ``pip install -e '.[dev]'`` writes it, as CI does), and, for a
@@ -50,6 +54,7 @@ from pathlib import Path
 
 from .extras import check_command_extras
 from .first_run import build_marionette, init_warp, versions
+from .cli_checks import Outputs, PromptInterrupt, integer, number, refuse_empty_option_values
 
 __all__ = ["COMMAND_GROUP", "find_commands", "main"]
 
@@ -65,7 +70,7 @@ _NO_PLUGINS = (f"no plug-in commands were found (entry-point group {COMMAND_GROU
 
 
 def _add_simulate_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration", type=float, default=None,
+    parser.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=None,
                         help="simulated seconds (default: the scene's [scene] duration)")
     parser.add_argument("--out", type=Path, default=None,
                         help="output folder (default: out/<scene name>)")
@@ -74,7 +79,8 @@ def _add_simulate_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-picture", action="store_true", help="skip the picture / animation")
     parser.add_argument("--animation", choices=["gif", "mp4"], default="gif",
                         help="animation format for scenes with a puppet (default: gif)")
-    parser.add_argument("--fps", type=float, default=15.0, help="animation frames per second (default: 15)")
+    parser.add_argument("--fps", type=number(0.1, 1000.0, unit="Hz"), default=15.0,
+                        help="animation frames per second (default: 15)")
     parser.add_argument("--fast-compile", action="store_true",
                         help="compile the puppet kernels without optimisation: ~10 s instead of ~1 min on "
                              "the first run, slower to run")
@@ -120,14 +126,15 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
     live.add_argument("--session", type=Path, default=None, help="the recorded session --device replay plays")
     live.add_argument("--bar", action="append", default=None,
                       help="the bar the device drives (default: main); once per --device")
-    live.add_argument("--duration", type=float, default=10.0, help="seconds to run (default: 10)")
+    live.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=10.0,
+                      help="seconds to run (default: 10)")
     live.add_argument("--record", type=Path, default=None, help="write the session to this MCAP file")
     live.add_argument("--feedback", choices=["reaction", "eq4"], default="reaction",
                       help="force sent: the strings' pull on the bar (default) or the paper's eq. 4 as printed")
-    live.add_argument("--force-scale", type=float, default=0.3,
+    live.add_argument("--force-scale", type=number(0.0), default=0.3,
                       help="multiplies the feedback before the safety filter (default 0.3: the puppet's "
                            "~7 N weight becomes ~2 N, inside a PHANToM Omni's 3.3 N)")
-    live.add_argument("--workspace-scale", type=float, action="append", default=None,
+    live.add_argument("--workspace-scale", type=number(0.0, low_open=True), action="append", default=None,
                       help="S of P' = S W P (default 1); once for all devices or once per --device")
     live.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     live.add_argument("--physics", choices=["auto", "thread", "process", "shm"], default=None,
@@ -145,11 +152,12 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                            "http://HOST:PORT (viser; needs the 'view' extra): puppet, strings (dark taut, orange "
                            "slack), bars, force arrows; with the simulated device the driven bar can be dragged; "
                            "runs the physics in the servo loop's worker thread (docs/live_view.md)")
-    live.add_argument("--view-port", type=int, default=8080,
+    live.add_argument("--view-port", type=integer(0, 65535), default=8080,
                       help="TCP port of the browser view (default 8080; 0: any free port; a taken port: the next)")
     live.add_argument("--view-host", default="127.0.0.1",
                       help="address the browser view listens on (default 127.0.0.1, this machine only)")
-    live.add_argument("--view-hz", type=float, default=40.0, help="view updates per second (default 40)")
+    live.add_argument("--view-hz", type=number(0.0, 1000.0, low_open=True, unit="Hz"), default=40.0,
+                      help="view updates per second (default 40)")
     live.add_argument("--snapshot", type=Path, default=None,
                       help="write a picture (PNG) of the last frame here at the end; works with any --view "
                            "(and, like it, runs the physics in the worker thread)")
@@ -185,8 +193,9 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
     bench.add_argument("what", choices=["accuracy"], help="the benchmark to run")
     bench.add_argument("--grid", choices=["full", "reduced"], default="full",
                        help="full sweep (about 10 minutes) or the reduced grid CI runs")
-    bench.add_argument("--seconds", type=float, default=3.0, help="length of the scripted motion [s]")
-    bench.add_argument("--repeats", type=int, default=3, help="timed runs per setting (median)")
+    bench.add_argument("--seconds", type=number(0.1, 60.0, unit="s"), default=3.0,
+                       help="length of the scripted motion [s] (0.1 to 60; the full grid takes ~10 min at 3 s)")
+    bench.add_argument("--repeats", type=integer(1, 100), default=3, help="timed runs per setting (median)")
     bench.add_argument("--out", type=Path, default=Path("out") / "bench", help="output folder")
     bench.add_argument("--fast-compile", action="store_true",
                        help="puppet kernels without optimisation (timings then mean less)")
@@ -202,7 +211,7 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                              "part of 'all' only when pxr imports)")
     export.add_argument("--out", type=Path, default=None,
                         help="output folder (default: the trajectory file's folder)")
-    export.add_argument("--fps", type=float, default=None,
+    export.add_argument("--fps", type=number(0.0, 1000.0, low_open=True, unit="Hz"), default=None,
                         help="BVH frame rate (default: one BVH frame per trajectory frame)")
     export.add_argument("--scene", default=None,
                         help="the scene (name or TOML file) whose puppet the trajectory was simulated with "
@@ -232,7 +241,7 @@ def _run_export(args: argparse.Namespace) -> int:
         if scene.puppet is None:
             raise ValueError(f"{scene.source}: --scene: this scene has no [puppet]; expected the marionette's scene")
         trajectory.puppet = scene.puppet
-    out = args.out if args.out is not None else args.trajectory.parent
+    out = args.outputs.folder("--out", args.out if args.out is not None else args.trajectory.parent)
     files = {}
     if args.format in ("bvh", "all"):
         files["bvh"] = str(export_bvh(trajectory, out / "motion.bvh", fps=args.fps))
@@ -255,6 +264,7 @@ def _run_export(args: argparse.Namespace) -> int:
 def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     import dataclasses
 
+    from .cli_checks import check_finite, check_trajectory_fits, trajectory_bytes
     from .scene.scene import load_scene
     from .strings.simulate import simulate_strings
     from .io.trajectory import summarize, write_trajectory
@@ -262,10 +272,14 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     scene = load_scene(scene_name)
     if args.precision is not None:
         scene = dataclasses.replace(scene, precision=args.precision)
-    out = args.out if args.out is not None else Path("out") / scene.name
+    duration = scene.duration if args.duration is None else args.duration
+    check_trajectory_fits("--duration" if args.duration is not None else f"{scene.source}: [scene] duration",
+                          duration, trajectory_bytes(scene, duration))
+    out = args.outputs.folder("--out", args.out if args.out is not None else Path("out") / scene.name)
     if scene.puppet is not None:
         return _run_marionette(scene, out, args)
-    trajectory = simulate_strings(scene, args.duration, progress=not args.quiet)
+    trajectory = simulate_strings(scene, duration, progress=not args.quiet)
+    check_finite(trajectory)
     files = {"trajectory": str(write_trajectory(out / "trajectory.npz", trajectory, scene))}
     if not args.no_picture:
         from .render.strings import render_string_picture
@@ -276,6 +290,7 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
 
 
 def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
+    from .cli_checks import check_finite
     from .marionette.rollout import simulate_marionette
     from .io.trajectory import summarize_marionette, write_marionette_trajectory
 
@@ -284,6 +299,7 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
     model = build_marionette(scene, optimization_level=0 if args.fast_compile else 2, quiet=args.quiet)
     duration = scene.duration if args.duration is None else args.duration
     trajectory = simulate_marionette(model, duration, progress=not args.quiet)
+    check_finite(trajectory)
     files = {"trajectory": str(write_marionette_trajectory(out / "trajectory.npz", trajectory, scene))}
     if not args.no_picture:
         from .render.marionette import render_marionette_animation
@@ -311,17 +327,20 @@ def _write_summary(out: Path, summary: dict, files: dict) -> int:
 
 
 def _run_replay(args: argparse.Namespace) -> int:
+    from .cli_checks import check_finite
     from .io.session import read_session, replay_session
 
+    out = args.outputs.folder("--out", args.out) if args.out is not None else None
     level = 0 if args.fast_compile else 2
     build_marionette(read_session(args.session).scene, optimization_level=level, quiet=args.quiet)  # compiles
     trajectory, report = replay_session(args.session, optimization_level=level, progress=not args.quiet)
-    if args.out is not None:
+    if out is not None:
         from .io.trajectory import summarize_marionette, write_marionette_trajectory
 
+        check_finite(trajectory)
         scene = read_session(args.session).scene
-        write_marionette_trajectory(args.out / "trajectory.npz", trajectory, scene)
-        (args.out / "summary.json").write_text(json.dumps(summarize_marionette(trajectory, scene), indent=2) + "\n")
+        write_marionette_trajectory(out / "trajectory.npz", trajectory, scene)
+        (out / "summary.json").write_text(json.dumps(summarize_marionette(trajectory, scene), indent=2) + "\n")
     print(json.dumps(report, indent=2, default=float))
     return 0
 
@@ -349,9 +368,6 @@ def _run_live(args: argparse.Namespace) -> int:
     if len(scales) not in (1, len(devices)):
         raise ValueError(f"--workspace-scale given {len(scales)} times for {len(devices)} devices; expected once "
                          "for all or once per device")
-    if not args.force_scale >= 0.0 or not all(s > 0.0 for s in scales):
-        raise ValueError(f"--force-scale must be >= 0 and --workspace-scale > 0; got {args.force_scale}, "
-                         f"{scales}")
     if "replay" in devices and args.session is None:
         raise ValueError("--device replay needs --session FILE (a recorded session)")
     if args.own_process and args.physics not in (None, "process"):
@@ -359,12 +375,21 @@ def _run_live(args: argparse.Namespace) -> int:
     # Checked before anything compiles: a view reads the physics' snapshots in this process.
     resolve_physics(args.physics, process=args.own_process, realtime=not args.no_realtime,
                     view=args.view != "none" or args.snapshot is not None, devices=len(devices))
-    if not (args.view_hz > 0.0 and args.view_hz < float("inf")):
-        raise ValueError(f"--view-hz: got {args.view_hz}; expected a rate > 0 [Hz]")
     if args.snapshot is not None and args.snapshot.suffix.lower() != ".png":
         raise ValueError(f"--snapshot: got {str(args.snapshot)!r}; expected a .png file name")
+    from .cli_checks import check_host, check_trajectory_fits, live_input_bytes
+
+    check_trajectory_fits("--duration", args.duration, live_input_bytes(scene, args.duration))
+    if args.session is not None and not args.session.is_file():
+        raise ValueError(f"--session: got {str(args.session)!r}; expected an existing session file (.mcap)")
+    if args.view == "browser":
+        check_host("--view-host", args.view_host)
+    for flag, path in (("--record", args.record), ("--snapshot", args.snapshot)):
+        if path is not None:
+            args.outputs.file(flag, path)
     level = 0 if args.fast_compile else 2
     model = build_marionette(scene, optimization_level=level)  # compiles here; the child then loads the cache
+    args.interrupt.disarm()  # from here devices open and the servo loop turns the motors off on Ctrl-C
     from .live.view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
 
     def on_start(info: dict) -> None:
@@ -429,6 +454,7 @@ def _run_info(args: argparse.Namespace) -> int:
 def _run_bench(args: argparse.Namespace) -> int:
     from .marionette.accuracy import run_sweep, write_outputs
 
+    args.outputs.folder("--out", args.out)
     rows, summary = run_sweep(args.seconds, args.grid, 0 if args.fast_compile else 2, args.repeats,
                               progress=lambda line: print(line, file=sys.stderr))
     files = write_outputs(rows, summary, args.out)
@@ -489,7 +515,8 @@ def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.Entr
         commands: the plug-in commands (default: ``find_commands()``).
 
     Returns:
-        The exit code: 0 done, 1 a simulation produced a non-finite value, 2 an error (printed).
+        The exit code: 0 done, 1 a simulation produced a non-finite value (nothing written), 2 an error
+        (printed; a flag, a file or an output path), 130 interrupted (Ctrl-C; one line says what was kept).
     """
     argv = sys.argv[1:] if argv is None else list(argv)
     parser, sub = _parser()
@@ -503,7 +530,22 @@ def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.Entr
         parser.epilog = _NO_PLUGINS
         if named is not None and named not in builtin:
             parser.error(f"unknown command {named!r}; {_NO_PLUGINS}")
+    refuse_empty_option_values(parser, argv)
     args = parser.parse_args(argv)
+    args.outputs = Outputs()  # the handler checks its outputs with it before the work (cli_checks)
+    # Ctrl-C stops within a second even inside a kernel compile (live disarms it before it opens the devices).
+    args.interrupt = PromptInterrupt(args.outputs)
+    try:
+        with args.interrupt:
+            return _run_handler(args)
+    except KeyboardInterrupt:
+        print(args.outputs.interrupted(), file=sys.stderr)
+        return 130
+
+
+def _run_handler(args: argparse.Namespace) -> int:
+    """Runs the command; its errors printed (exit code 2; 1 for a non-finite result)."""
+    from .cli_checks import NonFiniteError
     from .scene.fields import SceneError
 
     try:
@@ -513,7 +555,12 @@ def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.Entr
         wp.config.log_level = wp.LOG_WARNING  # before Warp starts: stdout carries the JSON summary, not Warp's banner
         init_warp()  # without the CUDA-driver notice on a CPU-only machine
         return args.handler(args)
+    except NonFiniteError as error:
+        args.outputs.discard()
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     except (SceneError, ValueError, RuntimeError) as error:
+        args.outputs.discard()
         print(f"error: {error}", file=sys.stderr)
         return 2
 

@@ -17,6 +17,8 @@ import json
 import sys
 from pathlib import Path
 
+from dmarionette.cli_checks import Outputs, integer, number, start_values
+
 __all__ = ["add_author_command", "add_calibrate_command"]
 
 
@@ -33,16 +35,17 @@ def add_author_command(commands) -> None:
                     "line per solver step, then the summary's main numbers as JSON.")
     author.add_argument("keyframes", type=Path, help="the keyframes TOML file")
     author.add_argument("--out", type=Path, default=None, help="output folder (default: out/<keyframes file name>)")
-    author.add_argument("--max-steps", type=int, default=None,
+    author.add_argument("--max-steps", type=integer(1, 100_000), default=None,
                         help="solver steps at most (default: the file's [solver] max_steps, else 60)")
     author.add_argument("--method", choices=["bfgs", "lm", "gauss_newton"], default=None,
                         help="bfgs: the scalar loss with reverse-mode gradients (default); lm / gauss_newton: the "
                              "residual vector with a reverse-mode Jacobian (one backward pass per residual)")
-    author.add_argument("--checkpoint-steps", type=int, default=None,
+    author.add_argument("--checkpoint-steps", type=integer(1, 1_000_000), default=None,
                         help="puppet steps per taped gradient segment (default: sqrt of the rollout's steps)")
     author.add_argument("--no-animation", action="store_true", help="skip the before/after animations")
     author.add_argument("--no-export", action="store_true", help="skip the BVH and glTF files")
-    author.add_argument("--fps", type=float, default=15.0, help="animation frames per second (default: 15)")
+    author.add_argument("--fps", type=number(0.1, 1000.0, unit="Hz"), default=15.0,
+                        help="animation frames per second (default: 15)")
     author.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     author.add_argument("--quiet", action="store_true", help="no progress lines")
     author.set_defaults(handler=_run_author)
@@ -60,14 +63,8 @@ def _run_author(args: argparse.Namespace) -> int:
     from .author import author
     from .keyframes import load_keyframes
 
-    if args.max_steps is not None and args.max_steps < 1:
-        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
-    if args.checkpoint_steps is not None and args.checkpoint_steps < 1:
-        raise ValueError(f"--checkpoint-steps: got {args.checkpoint_steps}; expected an integer >= 1")
-    if not args.fps > 0.0:
-        raise ValueError(f"--fps: got {args.fps}; expected a positive number")
     spec = load_keyframes(args.keyframes)
-    out = args.out if args.out is not None else Path("out") / args.keyframes.stem
+    out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / args.keyframes.stem)
     summary = author(spec, out, max_steps=args.max_steps, method=args.method, progress=not args.quiet,
                      animation=not args.no_animation, exports=not args.no_export,
                      optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
@@ -97,22 +94,25 @@ def add_calibrate_command(commands) -> None:
                            help="constants to fit, comma-separated: k, k_d (eq. 2, per tied string), k_s (string "
                                 "stiffness); ':shared' fits one value for every string (default: k,k_d)")
     calibrate.add_argument("--out", type=Path, default=None, help="output folder (default: out/calibrate/<session>)")
-    calibrate.add_argument("--max-steps", type=int, default=50, help="solver steps at most (default: 50)")
+    calibrate.add_argument("--max-steps", type=integer(1, 100_000), default=50,
+                           help="solver steps at most (default: 50)")
     calibrate.add_argument("--solver", choices=["lm-fd", "lm-bwd", "bfgs"], default="lm-fd",
                            help="lm-fd: Levenberg-Marquardt, Jacobian by central differences of the rollout "
                                 "(default, cheapest); lm-bwd: reverse-mode Jacobian on --rows residuals; bfgs: "
                                 "BFGS on the loss with its reverse-mode gradient")
-    calibrate.add_argument("--start", default=None,
+    calibrate.add_argument("--start", type=start_values, default=None,
                            help="start values, e.g. 'k=250,k_d=2.5' (default: the session scene's constants)")
-    calibrate.add_argument("--noise-position", type=float, default=1e-3,
+    calibrate.add_argument("--noise-position", type=number(0.0, low_open=True, unit="m"), default=1e-3,
                            help="noise scale of a body coordinate [m] (default 1e-3)")
-    calibrate.add_argument("--noise-force", type=float, default=1e-2,
+    calibrate.add_argument("--noise-force", type=number(0.0, low_open=True, unit="N"), default=1e-2,
                            help="noise scale of a force component [N] (default 1e-2)")
     calibrate.add_argument("--known-noise", action="store_true",
                            help="the noise scales are the true standard deviations (else the residual variance "
                                 "is estimated per target)")
-    calibrate.add_argument("--duration", type=float, default=None, help="use only the first S seconds")
-    calibrate.add_argument("--rows", type=int, default=96, help="residuals kept by --solver lm-bwd (default 96)")
+    calibrate.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=None,
+                           help="use only the first S seconds")
+    calibrate.add_argument("--rows", type=integer(1, 1_000_000), default=96,
+                           help="residuals kept by --solver lm-bwd (default 96)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
@@ -126,18 +126,9 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     except ImportError as error:
         raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
                            "pip install 'dmarionette[fitting]'") from None
-    start = None
-    if args.start:
-        start = {}
-        for item in args.start.split(","):
-            name, _, value = item.partition("=")
-            try:
-                start[name.strip()] = float(value)
-            except ValueError:
-                raise ValueError(f"--start: {item!r}: expected NAME=VALUE, e.g. k=250,k_d=2.5") from None
-    if args.max_steps < 1:
-        raise ValueError(f"--max-steps: got {args.max_steps}; expected an integer >= 1")
-    out = args.out if args.out is not None else Path("out") / "calibrate" / args.session.stem
+    start = args.start or None
+    default = Path("out") / "calibrate" / args.session.stem
+    out = _outputs(args).folder("--out", args.out if args.out is not None else default)
     bar = None
     if not args.quiet:
         from tqdm import tqdm
@@ -163,3 +154,10 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     print(format_table(result))
     print(json.dumps(files, indent=2))
     return 0
+
+
+def _outputs(args: argparse.Namespace) -> Outputs:
+    """The command's output checks (``dmarionette.cli.main`` sets ``args.outputs``; a direct call gets its own)."""
+    if getattr(args, "outputs", None) is None:
+        args.outputs = Outputs()
+    return args.outputs

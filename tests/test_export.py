@@ -315,9 +315,8 @@ def test_export_command_refuses_missing_and_corrupt_files(simulated, tmp_path, c
     cases["strings only"] = (tmp_path / "strings.npz", r"metadata.kind': got None; expected 'marionette'")
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
     cases["other npz"] = (tmp_path / "other.npz", r"other.npz: field 'metadata': got nothing")
-    cases["bad fps"] = (path, r"fps: got -1.0; expected a frame rate > 0")
     cases["scene without puppet"] = (path, r"--scene: this scene has no \[puppet\]")
-    extra = {"bad fps": ["--fps", "-1"], "scene without puppet": ["--scene", "strings"]}
+    extra = {"scene without puppet": ["--scene", "strings"]}  # a bad --fps: tests/test_bad_flags.py
     for label, (file, message) in cases.items():
         # In-process (the command's own error handling; an escaping exception fails the test).
         assert main(["export", str(file), "--out", str(tmp_path / "out"), *extra.get(label, [])]) == 2, label
