@@ -264,7 +264,8 @@ def _run_export(args: argparse.Namespace) -> int:
 def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .cli_checks import check_finite, check_trajectory_fits, trajectory_bytes
+    from .cli_checks import check_finite, check_trajectory_fits
+    from .scene.limits import trajectory_bytes
     from .scene.scene import load_scene
     from .strings.simulate import simulate_strings
     from .io.trajectory import summarize, write_trajectory

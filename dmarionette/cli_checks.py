@@ -23,7 +23,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import os
 import tempfile
@@ -32,8 +31,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 __all__ = ["NonFiniteError", "Outputs", "PromptInterrupt", "check_finite", "check_host", "check_trajectory_fits",
-           "first_non_finite", "format_bytes", "integer", "live_input_bytes", "memory_limit_bytes", "number",
-           "refuse_empty_option_values", "start_values", "trajectory_bytes"]
+           "format_bytes", "integer", "live_input_bytes", "number", "refuse_empty_option_values", "start_values"]
 
 
 def _range_text(low: float | None, high: float | None, low_open: bool, unit: str, kind: str) -> str:
@@ -252,14 +250,6 @@ class Outputs:
 # ------------------------------------------------------------------------------------- sizes
 
 
-def memory_limit_bytes() -> int:
-    """This machine's physical memory [bytes] (a trajectory must fit in it)."""
-    try:
-        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):  # not POSIX: assume 16 GiB
-        return 16 << 30
-
-
 def format_bytes(count: float) -> str:
     """``7.28 TiB``-style text."""
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
@@ -267,30 +257,6 @@ def format_bytes(count: float) -> str:
             return f"{count:.3g} {unit}" if unit != "B" else f"{count:.0f} B"
         count /= 1024.0
     return f"{count:.3g} EiB"  # pragma: no cover
-
-
-_JOINT_Q = {"ball": 4, "universal": 2, "hinge": 1}
-
-
-def trajectory_bytes(scene, duration: float) -> float:
-    """The peak memory [bytes] of simulating ``scene`` for ``duration`` seconds, from its sizes.
-
-    Counts the arrays the rollout keeps (float64, docs/trajectory.md): per string step the bars'
-    inputs, the tie forces, the taut flags, the bar forces and the step time (kept twice while
-    the chunks are concatenated); per frame (about 30 Hz, or the puppet rate for strings alone)
-    the particles, their velocities, joints, bodies and bars.
-    """
-    s = len(scene.strings)
-    p = sum(spec.particle_count for spec in scene.strings)
-    b = max(len(scene.bars), 1)
-    steps = duration * scene.string_hz
-    per_step = 8 * (1 + s * 3 * 2 + b * (3 + 4 + 6 + 3 + 3)) + 4 * s  # step time, tops + ties, bar q/qd/forces
-    per_step *= 2  # the per-chunk lists and their concatenation
-    bodies = len(scene.puppet.bodies) if scene.puppet is not None else 0
-    joints = 7 + sum(_JOINT_Q.get(j.type, 4) for j in scene.puppet.joints) if scene.puppet is not None else 0
-    frame_hz = min(scene.puppet_hz, 30.0) if scene.puppet is not None else scene.puppet_hz
-    per_frame = 8 * (p * 3 * 2 + joints + bodies * 7 + b * 12 + s * 3 + 1)
-    return float(steps * per_step + duration * frame_hz * per_frame)
 
 
 def live_input_bytes(scene, duration: float) -> float:
@@ -305,40 +271,17 @@ def check_trajectory_fits(flag: str, duration: float, size: float, limit: float 
     Raises:
         ValueError: naming ``flag`` (or the scene file's key), the estimate and the longest duration that fits.
     """
-    limit = memory_limit_bytes() if limit is None else limit
+    from dmarionette.scene.limits import memory_budget_bytes
+
+    limit = memory_budget_bytes() if limit is None else limit
     if not size <= limit:
         longest = duration * limit / size
         raise ValueError(f"{flag}: got {duration:g} s; the trajectory would take about {format_bytes(size)} in memory "
-                         f"(estimated from the scene's sizes), more than this machine's {format_bytes(limit)}; "
+                         f"(estimated from the scene's sizes), more than the {format_bytes(limit)} allowed (half of this machine's memory); "
                          f"expected a duration of at most about {longest:.3g} s")
 
 
 # ----------------------------------------------------------------------------------- results
-
-
-def first_non_finite(trajectory) -> tuple[str, float, int] | None:
-    """The trajectory's first non-finite quantity: ``(name, time [s], index along time)``, or None.
-
-    Every floating-point array whose first axis is the frames (``frame_time``) or the string
-    steps (``step_time``) is scanned; the earliest time wins.
-    """
-    import numpy as np
-
-    fields = {f.name: getattr(trajectory, f.name) for f in dataclasses.fields(trajectory)}
-    clocks = {"frame_time": fields.get("frame_time"), "step_time": fields.get("step_time")}
-    first = None
-    for name, value in fields.items():
-        if not isinstance(value, np.ndarray) or value.dtype.kind not in "fc" or value.ndim == 0:
-            continue
-        bad = ~np.isfinite(value.reshape(len(value), -1)).all(axis=1)
-        if not bad.any():
-            continue
-        index = int(np.argmax(bad))
-        clock = next((c for c in clocks.values() if c is not None and len(c) == len(value)), None)
-        at = float(clock[index]) if clock is not None and np.isfinite(clock[index]) else float("nan")
-        if first is None or (at < first[1]) or (math.isnan(first[1]) and not math.isnan(at)):
-            first = (name, at, index)
-    return first
 
 
 class NonFiniteError(RuntimeError):
@@ -351,11 +294,14 @@ def check_finite(trajectory) -> None:
     Raises:
         NonFiniteError: naming the first non-finite quantity and the simulated time it appeared at.
     """
+    from dmarionette.io.trajectory import first_non_finite
+
     found = first_non_finite(trajectory)
     if found is not None:
-        name, at, index = found
-        raise NonFiniteError(f"the simulation produced a non-finite value: {name} first at t = {at:.6g} s (index "
-                             f"{index}); nothing written (a scene constant far outside the tested range diverges, "
+        name, index, at = found
+        when = f" first at t = {at:.6g} s" if at is not None else ""
+        raise NonFiniteError(f"the simulation produced a non-finite value: {name}{when} (index {list(index)}); "
+                             "nothing written (a scene constant far outside the tested range diverges, "
                              "docs/scenes.md)")
 
 
@@ -432,6 +378,9 @@ class PromptInterrupt:
                     return
                 if not self._armed:
                     continue
+                from dmarionette.first_run import end_progress_lines
+
+                end_progress_lines()  # a compile's progress bar: its line ended first
                 print(self.outputs.interrupted(), file=sys.stderr, flush=True)
                 os._exit(130)
 

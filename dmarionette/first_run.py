@@ -25,8 +25,18 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["CUDA_DRIVER_NOTICE", "FIRST_RUN_S", "CompileProgress", "build_marionette", "filter_native_stderr",
-           "init_warp", "load_kernels", "versions"]
+__all__ = ["CUDA_DRIVER_NOTICE", "FIRST_RUN_S", "CompileProgress", "build_marionette", "end_progress_lines",
+           "filter_native_stderr", "init_warp", "load_kernels", "versions"]
+
+_SHOWN: set = set()  # the progress bars on screen now (their line is open until they close)
+
+
+def end_progress_lines() -> None:
+    """Ends the line of every progress bar on screen, so that a last message (Ctrl-C's, from
+    another thread, before the process ends at once) starts on a line of its own."""
+    for bar in list(_SHOWN):
+        _SHOWN.discard(bar)
+        bar.close()
 
 CUDA_DRIVER_NOTICE = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver."
 """The start of the line Warp 1.19's native library prints on a machine without the NVIDIA driver."""
@@ -172,6 +182,7 @@ class CompileProgress:
                 self._bar = tqdm(total=round(self.expected_s), unit="s", file=self.stream or sys.stderr,
                                  desc=f"compiling {self.what} (first run: ~{self.expected_s:.0f} s; then cached)",
                                  bar_format="{desc}: {bar:20} {n}/{total} s{postfix}", dynamic_ncols=True)
+                _SHOWN.add(self._bar)
             self._update(elapsed)
 
     def _update(self, elapsed: float) -> None:
@@ -189,7 +200,8 @@ class CompileProgress:
             return
         self._stop.set()
         self._thread.join()
-        if self._bar is not None:
+        if self._bar is not None and self._bar in _SHOWN:
+            _SHOWN.discard(self._bar)
             self._update(time.monotonic() - self._start)
             self._bar.close()
 

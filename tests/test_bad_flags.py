@@ -26,7 +26,9 @@ import numpy as np
 import pytest
 
 from dmarionette.cli import find_commands, main
-from dmarionette.cli_checks import Outputs, check_trajectory_fits, first_non_finite, trajectory_bytes
+from dmarionette.cli_checks import Outputs, check_trajectory_fits
+from dmarionette.io.trajectory import first_non_finite
+from dmarionette.scene.limits import trajectory_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 KEYFRAMES = ROOT / "examples" / "keyframes_three_poses.toml"
@@ -226,9 +228,9 @@ def test_first_non_finite_names_the_earliest_quantity_and_time():
     t = T(np.arange(5) * 0.1, np.arange(1, 41) * 0.0125, np.zeros((5, 3, 3)), np.zeros((40, 2, 3)))
     assert first_non_finite(t) is None
     t.particle_q[3, 1, 2] = np.nan
-    assert first_non_finite(t) == ("particle_q", pytest.approx(0.3), 3)
+    assert first_non_finite(t) == ("particle_q", (3, 1, 2), pytest.approx(0.3))
     t.tie_force[9, 0, 0] = np.inf  # t = 0.125 s: earlier than the particles' NaN
-    assert first_non_finite(t) == ("tie_force", pytest.approx(0.125), 9)
+    assert first_non_finite(t) == ("tie_force", (9, 0, 0), pytest.approx(0.125))
 
 
 def test_a_non_finite_result_writes_nothing(tmp_path, capsys, monkeypatch):

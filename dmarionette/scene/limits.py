@@ -153,22 +153,29 @@ def memory_budget_bytes() -> int:
         return 8 << 30
 
 
-def trajectory_bytes(scene, duration: float) -> float:
-    """Estimated bytes of the trajectory of ``duration`` seconds of ``scene`` (float64 arrays).
+_JOINT_Q = {"ball": 4, "universal": 2, "hinge": 1}
 
-    Per string step: the time, and per string the top position, the tie force and the taut
-    flag (and per bar the feedback and reaction forces); per frame (about ``puppet_hz``):
-    every particle's position and velocity, and per body its position and rotation.
+
+def trajectory_bytes(scene, duration: float) -> float:
+    """The peak memory [bytes] of simulating ``scene`` for ``duration`` seconds, from its sizes.
+
+    Counts the arrays the rollout keeps (float64, docs/trajectory.md): per string step the bars'
+    inputs, the tie forces, the taut flags, the bar forces and the step time (kept twice while
+    the chunks are concatenated); per frame (about 30 Hz, or the puppet rate for strings alone)
+    the particles, their velocities, joints, bodies and bars. ``tests/test_bad_flags.py`` checks
+    that it bounds what a real run keeps.
     """
-    strings = len(scene.strings)
-    particles = sum(s.particle_count for s in scene.strings)
-    bars = len(scene.bars)
-    bodies = len(scene.puppet.bodies) + 1 if scene.puppet is not None else 0
+    s = len(scene.strings)
+    p = sum(spec.particle_count for spec in scene.strings)
+    b = max(len(scene.bars), 1)
     steps = duration * scene.string_hz
-    frames = duration * scene.puppet_hz + 1
-    per_step = 8 + strings * (3 * 8 + 3 * 8 + 1) + bars * 2 * 3 * 8
-    per_frame = particles * 2 * 3 * 8 + bodies * (3 + 4 + 9) * 8 + strings * 3 * 8 + bars * (3 + 9) * 8
-    return steps * per_step + frames * per_frame
+    per_step = 8 * (1 + s * 3 * 2 + b * (3 + 4 + 6 + 3 + 3)) + 4 * s  # step time, tops + ties, bar q/qd/forces
+    per_step *= 2  # the per-chunk lists and their concatenation
+    bodies = len(scene.puppet.bodies) if scene.puppet is not None else 0
+    joints = 7 + sum(_JOINT_Q.get(j.type, 4) for j in scene.puppet.joints) if scene.puppet is not None else 0
+    frame_hz = min(scene.puppet_hz, 30.0) if scene.puppet is not None else scene.puppet_hz
+    per_frame = 8 * (p * 3 * 2 + joints + bodies * 7 + b * 12 + s * 3 + 1)
+    return float(steps * per_step + duration * frame_hz * per_frame)
 
 
 def check_duration(scene, duration: float, where: str, key: str = "duration") -> None:
