@@ -23,7 +23,7 @@ from dmarionette.scene.bars import BarTrajectory  # noqa: E402
 from fitting.bar_spline import HermiteSpans, euler_to_matrix, hermite_evaluate  # noqa: E402
 from fitting.keyframes import KeyframeError, keyframes_from_table, load_keyframes  # noqa: E402
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 # ------------------------------------------------------------------ the spline
 
@@ -300,5 +300,5 @@ def test_the_shipped_keyframes_file_loads():
     """examples/keyframes_three_poses.toml (the README's example) is a valid keyframes file."""
     from fitting.keyframes import load_keyframes
 
-    spec = load_keyframes(Path(__file__).parent.parent / "examples" / "keyframes_three_poses.toml")
+    spec = load_keyframes(ROOT / "examples" / "keyframes_three_poses.toml")
     assert [k.t for k in spec.keyframes] == [0.495, 0.99, 1.485]

@@ -31,7 +31,7 @@ from dmarionette.grad import tape as marionette_tape
 from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.grad.engine import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient
 from dmarionette.marionette.rollout import simulate_marionette
-from test_marionette_gradients import Problem, _scene, _string_margins
+from tests.support.marionette_gradients import Problem, gradient_scene, string_margins
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -46,12 +46,12 @@ def _at_string_rate(scene, tension_only: bool):
 
 @pytest.fixture(scope="module")
 def tension_only():
-    return Problem(False, _at_string_rate(_scene(False), True), STEPS, checkpoint_steps=None)
+    return Problem(False, _at_string_rate(gradient_scene(False), True), STEPS, checkpoint_steps=None)
 
 
 @pytest.fixture(scope="module")
 def printed():
-    return Problem(False, _at_string_rate(_scene(False), False), STEPS, checkpoint_steps=None)
+    return Problem(False, _at_string_rate(gradient_scene(False), False), STEPS, checkpoint_steps=None)
 
 
 def _inactive_segments(engine: MarionetteGradient) -> int:
@@ -72,7 +72,7 @@ def _inactive_segments(engine: MarionetteGradient) -> int:
 def test_the_strings_stay_taut_and_every_segment_active(tension_only):
     """Measured: smallest segment stretch 1.2e-3, every string taut, no segment inactive."""
     assert tension_only.engine.checkpoint_steps == 15 and tension_only.model.substeps == 1
-    smallest, taut = _string_margins(tension_only.model, STEPS)
+    smallest, taut = string_margins(tension_only.model, STEPS)
     print(f"smallest segment stretch {smallest:.2e}, taut {taut}")
     assert taut
     assert smallest > 1e-4

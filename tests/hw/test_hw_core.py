@@ -18,7 +18,7 @@ from dmarionette.hw.mapping import DeviceMapping, rigid_transform, scale_transfo
 from dmarionette.hw.safety import ForceSafetyFilter, SafetyConfig, clamp_force
 from dmarionette.hw.simulated import DEFAULT_SIMULATED_SPEC, HapticDeviceReplay, HapticDeviceSimulated
 
-HW = pathlib.Path(__file__).resolve().parents[1] / "dmarionette" / "hw"
+HW = pathlib.Path(__file__).resolve().parents[2] / "dmarionette" / "hw"
 
 
 class FakeClock:

@@ -1,5 +1,5 @@
 """Novint Falcon: kinematics round trips, packet codec, and the device end to end against a
-virtual FTDI/Falcon behind a pyusb backend (tests/hw_fakes/virtual_falcon.py)."""
+virtual FTDI/Falcon behind a pyusb backend (tests/support/hw_fakes/virtual_falcon.py)."""
 
 import time
 
@@ -19,7 +19,8 @@ from dmarionette.hw.falcon_kinematics import FalconKinematics, FalconKinematicsE
 from dmarionette.hw.safety import SafetyConfig
 from dmarionette.hw.servo import run_servo_loop
 usb = pytest.importorskip("usb", reason="pyusb is needed for the virtual Falcon backend")
-from hw_fakes.virtual_falcon import VirtualFalcon, VirtualFalconBackend, reference_leg_angles, reference_ticks
+from tests.support.hw_fakes.virtual_falcon import (VirtualFalcon, VirtualFalconBackend, reference_leg_angles,
+                                                   reference_ticks)
 
 FIRMWARE = bytes(range(256)) * 3 + b"\x01\x02\x03"  # a made-up "firmware" (the real one is never bundled)
 ORIGIN = np.array([0.0, 0.0, 0.11])

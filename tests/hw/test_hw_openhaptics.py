@@ -1,4 +1,4 @@
-"""HapticDeviceOpenHaptics against a stand-in libHD compiled from tests/hw_fakes/fake_hd.c."""
+"""HapticDeviceOpenHaptics against a stand-in libHD compiled from tests/support/hw_fakes/fake_hd.c."""
 
 import ctypes
 import pathlib
@@ -14,7 +14,7 @@ from dmarionette.hw.openhaptics import HD, LIBRARY_ENV, HapticDeviceOpenHaptics,
 from dmarionette.hw.safety import SafetyConfig
 from dmarionette.hw.servo import run_servo_loop
 
-FAKE_SOURCE = pathlib.Path(__file__).parent / "hw_fakes" / "fake_hd.c"
+FAKE_SOURCE = pathlib.Path(__file__).resolve().parents[1] / "support" / "hw_fakes" / "fake_hd.c"
 
 
 @pytest.fixture(scope="module")

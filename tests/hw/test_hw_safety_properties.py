@@ -12,7 +12,7 @@ The 5 ms deadline needs the servo thread to get a CPU on time; on a loaded machi
 takes the real-time priority the loop asks for. Always asserted: the zero comes at the first
 tick the watchdog may act (counted in ticks, load-independent). The 5 ms wall-clock bound is
 asserted when SCHED_FIFO was granted (as root here) and the servo thread kept its ticks
-around the fault, and reported otherwise (``tests/servo_checks.py``). The loops run for a
+around the fault, and reported otherwise (``tests/support/servo.py``). The loops run for a
 number of physics answers, not of seconds, so a busy machine cannot leave a run without ticks.
 """
 
@@ -30,7 +30,7 @@ from dmarionette.hw.mapping import DeviceMapping
 from dmarionette.hw.safety import ForceSafetyFilter, SafetyConfig
 from dmarionette.hw.servo import ServoLoop
 from dmarionette.hw.simulated import HapticDeviceSimulated
-from servo_checks import assert_zero_within
+from tests.support.servo import assert_zero_within
 
 FAST = settings(max_examples=300, deadline=None, database=None)
 LOOP = settings(max_examples=10, deadline=None, database=None,
@@ -201,7 +201,7 @@ def test_a_stalled_or_nonfinite_physics_gets_zero_force_within_5ms(kind, onset, 
     # The first tick the watchdog may act: a stall once the request is 2 ms old (<= 4 ticks); a
     # NaN the tick its answer is taken (the next tick when the physics thread hands it over on
     # time; a physics thread held up before handing it over is a stall: <= 4 ticks again). The
-    # tick-exact NaN case is tests/test_hw_servo.py::test_nonfinite_force_goes_to_zero.
+    # tick-exact NaN case is tests/hw/test_hw_servo.py::test_nonfinite_force_goes_to_zero.
     first_zero, _ = assert_zero_within(times, forces, start, 4, stats)
     held = forces[(times >= first_zero) & (times < start + length)]  # nothing finite is answered before
     np.testing.assert_array_equal(held, np.zeros_like(held))  # zero for as long as it lasts

@@ -17,7 +17,7 @@ from dmarionette.hw.device import DeviceDisconnectedError
 from dmarionette.hw.safety import SafetyConfig
 from dmarionette.hw.servo import ServoLoop, run_servo_loop
 from dmarionette.hw.simulated import DEFAULT_SIMULATED_SPEC, HapticDeviceReplay, HapticDeviceSimulated
-from servo_checks import InTickLink, assert_zero_within
+from tests.support.servo import InTickLink, assert_zero_within
 
 NO_RAMP = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.0)
 REARM = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.2)

@@ -3,7 +3,7 @@
 Each test spawns one physics process (a fresh interpreter, ~1 s). Speed is not asserted;
 the safety deadline is (zero force after the physics process is killed or stalls): in
 written ticks always, in wall-clock time (5 ms) where the servo thread had real-time priority
-and kept its ticks (``tests/servo_checks.py``).
+and kept its ticks (``tests/support/servo.py``).
 """
 
 import os
@@ -19,7 +19,7 @@ from dmarionette.hw.safety import SafetyConfig
 from dmarionette.hw.servo import ServoLoop
 from dmarionette.hw.shm_link import PhysicsProcessError, SharedMemoryPhysics, SpringPhysics
 from dmarionette.hw.simulated import HapticDeviceSimulated
-from servo_checks import assert_zero_within
+from tests.support.servo import assert_zero_within
 
 NO_RAMP = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.0)
 ROOMY = HapticDeviceSpec("roomy", max_force=50.0, max_continuous_force=50.0, workspace_min=(-1, -1, -1),

@@ -40,21 +40,21 @@ from dmarionette.io.trajectory import write_marionette_trajectory
 for _reader in ("bvh", "bvhio", "pygltflib", "trimesh"):   # the independent readers (the dev extra)
     pytest.importorskip(_reader)
 
-from export_support import (  # noqa: E402  (after the readers are known to be there)
+from tests.support.export import (  # noqa: E402  (after the readers are known to be there)
     BVH_ANGLE_TOL,
     BVH_POS_TOL,
     BVH_ROT_TOL,
     SYNTH_DT,
     SYNTH_FRAMES,
-    _bvh_fk,
-    _channels,
-    _check_bvh_poses,
-    _check_gltf_poses,
-    _check_strings,
-    _check_trimesh,
-    _node_tracks,
-    _qmatrix,
-    _synthetic,
+    bvh_forward_kinematics,
+    read_bvh_channels,
+    check_bvh_poses,
+    check_gltf_poses,
+    check_gltf_strings,
+    check_trimesh,
+    gltf_node_tracks,
+    quat_matrix,
+    synthetic_motion,
     bvh_reader,
 )
 
@@ -63,7 +63,7 @@ wp.config.log_level = wp.LOG_WARNING
 
 @pytest.fixture(scope="module")
 def synthetic():
-    return _synthetic()
+    return synthetic_motion()
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def simulated(tmp_path_factory):
 def test_bvh_of_a_simulation_reproduces_the_body_poses(simulated, tmp_path):
     trajectory, scene, _ = simulated
     path = export_bvh(trajectory, tmp_path / "motion.bvh", puppet=scene.puppet)
-    pos_err, rot_err, bvhio_err = _check_bvh_poses(path, trajectory, scene.puppet)
+    pos_err, rot_err, bvhio_err = check_bvh_poses(path, trajectory, scene.puppet)
     print(f"simulated BVH: position {pos_err:.2e} m, rotation {rot_err:.2e}, bvhio {bvhio_err:.2e} m")
 
 
@@ -102,7 +102,7 @@ def test_bvh_hierarchy_is_the_joint_tree_with_constant_offsets(simulated, tmp_pa
         above = np.zeros(3) if parents[b] == 0 else np.asarray(puppet.joints[parents[b] - 1].anchor_child)
         np.testing.assert_allclose(mocap.joint_offset(names[b]), np.asarray(joint.anchor_parent) - above, atol=5e-7)
     # The simulated joints never come apart: each joint's anchors coincide (reduced coordinates).
-    rot = _qmatrix(trajectory.body_rot)
+    rot = quat_matrix(trajectory.body_rot)
     for b, joint in enumerate(puppet.joints, start=1):
         p = parents[b]
         gap = (trajectory.body_pos[:, p] + rot[:, p] @ np.asarray(joint.anchor_parent)
@@ -112,7 +112,7 @@ def test_bvh_hierarchy_is_the_joint_tree_with_constant_offsets(simulated, tmp_pa
 
 def test_bvh_hinge_and_universal_channels_are_the_joint_angles(simulated, tmp_path):
     trajectory, scene, _ = simulated
-    _, channels = _channels(export_bvh(trajectory, tmp_path / "m.bvh"))
+    _, channels = read_bvh_channels(export_bvh(trajectory, tmp_path / "m.bvh"))
     q = 7
     checked = 0
     for joint in scene.puppet.joints:
@@ -135,9 +135,9 @@ def test_bvh_of_large_rotations_reproduces_the_poses(synthetic, tmp_path):
     trajectory, known = synthetic
     puppet = load_puppet()
     path = export_bvh(trajectory, tmp_path / "big.bvh")
-    pos_err, rot_err, _ = _check_bvh_poses(path, trajectory, puppet)
+    pos_err, rot_err, _ = check_bvh_poses(path, trajectory, puppet)
     print(f"synthetic BVH: position {pos_err:.2e} m, rotation {rot_err:.2e}")
-    mocap, channels = _channels(path)
+    mocap, channels = read_bvh_channels(path)
     assert "ball" not in mocap.get_joints_names()
     # A hinge turning 340 deg: the X channel is its angle, continuous through 180 deg.
     np.testing.assert_allclose(channels["lower_leg_left"][:, 0], np.degrees(known["knee_left"]), atol=BVH_ANGLE_TOL)
@@ -156,10 +156,10 @@ def test_bvh_of_large_rotations_reproduces_the_poses(synthetic, tmp_path):
 def test_bvh_resampled_to_another_frame_rate(synthetic, tmp_path):
     trajectory, _ = synthetic
     puppet = load_puppet()
-    mocap, fk = _bvh_fk(export_bvh(trajectory, tmp_path / "60.bvh", fps=2.0 / SYNTH_DT))
+    mocap, fk = bvh_forward_kinematics(export_bvh(trajectory, tmp_path / "60.bvh", fps=2.0 / SYNTH_DT))
     assert mocap.nframes == 2 * SYNTH_FRAMES - 1
     assert mocap.frame_time == pytest.approx(SYNTH_DT / 2.0, abs=1e-9)
-    rot = _qmatrix(trajectory.body_rot)
+    rot = quat_matrix(trajectory.body_rot)
     for b, body in enumerate(puppet.bodies):
         origin, r = fk[body.name]
         np.testing.assert_allclose(r[::2], rot[:, b], atol=BVH_ROT_TOL)     # at the original frames: the poses
@@ -217,24 +217,24 @@ def test_bvh_refuses_bad_input(synthetic, tmp_path):
 def test_gltf_of_a_simulation_decodes_to_the_body_poses(simulated, tmp_path):
     trajectory, _, _ = simulated
     path = export_gltf(trajectory, tmp_path / "motion.glb")
-    gltf, worst = _check_gltf_poses(path, trajectory)
-    _check_trimesh(path, trajectory)
-    string_error = _check_strings(gltf, trajectory)
+    gltf, worst = check_gltf_poses(path, trajectory)
+    check_trimesh(path, trajectory)
+    string_error = check_gltf_strings(gltf, trajectory)
     particles = trajectory.particle_q.shape[1]
     assert len(gltf.animations[0].channels) == 2 * (len(trajectory.body_names) + len(trajectory.bar_names)) + particles
     print(f"simulated glTF: worst quaternion component error {worst:.2e}, strings {string_error:.2e} m")
     plain = export_gltf(trajectory, tmp_path / "no_strings.glb", strings=False)
-    gltf, _ = _check_gltf_poses(plain, trajectory)
+    gltf, _ = check_gltf_poses(plain, trajectory)
     assert not gltf.skins and len(gltf.nodes) == 1 + len(trajectory.body_names) + len(trajectory.bar_names)
 
 
 def test_gltf_of_large_rotations_and_a_ball(synthetic, tmp_path):
     trajectory, _ = synthetic
     path = export_gltf(trajectory, tmp_path / "big.glb")
-    gltf, worst = _check_gltf_poses(path, trajectory)
-    _check_trimesh(path, trajectory)
+    gltf, worst = check_gltf_poses(path, trajectory)
+    check_trimesh(path, trajectory)
     assert gltf.nodes[13].name == "ball"
-    tracks = _node_tracks(gltf, gltf.binary_blob())
+    tracks = gltf_node_tracks(gltf, gltf.binary_blob())
     np.testing.assert_allclose(tracks["bar_main"]["translation"], trajectory.bar_pos[:, 0], atol=1e-7)
     print(f"synthetic glTF: worst quaternion component error {worst:.2e}")
 
@@ -262,8 +262,8 @@ def test_single_frame_trajectories_export(synthetic, tmp_path):
     one = types.SimpleNamespace(**{k: (v[:1] if isinstance(v, np.ndarray) else v) for k, v in vars(trajectory).items()})
     mocap = bvh_reader.Bvh(export_bvh(one, tmp_path / "one.bvh").read_text())
     assert mocap.nframes == 1 and mocap.frame_time == pytest.approx(1.0 / 30.0, abs=1e-9)
-    _check_bvh_poses(tmp_path / "one.bvh", one, load_puppet())
-    _check_gltf_poses(export_gltf(one, tmp_path / "one.glb"), one)
+    check_bvh_poses(tmp_path / "one.bvh", one, load_puppet())
+    check_gltf_poses(export_gltf(one, tmp_path / "one.glb"), one)
 
 
 # ----------------------------------------------------------------------------- files and command line
@@ -289,8 +289,8 @@ def test_export_command_writes_both_files(simulated, tmp_path):
     assert run.returncode == 0, run.stderr
     files = json.loads(run.stdout)
     assert set(files) == {"bvh", "gltf"}
-    _check_bvh_poses(tmp_path / "out" / "motion.bvh", trajectory, scene.puppet)
-    _check_gltf_poses(tmp_path / "out" / "motion.glb", trajectory)
+    check_bvh_poses(tmp_path / "out" / "motion.bvh", trajectory, scene.puppet)
+    check_gltf_poses(tmp_path / "out" / "motion.glb", trajectory)
     run = _cli(path, "--out", tmp_path / "bvh", "--format", "bvh", "--fps", "60")
     assert run.returncode == 0, run.stderr
     assert [p.name for p in (tmp_path / "bvh").iterdir()] == ["motion.bvh"]

@@ -104,7 +104,7 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
 
     Replay drives the bars with the recorded poses, which it reproduces exactly; the puppet
     then agrees to 1e-6 m (measured 3.9e-7 m over 0.9 s). Replaying a *simulated* session gives
-    exactly 0 (tests/test_session_replay.py); the sub-micron gap of a live session is not yet
+    exactly 0 (tests/io/test_session_replay.py); the sub-micron gap of a live session is not yet
     explained.
     """
     import json

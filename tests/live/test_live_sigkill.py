@@ -29,7 +29,7 @@ from mcap.reader import NonSeekingReader
 from dmarionette.cli import main
 from dmarionette.io.session import read_session
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 START = re.compile(r"servo loop starting at CLOCK_MONOTONIC ([0-9.]+) s; physics: (\w+) \(pid (\d+)\)")
 
 

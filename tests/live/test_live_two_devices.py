@@ -301,7 +301,7 @@ def test_two_devices_refuse_child_process_physics_and_mismatched_options(model):
 def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
     """`live --device sim --bar main --device sim --bar hand --record` records both devices (samples
     and forces sent, each within its limit); `replay` re-simulates it (every bar pose exact, the
-    puppet to 1e-6 m as for one device, tests/test_live.py), and two `--device replay` play it back."""
+    puppet to 1e-6 m as for one device, tests/live/test_live.py), and two `--device replay` play it back."""
     from dmarionette.cli import main
     from dmarionette.io.session import read_session, session_bar_trajectories
 

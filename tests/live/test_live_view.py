@@ -1,6 +1,6 @@
 """The live view: snapshots published by the physics, the browser view (viser) fed by them, a
 drag in the browser moving the simulated device and then the bar, colours, headless mode, and
-a clean shutdown. The browser side is a real websocket client (tests/live_view_client.py)
+a clean shutdown. The browser side is a real websocket client (tests/support/live_view_client.py)
 speaking viser's protocol on 127.0.0.1 with an ephemeral port."""
 
 import json
@@ -29,7 +29,7 @@ from dmarionette.marionette.solver import MarionetteModel
 
 viser = pytest.importorskip("viser")
 from dmarionette.live.view_viser import LiveViewServer  # noqa: E402
-from live_view_client import ViewClient  # noqa: E402
+from tests.support.live_view_client import ViewClient  # noqa: E402
 from viser import _messages as vm  # noqa: E402
 
 wp.config.log_level = wp.LOG_WARNING

@@ -39,7 +39,7 @@ def test_reduced_sweep_writes_csv_plot_table_and_error_falls_with_resolution(tmp
     assert gaps_mm[0] * 1e-3 < min(float(r["body_rms_m"]) for r in rows if r["springs"] == "printed")
     assert gaps_mm[1] * 1e-3 < error(springs="tension_only", particles=20, puppet_hz=1000.0)
     # Float32 strings: |RMS(a - ref) - RMS(b - ref)| <= RMS(a - b) <= the float32 random-walk
-    # bound sqrt(N) u X of tests/test_marionette_float32.py (N string steps, X the largest
+    # bound sqrt(N) u X of tests/marionette/test_marionette_float32.py (N string steps, X the largest
     # coordinate: a bar centre's distance from the origin plus its farthest attach point).
     scene = accuracy_scene(SECONDS)
     scale = max(float(np.linalg.norm(b.trajectory.positions, axis=1).max())

@@ -33,7 +33,7 @@ after that, the implicit penalty can store at most the energy of the motion,
 ``1/2 k_lim e^2 <= E(0) + W(t) - G_floor`` (every other part of ``E`` is non-negative except
 gravity, at least ``G_floor``, its value with everything at the lowest height reached in
 the run). So ``e <= qd_max H + sqrt(2 (E(0) + W - G_floor + TOL_ENERGY) / k_lim)``
-(``_limit_bound``, with ``qd_max`` the fastest joint rate seen at the frames). It is loose
+(``limit_bound``, with ``qd_max`` the fastest joint rate seen at the frames). It is loose
 (over 1 rad for the hanging puppet) because the whole energy could in principle end up
 in one joint; so each test also states the violation it measured and asserts it with
 50 % headroom, as a guard against regressions (bound = 1.5 x measured; the measured
@@ -47,88 +47,20 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.scene.bars import euler_to_matrix
-from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.marionette.energy import simulate_energy_balance
+from tests.support.hard_cases import (
+    G,
+    PiecewiseLinearPath,
+    SwayPath,
+    check_case,
+    contact_bound,
+    fast_model,
+    limit_bound,
+    still_bar,
+)
 
 wp.config.log_level = wp.LOG_WARNING
-G = 9.81
-TOL_ENERGY = 1e-3  # J, see the module doc
 LEVER = 0.6  # m, the puppet's height: no joint lever is longer
-
-
-class PiecewiseLinearPath:
-    """A bar path with velocity steps (a stand-in for ``BarTrajectory``, whose spline is C1):
-    straight lines between timed positions, held before the first and after the last."""
-
-    def __init__(self, times, positions, rotation=(0.0, 0.0, 0.0)):
-        self.times = np.asarray(times, dtype=np.float64)
-        self.positions = np.asarray(positions, dtype=np.float64)
-        self.rotations = np.tile(np.asarray(rotation, dtype=np.float64), (len(self.times), 1))
-
-    def pose(self, times):
-        t = np.asarray(times, dtype=np.float64)
-        pos = np.stack([np.interp(t, self.times, self.positions[:, i]) for i in range(3)], axis=1)
-        i = np.clip(np.searchsorted(self.times, t, side="left") - 1, 0, len(self.times) - 2)
-        vel = (self.positions[i + 1] - self.positions[i]) / (self.times[i + 1] - self.times[i])[:, None]
-        vel[(t <= self.times[0]) | (t > self.times[-1])] = 0.0
-        return pos, vel, euler_to_matrix(np.tile(self.rotations[0], (len(t), 1)))
-
-
-@pytest.fixture(scope="module")
-def hanging():
-    return dm.load_scene("hanging")
-
-
-def _model(scene, **changes):
-    return MarionetteModel(dataclasses.replace(scene, **changes), optimization_level=0)
-
-
-def _excess(r):
-    """``E(t) - E(0) - W(0..t)`` without the puppet's penalty energies (module doc), per frame [J]."""
-    motion = r["energy"] - r["parts"]["puppet_contact"] - r["parts"]["puppet_limit"]
-    return motion - motion[0] - r["bar_work"]
-
-
-def _check(name, model, r, *, ground=None, limit=None, chair=None, string_ground=None, limit_measured=None):
-    """The common assertions; prints the measured numbers (pytest -s)."""
-    assert r["finite"], f"{name}: non-finite state"
-    excess = _excess(r)
-    print(f"\n{name}: max excess after the start {excess[1:].max():.3e} J, bar work {r['bar_work'][-1]:.4f} J, "
-          f"ground {r['ground_depth'].max() * 1e3:.2f} mm, chair {r['chair_depth'].max() * 1e3:.2f} mm, "
-          f"limit {r['limit_violation'].max():.4f} rad (bound {limit if limit is not None else np.nan:.3f}), "
-          f"lowest particle {r['particle_min_y'].min() * 1e3:.2f} mm")
-    assert excess.max() <= TOL_ENERGY, (name, excess.max())
-    if ground is not None:
-        assert r["ground_depth"].max() <= ground, (name, r["ground_depth"].max(), ground)
-    if chair is not None:
-        assert r["chair_depth"].max() <= chair, (name, r["chair_depth"].max(), chair)
-    if limit is not None:
-        assert r["limit_violation"].max() <= limit, (name, r["limit_violation"].max(), limit)
-    if limit_measured is not None:
-        assert r["limit_violation"].max() <= 1.5 * limit_measured, (name, r["limit_violation"].max(), limit_measured)
-    if string_ground is not None:
-        assert r["particle_min_y"].min() >= model.scene.ground_height - string_ground, (name, string_ground)
-
-
-def _limit_bound(model, r):
-    """``qd_max H + sqrt(2 (E(0) + max W - G_floor + TOL_ENERGY) / k_lim)`` [rad] (module doc)."""
-    lowest = min(0.0, -float(r["ground_depth"].max()), float(r["particle_min_y"].min()))
-    mass = model.puppet_mass + sum(s.mass + s.load_mass for s in model.strings.specs)
-    floor = mass * G * lowest
-    available = r["energy"][0] + max(float(r["bar_work"].max()), 0.0) - floor + TOL_ENERGY
-    overshoot = float(np.max(np.abs(r["joint_qd"][:, 6:]))) * model.puppet_dt
-    return overshoot + float(np.sqrt(2.0 * available / model.puppet.limit_stiffness))
-
-
-def _contact_bound(model, speed):
-    """``v H + M g / k`` [m] (module doc)."""
-    return speed * model.puppet_dt + model.puppet_mass * G / model.puppet.contacts.stiffness
-
-
-def _still(bar):
-    return dataclasses.replace(bar, trajectory=PiecewiseLinearPath([0.0, 1.0], [bar.trajectory.positions[0]] * 2,
-                                                                    bar.trajectory.rotations[0]))
 
 
 def _cut_ties(strings):
@@ -150,9 +82,9 @@ def test_very_stiff_strings_at_the_default_steps(hanging, segment_stiffness):
     """
     strings = tuple(dataclasses.replace(s, stiffness=segment_stiffness / (s.particle_count - 1))
                     for s in hanging.strings)
-    model = _model(hanging, strings=strings)
+    model = fast_model(hanging, strings=strings)
     r = simulate_energy_balance(model, 4.0)
-    _check(f"k_s = {segment_stiffness:g}", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.0005)
+    check_case(f"k_s = {segment_stiffness:g}", model, r, ground=0.0, limit=limit_bound(model, r), limit_measured=0.0005)
 
 
 def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
@@ -176,10 +108,10 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
                         [0, 0, 0]], dtype=np.float64)
     bars = (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, p0 + offsets)),
             dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, h0 + offsets)))
-    model = _model(hanging, bars=bars)
+    model = fast_model(hanging, bars=bars)
     r = simulate_energy_balance(model, 5.0)
     assert r["bar_work"][-1] > 1.0  # the jerks did put work in
-    _check("jerks", model, r, ground=_contact_bound(model, v), limit=_limit_bound(model, r), limit_measured=0.158)
+    check_case("jerks", model, r, ground=contact_bound(model, v), limit=limit_bound(model, r), limit_measured=0.158)
 
 
 def test_dropped_onto_the_ground(hanging):
@@ -196,11 +128,11 @@ def test_dropped_onto_the_ground(hanging):
     chattering at the puppet rate's Nyquist frequency, depth alternating 0.4 / 6.2 mm.)
     """
     puppet = dataclasses.replace(hanging.puppet, root_position=(0.0, 0.79, 0.0))
-    bars = tuple(_still(b) for b in hanging.bars)
-    model = _model(hanging, puppet=puppet, strings=_cut_ties(hanging.strings), bars=bars)
+    bars = tuple(still_bar(b) for b in hanging.bars)
+    model = fast_model(hanging, puppet=puppet, strings=_cut_ties(hanging.strings), bars=bars)
     r = simulate_energy_balance(model, 4.0)
     speed = np.sqrt(2 * G * 0.4)
-    _check("drop on ground", model, r, ground=_contact_bound(model, speed), limit=_limit_bound(model, r),
+    check_case("drop on ground", model, r, ground=contact_bound(model, speed), limit=limit_bound(model, r),
            limit_measured=0.352)
     rest = r["time"] > r["time"][-1] - 1.0
     print(f"resting depth {r['ground_depth'][rest].max() * 1e3:.2f} mm")
@@ -220,11 +152,11 @@ def test_dropped_onto_the_chair():
     chair = dm.load_scene("chair")
     root = np.array(chair.puppet.root_position) + [0.0, 0.2, 0.0]
     puppet = dataclasses.replace(chair.puppet, root_position=tuple(root))
-    bars = tuple(_still(b) for b in chair.bars)
-    model = _model(chair, puppet=puppet, strings=_cut_ties(chair.strings), bars=bars)
+    bars = tuple(still_bar(b) for b in chair.bars)
+    model = fast_model(chair, puppet=puppet, strings=_cut_ties(chair.strings), bars=bars)
     r = simulate_energy_balance(model, 3.0)
-    bound = _contact_bound(model, np.sqrt(2 * G * 0.2))
-    _check("drop on chair", model, r, ground=bound, chair=bound, limit=_limit_bound(model, r), limit_measured=0.136)
+    bound = contact_bound(model, np.sqrt(2 * G * 0.2))
+    check_case("drop on chair", model, r, ground=bound, chair=bound, limit=limit_bound(model, r), limit_measured=0.136)
     seat_top = chair.chair[0][1] + chair.chair[1][1]
     assert r["body_pos"][-1, 0, 1] > seat_top  # the torso ends above the seat, not through it
 
@@ -240,10 +172,10 @@ def test_whole_weight_on_one_string(hanging):
     """
     main = hanging.bars[0]
     back = next(s for s in hanging.strings if s.name == "back")
-    bar = dataclasses.replace(_still(main), attach={"back": main.attach["back"]})
-    model = _model(hanging, strings=(back,), string_body_points=("back",), bars=(bar,))
+    bar = dataclasses.replace(still_bar(main), attach={"back": main.attach["back"]})
+    model = fast_model(hanging, strings=(back,), string_body_points=("back",), bars=(bar,))
     r = simulate_energy_balance(model, 12.0)
-    _check("one string", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.0441)
+    check_case("one string", model, r, ground=0.0, limit=limit_bound(model, r), limit_measured=0.0441)
     lift = r["tie_force_last"][0, 1]
     weight = model.puppet_mass * G
     print(f"settled tie force {lift:.4f} N, weight {weight:.4f} N, largest {r['tie_force_max'][0]:.3f} N")
@@ -272,13 +204,13 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging):
     times = [0.0, 1.0, 3.0]
     bars = (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, [p0, p0, p0 - [0, 1.2, 0]])),
             dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, [h0, h0, h0 - [0, 1.1, 0]])))
-    model = _model(hanging, bars=bars)
+    model = fast_model(hanging, bars=bars)
     r = simulate_energy_balance(model, 6.0)
     v = np.sqrt(2 * G * 0.1) + 0.6
     push = float(np.sum(r["tie_force_max"]))  # the most the strings can push with, all at once [N]
-    bound = _contact_bound(model, v) + push / model.puppet.contacts.stiffness
+    bound = contact_bound(model, v) + push / model.puppet.contacts.stiffness
     print(f"strings' largest push {push:.1f} N: ground bound {bound * 1e3:.1f} mm")
-    _check("slack on the ground", model, r, ground=bound, limit=_limit_bound(model, r), limit_measured=0.413,
+    check_case("slack on the ground", model, r, ground=bound, limit=limit_bound(model, r), limit_measured=0.413,
            string_ground=bound + v * model.puppet_dt)
 
 
@@ -290,27 +222,9 @@ def test_30_hz_with_10x_stiffer_strings(hanging):
     strings = tuple(dataclasses.replace(s, stiffness=10 * s.stiffness, internal_friction=10 * s.internal_friction,
                                         tie_stiffness=10 * s.tie_stiffness, tie_damping=10 * s.tie_damping)
                     for s in hanging.strings)
-    model = _model(hanging, strings=strings)
+    model = fast_model(hanging, strings=strings)
     r = simulate_energy_balance(model, 6.0)
-    _check("10x stiffer at 30 Hz", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.0028)
-
-
-class SwayPath:
-    """A bar swaying for ever: ``p0 + a sin(2 pi f t)`` and a roll of ``r sin(2 pi f t)`` degrees
-    about the bar's forward axis (z)."""
-
-    def __init__(self, p0, amplitude, roll_deg, frequency):
-        self.p0, self.a = np.asarray(p0, dtype=np.float64), np.asarray(amplitude, dtype=np.float64)
-        self.roll, self.f = float(roll_deg), float(frequency)
-        self.positions, self.rotations = self.p0[None], np.zeros((1, 3))
-
-    def pose(self, times):
-        t = np.asarray(times, dtype=np.float64)
-        w = 2 * np.pi * self.f
-        s, c = np.sin(w * t)[:, None], np.cos(w * t)[:, None]
-        angles = np.zeros((len(t), 3))
-        angles[:, 2] = self.roll * s[:, 0]
-        return self.p0 + self.a * s, w * self.a * c, euler_to_matrix(angles)
+    check_case("10x stiffer at 30 Hz", model, r, ground=0.0, limit=limit_bound(model, r), limit_measured=0.0028)
 
 
 def test_two_minutes_of_swaying_marionette(hanging):
@@ -331,9 +245,9 @@ def test_two_minutes_of_swaying_marionette(hanging):
     puppet_dt = round(hanging.string_hz / hanging.puppet_hz) / hanging.string_hz  # 33 ms
     period = 60 * puppet_dt  # 1.98 s: the frames are whole puppet steps, so the sway period is too
     sway = SwayPath(main.trajectory.positions[0], (0.04, 0.0, 0.0), 6.0, 1.0 / period)
-    model = _model(hanging, bars=(dataclasses.replace(main, trajectory=sway), _still(hand)))
+    model = fast_model(hanging, bars=(dataclasses.replace(main, trajectory=sway), still_bar(hand)))
     r = simulate_energy_balance(model, 120.0, frame_hz=1.0 / period)
-    _check("2 minutes", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.0005)
+    check_case("2 minutes", model, r, ground=0.0, limit=limit_bound(model, r), limit_measured=0.0005)
     late = r["energy"][r["time"] >= 60.0]
     print(f"energy spread from 60 s on {np.ptp(late):.3e} J over {len(late)} samples")
     assert np.ptp(late) <= 1e-4

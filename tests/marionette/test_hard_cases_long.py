@@ -24,7 +24,7 @@ import dmarionette as dm
 from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
 from dmarionette.marionette.energy import install_bar_work_meter, marionette_energy, puppet_limit_violation
 from dmarionette.marionette.rollout import MarionetteRollout
-from test_hard_cases import TOL_ENERGY, SwayPath, _still
+from tests.support.hard_cases import TOL_ENERGY, SwayPath, still_bar
 
 wp.config.log_level = wp.LOG_WARNING
 MINUTES = 30.0
@@ -58,7 +58,7 @@ def test_30_minutes_of_swaying_marionette_in_float64():
     period = period_steps * puppet_dt  # 1.98 s
     sway = SwayPath(main.trajectory.positions[0], (0.04, 0.0, 0.0), 6.0, 1.0 / period)
     scene = dataclasses.replace(scene, strings=strings, bars=(dataclasses.replace(main, trajectory=sway),
-                                                              _still(hand)))
+                                                              still_bar(hand)))
     model = MarionetteModel(scene, optimization_level=2)
     meter = install_bar_work_meter(model)
     rollout = MarionetteRollout(SolverMarionette(model), period_steps)

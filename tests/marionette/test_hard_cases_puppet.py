@@ -16,14 +16,9 @@ from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.marionette.energy import puppet_limit_violation, simulate_energy_balance
 from dmarionette.scene.fields import SceneError
 from dmarionette.scene.settings_check import check_marionette_settings
-from test_hard_cases import G, _check, _contact_bound, _limit_bound, _model, _still
+from tests.support.hard_cases import G, check_case, contact_bound, limit_bound, fast_model, still_bar
 
 wp.config.log_level = wp.LOG_WARNING
-
-
-@pytest.fixture(scope="module")
-def hanging():
-    return dm.load_scene("hanging")
 
 
 def _dof(model, joint_name, axis):
@@ -39,9 +34,9 @@ def _thrown_joint(hanging, joint, axis, rate, puppet_hz):
     limit = spec.lower[axis] if rate < 0 else spec.upper[axis]
     start = [0.0] * len(spec.axes)
     start[axis] = np.degrees(limit) - np.sign(rate) * 1.0
-    scene = dataclasses.replace(hanging, bars=tuple(_still(b) for b in hanging.bars), puppet_hz=puppet_hz,
+    scene = dataclasses.replace(hanging, bars=tuple(still_bar(b) for b in hanging.bars), puppet_hz=puppet_hz,
                                 initial_pose={joint: tuple(start)})
-    model = _model(scene)
+    model = fast_model(scene)
     state = model.state()
     dof = _dof(model, joint, axis)
     state.puppet.joint_qd.numpy()[0, dof] = rate
@@ -50,6 +45,8 @@ def _thrown_joint(hanging, joint, axis, rate, puppet_hz):
 
 @pytest.mark.parametrize("joint, axis, rate, measured", [("shoulder_left", 1, -20.0, 0.1030),
                                                          ("hip_right", 0, 15.0, 0.0326)])
+
+
 def test_a_universal_joint_driven_into_its_limit(hanging, joint, axis, rate, measured):
     """A universal joint thrown into a limit, the puppet at the string rate (1 kHz): the left
     shoulder's abduction at -20 rad/s from 1 deg inside its -10 deg limit (the hand moves at
@@ -72,7 +69,7 @@ def test_a_universal_joint_driven_into_its_limit(hanging, joint, axis, rate, mea
     final = puppet_limit_violation(model, r["joint_q"][-1])[dof]
     print(f"\n{joint} axis {axis}: peak violation {peak:.4f} rad, final {final:.4f} rad")
     assert peak > 0.0  # it did reach the limit
-    _check(f"{joint} into its limit", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=measured)
+    check_case(f"{joint} into its limit", model, r, ground=0.0, limit=limit_bound(model, r), limit_measured=measured)
     assert final <= 0.06
 
 
@@ -96,7 +93,7 @@ def test_a_joint_thrown_into_its_limit_at_30_hz_gains_no_energy(hanging):
     """
     model, state, _ = _thrown_joint(hanging, "shoulder_left", 1, -20.0, 30.0)
     r = simulate_energy_balance(model, 1.0, state=state)
-    _check("shoulder into its limit at 30 Hz", model, r, ground=0.0)
+    check_case("shoulder into its limit at 30 Hz", model, r, ground=0.0)
     reference_model, reference_state, _ = _thrown_joint(hanging, "shoulder_left", 1, -20.0, 1000.0)
     reference = simulate_energy_balance(reference_model, 0.5, state=reference_state, frame_hz=30.0)
     frames = len(reference["body_pos"])
@@ -128,17 +125,17 @@ def test_configurations_near_gimbal_lock(hanging):
     scene = dataclasses.replace(hanging, bars=(dataclasses.replace(main, trajectory=main_path),
                                                dataclasses.replace(hand, trajectory=hand_path)),
                                 initial_pose={"shoulder_left": (0.0, 90.0), "shoulder_right": (0.0, -90.0)})
-    model = _model(scene)
+    model = fast_model(scene)
     r = simulate_energy_balance(model, 5.0)
-    _check("gimbal lock", model, r, ground=0.0, limit=_limit_bound(model, r), limit_measured=0.016)
+    check_case("gimbal lock", model, r, ground=0.0, limit=limit_bound(model, r), limit_measured=0.016)
 
 
 def _thrown_ball(speed, puppet_hz):
     """The ``ball`` scene, bars still, the ball thrown at the torso from 0.4 m in front."""
     scene = dm.load_scene("ball")
-    scene = dataclasses.replace(scene, bars=tuple(_still(b) for b in scene.bars), puppet_hz=puppet_hz,
+    scene = dataclasses.replace(scene, bars=tuple(still_bar(b) for b in scene.bars), puppet_hz=puppet_hz,
                                 ball=dataclasses.replace(scene.ball, position=(0.0, 0.39, 0.4)))
-    model = _model(scene)
+    model = fast_model(scene)
     state = model.state()
     state.puppet.joint_qd.numpy()[0, -6:] = (0.0, 0.0, -speed, 0.0, 0.0, 0.0)
     return model, state
@@ -155,8 +152,8 @@ def test_the_ball_hit_hard_at_30_hz():
     """
     model, state = _thrown_ball(10.0, 30.0)
     r = simulate_energy_balance(model, 2.0, state=state)
-    bound = _contact_bound(model, np.sqrt(2 * G * 0.34)) + model.puppet.ball.mass * G / 2000.0
-    _check("ball at 10 m/s, 30 Hz", model, r, ground=bound, limit=_limit_bound(model, r))
+    bound = contact_bound(model, np.sqrt(2 * G * 0.34)) + model.puppet.ball.mass * G / 2000.0
+    check_case("ball at 10 m/s, 30 Hz", model, r, ground=bound, limit=limit_bound(model, r))
 
 
 def test_the_ball_hit_hard_at_1_khz_bounces_off():
@@ -166,13 +163,15 @@ def test_the_ball_hit_hard_at_1_khz_bounces_off():
     most -6.0e-3 J from ``E(0)``, ground 0.25 mm, no joint reaches a limit."""
     model, state = _thrown_ball(5.0, 1000.0)
     r = simulate_energy_balance(model, 1.0, state=state)
-    bound = _contact_bound(model, np.sqrt(2 * G * 0.34)) + model.puppet.ball.mass * G / 2000.0
-    _check("ball at 5 m/s, 1 kHz", model, r, ground=bound, limit=_limit_bound(model, r))
+    bound = contact_bound(model, np.sqrt(2 * G * 0.34)) + model.puppet.ball.mass * G / 2000.0
+    check_case("ball at 5 m/s, 1 kHz", model, r, ground=bound, limit=limit_bound(model, r))
     assert r["body_pos"][-1, -1, 2] > r["body_pos"][-1, 0, 2]  # in front of the torso
 
 
 @pytest.mark.parametrize("string_hz, puppet_hz, seconds", [(1e6, 1000.0, 0.02), (10.0, 10.0, 6.0),
                                                            (1000.0, 10.0, 6.0)])
+
+
 def test_the_smallest_and_largest_steps(hanging, string_hz, puppet_hz, seconds):
     """The extremes of ``[rates]`` that work, hanging scene with its sway:
 
@@ -187,11 +186,11 @@ def test_the_smallest_and_largest_steps(hanging, string_hz, puppet_hz, seconds):
     energy bound. Measured (1 MHz / 10 Hz / 1 kHz-10 Hz): energy at most -3.6e-5 / -3.8e-2 /
     -3.8e-2 J from ``E(0) + W``. Cost: the 1 MHz case is 20,000 string steps, about 3 s.
     """
-    model = _model(hanging, string_hz=string_hz, puppet_hz=puppet_hz)
+    model = fast_model(hanging, string_hz=string_hz, puppet_hz=puppet_hz)
     check_marionette_settings(model.scene)
     # frames of one puppet step at 1 MHz (a captured chunk of 1000 string steps), else about 30 Hz
     r = simulate_energy_balance(model, seconds, frame_hz=1.0 / model.puppet_dt if string_hz > 1e4 else 30.0)
-    _check(f"{string_hz:g}/{puppet_hz:g} Hz", model, r, ground=0.0, limit=_limit_bound(model, r))
+    check_case(f"{string_hz:g}/{puppet_hz:g} Hz", model, r, ground=0.0, limit=limit_bound(model, r))
 
 
 def test_a_puppet_step_above_0_1_s_is_refused(hanging, monkeypatch):

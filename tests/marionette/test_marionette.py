@@ -33,11 +33,6 @@ def _still_bars(scene):
 
 
 @pytest.fixture(scope="module")
-def hanging():
-    return dm.load_scene("hanging")
-
-
-@pytest.fixture(scope="module")
 def settled(hanging):
     """The hanging marionette after 6 s with still bars."""
     model = _model(hanging, bars=_still_bars(hanging))

@@ -5,7 +5,7 @@ crosses (``kernels/precision_boundary``). Checked here: the float32 marionette t
 float64 one within float32 rounding, at the paper's rates and fully coupled; its energy stays
 within the bars' work (as the hard cases check it); the live loop's per-tick graphs give the
 same float32 answer as the captured rollout; a float64 marionette launches no conversion;
-gradients refuse float32. (The float64 path itself is unchanged: ``tests/test_marionette.py``
+gradients refuse float32. (The float64 path itself is unchanged: ``tests/marionette/test_marionette.py``
 and the other marionette tests run it.)
 
 **Tolerance.** A float32 coordinate of size ``X`` is rounded to within ``u X`` (``u = 2^-24``)
@@ -27,7 +27,6 @@ import numpy as np
 import pytest
 import warp as wp
 
-import dmarionette as dm
 from dmarionette.marionette import solver as marionette_module
 from dmarionette.live.run import LiveMarionette, make_physics_step
 from dmarionette.hw import HapticSample
@@ -36,19 +35,14 @@ from dmarionette.marionette.energy import simulate_energy_balance
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.marionette.rollout import simulate_marionette
 
-from test_hard_cases import TOL_ENERGY, _excess
+from tests.support.hard_cases import TOL_ENERGY, energy_excess
 
 wp.config.log_level = wp.LOG_WARNING
 U32 = 2.0 ** -24  # float32 unit roundoff (round to nearest)
 SECONDS = 6.0
 
 
-@pytest.fixture(scope="module")
-def hanging():
-    return dm.load_scene("hanging")
-
-
-def _model(scene, **changes):
+def fast_model(scene, **changes):
     return MarionetteModel(dataclasses.replace(scene, **changes), optimization_level=0)
 
 
@@ -57,7 +51,7 @@ def pair(request, hanging):
     """The ``hanging`` sway for 6 s in float64 and with float32 strings, at one puppet rate."""
     runs = {}
     for precision in ("float64", "float32"):
-        model = _model(hanging, precision=precision, puppet_hz=request.param)
+        model = fast_model(hanging, precision=precision, puppet_hz=request.param)
         runs[precision] = (model, simulate_marionette(model, SECONDS, progress=False))
     return runs
 
@@ -80,14 +74,14 @@ def test_float32_strings_track_float64_within_float32_rounding(pair):
 
 
 def test_float32_marionette_gains_no_energy(hanging):
-    """As the hard cases check it (``tests/test_hard_cases.py``): finite, and
+    """As the hard cases check it (``tests/marionette/test_hard_cases.py``): finite, and
     ``E(t) - E(0) <= W_bars + TOL_ENERGY`` at every frame. Float32 strings add a rounding of the
     energy read from float32 positions: each segment's ``k_s (l - d) dl`` with ``dl ~ u X``,
     about 1e-7 J per segment at the hanging stretch, 3e-5 J over the 294 segments, well inside
     TOL_ENERGY. Measured: largest excess -0.0116 J (energy only falls), bar work 0.036 J."""
-    model = _model(hanging, precision="float32")
+    model = fast_model(hanging, precision="float32")
     r = simulate_energy_balance(model, SECONDS)
-    excess = _excess(r)
+    excess = energy_excess(r)
     print(f"\nfloat32: largest excess {excess[1:].max():.3e} J, bar work {r['bar_work'][-1]:.4f} J")
     assert r["finite"]
     assert excess.max() <= TOL_ENERGY
@@ -96,7 +90,7 @@ def test_float32_marionette_gains_no_energy(hanging):
 def test_live_ticks_reproduce_the_float32_rollout(hanging):
     """The live loop's per-tick graphs (each converts its own bar tops) equal the captured
     rollout with float32 strings, and hand the view float64 particles."""
-    model = _model(hanging, precision="float32")
+    model = fast_model(hanging, precision="float32")
     live = LiveMarionette(model)
     main = model.scene.bars[0]
     steps = 10 * model.substeps
@@ -121,7 +115,7 @@ def test_float64_launches_no_conversion_and_float32_converts_each_crossing(hangi
     real = marionette_module.convert_vec3
     monkeypatch.setattr(marionette_module, "convert_vec3", lambda a, b, device: (calls.append(1), real(a, b, device)))
     for precision, expected in (("float64", 0), ("float32", None)):
-        model = _model(hanging, precision=precision)
+        model = fast_model(hanging, precision=precision)
         solver = SolverMarionette(model)
         state, nxt, control = model.state(), model.state(), model.control()
         calls.clear()
@@ -139,4 +133,4 @@ def test_gradients_refuse_float32(hanging):
     with pytest.raises(ValueError, match=r"precision = 'float32'.*gradients of a marionette are float64 only"):
         MarionetteModel(scene, optimization_level=0, requires_grad=True)
     with pytest.raises(ValueError, match=r"precision = 'float32'.*MarionetteGradient needs a float64 marionette"):
-        MarionetteGradient(_model(hanging, precision="float32"), puppet_steps=2)
+        MarionetteGradient(fast_model(hanging, precision="float32"), puppet_steps=2)

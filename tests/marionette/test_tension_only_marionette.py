@@ -18,7 +18,7 @@ from dmarionette.marionette.energy import simulate_energy_balance
 from dmarionette.marionette.rollout import simulate_marionette
 from dmarionette.scene.scene import SCENE_DIR
 from dmarionette.scene.settings_check import check_marionette_settings
-from test_hard_cases import G, PiecewiseLinearPath, _check, _contact_bound, _limit_bound, _still
+from tests.support.hard_cases import G, PiecewiseLinearPath, check_case, contact_bound, limit_bound, still_bar
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -36,7 +36,7 @@ def test_fully_coupled_the_strings_carry_the_puppet_at_rest(tension_only):
     hangs still (tolerances as in ``test_marionette.py::test_at_rest_the_strings_carry_the_puppet``:
     0.2 % of the weight, torso below 1 mm/s). Measured: ties 3.6e-7 of the weight, torso
     at 6.6e-6 m/s."""
-    scene = dataclasses.replace(tension_only, bars=tuple(_still(b) for b in tension_only.bars))
+    scene = dataclasses.replace(tension_only, bars=tuple(still_bar(b) for b in tension_only.bars))
     model = MarionetteModel(scene, optimization_level=0)
     trajectory = simulate_marionette(model, 6.0, progress=False)
     weight = model.puppet_mass * G
@@ -63,8 +63,8 @@ def test_fully_coupled_all_strings_slack_and_lying_on_the_ground(tension_only):
     model = MarionetteModel(dataclasses.replace(tension_only, bars=bars), optimization_level=0)
     r = simulate_energy_balance(model, 6.0)
     v = np.sqrt(2 * G * 0.1) + 0.6
-    bound = _contact_bound(model, v)
-    _check("slack on the ground, tension-only, 1 kHz", model, r, ground=bound, limit=_limit_bound(model, r),
+    bound = contact_bound(model, v)
+    check_case("slack on the ground, tension-only, 1 kHz", model, r, ground=bound, limit=limit_bound(model, r),
            string_ground=bound + v * model.puppet_dt)
 
 
@@ -96,10 +96,10 @@ def test_at_30_hz_still_bars_settle(tension_only_30_hz):
     (torso below 1 mm/s, as at 1 kHz). With the ``x + H v`` tie path of before it still moved
     at 1.3 mm/s after 6 s, one reason tension-only strings were refused under a slower
     puppet. Measured: torso at 1.3e-6 m/s, energy at most -1.65e-2 J from ``E(0)``."""
-    scene = dataclasses.replace(tension_only_30_hz, bars=tuple(_still(b) for b in tension_only_30_hz.bars))
+    scene = dataclasses.replace(tension_only_30_hz, bars=tuple(still_bar(b) for b in tension_only_30_hz.bars))
     model = MarionetteModel(scene, optimization_level=0)
     r = simulate_energy_balance(model, 6.0)
-    _check("still bars, tension-only, 30 Hz", model, r, ground=0.0, limit=_limit_bound(model, r))
+    check_case("still bars, tension-only, 30 Hz", model, r, ground=0.0, limit=limit_bound(model, r))
     speed = np.linalg.norm(r["body_pos"][-1, 0] - r["body_pos"][-2, 0]) / (r["time"][-1] - r["time"][-2])
     print(f"torso speed at 6 s {speed:.2e} m/s")
     assert speed < 1e-3
@@ -115,7 +115,7 @@ def test_at_30_hz_10x_stiffer_strings_settle(tension_only_30_hz):
                                         tie_damping=10 * s.tie_damping) for s in tension_only_30_hz.strings)
     model = MarionetteModel(dataclasses.replace(tension_only_30_hz, strings=strings), optimization_level=0)
     r = simulate_energy_balance(model, 4.0)
-    _check("10x stiffer, tension-only, 30 Hz", model, r, ground=0.0, limit=_limit_bound(model, r))
+    check_case("10x stiffer, tension-only, 30 Hz", model, r, ground=0.0, limit=limit_bound(model, r))
     rise = r["body_pos"][-1, 0, 1] - r["body_pos"][0, 0, 1]
     print(f"torso {rise * 1e3:+.1f} mm after 4 s")
     assert abs(rise) < 0.01

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from strings_support import make_model, roll, spec
+from tests.support.strings import make_model, roll, spec
 
 from dmarionette.kernels.string_system import eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringEffects, StringModel

@@ -18,7 +18,7 @@ step for each case was chosen from a sweep over e = 1e-3 ... 1e-9 of the paramet
 import numpy as np
 import pytest
 import warp as wp
-from strings_support import make_model, spec
+from tests.support.strings import make_model, spec
 
 from dmarionette.strings.model import StringControl, StringEffects
 from dmarionette.strings.solver import SolverStringImplicit

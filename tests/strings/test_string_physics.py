@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from strings_support import G, NOTHING, ONLY_GRAVITY, make_model, roll, spec, zero_crossing_times
+from tests.support.strings import G, NOTHING, ONLY_GRAVITY, make_model, roll, spec, zero_crossing_times
 
 from dmarionette.strings.model import StringEffects, string_energy
 from dmarionette.strings.solver import SolverStringImplicit

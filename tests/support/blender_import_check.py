@@ -3,7 +3,8 @@
 Not run by pytest (the ``bpy`` wheel is ~370 MB and pins its own numpy); run it by hand
 with a Python that has ``bpy`` (``pip install bpy`` in a separate virtual environment)::
 
-    python tests/blender_import_check.py out/hanging/trajectory.npz out/hanging/motion.bvh out/hanging/motion.glb
+    python tests/support/blender_import_check.py out/hanging/trajectory.npz out/hanging/motion.bvh \
+        out/hanging/motion.glb
 
 It imports with Blender's defaults (BVH: scale 1, forward -Z, up Y; glTF: +Y up), so
 Blender's world is the simulator's turned z up: ``(x, y, z) -> (x, -z, y)``. For every

@@ -4,7 +4,7 @@ The synthetic motion is built by forward kinematics with quaternions, independen
 exporters' matrix code. BVH is read with ``bvh`` (raw channel values; forward kinematics
 here, from the BVH definition) and ``bvhio`` (its own forward kinematics); glTF with
 ``pygltflib`` (structure checked here against the glTF 2.0 rules the Khronos validator
-applies to such files) and ``trimesh``. Tolerances: see ``tests/test_export.py``.
+applies to such files) and ``trimesh``. Tolerances: see ``tests/io/test_export.py``.
 """
 
 import json
@@ -45,7 +45,7 @@ def _qrotate(q, v):
     return v + w * t + np.cross(u, t)
 
 
-def _qmatrix(q):
+def quat_matrix(q):
     return np.stack([_qrotate(q, e) for e in np.eye(3)], axis=-1)
 
 
@@ -53,7 +53,7 @@ SYNTH_FRAMES = 61
 SYNTH_DT = 1.0 / 30.0
 
 
-def _synthetic():
+def synthetic_motion():
     """The default puppet moved by known large rotations, and a free ball (13 bodies)."""
     puppet = load_puppet()
     names = [b.name for b in puppet.bodies]
@@ -87,7 +87,7 @@ def _synthetic():
     shapes = [(b.shape, b.size) for b in puppet.bodies] + [("sphere", (0.05, 0.0, 0.0))]
     traj = types.SimpleNamespace(frame_time=f * SYNTH_DT, body_pos=pos, body_rot=rot, body_names=names + ["ball"],
                                  body_shape=shapes, bar_names=["main"], bar_pos=pos[:, :1] + [0.0, 0.3, 0.0],
-                                 bar_rot=_qmatrix(rot[:, :1]))
+                                 bar_rot=quat_matrix(rot[:, :1]))
     return traj, known
 
 
@@ -100,7 +100,7 @@ def _elementary(channel, degrees):
             "Z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[channel[0]]
 
 
-def _bvh_fk(path):
+def bvh_forward_kinematics(path):
     """Per frame and joint: world origin and rotation, from the ``bvh`` package's raw values.
 
     BVH: a joint's transform in its parent's is translate(OFFSET) then the rotation
@@ -129,11 +129,11 @@ def _bvh_fk(path):
     return mocap, out
 
 
-def _check_bvh_poses(path, trajectory, puppet):
+def check_bvh_poses(path, trajectory, puppet):
     """FK of the file reproduces every body's centre and rotation at every frame; returns the errors."""
-    mocap, fk = _bvh_fk(path)
+    mocap, fk = bvh_forward_kinematics(path)
     assert mocap.nframes == len(trajectory.frame_time)
-    rot = _qmatrix(np.asarray(trajectory.body_rot))
+    rot = quat_matrix(np.asarray(trajectory.body_rot))
     anchor = [np.zeros(3)] + [np.asarray(j.anchor_child) for j in puppet.joints]
     pos_err = rot_err = 0.0
     for b, body in enumerate(puppet.bodies):
@@ -156,7 +156,7 @@ def _check_bvh_poses(path, trajectory, puppet):
     return pos_err, rot_err, worst
 
 
-def _channels(path):
+def read_bvh_channels(path):
     mocap = bvh_reader.Bvh(path.read_text())
     return mocap, {n: np.array([[float(v) for v in mocap.frame_joint_channels(f, n, mocap.joint_channels(n))]
                                 for f in range(mocap.nframes)]) for n in mocap.get_joints_names()}
@@ -263,7 +263,7 @@ def _validate_glb(path):
     return gltf, blob
 
 
-def _node_tracks(gltf, blob):
+def gltf_node_tracks(gltf, blob):
     """Per node name: (times, translations, rotations) decoded from the animation."""
     tracks = {}
     (animation,) = gltf.animations
@@ -276,9 +276,9 @@ def _node_tracks(gltf, blob):
     return tracks
 
 
-def _check_gltf_poses(path, trajectory):
+def check_gltf_poses(path, trajectory):
     gltf, blob = _validate_glb(path)
-    tracks = _node_tracks(gltf, blob)
+    tracks = gltf_node_tracks(gltf, blob)
     names = list(trajectory.body_names)
     expected = ["marionette"] + names + [f"bar_{b}" for b in trajectory.bar_names]
     assert [n.name for n in gltf.nodes[:len(expected)]] == expected
@@ -321,7 +321,7 @@ def _skinned_strings(gltf, blob):
     joint = _accessor(gltf, blob, prim.attributes.JOINTS_0)
     weight = _accessor(gltf, blob, prim.attributes.WEIGHTS_0).astype(np.float64)
     bind = _accessor(gltf, blob, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major
-    tracks = _node_tracks(gltf, blob)
+    tracks = gltf_node_tracks(gltf, blob)
     group = gltf.nodes[skin.skeleton]
     assert group.translation is None and group.rotation is None and group.matrix is None
     moved = np.stack([tracks[gltf.nodes[j].name]["translation"] for j in skin.joints], axis=1).astype(np.float64)
@@ -335,7 +335,7 @@ def _skinned_strings(gltf, blob):
     return world, indices
 
 
-def _check_strings(gltf, trajectory):
+def check_gltf_strings(gltf, trajectory):
     """The skinned string vertices are the simulated particles at every frame (float32 rounding)."""
     blob = gltf.binary_blob()
     world, segments = _skinned_strings(gltf, blob)
@@ -351,10 +351,10 @@ def _check_strings(gltf, trajectory):
     return error
 
 
-def _check_trimesh(path, trajectory):
+def check_trimesh(path, trajectory):
     """trimesh (another reader) sees the body meshes at their frame-0 world poses."""
     scene = trimesh.load(str(path), force="scene")
-    rot = _qmatrix(np.asarray(trajectory.body_rot)[0])
+    rot = quat_matrix(np.asarray(trajectory.body_rot)[0])
     for b, name in enumerate(trajectory.body_names):
         transform, geometry = scene.graph.get(name)
         np.testing.assert_allclose(transform[:3, 3], trajectory.body_pos[0, b], atol=1e-6)
