@@ -38,7 +38,7 @@ def main(swings: float = 3.0) -> dict:
 
 
 def check(result: dict) -> None:
-    """The period agrees to 0.1 % (tests/test_string_physics.py derives a 3e-4 bound)."""
+    """The period agrees to 0.1 % (tests/strings/test_string_physics.py derives a 3e-4 bound)."""
     assert abs(result["measured_period_s"] - result["expected_period_s"]) < 1e-3 * result["expected_period_s"]
 
 

@@ -4,7 +4,9 @@ on the source text with the standard library's ``ast``: nothing here imports the
 (a) no import cycles among the project's modules (``dmarionette`` and ``fitting``), counting
     imports inside functions (lazy imports) as edges too;
 (b) no module imports a ``_private`` name from another module, nor reads one off a module it
-    imported (``module._name``);
+    imported (``module._name``), nor off an object of another module's class
+    (``solver._spare``; found as: ``obj._name`` with ``obj`` not ``self``/``cls``, where no
+    line of this module defines ``_name`` and some other project module does);
 (c) no ``wp._src`` (Warp's internals) anywhere in ``dmarionette/`` and ``fitting/``;
 (d) ``dmarionette`` imports nothing from ``fitting`` (fitting plugs its commands in through the
     ``dmarionette.commands`` entry points);
@@ -199,8 +201,46 @@ def _dotted(node: ast.AST) -> list[str] | None:
     return [node.id, *reversed(parts)]
 
 
+def _private_names_defined(tree: ast.Module) -> set[str]:
+    """The ``_names`` a file defines: functions, classes, names and attributes it assigns, arguments."""
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            names.add(node.attr)
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            names.add(node.id)
+        elif isinstance(node, ast.arg):
+            names.add(node.arg)
+        elif isinstance(node, ast.alias):
+            names.add(node.asname or node.name.split(".")[0])
+        elif isinstance(node, ast.keyword) and node.arg:
+            names.add(node.arg)  # dataclasses.replace(x, _field=...) and the like
+    return {n for n in names if n.startswith("_") and not n.startswith("__")}
+
+
+def _attribute_reach_ins(root: Path, files: dict[str, Path], trees: dict[Path, ast.Module]) -> list[Violation]:
+    """``obj._name`` where ``_name`` belongs to another project module (rule b, or g in tests)."""
+    defined = {path: _private_names_defined(trees[path]) for path in files.values()}
+    project = {path for module, path in files.items() if not _within(module, TESTS)}
+    found = []
+    for module, path in files.items():
+        rule = "g" if _within(module, TESTS) else "b"
+        for node in ast.walk(trees[path]):
+            if (not isinstance(node, ast.Attribute) or not node.attr.startswith("_") or node.attr.startswith("__")
+                    or (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))
+                    or node.attr in defined[path]):
+                continue
+            owners = sorted(str(p.relative_to(root)) for p in project if node.attr in defined[p])
+            if owners:
+                found.append(Violation(rule, _where(root, path, node.lineno),
+                                       f"reads {ast.unparse(node)}: a private name of {', '.join(owners)}"))
+    return found
+
+
 def check(root: Path) -> list[Violation]:
-    """Every violation of rules (a)-(f) in the tree under root."""
+    """Every violation of rules (a)-(g) in the tree under root."""
     files = module_files(root)
     imports, trees = read_imports(root, files)
     found = []
@@ -266,6 +306,7 @@ def check(root: Path) -> list[Violation]:
             elif (name.startswith("_") and not name.startswith("__") and full[0] in (*PACKAGES, TESTS)
                   and ".".join(full[:-1]) in files and ".".join(full[:-1]) != module):
                 found.append(Violation(rule, where, f"reaches into private {name} of module {'.'.join(full[:-1])}"))
+    found += _attribute_reach_ins(root, files, trees)
     return sorted(set(found), key=lambda v: (v.rule, v.where.rpartition(":")[0], int(v.where.rpartition(":")[2]),
                                              v.what))
 
@@ -394,3 +435,13 @@ def test_rule_g_catches_a_test_reaching_into_private_names(tmp_path):
                                    "    monkeypatch.setattr(tape, '_copy_unrecorded', None)\n",
         "tests/live/test_view.py": "from viser import _messages\n",  # a third party's: not this rule's
     }) == [("g", "tests/grad/test_tape.py:4"), ("g", "tests/io/test_export.py:1")]
+
+
+def test_rule_b_catches_a_private_attribute_of_another_modules_object(tmp_path):
+    assert _caught(tmp_path, {
+        "dmarionette/marionette/solver.py": "class SolverMarionette:\n    def __init__(self):\n"
+                                            "        self._spare = [1]\n\n    def step(self, other):\n"
+                                            "        return other._spare  # the same class: fine\n",
+        "dmarionette/grad/tape.py": "def record(solver, q):\n    q._private_of_numpy_or_warp\n"
+                                    "    return solver._spare[0]\n",
+    }) == [("b", "dmarionette/grad/tape.py:3")]

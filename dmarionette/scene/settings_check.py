@@ -3,7 +3,7 @@
 :func:`check_marionette_settings` is meant to be called where a marionette is built
 (``MarionetteModel.__init__``); :func:`check_string_settings`
 where strings are built from a scene (``StringModel.from_scene``, or at the end of
-``scene_from_table``). Every refusal comes from a measurement in ``tests/test_hard_cases*.py``:
+``scene_from_table``). Every refusal comes from a measurement in ``tests/marionette/test_hard_cases*.py``:
 
 - **float32 strings at a string step below 1e-4 s** (:func:`check_string_settings`).
 
@@ -27,8 +27,8 @@ where strings are built from a scene (``StringModel.from_scene``, or at the end 
   pumped 13 cm up in 4 s; so ``puppet_hz = string_hz`` was required. With the trial-step
   path, at 30 Hz: still bars settle (1.3e-3 mm/s after 6 s), the thrown shoulder loses
   0.14 J, the 10x puppet settles within 3 mm of its start, and every hard case of
-  ``tests/test_hard_cases*.py`` run with tension-only strings stays within its energy bound
-  (``tests/test_tension_only_marionette.py`` keeps three of them).)
+  ``tests/marionette/test_hard_cases*.py`` run with tension-only strings stays within its energy bound
+  (``tests/marionette/test_tension_only_marionette.py`` keeps three of them).)
 - **any puppet step longer than 0.1 s**: measured with the puppet at the string rate
   (``n = 1``): excess -0.038 J at 10 Hz, but thousands of joules and more within 10 s at
   4 Hz (string particles metres below the ground); under 1 kHz strings -0.019 J at 10 Hz,

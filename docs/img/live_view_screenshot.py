@@ -3,7 +3,7 @@
 Run:  python docs/img/live_view_screenshot.py   (needs `chromium` on the PATH and the 'view' extra)
 
 The simulated device drives the main bar of the ``hanging`` scene; after 3 s a websocket
-client (tests/live_view_client.py, speaking viser's protocol as a browser does) drags the bar
+client (tests/support/live_view_client.py, speaking viser's protocol as a browser does) drags the bar
 down and sideways, so some strings go slack (orange); 2 s later Chromium (software WebGL)
 takes the picture. The top-left corner, where viser warns about software WebGL, is cut off.
 """
@@ -28,8 +28,8 @@ from dmarionette.live.view_viser import LiveViewServer  # noqa: E402
 from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests"))
-from live_view_client import ViewClient  # noqa: E402
+sys.path.insert(0, str(ROOT))
+from tests.support.live_view_client import ViewClient  # noqa: E402
 
 
 def main() -> None:
