@@ -359,7 +359,7 @@ def test_sigint_during_live_turns_the_motors_off_and_keeps_the_recording(tmp_pat
     assert said < 1.0 and stopped < SLACK * 1.0, (said, stopped)
     assert "Traceback" not in err, err
     assert err.rstrip().splitlines()[-1].startswith("interrupted; kept") and str(record) in err, err
-    # The recording kept is readable (motors off on Ctrl-C: tests/test_hw_servo.py, with a device that records it).
+    # The recording kept is readable (motors off on Ctrl-C: tests/hw/test_hw_servo.py, with a device that records it).
     assert len(read_session(record).channels["/device/main/force"]["t"]) > 0
 
 

@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from support_bad_files import (
+from tests.support.bad_files import (
     edit_json,
     hanging_table,
     puppet_table,

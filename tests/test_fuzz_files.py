@@ -22,7 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from support_bad_files import (
+from tests.support.bad_files import (
     hanging_table,
     rewrite_session,
     synthetic_marionette_trajectory,

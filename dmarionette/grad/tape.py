@@ -7,7 +7,7 @@ gives silently wrong gradients). The plain and the taped run are the same method
 string solver records its solve's hand-written adjoint on the tape it is given and, for
 tension-only strings, finds the active set by an unrecorded pass (``SolverStringImplicit``);
 the taped re-run of a segment therefore ends exactly where the plain forward did
-(``tests/test_taped_step.py``).
+(``tests/grad/test_taped_step.py``).
 
 The arrays of a ``C``-step segment are allocated once (a :class:`_Plan`) and reused by
 every segment (a shorter last one uses its first steps): for each segment length the

@@ -60,7 +60,7 @@ class JointTopology:
 
 # Joint limits: the band [rad] before a limit over which its implicit part is switched on
 # (``_limits``). 1e-3 rad made the step so steep in ``q`` that calibration's finite-difference
-# fit (``tests/test_calibration.py``) missed a string's k by 5 standard errors and its k_d by 8;
+# fit (``tests/fitting/test_calibration.py``) missed a string's k by 5 standard errors and its k_d by 8;
 # at 5e-2 rad (2.9 deg) it recovers every constant within 1.8 of them.
 LIMIT_BAND = 5e-2
 
@@ -375,7 +375,7 @@ def solve_body_dynamics(
         band of ``LIMIT_BAND`` before the limit, ``w = clamp((max(q, q + h qd) - upper) /
         band + 1, 0, 1)``, so that the step is continuous in ``q`` and ``qd`` (an on/off
         switch there turned float32 rounding of the strings into different motions: 7x the
-        rounding bound of ``tests/test_marionette_float32.py``).
+        rounding bound of ``tests/marionette/test_marionette_float32.py``).
         """
         e = self
         e("kl = limit_stiffness")

@@ -80,7 +80,7 @@ def string_spring_functions(scalar) -> SimpleNamespace:
         ``-k_s (|x_a - x_b| - d) u``, which also pushes when the segment is shorter than its
         rest length. A real string does not push: with the printed spring a straight string
         lowered onto the ground acts as a rod and drives its lower particles 0.3 m through the
-        ground penalty (``tests/test_hard_cases_strings.py``). Here the potential is
+        ground penalty (``tests/strings/test_hard_cases_strings.py``). Here the potential is
         ``1/2 k_s max(l - d, 0)^2`` (``strings.model.string_energy``), which is convex in the
         positions (the printed spring's is not). For a taut segment (``l > d``) force and
         Jacobian are the paper's, so taut strings behave exactly as before.
@@ -111,7 +111,7 @@ def string_spring_functions(scalar) -> SimpleNamespace:
         **Why it is not the default:** it is a change of the paper's model (the printed spring
         pushes), and it costs 5-22 % per string step. It passes the hard cases tried with it,
         strings alone and in a marionette, with the puppet at the string rate and at 30 Hz
-        (``tests/test_hard_cases_strings.py``, ``tests/test_tension_only_marionette.py``;
+        (``tests/strings/test_hard_cases_strings.py``, ``tests/marionette/test_tension_only_marionette.py``;
         at 30 Hz it was refused while the coupling extrapolated the tie path as ``x + H v``,
         ``settings_check``).
         """

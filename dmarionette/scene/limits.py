@@ -51,7 +51,7 @@ TESTED_RANGES: dict[str, TestedRange] = {
     "load_mass": TestedRange(0.0, 10.0, "kg",
                              "loads in the tests and scenes are 0 to 0.35 kg; 1e30 kg ran with 20,402 % stretch"),
     "stiffness": TestedRange(1e-2, 1e6, "N/m",
-                             "whole-string stiffness in the scenes is 5 to 800 N/m and tests/test_hard_cases.py runs "
+                             "whole-string stiffness in the scenes is 5 to 800 N/m and tests/marionette/test_hard_cases.py runs "
                              "segments up to 1e7 N/m (2e5 N/m for a 50-particle string); 1e300 N/m left NaN"),
     "internal_friction": TestedRange(0.0, 1e4, "N s/m", "the tests use 0 to 5"),
     "air_drag": TestedRange(0.0, 1e3, "N s/m", "the tests use 0 to 0.1"),

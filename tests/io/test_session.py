@@ -150,7 +150,7 @@ def test_the_standard_mcap_reader_opens_the_file(synthetic_file):
         header, summary = reader.get_header(), reader.get_summary()
         assert header.profile == "" and header.library.startswith("dmarionette")
         counts = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
-                  if not summary.channels[c].topic.startswith("/foxglove/")}  # tests/test_session_foxglove.py
+                  if not summary.channels[c].topic.startswith("/foxglove/")}  # tests/io/test_session_foxglove.py
         assert sorted(counts) == sorted(TOPICS)
         json_channels = [c for c in summary.channels.values() if c.topic in TOPICS]
         assert all(summary.schemas[c.schema_id].encoding == "jsonschema" for c in json_channels)

@@ -1,6 +1,6 @@
 """USD export (docs/export.md): read back with pxr (usd-core), poses against the trajectory.
 
-The synthetic motion (``export_support``: large known rotations, quaternion signs flipping
+The synthetic motion (``tests/support/export.py``: large known rotations, quaternion signs flipping
 every other frame, a ball) checks body poses; 0.5 s of the simulated hanging marionette
 checks the strings (``BasisCurves`` points = the particles) and the command line.
 """
@@ -22,8 +22,7 @@ from dmarionette.io.export.usd import export_usd  # noqa: E402
 from dmarionette.io.trajectory import write_marionette_trajectory  # noqa: E402
 from dmarionette.rotations import quat_to_matrix  # noqa: E402
 
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
-from export_support import SYNTH_DT, SYNTH_FRAMES, _synthetic  # noqa: E402
+from tests.support.export import SYNTH_DT, SYNTH_FRAMES, synthetic_motion  # noqa: E402
 
 POSE_TOL = 1e-12  # [m] and rotation matrix entries: double-precision ops, nothing is rounded
 
@@ -36,7 +35,7 @@ def _world(stage, prim_path, code):
 
 @pytest.fixture(scope="module")
 def synthetic_stage(tmp_path_factory):
-    traj, _ = _synthetic()
+    traj, _ = synthetic_motion()
     path = export_usd(traj, tmp_path_factory.mktemp("usd") / "motion.usda")
     return traj, Usd.Stage.Open(str(path))
 

@@ -300,7 +300,7 @@ def test_a_failed_rewrite_on_close_leaves_the_unchunked_file(recorded, tmp_path,
     def broken(*args, **kwargs):
         raise ImportError("no zstandard")
 
-    monkeypatch.setattr(index, "_write_indexed", broken)
+    monkeypatch.setattr(index, "index_session", broken)  # the writer imports it when it closes
     session = read_session(recorded[1])
     writer = SessionWriter(tmp_path / "take.mcap", session.scene, session.scene_record["toml"])
     writer.write_bar_pose("main", 0.0, [0, 1, 0], [0, 0, 0])
