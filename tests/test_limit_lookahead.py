@@ -1,0 +1,85 @@
+"""The joint-limit look-ahead is one-sided (issue 13, ``articulation_codegen._limits``).
+
+A limit acts in a step that starts past it or whose start velocity carries the joint past
+it (``docs/puppet.md``); a joint inside its limit that is at rest or moves away from it
+feels nothing of the limit. Before the fix the look-ahead band (``LIMIT_BAND``, 0.05 rad)
+also acted on a joint moving away: the left elbow 0.03 rad inside its upper limit (5 deg),
+moving away at 1 rad/s, had its acceleration changed from 15.9 to 29.7 rad/s^2 at 30 Hz
+(43.6 -> 918 rad/s^2 at h = 1e-4 s). Now the accelerations with and without limits are
+equal to rounding at every step size, and the limit still acts on the mirror case (moving
+towards the limit) and past it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dmarionette.articulation.solver import SolverArticulation, build_articulation_model
+from dmarionette.scene.puppet import load_puppet
+
+ELBOW_DOF = 11  # root 0-5, neck 6-8, shoulder_left 9-10, elbow_left 11
+INSIDE = 0.03  # rad inside the upper limit
+
+
+def _models():
+    out = {}
+    for limits in (True, False):
+        model = build_articulation_model(load_puppet(), joint_limits=limits)
+        out[limits] = (model, SolverArticulation(model, optimization_level=0))
+    return out
+
+
+@pytest.fixture(scope="module")
+def models():
+    return _models()
+
+
+def _acceleration(model, solver, offset: float, rate: float, dt: float) -> float:
+    """The elbow's acceleration in one step from the rest pose with the elbow at
+    ``upper + offset`` moving at ``rate`` (rad/s)."""
+    dof = ELBOW_DOF
+    qi = dof + 2  # the root's and the neck's quaternions: one coordinate more than velocities each
+    upper = model.dof_limit_upper.numpy()[dof]
+    a, b, control = model.state(), model.state(), model.control()
+    q = a.joint_q.numpy()
+    qd = np.zeros((1, model.qd_count))
+    q[0, qi] = upper + offset
+    qd[0, dof] = rate
+    a.joint_q.assign(q)
+    a.joint_qd.assign(qd)
+    solver.step(a, b, control, dt)
+    return float(b.joint_qdd.numpy()[0, dof])
+
+
+@pytest.mark.parametrize("dt", [1.0 / 30.0, 1e-3, 1e-4])
+def test_moving_away_from_a_limit_is_not_braked(models, dt):
+    on = _acceleration(*models[True], -INSIDE, -1.0, dt)
+    off = _acceleration(*models[False], -INSIDE, -1.0, dt)
+    print(f"\nh = {dt:.2e} s: elbow acceleration with limits {on:.6f}, without {off:.6f} rad/s^2")
+    assert on == pytest.approx(off, rel=1e-12, abs=1e-12)
+
+
+@pytest.mark.parametrize("dt", [1.0 / 30.0, 1e-3])
+def test_at_rest_inside_a_limit_is_not_braked(models, dt):
+    on = _acceleration(*models[True], -INSIDE, 0.0, dt)
+    off = _acceleration(*models[False], -INSIDE, 0.0, dt)
+    assert on == pytest.approx(off, rel=1e-12, abs=1e-12)
+
+
+def test_moving_towards_a_limit_within_the_step_is_braked(models):
+    """The mirror case: 0.03 rad inside, moving towards the limit at 1 rad/s: the start
+    velocity carries the elbow 0.003 rad past the limit within a 30 Hz step, so the limit's
+    implicit part acts (the acceleration opposes the motion more than without limits)."""
+    on = _acceleration(*models[True], -INSIDE, 1.0, 1.0 / 30.0)
+    off = _acceleration(*models[False], -INSIDE, 1.0, 1.0 / 30.0)
+    print(f"\ntowards: with limits {on:.3f}, without {off:.3f} rad/s^2")
+    assert on < off - 1.0
+
+
+def test_past_a_limit_moving_away_still_feels_it(models):
+    """0.01 rad past the limit and moving back at 1 rad/s: the spring pushes back
+    and the implicit part acts (the step is the same as before the fix there)."""
+    on = _acceleration(*models[True], 0.01, -1.0, 1.0 / 30.0)
+    off = _acceleration(*models[False], 0.01, -1.0, 1.0 / 30.0)
+    assert on != pytest.approx(off, rel=1e-3)
