@@ -4,7 +4,7 @@ Each function is launched in a small kernel on a ``wp.Tape`` at its switch and o
 sides of it (1e-9 and 1e-3 away), and the taped derivative is compared with the analytic
 one. Warp's adjoints of the primitives at a tie (measured, Warp 1.19): ``max(x, 0)`` sends
 nothing to ``x`` at ``x = 0``, ``min(x, 0)`` sends nothing either, ``abs'(0) = +1``,
-``clamp(x, 0, 1)`` passes the derivative at ``x = 0`` and at ``x = 1``. Built from these,
+``clamp(x, 0, 1)`` passes the derivative at ``x = 0`` but not at ``x = 1``. Built from these,
 ``max(x, 0) + log(1 + exp(-|x|))`` had the derivative -0.5 at 0 (true: 0.5), which every
 smooth contact at rest hit (``body_contact.compute_softplus``, now exact branches; a first
 fix with ``log(1 + exp(+-x))`` in two ``where`` branches overflowed in the branch not taken
@@ -73,6 +73,17 @@ def _geometric_stiffness(x: wp.float64) -> wp.float64:
     return jac[1, 1]
 
 
+@wp.func
+def _ramp_lower(x: wp.float64) -> wp.float64:
+    """The ramps of the joint limits and the tie's axial stiffness: ``clamp(x, 0, 1)`` at 0."""
+    return wp.clamp(x, wp.float64(0.0), wp.float64(1.0))
+
+
+@wp.func
+def _ramp_upper(x: wp.float64) -> wp.float64:
+    return wp.clamp(wp.float64(1.0) + x, wp.float64(0.0), wp.float64(1.0))
+
+
 def _sig(x):
     return 1.0 / (1.0 + np.exp(-x))
 
@@ -98,6 +109,8 @@ CASES = {
     # spring's clamped geometric stiffness at the rest length
     "normal_hard_d": (_normal_hard_d, 0.0, lambda x: K * (x > 0), "left"),
     "tension": (_tension, 0.0, lambda x: 3.0 * (x > 0), "left"),
+    "ramp_lower": (_ramp_lower, 0.0, lambda x: 1.0 * (x >= 0), "right"),
+    "ramp_upper": (_ramp_upper, 0.0, lambda x: 1.0 * (x <= 0), "right"),
     "geometric_stiffness": (_geometric_stiffness, 0.0, lambda x: -3.0 * (1.0 / (1.0 + x) ** 2) * (x > 0), "left"),
 }
 
