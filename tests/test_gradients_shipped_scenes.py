@@ -38,7 +38,16 @@ steps: ``1e-16 |L| / (e |g|)``). Before the softplus fix (``body_contact.compute
 the ``chair`` gradient along ``joint_qd0`` did not converge at any step (below). Each
 group is checked at the two steps ``STEPS`` in its converged window, both within
 ``TOLERANCE``, 10 times the worst error measured there on the three scenes (which shows
-convergence: two steps a decade apart agree with the tape and with each other).
+convergence: two steps a decade apart agree with the tape and with each other). Measured at
+``STEPS`` (worst of the two): top_q 3.3e-8, bar_q 2.5e-10, bar_qd 1.6e-9, tie_stiffness
+9.7e-7, tie_damping 2.0e-6, string_stiffness 3.3e-6, joint_q0 2.1e-7, joint_qd0 1.9e-7,
+particle_q0 (stretched) 6.6e-7, particle_qd0 1.2e-7. On ``hanging`` the window of ``top_q``
+and ``joint_q0`` is narrow (3.8e-4 at 1e-6 rad, 1.1e-7 at 1e-7), of ``particle_q0`` narrower
+(stretched: 0.34, 0.10, 6.6e-7, 2.1e-7, 4.1e-6 at 1e-6, 4e-7, 2e-7, 1e-7, 5e-8 m: a switch
+within 4e-7 m, rounding below 1e-7; its directional derivative is small, 1.2): switches are
+that near in the shipped scenes.
+With 50 particles (``hanging``, hard contact) the sweep looks the same (``top_q`` and
+``joint_q0`` converge at 1e-7: 1.2e-8, 4.4e-8).
 
 **The strings' initial positions at the rest state are at a kink.** The rest state
 (``scene_inputs``: straight strings at their rest length) has every segment at exactly
@@ -77,10 +86,16 @@ STEPS = {
     "string_stiffness": (1e-5, 1e-6),
     "joint_q0": (1e-7, 1e-8),
     "joint_qd0": (1e-5, 1e-6),
-    "particle_q0": (1e-6, 1e-7),
+    "particle_q0": (2e-7, 1e-7),
     "particle_qd0": (1e-3, 1e-4),
 }
-TOLERANCE = 1e-5
+# 10 times the worst error measured at these steps on the three scenes (printed by the test):
+# the constants' differences are rounding-limited (3.3e-6, ``string_stiffness`` on ``ball``
+# at 1e-6), the bar inputs' truncation-free (1.6e-9), particle_q0's 6.6e-7 (``hanging``, a
+# narrow window), the rest's 2.1e-7.
+TOLERANCE = ({name: 2e-6 for name in STEPS} | {name: 3e-5 for name in CONSTANTS}
+             | {"bar_q": 2e-8, "bar_qd": 2e-8, "particle_q0": 7e-6})
+KINK_STEPS = (1e-8, 1e-9)
 
 
 class Shipped:
@@ -148,24 +163,29 @@ def test_gradients_match_converged_differences(scene):
         analytic = float(np.sum(getattr(grads, name) * u))
         errors[name] = [abs(p.central(base, name, u, e) - analytic) / abs(analytic) for e in STEPS[name]]
     print(f"\n{scene}: " + ", ".join(f"{k} {a:.1e} {b:.1e}" for k, (a, b) in errors.items()))
-    worst = max(max(v) for v in errors.values())
-    assert worst <= TOLERANCE, errors
+    bad = {k: v for k, v in errors.items() if max(v) > TOLERANCE[k]}
+    assert not bad, bad
 
 
 @pytest.mark.parametrize("scene", ["chair"])
 def test_the_rest_state_is_a_kink_for_the_initial_positions(scene):
-    """At the rest state the one-sided differences along ``particle_q0`` disagree (the
-    step's derivative jumps there); 1e-3 stretched, they agree."""
+    """Along ``particle_q0`` the one-sided differences ``(L(x + e u) - L(x)) / e`` and
+    ``(L(x) - L(x - e u)) / e`` differ by ``e |L''|`` where the loss is smooth, and by the
+    jump of its derivative at a kink, whatever ``e``. At the rest state their gap stays put
+    as ``e`` shrinks tenfold (a kink); from the strings stretched by 1e-3 it shrinks tenfold."""
     p = _shipped(scene)
     name, u = [(n, u) for n, u in p.directions() if n == "particle_q0"][0]
-    e = STEPS[name][0]
-    jumps = []
+    gaps = []
     for base in (p.inputs, p.stretched):
         f0 = p.loss(base)
-        forward = (p.loss(p.moved(base, name, u, e)) - f0) / e
-        backward = (f0 - p.loss(p.moved(base, name, u, -e))) / e
-        jumps.append(abs(forward - backward) / abs(forward + backward) * 2.0)
-    print(f"\none-sided differences along particle_q0 disagree by {jumps[0]:.2e} at the rest state, "
-          f"{jumps[1]:.2e} stretched")
-    assert jumps[0] > 1e-3
-    assert jumps[1] < 1e-4
+        row = []
+        for e in KINK_STEPS:
+            forward = (p.loss(p.moved(base, name, u, e)) - f0) / e
+            backward = (f0 - p.loss(p.moved(base, name, u, -e))) / e
+            row.append(abs(forward - backward) / abs(forward + backward) * 2.0)
+        gaps.append(row)
+    print(f"\none-sided differences along particle_q0 at steps {KINK_STEPS}: relative gap {gaps[0]} at the "
+          f"rest state, {gaps[1]} stretched")
+    (rest_big, rest_small), (off_big, off_small) = gaps
+    assert rest_small > 1e-3 and rest_small > 0.5 * rest_big
+    assert off_small < 0.2 * off_big
