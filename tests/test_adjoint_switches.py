@@ -85,7 +85,7 @@ def _ramp_upper(x: wp.float64) -> wp.float64:
 
 
 def _sig(x):
-    return 1.0 / (1.0 + np.exp(-x))
+    return 0.5 * (1.0 + np.tanh(0.5 * x))  # no overflow at |x| = 1e3
 
 
 def _sp(x):
