@@ -63,13 +63,6 @@ class JointTopology:
 # fit (``tests/test_calibration.py``) missed a string's k by 5 standard errors and its k_d by 8;
 # at 5e-2 rad (2.9 deg) it recovers every constant within 1.8 of them.
 LIMIT_BAND = 5e-2
-# The edge [rad] over which a limit's implicit part is switched on before the limit whatever
-# the motion, and the step travel ``h qd`` towards the limit over which the look-ahead band is
-# switched on (``_limits``): a joint inside its limit by more than this and not moving towards
-# it feels nothing of the limit (issue 13: the look-ahead band braked motion away from a limit).
-# Measured with 5e-3: calibration recovers every constant within 2.78 standard errors (2.35
-# with the two-sided band before), the hard cases' energy figures unchanged (docs/puppet.md).
-LIMIT_EDGE = 5e-3
 
 _Q_COUNT = {"free": 7, "ball": 4, "universal": 2, "hinge": 1}
 _QD_COUNT = {"free": 6, "ball": 3, "universal": 2, "hinge": 1}
@@ -378,29 +371,15 @@ def solve_body_dynamics(
         appeared from nothing. The spring's constant part is ``-k max(q - upper, 0)``
         (nothing before the crossing), so in the entering step the limit acts through its
         implicit part ``-(c + k h) qd'`` only, which opposes the motion: it takes energy out
-        and never pulls a joint towards its limit. The implicit part is switched on
-        continuously in ``q`` and ``qd`` (an on/off switch there turned float32 rounding of
-        the strings into different motions: 7x the rounding bound of
-        ``tests/test_marionette_float32.py``), and one-sidedly: with ``ramp(x) = clamp(x, 0,
-        1)``, ``band = LIMIT_BAND`` and ``edge = LIMIT_EDGE``,
-
-            w = max(ramp((q + h qd - upper) / band + 1) * ramp(h qd / edge),
-                    ramp((q - upper) / edge + 1))
-
-        the look-ahead (first term) over a band of ``band`` before the limit, but only in a
-        step that moves towards the limit (fully once its travel ``h qd`` exceeds ``edge``),
-        and the limit itself (second term) over ``edge`` before it whatever the motion (so
-        ``w = 1`` wherever the spring acts). A joint more than ``edge`` inside its limit and
-        at rest or moving away feels nothing of it. (Before issue 13 the band acted on
-        ``max(q, q + h qd)`` and so also braked motion away from a limit: the elbow 0.03 rad
-        inside its upper limit, moving away at 1 rad/s, had its acceleration changed from
-        15.9 to 29.7 rad/s^2 at 30 Hz; ``tests/test_limit_lookahead.py``.) The lower limit
-        is the mirror image, the ball joint's cone the same on its rotation angle.
+        and never pulls a joint towards its limit. The implicit part is switched on over a
+        band of ``LIMIT_BAND`` before the limit, ``w = clamp((max(q, q + h qd) - upper) /
+        band + 1, 0, 1)``, so that the step is continuous in ``q`` and ``qd`` (an on/off
+        switch there turned float32 rounding of the strings into different motions: 7x the
+        rounding bound of ``tests/test_marionette_float32.py``).
         """
         e = self
         e("kl = limit_stiffness")
         e(f"band = wp.float64({LIMIT_BAND!r})")
-        e(f"edge = wp.float64({LIMIT_EDGE!r})")
         e("dl = limit_damping + h_implicit * limit_stiffness")
         e("hl = h_implicit * limit_damping + h_implicit * h_implicit * limit_stiffness")
         for b, j in enumerate(self.t.joints):
@@ -410,13 +389,8 @@ def solve_body_dynamics(
                     i = d + k
                     q = f"joint_q[w, {j.q_start + k}]"
                     e(f"qe{i} = {q} + h_implicit * qd{i}")
-                    e(f"rs{i} = h_implicit * qd{i}")
-                    e(f"up{i} = wp.max(wp.clamp((qe{i} - dof_limit_upper[{i}]) / band + one, zero, one)"
-                      f" * wp.clamp(rs{i} / edge, zero, one),"
-                      f" wp.clamp(({q} - dof_limit_upper[{i}]) / edge + one, zero, one))")
-                    e(f"lo{i} = wp.max(wp.clamp((dof_limit_lower[{i}] - qe{i}) / band + one, zero, one)"
-                      f" * wp.clamp(-rs{i} / edge, zero, one),"
-                      f" wp.clamp((dof_limit_lower[{i}] - {q}) / edge + one, zero, one))")
+                    e(f"up{i} = wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
+                    e(f"lo{i} = wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
                     e(f"tl{i} = tau{i} - kl * (wp.max({q} - dof_limit_upper[{i}], zero) + wp.min({q} - dof_limit_lower[{i}], zero)) - (up{i} + lo{i}) * dl * qd{i}")
                     tau[i] = f"tl{i}"
                     diag_extra[i].append(f"(up{i} + lo{i}) * hl")
@@ -431,9 +405,7 @@ def solve_body_dynamics(
                 e(f"n{b} = nv{b} / sn{b}")
                 e(f"om{b} = wp.vec3d(qd{d}, qd{d + 1}, qd{d + 2})")
                 e(f"rt{b} = h_implicit * wp.dot(n{b}, om{b})")
-                e(f"ac{b} = wp.max(wp.clamp((th{b} + rt{b} - dof_limit_upper[{d}]) / band + one, zero, one)"
-                  f" * wp.clamp(rt{b} / edge, zero, one),"
-                  f" wp.clamp((th{b} - dof_limit_upper[{d}]) / edge + one, zero, one))")
+                e(f"ac{b} = wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
                 e(f"tb{b} = n{b} * (ac{b} * (-kl * wp.max(th{b} - dof_limit_upper[{d}], zero) - dl * wp.dot(n{b}, om{b})))")
                 for k in range(3):
                     e(f"tl{d + k} = tau{d + k} + tb{b}[{k}]")
