@@ -20,15 +20,15 @@ error of the extrapolated difference against the tape, ``chair``, 10 particles):
 | group | 1e-2 | 1e-3 | 1e-4 | 1e-5 | 1e-6 | 1e-7 |
 | --- | --- | --- | --- | --- | --- | --- |
 | top_q | 5.1e-2 | 6.9e-1 | 9.3e-1 | 4.8e-7 | 2.2e-7 | 3.3e-8 |
-| bar_q | 2.7e-15 | 2.5e-12 | 1.8e-12 | 2.5e-10 | 8.0e-10 | 2.8e-8 |
-| bar_qd | 7.8e-14 | 7.0e-13 | 2.7e-11 | 1.3e-10 | 5.8e-10 | 1.4e-8 |
-| tie_stiffness | 2.9e+1 | 4.2e-6 | 2.7e-7 | 4.9e-7 | 9.1e-7 | 4.1e-5 |
-| tie_damping | 6.5e-6 | 1.5e-6 | 2.4e-7 | 5.2e-8 | 9.5e-7 | 4.4e-5 |
-| string_stiffness | 9.2e+1 | 2.0e-6 | 2.4e-8 | 2.5e-7 | 7.2e-8 | 7.1e-6 |
-| joint_q0 | 2.7e-1 | 2.3 | 5.5 | 1.8e-4 | 1.6e-7 | 4.2e-8 |
-| joint_qd0 | 6.4 | 9.0e-5 | 9.9e-7 | 1.9e-7 | 7.9e-8 | 3.6e-7 |
-| particle_q0 (rest state) | 9.7e-1 | 1.0 | 1.7 | 1.0e+1 | 1.9e-2 | 1.9e-2 |
-| particle_qd0 | 9.4e-7 | 1.7e-9 | 2.2e-8 | 4.0e-7 | 4.0e-6 | 2.7e-5 |
+| bar_q | 2.5e-14 | 2.5e-14 | 1.1e-11 | 1.4e-10 | 1.9e-9 | 1.7e-8 |
+| bar_qd | 5.3e-14 | 2.7e-12 | 5.2e-11 | 3.8e-10 | 5.8e-10 | 2.0e-8 |
+| tie_stiffness | 2.9e+1 | 4.2e-6 | 2.8e-7 | 4.4e-7 | 5.2e-7 | 4.2e-5 |
+| tie_damping | 6.5e-6 | 1.5e-6 | 2.5e-7 | 1.2e-7 | 1.4e-7 | 4.3e-5 |
+| string_stiffness | 9.2e+1 | 2.0e-6 | 2.5e-8 | 3.0e-7 | 3.6e-7 | 9.6e-6 |
+| joint_q0 | 2.8e-1 | 2.3 | 5.5 | 1.8e-4 | 1.6e-7 | 4.1e-8 |
+| joint_qd0 | 6.4 | 1.1e-4 | 1.0e-6 | 1.9e-7 | 9.2e-8 | 3.9e-7 |
+| particle_q0 (rest state) | 9.8e-1 | 1.0 | 1.7 | 1.0e+1 | 1.9e-2 | 1.9e-2 |
+| particle_qd0 | 9.5e-7 | 4.2e-9 | 3.0e-8 | 5.5e-7 | 1.3e-6 | 1.8e-5 |
 
 The rollout with limits on is strongly curved and piecewise smooth: the differences agree
 with the tape only once the step is below the distance to the nearest switch the
