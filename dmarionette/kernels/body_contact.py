@@ -90,8 +90,20 @@ class ContactConstants:
 
 @wp.func
 def compute_softplus(x: wp.float64) -> wp.float64:
-    """``log(1 + exp(x))`` without overflow."""
-    return wp.max(x, wp.float64(0.0)) + wp.log(wp.float64(1.0) + wp.exp(-wp.abs(x)))
+    """``log(1 + exp(x))`` without overflow.
+
+    The value is ``max(x, 0) + log(1 + exp(-|x|))`` bit for bit, but written so that the tape
+    differentiates it exactly everywhere: Warp's adjoints of ``max`` and ``abs`` at a tie
+    (``max(0, 0)`` sends nothing to ``x``, ``abs'(0) = +1``) made that formula's derivative at
+    exactly ``x = 0`` -0.5 instead of 0.5, and every smooth contact at rest (normal velocity
+    exactly 0, the default start) has ``x = 0`` in its damping term. Here ``m = -|x|`` is a
+    ``where`` whose ``x <= 0`` branch is ``x`` itself (slope +1 at 0), and the exponent is never
+    positive (two ``where`` branches ``log(1 + exp(+-x))`` would overflow in the branch not
+    taken, whose zero adjoint times ``inf`` is a NaN). ``tests/kernels/test_adjoint_switches.py``.
+    """
+    zero = wp.float64(0.0)
+    m = wp.where(x > zero, -x, x)
+    return wp.where(x > zero, x, zero) + wp.log(wp.float64(1.0) + wp.exp(m))
 
 
 @wp.func
