@@ -21,17 +21,8 @@ from typing import Any
 import numpy as np
 
 from dmarionette.scene.scene import Scene, load_scene, scene_from_table
-from dmarionette.scene.fields import (
-    SceneError,
-    check_keys,
-    read_choice,
-    read_float,
-    read_int,
-    read_str,
-    read_table,
-    read_toml_file,
-    read_vec3,
-)
+from dmarionette.scene.fields import (SceneError, check_keys, read_choice, read_float, read_int, read_str, read_table,
+                                      read_toml_file, read_vec3)
 
 __all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "Weights", "keyframes_from_table",
            "load_keyframes",

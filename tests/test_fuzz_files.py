@@ -85,6 +85,27 @@ def _names_the_place(message: str, path: tuple) -> bool:
     return any(w in message for w in words) or "[[strings]]" in message
 
 
+def _damaged(table: dict, path: tuple, value, remove: bool) -> dict:
+    """A copy of ``table`` with the leaf at ``path`` removed, or set to ``value``."""
+    table = copy.deepcopy(table)
+    if remove:
+        _delete(table, path)
+    else:
+        _set(table, path, value)
+    return table
+
+
+def _refusal(load, error_type):
+    """The project's error ``load()`` raised (None if it accepted the input), checked to name its key;
+    any other exception fails the test."""
+    try:
+        load()
+    except error_type as error:
+        assert f"key '{error.key}'" in str(error), str(error)
+        return error
+    return None
+
+
 HANGING = hanging_table()
 SCENE_LEAVES = [p for p, _ in _leaves(HANGING)]
 
@@ -92,17 +113,10 @@ SCENE_LEAVES = [p for p, _ in _leaves(HANGING)]
 @FUZZ
 @given(st.sampled_from(SCENE_LEAVES), BAD_VALUES, st.booleans())
 def test_fuzz_scene_values(path, value, remove):
-    table = copy.deepcopy(HANGING)
-    if remove:
-        _delete(table, path)
-    else:
-        _set(table, path, value)
-    try:
-        scene_from_table(table, "fuzz.toml")
-    except SceneError as error:
+    error = _refusal(lambda: scene_from_table(_damaged(HANGING, path, value, remove), "fuzz.toml"), SceneError)
+    if error is not None:
         message = str(error)
         assert message.startswith("fuzz.toml"), message
-        assert f"key '{error.key}'" in message
         assert _names_the_place(message, path) or remove, (path, message)
 
 
@@ -146,17 +160,11 @@ KEYFRAME_LEAVES = [p for p, _ in _leaves(KEYFRAMES) if p[:2] != ("author", "scen
 def test_fuzz_keyframes_values(path, value, remove):
     from fitting.keyframes import KeyframeError, keyframes_from_table
 
-    table = copy.deepcopy(KEYFRAMES)
-    if remove:
-        _delete(table, path)
-    else:
-        _set(table, path, value)
-    try:
-        keyframes_from_table(table, "fuzz_keys.toml")
-    except KeyframeError as error:
+    error = _refusal(lambda: keyframes_from_table(_damaged(KEYFRAMES, path, value, remove), "fuzz_keys.toml"),
+                     KeyframeError)
+    if error is not None:
         message = str(error)
         assert "fuzz_keys.toml" in message or SCENE_DIR.name in message, message
-        assert f"key '{error.key}'" in message
 
 
 # ----------------------------------------------------------------------------- sessions

@@ -154,6 +154,27 @@ def check_trajectory_finite(trajectory, what: str = "trajectory") -> None:
         raise NonFiniteTrajectoryError(*found, what)
 
 
+def _prepare_write(path, trajectory, scene: Scene, allow_non_finite: bool, *, effects: dict, kind: str | None = None,
+                   **extra) -> tuple[Path, dict]:
+    """What both writers do first: refuse a non-finite trajectory (unless allowed), make the
+    folder, and the file's metadata (keys in the order docs/trajectory.md lists them)."""
+    path = Path(path)
+    if not allow_non_finite:
+        check_trajectory_finite(trajectory, f"{scene.source}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    metadata = {"format": "dmarionette-trajectory", "format_version": FORMAT_VERSION}
+    if kind is not None:
+        metadata["kind"] = kind
+    metadata.update({"scene": scene.name, "scene_source": scene.source, "string_dt": trajectory.string_dt})
+    if "puppet_dt" in extra:
+        metadata["puppet_dt"] = extra.pop("puppet_dt")
+    metadata.update({"frame_steps": trajectory.frame_steps, "precision": scene.precision,
+                     "effects": {k: bool(v) for k, v in effects.items()}, **extra})
+    if allow_non_finite:
+        metadata["finite"] = first_non_finite(trajectory) is None
+    return path, metadata
+
+
 def write_trajectory(path: str | Path, trajectory: StringTrajectory, scene: Scene, *,
                      allow_non_finite: bool = False) -> Path:
     """Writes ``trajectory`` to ``path`` (``.npz``); every array is named as in docs/trajectory.md.
@@ -162,22 +183,7 @@ def write_trajectory(path: str | Path, trajectory: StringTrajectory, scene: Scen
         NonFiniteTrajectoryError: the trajectory has a NaN or infinity (nothing is written),
             unless ``allow_non_finite`` (then the metadata says ``"finite": false``).
     """
-    path = Path(path)
-    if not allow_non_finite:
-        check_trajectory_finite(trajectory, f"{scene.source}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    metadata = {
-        "format": "dmarionette-trajectory",
-        "format_version": FORMAT_VERSION,
-        "scene": scene.name,
-        "scene_source": scene.source,
-        "string_dt": trajectory.string_dt,
-        "frame_steps": trajectory.frame_steps,
-        "precision": scene.precision,
-        "effects": {k: bool(v) for k, v in vars(scene.effects).items()},
-    }
-    if allow_non_finite:
-        metadata["finite"] = first_non_finite(trajectory) is None
+    path, metadata = _prepare_write(path, trajectory, scene, allow_non_finite, effects=vars(scene.effects))
     np.savez_compressed(
         path,
         metadata=np.array(json.dumps(metadata)),
@@ -304,25 +310,10 @@ def write_marionette_trajectory(path: str | Path, trajectory, scene: Scene, *,
     Raises:
         NonFiniteTrajectoryError: as :func:`write_trajectory`.
     """
-    path = Path(path)
-    if not allow_non_finite:
-        check_trajectory_finite(trajectory, f"{scene.source}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    metadata = {
-        "format": "dmarionette-trajectory",
-        "format_version": FORMAT_VERSION,
-        "kind": "marionette",
-        "scene": scene.name,
-        "scene_source": scene.source,
-        "string_dt": trajectory.string_dt,
-        "puppet_dt": trajectory.puppet_dt,
-        "frame_steps": trajectory.frame_steps,
-        "precision": scene.precision,
-        "effects": {**{k: bool(v) for k, v in vars(scene.effects).items()}, **scene.body_effects},
-        "body_shape": [[shape, list(size)] for shape, size in trajectory.body_shape],
-    }
-    if allow_non_finite:
-        metadata["finite"] = first_non_finite(trajectory) is None
+    path, metadata = _prepare_write(path, trajectory, scene, allow_non_finite,
+                                    effects={**vars(scene.effects), **scene.body_effects}, kind="marionette",
+                                    puppet_dt=trajectory.puppet_dt,
+                                    body_shape=[[shape, list(size)] for shape, size in trajectory.body_shape])
     arrays = {name: getattr(trajectory, name) for name in (
         "frame_time", "particle_q", "joint_q", "body_pos", "body_rot", "bar_pos", "bar_rot", "top_q",
         "step_time", "tie_force", "bar_feedback", "bar_reaction", "string_start", "string_rest_length")}

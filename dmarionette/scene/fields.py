@@ -94,16 +94,15 @@ def _fetch(table: Mapping[str, Any], key: str, where: str, default: Any) -> Any:
     return default
 
 
-def read_float(
-    table: Mapping[str, Any],
-    key: str,
-    where: str,
-    default: Any = _MISSING,
-    *,
-    minimum: float | None = None,
-    maximum: float | None = None,
-    positive: bool = False,
-) -> float:
+def _check_bounds(value, where: str, key: str, noun: str, minimum, maximum) -> None:
+    if minimum is not None and value < minimum:
+        raise SceneError(where, key, value, f"{noun} >= {minimum}")
+    if maximum is not None and value > maximum:
+        raise SceneError(where, key, value, f"{noun} <= {maximum}")
+
+
+def read_float(table: Mapping[str, Any], key: str, where: str, default: Any = _MISSING, *,
+               minimum: float | None = None, maximum: float | None = None, positive: bool = False) -> float:
     """Reads a finite real number, optionally bounded (``positive`` means > 0)."""
     value = _fetch(table, key, where, default)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -113,30 +112,17 @@ def read_float(
         raise SceneError(where, key, value, "a finite number (not NaN or infinity)")
     if positive and not value > 0.0:
         raise SceneError(where, key, value, "a number > 0")
-    if minimum is not None and value < minimum:
-        raise SceneError(where, key, value, f"a number >= {minimum}")
-    if maximum is not None and value > maximum:
-        raise SceneError(where, key, value, f"a number <= {maximum}")
+    _check_bounds(value, where, key, "a number", minimum, maximum)
     return value
 
 
-def read_int(
-    table: Mapping[str, Any],
-    key: str,
-    where: str,
-    default: Any = _MISSING,
-    *,
-    minimum: int | None = None,
-    maximum: int | None = None,
-) -> int:
+def read_int(table: Mapping[str, Any], key: str, where: str, default: Any = _MISSING, *,
+             minimum: int | None = None, maximum: int | None = None) -> int:
     """Reads an integer, optionally bounded."""
     value = _fetch(table, key, where, default)
     if isinstance(value, bool) or not isinstance(value, int):
         raise SceneError(where, key, value, "an integer")
-    if minimum is not None and value < minimum:
-        raise SceneError(where, key, value, f"an integer >= {minimum}")
-    if maximum is not None and value > maximum:
-        raise SceneError(where, key, value, f"an integer <= {maximum}")
+    _check_bounds(value, where, key, "an integer", minimum, maximum)
     return value
 
 

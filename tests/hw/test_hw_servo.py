@@ -199,14 +199,20 @@ def test_motors_off_on_exception_in_physics():
     assert_motors_off(dev)
 
 
-def test_motors_off_on_keyboard_interrupt():
-    dev = HapticDeviceSimulated()
+def _stopped_by(action, error, dev=None):
+    """A 5 s loop pushing 0.5 N that ``action`` (called from a timer after 0.1 s) ends with ``error``."""
+    dev = dev or HapticDeviceSimulated()
     loop = ServoLoop(dev, lambda s, t: [0.5, 0.0, 0.0], safety=NO_RAMP)
-    timer = threading.Timer(0.1, _thread.interrupt_main)
+    timer = threading.Timer(0.1, action if action is not None else dev.simulate_disconnect)
     timer.start()
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(error):
         loop.run(duration=5.0)
     timer.join()
+    return dev, loop
+
+
+def test_motors_off_on_keyboard_interrupt():
+    dev, loop = _stopped_by(_thread.interrupt_main, KeyboardInterrupt)
     assert loop.statistics.stop_reason == "keyboard interrupt"
     assert_motors_off(dev)
     times, _ = dev.force_log()
@@ -227,13 +233,7 @@ def test_motors_off_on_keyboard_interrupt_inside_physics():
 
 
 def test_motors_off_on_disconnect():
-    dev = HapticDeviceSimulated()
-    loop = ServoLoop(dev, lambda s, t: [0.5, 0.0, 0.0], safety=NO_RAMP)
-    timer = threading.Timer(0.1, dev.simulate_disconnect)
-    timer.start()
-    with pytest.raises(DeviceDisconnectedError):
-        loop.run(duration=5.0)
-    timer.join()
+    dev, loop = _stopped_by(None, DeviceDisconnectedError)  # None: the device's own disconnect
     assert loop.statistics.stop_reason == "disconnected"
     assert not dev.is_open and dev.close_count == 1
 

@@ -5,10 +5,9 @@ import pytest
 import warp as wp
 
 import dmarionette as dm
-from dmarionette.hw import HapticSample
-from dmarionette.live.run import LiveMarionette, make_physics_step, run_live
+from dmarionette.live.run import run_live
 from dmarionette.marionette.solver import MarionetteModel
-from dmarionette.marionette.rollout import simulate_marionette
+from tests.support.live import drive_like_the_scene
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -51,16 +50,8 @@ def assert_device_frame_samples(model, session, duration):
 
 def test_tick_by_tick_reproduces_the_offline_simulation(model):
     """Driven by the scene's own bar motion, 30 puppet steps tick by tick equal the captured rollout."""
-    live = LiveMarionette(model)
-    main = model.scene.bars[0]
-    steps = 30 * model.substeps
-    times = model.string_dt * np.arange(1, steps + 1)
-    position, _, rotation = main.trajectory.pose(times)
-    step = make_physics_step(live, "main", steps * model.string_dt)
-    for k in range(steps):
-        force = step(HapticSample.make(time=times[k], position=position[k], orientation=rotation[k]), times[k])
-        assert np.all(np.isfinite(force))
-    offline = simulate_marionette(model, 30 * model.puppet_dt - 1e-9, progress=False)
+    live, forces, offline = drive_like_the_scene(model, 30)
+    assert np.all(np.isfinite(forces))
     assert offline.frame_time[-1] == pytest.approx(live.time)
     np.testing.assert_allclose(live.state.puppet.joint_q.numpy()[0], offline.joint_q[-1], rtol=0, atol=1e-12)
 

@@ -40,6 +40,16 @@ def model():
     return MarionetteModel(dm.load_scene("hanging"), optimization_level=0)
 
 
+def _stop_session(out: dict, thread) -> tuple:
+    """Stops a session run in ``thread`` (its ``on_start`` put ``stop`` in ``out``); its result."""
+    out["stop"]()
+    thread.join(timeout=120)
+    assert not thread.is_alive()
+    if "error" in out:
+        raise out["error"]
+    return out["result"]
+
+
 def _wait(condition, timeout: float, what: str) -> None:
     end = time.perf_counter() + timeout
     while not condition():
@@ -213,12 +223,7 @@ def test_live_session_in_the_browser_view_with_a_drag_and_a_clean_shutdown(model
         np.testing.assert_allclose(device.last_read.orientation, q0, atol=1e-9)
         # ... and the bar follows the device.
         _wait(lambda: np.linalg.norm(view.buffer.latest().bar_pos[0] - target) < 1e-6, 10, "the bar to follow")
-        out["stop"]()
-        thread.join(timeout=120)
-        assert not thread.is_alive()
-        if "error" in out:
-            raise out["error"]
-        stats, summary = out["result"]
+        stats, summary = _stop_session(out, thread)
         last = view.buffer.latest()
         assert last.dragged
         names = list(geometry.string_names)
@@ -431,12 +436,7 @@ def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
             _wait(lambda: np.linalg.norm(view.buffer.latest().bar_pos[idx[k]] - targets[k]) < 1e-6, 30,
                   f"bar {bars[k]} to follow")
         assert devices[0].dragged
-        out["stop"]()
-        thread.join(timeout=120)
-        assert not thread.is_alive()
-        if "error" in out:
-            raise out["error"]
-        stats, summary = out["result"]
+        stats, summary = _stop_session(out, thread)
         assert stats.stop_reason == "stopped" and summary["bar"] == bars
         last = view.buffer.latest()
         assert last.dragged and last.forces_sent().shape == (2, 3)

@@ -28,14 +28,13 @@ import pytest
 import warp as wp
 
 from dmarionette.marionette import solver as marionette_module
-from dmarionette.live.run import LiveMarionette, make_physics_step
-from dmarionette.hw import HapticSample
 from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
 from dmarionette.marionette.energy import simulate_energy_balance
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.marionette.rollout import simulate_marionette
 
 from tests.support.hard_cases import TOL_ENERGY, energy_excess
+from tests.support.live import drive_like_the_scene
 
 wp.config.log_level = wp.LOG_WARNING
 U32 = 2.0 ** -24  # float32 unit roundoff (round to nearest)
@@ -91,15 +90,7 @@ def test_live_ticks_reproduce_the_float32_rollout(hanging):
     """The live loop's per-tick graphs (each converts its own bar tops) equal the captured
     rollout with float32 strings, and hand the view float64 particles."""
     model = fast_model(hanging, precision="float32")
-    live = LiveMarionette(model)
-    main = model.scene.bars[0]
-    steps = 10 * model.substeps
-    times = model.string_dt * np.arange(1, steps + 1)
-    position, _, rotation = main.trajectory.pose(times)
-    step = make_physics_step(live, "main", steps * model.string_dt)
-    for k in range(steps):
-        step(HapticSample.make(time=times[k], position=position[k], orientation=rotation[k]), times[k])
-    offline = simulate_marionette(model, 10 * model.puppet_dt - 1e-9, progress=False)
+    live, _, offline = drive_like_the_scene(model, 10)
     assert offline.frame_time[-1] == pytest.approx(live.time)
     np.testing.assert_allclose(live.state.puppet.joint_q.numpy()[0], offline.joint_q[-1], rtol=0, atol=1e-12)
     particles = live.latest_particle_q()

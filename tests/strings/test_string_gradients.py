@@ -115,9 +115,9 @@ def test_the_free_string_stays_taut_so_the_loss_is_smooth():
         assert lengths.min() > rest, (k, lengths.min(), rest)
 
 
-@pytest.mark.parametrize("name", ["string_stiffness", "string_internal_friction", "string_air_drag"])
-def test_gradient_wrt_string_constants(taped, name, relative_step=1e-6):
-    problem, _, _ = taped
+def _check_constant(problem, name: str, relative_step: float) -> float:
+    """The taped gradient of the loss w.r.t. the first string's constant ``name`` against central
+    differences at ``relative_step``; returns the taped value."""
     array = getattr(problem.model, name)
     analytic = float(array.grad.numpy()[0])
     base = float(array.numpy()[0])
@@ -129,6 +129,27 @@ def test_gradient_wrt_string_constants(taped, name, relative_step=1e-6):
         return value
 
     _check(analytic, _central(loss_at, relative_step * base))
+    return analytic
+
+
+def _check_path(problem, attr: str, direction: np.ndarray, analytic: float) -> None:
+    """The taped directional derivative ``analytic`` of the loss along ``direction`` of the input
+    path ``problem.<attr>`` against central differences."""
+    base = getattr(problem, attr).copy()
+
+    def loss_at(delta):
+        setattr(problem, attr, base + delta * direction)
+        value = float(problem.loss()[0].numpy()[0])
+        setattr(problem, attr, base)
+        return value
+
+    _check(analytic, _central(loss_at, 1e-6))
+
+
+@pytest.mark.parametrize("name", ["string_stiffness", "string_internal_friction", "string_air_drag"])
+def test_gradient_wrt_string_constants(taped, name, relative_step=1e-6):
+    problem, _, _ = taped
+    _check_constant(problem, name, relative_step)
 
 
 def test_gradient_wrt_top_trajectory(taped):
@@ -146,15 +167,7 @@ def test_gradient_wrt_top_trajectory(taped):
         for frequency in (1.0, 2.5, 4.0):
             direction[:, 0, axis] += rng.normal() * np.sin(2 * np.pi * frequency * t + rng.uniform(0, 2 * np.pi))
     analytic = sum(float(np.sum(c.top_q.grad.numpy() * direction[k])) for k, c in enumerate(controls))
-    base = problem.top_path.copy()
-
-    def loss_at(delta):
-        problem.top_path = base + delta * direction
-        value = float(problem.loss()[0].numpy()[0])
-        problem.top_path = base
-        return value
-
-    _check(analytic, _central(loss_at, 1e-6))
+    _check_path(problem, "top_path", direction, analytic)
 
 
 @pytest.mark.parametrize("which", ["particle_q", "particle_qd"])
@@ -199,15 +212,7 @@ def test_gradient_wrt_body_point_path(taped_tied):
     for axis in range(3):
         direction[:, 0, axis] = rng.normal() * np.sin(2 * np.pi * 1.5 * t + rng.uniform(0, 2 * np.pi))
     analytic = sum(float(np.sum(c.tie_q.grad.numpy() * direction[k])) for k, c in enumerate(controls))
-    base = problem.tie_path.copy()
-
-    def loss_at(delta):
-        problem.tie_path = base + delta * direction
-        value = float(problem.loss()[0].numpy()[0])
-        problem.tie_path = base
-        return value
-
-    _check(analytic, _central(loss_at, 1e-6))
+    _check_path(problem, "tie_path", direction, analytic)
 
 
 @pytest.fixture(scope="module")
@@ -225,16 +230,6 @@ def test_gradient_with_tension_only_springs(taped, taped_tension_only, name, rel
     recorded pass assembles and solves with it): on the same always-taut problem it gives
     the printed spring's loss and gradient, and matches central differences."""
     problem, _, _ = taped_tension_only
-    array = getattr(problem.model, name)
-    analytic = float(array.grad.numpy()[0])
-    base = float(array.numpy()[0])
-
-    def loss_at(delta):
-        array.numpy()[0] = base + delta
-        value = float(problem.loss()[0].numpy()[0])
-        array.numpy()[0] = base
-        return value
-
-    _check(analytic, _central(loss_at, relative_step * base))
+    analytic = _check_constant(problem, name, relative_step)
     printed = float(getattr(taped[0].model, name).grad.numpy()[0])
     assert abs(analytic - printed) <= 1e-9 * abs(printed), (analytic, printed)
