@@ -26,7 +26,8 @@ import numpy as np
 from dmarionette.capture import CapturedChunk
 from dmarionette.live.view import scripted_rotations
 from dmarionette.marionette.solver import MarionetteModel, SolverMarionette, bar_inputs
-from dmarionette.rotations import matrix_to_euler
+from dmarionette.rotations import euler_to_matrix, matrix_to_euler
+from dmarionette.scene.bars import bar_attach_points
 
 __all__ = ["LiveMarionette", "LiveTick", "make_physics_step"]
 
@@ -178,10 +179,12 @@ def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], dur
             position = np.asarray(sample.position, dtype=np.float64)
             velocity = np.zeros(3) if previous[i] is None else (position - previous[i]) / model.string_dt
             previous[i] = position
-            rotation = sample.rotation
+            # The rotation as the session records it (XYZ Euler angles), so that a replay drives the
+            # bar with the very matrix the live step used (the round trip changes it by rounding only).
+            rotation = euler_to_matrix(matrix_to_euler(sample.rotation))
             rotations.append(rotation)
             bar_q[b], bar_qd[b] = position, velocity
-            tops[carried[b]] = position + local[b] @ rotation.T
+            tops[carried[b]] = bar_attach_points(position, rotation, local[b])
         tick = live.advance(tops, bar_q, bar_qd)
         if on_tick is not None:
             poses = {name: (bar_q[b], scripted_angles[b][k]) for b, name in enumerate(model.bar_names)}

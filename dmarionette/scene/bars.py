@@ -22,7 +22,7 @@ import numpy as np
 from dmarionette.rotations import euler_to_matrix
 from dmarionette.scene.fields import SceneError, check_keys, read_float, read_str, read_table, read_vec3
 
-__all__ = ["BarTrajectory", "ControlBar", "read_bar_trajectory_csv"]
+__all__ = ["BarTrajectory", "ControlBar", "bar_attach_points", "read_bar_trajectory_csv"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,8 +105,15 @@ class ControlBar:
     def attach_points(self, times: np.ndarray, string_names: Sequence[str]) -> np.ndarray:
         """World positions [m] of the attach points of ``string_names`` at ``times``, ``(T, S, 3)``."""
         position, _, rotation = self.trajectory.pose(times)
-        local = np.array([self.attach[name] for name in string_names], dtype=np.float64)
-        return position[:, None, :] + np.einsum("tij,sj->tsi", rotation, local)
+        return bar_attach_points(position, rotation, [self.attach[name] for name in string_names])
+
+
+def bar_attach_points(position: np.ndarray, rotation: np.ndarray, local) -> np.ndarray:
+    """World positions [m] of attach points ``local`` ``(S, 3)`` (bar frame) of a bar at ``position``
+    ``(..., 3)`` with ``rotation`` ``(..., 3, 3)``: ``(..., S, 3)``. The one formula the offline
+    rollouts and the live loop use, so that a live session and its replay add the same numbers."""
+    local = np.asarray(local, dtype=np.float64)
+    return np.asarray(position)[..., None, :] + np.einsum("...ij,sj->...si", rotation, local)
 
 
 def read_bar_trajectory_csv(path: str | Path) -> BarTrajectory:

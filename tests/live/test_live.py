@@ -94,9 +94,13 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
     `--device replay` plays back.
 
     Replay drives the bars with the recorded poses, which it reproduces exactly; the puppet
-    then agrees to 1e-6 m (measured 3.9e-7 m over 0.9 s). Replaying a *simulated* session gives
-    exactly 0 (tests/io/test_session_replay.py); the sub-micron gap of a live session is not yet
-    explained.
+    then agrees to 1e-6 m. Replaying a *simulated* session gives exactly 0
+    (tests/io/test_session_replay.py). A live session's gap came from the driven bar: the live
+    step used the device's rotation matrix and a matmul for its attach points, the replay the
+    matrix of the recorded Euler angles and the rollouts' einsum; rounding-level differences that
+    the puppet's contacts and limits amplified to 2.0e-6 m in 2 of 3 sessions on a loaded machine
+    (3.9e-7 m on a quiet one). The live step now uses the recorded rotation and the same formula
+    (``scene.bars.bar_attach_points``): 2.5e-9 to 3.2e-8 m over 7 sessions on the loaded machine.
     """
     import json
 
