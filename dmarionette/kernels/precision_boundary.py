@@ -44,6 +44,9 @@ def convert_vec3_kernel(scalar_in, scalar_out):
     return convert_vec3
 
 
+_SCALAR = {24: wp.float64, 12: wp.float32}  # a 3-vector's float type, by its size in bytes
+
+
 def convert_vec3(values_in: wp.array, values_out: wp.array, device) -> None:
     """Writes ``values_in`` cast to ``values_out``'s float type into ``values_out``.
 
@@ -55,5 +58,5 @@ def convert_vec3(values_in: wp.array, values_out: wp.array, device) -> None:
     if values_in.shape != values_out.shape:
         raise ValueError(f"convert_vec3: shapes differ: {values_in.shape} -> {values_out.shape}")
     flat_in, flat_out = values_in.flatten(), values_out.flatten()
-    kernel = convert_vec3_kernel(flat_in.dtype._wp_scalar_type_, flat_out.dtype._wp_scalar_type_)
+    kernel = convert_vec3_kernel(*(_SCALAR[wp.types.type_size_in_bytes(a.dtype)] for a in (flat_in, flat_out)))
     wp.launch(kernel, dim=flat_in.shape[0], inputs=[flat_in], outputs=[flat_out], device=device)
