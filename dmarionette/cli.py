@@ -53,7 +53,7 @@ from importlib import metadata
 from pathlib import Path
 
 from .extras import check_command_extras
-from .first_run import build_marionette, init_warp, versions
+from .first_run import build_marionette, init_warp, load_string_kernels, versions
 from .cli_checks import Outputs, PromptInterrupt, integer, number, refuse_empty_option_values
 
 __all__ = ["COMMAND_GROUP", "find_commands", "main"]
@@ -279,6 +279,7 @@ def _run_simulate(scene_name: str, args: argparse.Namespace) -> int:
     out = args.outputs.folder("--out", args.out if args.out is not None else Path("out") / scene.name)
     if scene.puppet is not None:
         return _run_marionette(scene, out, args)
+    load_string_kernels(scene, quiet=args.quiet)  # compiled under a progress bar, not silently in the first step
     trajectory = simulate_strings(scene, duration, progress=not args.quiet)
     check_finite(trajectory)
     files = {"trajectory": str(write_trajectory(out / "trajectory.npz", trajectory, scene))}
@@ -456,6 +457,10 @@ def _run_bench(args: argparse.Namespace) -> int:
     from .marionette.accuracy import run_sweep, write_outputs
 
     args.outputs.folder("--out", args.out)
+    from .scene.scene import DEFAULT_SCENE, load_scene
+
+    # The sweep's puppet kernels (one topology) compiled under a progress bar before its first row.
+    build_marionette(load_scene(DEFAULT_SCENE), optimization_level=0 if args.fast_compile else 2)
     rows, summary = run_sweep(args.seconds, args.grid, 0 if args.fast_compile else 2, args.repeats,
                               progress=lambda line: print(line, file=sys.stderr))
     files = write_outputs(rows, summary, args.out)

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 __all__ = ["CUDA_DRIVER_NOTICE", "FIRST_RUN_S", "CompileProgress", "build_marionette", "end_progress_lines",
+           "load_string_kernels",
            "filter_native_stderr", "init_warp", "load_kernels", "versions"]
 
 _SHOWN: set = set()  # the progress bars on screen now (their line is open until they close)
@@ -278,3 +279,18 @@ def build_marionette(scene, *, optimization_level: int = 2, quiet: bool = False)
 
         load_kernels(SolverMarionette(model), model.device, on_module)  # the solver holds the model too
     return model
+
+
+def load_string_kernels(scene, *, quiet: bool = False) -> None:
+    """Compiles (or loads from the cache) the kernels of ``scene``'s string solver under a progress
+    bar, so that a strings-only simulation is not silent while they compile (its own bar follows)."""
+    from dmarionette.strings.model import StringModel
+    from dmarionette.strings.solver import SolverStringImplicit
+
+    with CompileProgress("the string kernels", 15.0, quiet=quiet) as progress:
+        solver = SolverStringImplicit(StringModel.from_scene(scene))
+
+        def on_module(index: int, count: int, name: str) -> None:
+            progress.step = f"kernel {index + 1}/{count}: {name}"
+
+        load_kernels(solver, solver.model.device, on_module)
