@@ -29,8 +29,8 @@ import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
-__all__ = ["DEFAULT_RETRIES", "WorkerLostError", "default_ray_mode", "imap_variants", "map_variants", "ray_available",
-           "start_local_ray"]
+__all__ = ["DEFAULT_RETRIES", "WorkerLostError", "check_ray_address", "connect_ray", "default_ray_mode", "imap_variants", "map_variants",
+           "ray_available", "shutdown_ray", "start_local_ray"]
 
 DEFAULT_RETRIES = 3
 """How many times a dead worker is restarted and its item retried before :class:`WorkerLostError`."""
@@ -61,6 +61,13 @@ def _check_ray(mode: str) -> None:
     check_extras(f"--ray {mode}", ["scale"])
 
 
+def _loopback_environment() -> None:
+    """Set before Ray is first imported: its services bind the node's address, which is the loopback one
+    only when Ray takes this machine for no cluster node (read once, at import); no usage statistics."""
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+
+
 def start_local_ray(workers: int | None = None) -> bool:
     """Starts an embedded local Ray cluster of ``workers`` CPUs (default: this machine's), on loopback.
 
@@ -72,10 +79,7 @@ def start_local_ray(workers: int | None = None) -> bool:
         RuntimeError: the cluster's services did not come up on a loopback address.
     """
     _check_ray("local")
-    # Before Ray is imported: its services bind the node's address, which is the loopback one only when
-    # Ray thinks it is not a cluster node (read once, at import); and no usage statistics are sent.
-    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    _loopback_environment()
     import ray
 
     if ray.is_initialized():
@@ -93,15 +97,29 @@ def start_local_ray(workers: int | None = None) -> bool:
     return True
 
 
-def _connect(mode: str, workers: int | None) -> bool:
-    """Ray initialised for ``mode``; True if this call started or connected it (then it shuts it down)."""
+def connect_ray(mode: str, workers: int | None = None) -> bool:
+    """Ray initialised for ``mode`` (``"local"`` or a cluster address), before any work is handed to it.
+
+    Returns:
+        True if this call started the local cluster or opened the connection (the caller then calls
+        :func:`shutdown_ray`); False if Ray was already initialised here (left as it is).
+
+    Raises:
+        MissingExtraError: Ray is not installed (names the ``scale`` extra).
+        ValueError: no Ray cluster answers at the address (names it).
+    """
+    if mode == "off":
+        raise ValueError("connect_ray: mode 'off' runs in this process; expected 'local' or a cluster address")
     _check_ray(mode)
+    if mode == "local":
+        _loopback_environment()
     import ray
 
     if ray.is_initialized():
         return False
     if mode == "local":
         return start_local_ray(workers)
+    check_ray_address(mode)
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     try:
         ray.init(address=mode, log_to_driver=False, configure_logging=False)
@@ -109,6 +127,40 @@ def _connect(mode: str, workers: int | None) -> bool:
         raise ValueError(f"--ray: got {mode!r}; could not connect to a Ray cluster there ({error}); expected "
                          "'local', 'off' or the address of a running cluster (host:port or auto)") from None
     return True
+
+
+def shutdown_ray() -> None:
+    """Shuts down this process's Ray connection (and the local cluster it started), if any."""
+    from dmarionette.extras import missing_module
+
+    if missing_module("ray"):
+        return
+    import ray
+
+    if ray.is_initialized():
+        ray.shutdown()
+
+
+def check_ray_address(mode: str, timeout: float = 5.0) -> None:
+    """Refuses an address that is not ``host:port`` (or ``auto``), or where nothing accepts a TCP connection
+    within ``timeout`` seconds (``ray.init`` would wait for it for ever).
+
+    Raises:
+        ValueError: naming the address and what was expected.
+    """
+    import socket
+
+    if mode == "auto":
+        return  # Ray finds the cluster this machine runs, or says there is none
+    host, colon, port = mode.rpartition(":")
+    expected = "'local', 'off' or the address of a running Ray cluster (host:port, or auto)"
+    if not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--ray: got {mode!r}; expected {expected}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as error:
+        raise ValueError(f"--ray: got {mode!r}; nothing accepts a connection there "
+                         f"({getattr(error, 'strerror', None) or error}); expected {expected}") from None
 
 
 def _worker_class(retries: int):
@@ -163,7 +215,7 @@ def imap_variants(fn: Callable[[Any], Any], items: Iterable[Any], *, ray: str = 
         return
     if not items:
         return
-    started = _connect(ray, workers)
+    started = connect_ray(ray, workers)
     import ray as ray_module
     from ray.exceptions import RayActorError, RayTaskError
     from ray.util import ActorPool

@@ -61,13 +61,15 @@ def add_sweep_command(sub) -> None:
 
 
 def _ray_mode(text: str | None) -> str:
-    from dmarionette.scale.ray_map import default_ray_mode
+    """``--ray``'s mode; an address is checked here (something must accept a connection there)."""
+    from dmarionette.scale.ray_map import check_ray_address, default_ray_mode
 
     if text is None:
         return default_ray_mode()
-    if not text.strip():
-        raise ValueError("--ray: got ''; expected local, off or the address of a Ray cluster (host:port or auto)")
-    return text.strip()
+    mode = text.strip()
+    if mode not in ("off", "local"):
+        check_ray_address(mode)
+    return mode
 
 
 def _rollout_bytes(scene, duration: float) -> float:
@@ -88,14 +90,11 @@ def _run_batch(batch: list, duration: float | None, optimization_level: int) -> 
 
 def run_sweep_command(args: argparse.Namespace) -> int:
     """Runs ``dmarionette sweep`` (see the module doc for the exit codes)."""
-    from tqdm import tqdm
-
     from dmarionette.cli_checks import check_trajectory_fits
-    from dmarionette.first_run import build_marionette
-    from dmarionette.scale.ray_map import WorkerLostError, imap_variants
+    from dmarionette.scale.ray_map import connect_ray, shutdown_ray
     from dmarionette.sweep.grid import parse_set, sweep_variants
-    from dmarionette.sweep.run import FRAME_HZ, warm_up
-    from dmarionette.sweep.table import RowWriter, read_rows, summary_columns, write_markdown
+    from dmarionette.sweep.run import FRAME_HZ
+    from dmarionette.sweep.table import read_rows, summary_columns
 
     mode = _ray_mode(args.ray)
     axes = [parse_set(flag) for flag in args.sets]
@@ -108,9 +107,7 @@ def run_sweep_command(args: argparse.Namespace) -> int:
                               duration, _rollout_bytes(variant.scene, duration))
     out = args.outputs.folder("--out", args.out if args.out is not None else Path("out") / "sweep" / base.name)
     keys = [axis.key for axis in axes]
-    string_names = [s.name for s in base.strings]
-    bar_names = [b.name for b in base.bars]
-    summary = summary_columns(string_names, bar_names)
+    summary = summary_columns([s.name for s in base.strings], [b.name for b in base.bars])
     table = out / "sweep.csv"
     done: dict[int, dict] = {}
     if args.resume and table.is_file():
@@ -127,6 +124,31 @@ def run_sweep_command(args: argparse.Namespace) -> int:
             done[variant.index] = row
     pending = [v for v in variants if v.index not in done]
     level = 0 if args.fast_compile else 2
+    # Ray up (or the cluster reached) before any work: a wrong address is an error, not a half-written table.
+    started = connect_ray(mode, args.workers) if mode != "off" and pending else False
+    if started and getattr(args, "interrupt", None) is not None:
+        # From here Ctrl-C raises KeyboardInterrupt and waits for the cluster's shutdown below (about a second),
+        # rather than ending this process at once and leaving the cluster's processes behind.
+        args.interrupt.disarm()
+    try:
+        return _sweep(args, variants, pending, done, keys, summary, table, mode, level)
+    finally:
+        if started:
+            shutdown_ray()
+
+
+def _sweep(args, variants, pending, done, keys, summary, table, mode, level) -> int:
+    from tqdm import tqdm
+
+    from dmarionette.first_run import build_marionette
+    from dmarionette.scale.ray_map import WorkerLostError, imap_variants
+    from dmarionette.sweep.run import warm_up
+    from dmarionette.sweep.table import RowWriter, write_markdown
+
+    out = table.parent
+    base = variants[0].scene
+    string_names = [s.name for s in base.strings]
+    bar_names = [b.name for b in base.bars]
     if not args.quiet:
         where = "this process" if mode == "off" else ("a local Ray cluster" if mode == "local" else f"Ray at {mode}")
         print(f"sweep: {len(variants)} variants ({len(done)} already in {table}), one rollout each, in {where}",
@@ -149,11 +171,11 @@ def run_sweep_command(args: argparse.Namespace) -> int:
                     rows.append(row)
                     bar.update(1)
     except WorkerLostError as error:
-        writer.close()
         print(f"error: {error}; {len(rows)} of {len(variants)} variants are in {table} (--resume runs the rest)",
               file=sys.stderr)
         return EXIT_WORKER_LOST
-    writer.close()
+    finally:
+        writer.close()
     scene_text = base.name if Path(args.scene).suffix == "" else str(args.scene)
     header = (f"# sweep of {scene_text}: {len(variants)} variant{'' if len(variants) == 1 else 's'}, one rollout each, "
               f"{'the scene duration' if args.duration is None else f'{args.duration:g} s'} per variant")

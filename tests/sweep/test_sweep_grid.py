@@ -131,3 +131,25 @@ def test_resume_refuses_another_sweeps_table(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert f"--resume: '{tmp_path / 'sweep.csv'}' has the columns ['variant', 'strings.tie_damping'" in err
     assert "expected ['variant', 'strings.tie_stiffness', 'simulated_s', 'torso_min_m'" in err
+
+
+@pytest.mark.parametrize("address, fragment", [
+    ("127.0.0.1:1", "--ray: got '127.0.0.1:1'; nothing accepts a connection there (Connection refused)"),
+    ("nonsense", "--ray: got 'nonsense'; expected 'local', 'off' or the address of a running Ray cluster"),
+])
+def test_a_ray_address_where_no_cluster_answers_is_refused_before_any_work(address, fragment, tmp_path, capsys):
+    assert main(["sweep", "hanging", "--set", "strings.k=200", "--ray", address, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: " + fragment), err
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    def no_work(*args, **kwargs):
+        raise AssertionError("the sweep started working before its outputs were checked")
+
+    monkeypatch.setattr(dmarionette.first_run, "build_marionette", no_work)
+    (tmp_path / "a_file").write_text("x")
+    assert main(["sweep", "hanging", "--set", "strings.k=200", "--ray", "off", "--out", str(tmp_path / "a_file")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: --out: '{tmp_path / 'a_file'}' is a file; expected a folder (or a path to create one at)"]
