@@ -142,7 +142,7 @@ def _sweep(args, variants, pending, done, keys, summary, table, mode, level) -> 
 
     from dmarionette.first_run import build_marionette
     from dmarionette.scale.ray_map import WorkerLostError, imap_variants
-    from dmarionette.sweep.run import warm_up
+    from dmarionette.sweep.run import kernel_key, warm_up
     from dmarionette.sweep.table import RowWriter, write_markdown
 
     out = table.parent
@@ -153,8 +153,11 @@ def _sweep(args, variants, pending, done, keys, summary, table, mode, level) -> 
         where = "this process" if mode == "off" else ("a local Ray cluster" if mode == "local" else f"Ray at {mode}")
         print(f"sweep: {len(variants)} variants ({len(done)} already in {table}), one rollout each, in {where}",
               file=sys.stderr)
-    # The kernels compile here under a progress bar, once, before the first row (workers then load the cache).
-    build_marionette(base, optimization_level=level, quiet=args.quiet)
+    # The kernels compile here under a progress bar, once per kind of variant (precision, effects), before the
+    # first row; the rollouts (and Ray's workers) then load them from the cache.
+    kinds = {kernel_key(v.scene, level): v.scene for v in [variants[0], *pending]}
+    for scene in kinds.values():
+        build_marionette(scene, optimization_level=level, quiet=args.quiet)
     writer = RowWriter(table, ["variant", *keys, *summary], append=bool(done))
     rows = list(done.values())
     batches = [[(v.index, v.scene) for v in pending[i:i + args.worlds_per_batch]]

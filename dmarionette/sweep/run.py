@@ -41,7 +41,7 @@ import numpy as np
 
 from dmarionette.scene.scene import Scene
 
-__all__ = ["FRAME_HZ", "run_variant", "run_variants", "warm_up"]
+__all__ = ["FRAME_HZ", "kernel_key", "run_variant", "run_variants", "warm_up"]
 
 FRAME_HZ = 30.0
 """Frames per second at which the torso and the energy are read (``simulate_marionette``'s default)."""
@@ -63,6 +63,13 @@ def _init_process() -> None:
     _WARP_STARTED.append(True)
 
 
+def kernel_key(scene: Scene, optimization_level: int = 2) -> tuple:
+    """What decides which Warp modules a rollout of ``scene`` runs (variants with equal keys share them):
+    the optimisation level, the strings' precision and the effects compiled in. Sizes, rates and
+    constants are not part of it (they are arrays and launch dimensions)."""
+    return (optimization_level, scene.precision, scene.effects, tuple(sorted(scene.body_effects.items())))
+
+
 def warm_up(scene: Scene, optimization_level: int = 2) -> None:
     """Compiles (or loads from the cache) the kernels a rollout of ``scene`` runs, in this process.
 
@@ -72,7 +79,7 @@ def warm_up(scene: Scene, optimization_level: int = 2) -> None:
     _init_process()
     from dmarionette.first_run import build_marionette
 
-    key = (optimization_level, scene.precision, scene.effects, tuple(sorted(scene.body_effects.items())))
+    key = kernel_key(scene, optimization_level)
     if key not in _MODULES_READY:
         build_marionette(scene, optimization_level=optimization_level, quiet=True)
         _MODULES_READY.add(key)
