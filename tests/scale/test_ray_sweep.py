@@ -11,7 +11,7 @@ import os
 import pytest
 
 from dmarionette.cli import main
-from dmarionette.scale import WorkerLostError, map_variants, start_local_ray
+from dmarionette.scale import WorkerLostError, default_ray_mode, map_variants, start_local_ray
 from dmarionette.sweep.table import read_rows, summary_columns
 from tests.support.scale import KillWorkerMidTask, always_die, die_once, refuse_three, square_and_pid
 from tests.support.sweep import comparable
@@ -50,6 +50,7 @@ def test_the_local_cluster_is_on_loopback_with_two_cpus(ray):
     assert ray.cluster_resources()["CPU"] == 2.0
     assert str(ray.get_runtime_context().get_node_id())  # a live connection
     assert os.environ["RAY_USAGE_STATS_ENABLED"] == "0"
+    assert default_ray_mode() == "local"  # the sweep's default where the scale extra is installed
 
 
 def test_map_variants_on_two_warm_workers_equals_the_in_process_loop(ray):
