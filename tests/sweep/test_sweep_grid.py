@@ -153,3 +153,21 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(tmp_
     assert main(["sweep", "hanging", "--set", "strings.k=200", "--ray", "off", "--out", str(tmp_path / "a_file")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"error: --out: '{tmp_path / 'a_file'}' is a file; expected a folder (or a path to create one at)"]
+
+
+@pytest.mark.parametrize("flag, value, expected", [
+    ("--duration", "nan", "expected a finite number > 0 [s]"),
+    ("--duration", "-1", "expected a finite number > 0 [s]"),
+    ("--workers", "0", "expected an integer >= 1 and <= 100000"),
+    ("--worlds-per-batch", "0", "expected an integer >= 1 and <= 100000"),
+    ("--worlds-per-batch", "1.5", "expected an integer >= 1 and <= 100000"),
+])
+def test_a_bad_flag_is_refused_naming_the_flag_and_its_range(flag, value, expected, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(dmarionette.first_run, "build_marionette", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(SystemExit) as exit_:
+        main(["sweep", "hanging", "--set", "strings.k=200", "--ray", "off", "--out", str(tmp_path / "o"),
+              f"{flag}={value}"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument {flag}: got '{value}'; {expected}" in err, err
+    assert not (tmp_path / "o").exists()
