@@ -9,9 +9,11 @@ Run:  python benchmarks/bench_sweep.py [--variants 8] [--duration 2] [--repeats 
   actors (they import dmarionette, start Warp and load the kernels from the cache: ``setup``) and
   kills them at the end, as a sweep does; that start is in the time. The cluster itself is started
   once before (its start is reported on its own line).
-- **Per-task overhead**: a function that does nothing, on 1 worker, over 1 and over ``--tasks``
-  items: ``(T(tasks) - T(1)) / (tasks - 1)`` is what one more item costs (submit, run, return).
-- **Actor start**: ``T(1)`` of the same, with the sweep's ``setup`` (Warp and the kernels loaded).
+- **Per-task overhead**: a function that does nothing, ``--tasks`` items on 1 warm worker: the time
+  from the first result's arrival to the last one's, over ``tasks - 1``, is what one more item costs
+  (submit, run, return), without the worker's start.
+- **Actor start**: the wall time of one such no-op item on a fresh worker, with and without the
+  sweep's ``setup`` (Warp and the kernels loaded).
 
 Every number is the median over ``--repeats`` runs; the modes are interleaved run by run so that
 the machine's load (printed: the 1-minute load average before and after) affects them alike.
@@ -50,10 +52,17 @@ def variants(count: int, particles: int):
 
 
 def timed(fn, items, ray: str, workers: int | None, setup) -> float:
+    """Wall time [s] of a whole map (workers started and stopped in it)."""
     start = time.perf_counter()
     for _ in imap_variants(fn, items, ray=ray, workers=workers, setup=setup):
         pass
     return time.perf_counter() - start
+
+
+def per_task(count: int) -> float:
+    """Seconds per item between the first and the last result of ``count`` no-op items on 1 worker."""
+    arrivals = [time.perf_counter() for _ in imap_variants(nothing, range(count), ray="local", workers=1)]
+    return (arrivals[-1] - arrivals[0]) / (count - 1)
 
 
 def main() -> None:
@@ -62,7 +71,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=2.0, help="simulated seconds per variant")
     parser.add_argument("--particles", type=int, default=50, help="particles per string")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--tasks", type=int, default=200, help="no-op tasks for the per-task overhead")
+    parser.add_argument("--tasks", type=int, default=500, help="no-op tasks for the per-task overhead")
     args = parser.parse_args()
 
     scenes = variants(args.variants, args.particles)
@@ -76,13 +85,13 @@ def main() -> None:
     ray_start = time.perf_counter() - start
     modes = {"in-process": ("off", None), "Ray, 1 worker": ("local", 1), "Ray, 2 workers": ("local", 2)}
     sweep = {name: [] for name in modes}
-    one, many, actor = [], [], []
+    one, overhead, actor = [], [], []
     for _ in range(args.repeats):
         for name, (ray, workers) in modes.items():
             sweep[name].append(timed(fn, items, ray, workers, setup))
         actor.append(timed(nothing, [0], "local", 1, setup))
         one.append(timed(nothing, [0], "local", 1, None))
-        many.append(timed(nothing, list(range(args.tasks)), "local", 1, None))
+        overhead.append(per_task(args.tasks))
     load_after = os.getloadavg()[0]
     import ray
 
@@ -98,12 +107,11 @@ def main() -> None:
     for name, times in sweep.items():
         t = statistics.median(times)
         print(f"| {name} | {t:.2f} | {60.0 * args.variants / t:.1f} | {simulated / t:.2f} | {base / t:.2f} |")
-    overhead = (statistics.median(many) - statistics.median(one)) / (args.tasks - 1)
     print(f"\nlocal cluster start: {ray_start:.1f} s; actor start with the kernels loaded (setup): "
           f"{statistics.median(actor):.2f} s; without: {statistics.median(one):.2f} s; per-task overhead: "
-          f"{1e3 * overhead:.2f} ms ({args.tasks} no-op tasks on 1 worker)")
+          f"{1e3 * statistics.median(overhead):.2f} ms ({args.tasks} no-op tasks on 1 warm worker)")
     print(json.dumps({"sweep_s": sweep, "ray_start_s": ray_start, "actor_start_s": actor, "one_task_s": one,
-                      "many_tasks_s": many, "tasks": args.tasks, "load": [load_before, load_after]}))
+                      "per_task_s": overhead, "tasks": args.tasks, "load": [load_before, load_after]}))
 
 
 if __name__ == "__main__":
