@@ -65,9 +65,11 @@ def _init_process() -> None:
 
 def kernel_key(scene: Scene, optimization_level: int = 2) -> tuple:
     """What decides which Warp modules a rollout of ``scene`` runs (variants with equal keys share them):
-    the optimisation level, the strings' precision and the effects compiled in. Sizes, rates and
-    constants are not part of it (they are arrays and launch dimensions)."""
-    return (optimization_level, scene.precision, scene.effects, tuple(sorted(scene.body_effects.items())))
+    the optimisation level, the strings' precision, the effects compiled in, and the string steps per
+    puppet step (the coupling kernels unroll them). Sizes and constants are not part of it (they are
+    arrays and launch dimensions)."""
+    substeps = max(1, round(scene.string_hz / scene.puppet_hz))  # as MarionetteModel counts them
+    return (optimization_level, scene.precision, scene.effects, tuple(sorted(scene.body_effects.items())), substeps)
 
 
 def warm_up(scene: Scene, optimization_level: int = 2) -> None:
