@@ -7,6 +7,8 @@
   (``--view browser``: a 3D view in the browser, docs/live_view.md);
 - ``dmarionette bench accuracy``: what accuracy costs in time;
 - ``dmarionette export TRAJECTORY``: the puppet motion as BVH and glTF (docs/export.md);
+- ``dmarionette sweep SCENE --set KEY=V1,V2,...``: a grid of scene variants, a summary row each,
+  in this process or on Ray workers (docs/sweep.md);
 - plug-in commands, from other packages: ``fitting`` adds ``dmarionette author KEYFRAMES`` (bar
   motions that reach keyframe poses, docs/authoring.md) and ``dmarionette calibrate SESSION``
   (string constants fitted to a recorded session, docs/calibration.md).
@@ -217,6 +219,9 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                         help="the scene (name or TOML file) whose puppet the trajectory was simulated with "
                              "(default: the scene the file names, else the default marionette)")
     export.set_defaults(handler=_run_export)
+    from .sweep.cli import add_sweep_command
+
+    add_sweep_command(sub)  # dmarionette sweep SCENE --set KEY=V1,V2,... (docs/sweep.md)
     return parser, sub
 
 

@@ -30,6 +30,7 @@ EXTRAS: dict[str, tuple[tuple[str, str], ...]] = {
     "hw-falcon": (("usb", "pyusb"),),
     "hw-spacemouse": (("hid", "hidapi"),),
     "usd": (("pxr", "usd-core"),),
+    "scale": (("ray", "ray"),),
 }
 """Extra -> the modules it brings, each with its package's name. ``hw-*`` are the ``hw`` extra's parts."""
 
@@ -95,6 +96,11 @@ def command_extras(args: argparse.Namespace) -> list[tuple[str, str]]:
     elif command == "export":
         if get("format") == "usd":
             needs.append(("export --format usd", "usd"))
+    elif command == "sweep":
+        if not get("no_picture", False):
+            needs.append((command, "viz"))  # sweep.png
+        if get("ray") not in (None, "off"):
+            needs.append((f"{command} --ray {get('ray')}", "scale"))
     elif command in ("author", "calibrate"):
         needs.append((command, "fitting"))
         if command == "author":

@@ -1,0 +1,81 @@
+"""What the Ray tests share: functions a worker runs (importable there by reference: Ray puts the
+driver's working folder on its workers' path), and a watcher that SIGKILLs a worker mid-task."""
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+
+def square_and_pid(x: int) -> tuple[int, int]:
+    """``(x * x, the worker's pid)``."""
+    return x * x, os.getpid()
+
+
+def die_once(marker: str, x: int) -> tuple[int, int]:
+    """Ends its process (as a crash does) the first time any worker calls it, then squares as above."""
+    path = Path(marker)
+    if not path.exists():
+        path.write_text(str(os.getpid()))
+        os._exit(1)
+    return square_and_pid(x)
+
+
+def always_die(x: int) -> int:
+    os._exit(1)
+
+
+def refuse_three(x: int) -> int:
+    if x == 3:
+        raise ValueError(f"item {x} is refused")
+    return x
+
+
+def _ppid(pid: int) -> int:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return -1
+
+
+def _title(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+class KillWorkerMidTask:
+    """A thread that SIGKILLs the first of this process's Ray workers (a grandchild: driver -> raylet ->
+    worker) seen running a task whose title starts with ``title``, once, within ``timeout`` seconds."""
+
+    def __init__(self, title: bytes = b"ray::VariantWorker.run", timeout: float = 120.0):
+        self.title = title
+        self.timeout = timeout
+        self.killed: int | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def _watch(self) -> None:
+        me = os.getpid()
+        end = time.monotonic() + self.timeout
+        while not self._stop.is_set() and time.monotonic() < end:
+            for entry in Path("/proc").iterdir():
+                if not entry.name.isdigit():
+                    continue
+                pid = int(entry.name)
+                if _title(pid).startswith(self.title) and _ppid(_ppid(pid)) == me:
+                    os.kill(pid, signal.SIGKILL)
+                    self.killed = pid
+                    return
+            time.sleep(0.01)
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        return False
