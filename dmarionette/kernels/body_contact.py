@@ -135,13 +135,12 @@ def compute_normal_smooth(d: wp.float64, vn: wp.float64, k: wp.float64, c: wp.fl
     return fn, k * sig, c * sig * compute_sigmoid(-vn / v_eps)
 
 
-def _contact_response(normal_fn):
+def _contact_terms(normal_fn):
     @wp.func
-    def compute_contact_response(
-        p: wp.vec3d, n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64,
-        contact: ContactConstants,
-    ):
-        """Force on the body the normal points into, and its implicit 3x3 block."""
+    def compute_contact_terms(n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, contact: ContactConstants):
+        """What both responses below are made of: normal velocity ``v_n``, the normal force
+        and its stiffness and damping slopes, the tangential velocity ``v_t`` and the
+        friction's viscous coefficient ``mu f_n / sqrt(|v_t|^2 + v_eps^2)``."""
         k = contact.stiffness
         c = contact.damping
         mu = contact.friction
@@ -151,6 +150,19 @@ def _contact_response(normal_fn):
         fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
         vt = v_rel - vn * n
         ct = mu * fn / wp.sqrt(wp.dot(vt, vt) + v_eps * v_eps)
+        return vn, fn, kn, cn, vt, ct
+
+    return compute_contact_terms
+
+
+def _contact_response(contact_terms):
+    @wp.func
+    def compute_contact_response(
+        p: wp.vec3d, n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64,
+        contact: ContactConstants,
+    ):
+        """Force on the body the normal points into, and its implicit 3x3 block."""
+        vn, fn, kn, cn, vt, ct = contact_terms(n, d, v_rel, contact)
         f = (fn - h * kn * vn) * n - ct * vt
         nn = wp.outer(n, n)
         A = (h * cn + h * h * kn) * nn + (h * ct) * (wp.identity(3, dtype=wp.float64) - nn)
@@ -159,7 +171,7 @@ def _contact_response(normal_fn):
     return compute_contact_response
 
 
-def _pair_response(normal_fn):
+def _pair_response(contact_terms):
     @wp.func
     def compute_pair_response(
         n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64, m_eff: wp.float64,
@@ -168,15 +180,7 @@ def _pair_response(normal_fn):
         """Force between two moving bodies, implicit through an effective mass ``m_eff``:
         the force that the 1-D implicit step of a point of mass ``m_eff`` would feel, so
         that both bodies get exactly opposite impulses (momentum is conserved)."""
-        k = contact.stiffness
-        c = contact.damping
-        mu = contact.friction
-        v_eps = contact.friction_velocity
-        delta = contact.smooth_distance
-        vn = wp.dot(v_rel, n)
-        fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
-        vt = v_rel - vn * n
-        ct = mu * fn / wp.sqrt(wp.dot(vt, vt) + v_eps * v_eps)
+        vn, fn, kn, cn, vt, ct = contact_terms(n, d, v_rel, contact)
         f_n = (fn - h * kn * vn) * m_eff / (m_eff + h * cn + h * h * kn)
         f_t = -ct * m_eff / (m_eff + h * ct)
         return f_n * n + f_t * vt
@@ -280,9 +284,9 @@ def _static_surface_kernel(name: str, Surface, surface_distance, response):
 
 @functools.cache
 def _kernels(smooth: bool):
-    normal_fn = compute_normal_smooth if smooth else compute_normal_hard
-    response = _contact_response(normal_fn)
-    pair_response = _pair_response(normal_fn)
+    contact_terms = _contact_terms(compute_normal_smooth if smooth else compute_normal_hard)
+    response = _contact_response(contact_terms)
+    pair_response = _pair_response(contact_terms)
     eval_body_ground_contact = _static_surface_kernel("eval_body_ground_contact", GroundPlane,
                                                       compute_ground_distance, response)
     eval_body_box_contact = _static_surface_kernel("eval_body_box_contact", StaticBox, compute_box_distance,
