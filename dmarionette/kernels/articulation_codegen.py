@@ -153,13 +153,23 @@ class _Emitter:
     def __call__(self, line: str) -> None:
         self.lines.append("    " + line)
 
+    def begin(self, constants: bool = True) -> None:
+        """Starts a kernel body: the thread index ``w`` and (``constants``) float64 ``zero``, ``one``."""
+        self.lines = []
+        self("w = wp.tid()")
+        if constants:
+            self("zero = wp.float64(0.0)")
+            self("one = wp.float64(1.0)")
+
+    def kernel(self, signature: str) -> str:
+        """The kernel's source: ``signature`` (decorator, def line, docstring), then the body
+        emitted since :meth:`begin`."""
+        return signature + "\n".join(self.lines) + "\n"
+
     # -------------------------------------------------------------- kinematics
     def kinematics(self) -> str:
         e = self
-        e.lines = []
-        e("w = wp.tid()")
-        e("zero = wp.float64(0.0)")
-        e("one = wp.float64(1.0)")
+        e.begin()
         for b, j in enumerate(self.t.joints):
             s, d = j.q_start, j.qd_start
             q = [f"joint_q[w, {s + i}]" for i in range(_Q_COUNT[j.type])]
@@ -198,7 +208,7 @@ def eval_body_kinematics(
 {_BODY_POSE}{_BODY_VELOCITY}):
     \"\"\"Forward kinematics: body centre positions, orientations, angular and linear velocities (world).\"\"\"
 """
-        return sig + "\n".join(self.lines) + "\n"
+        return self.kernel(sig)
 
     # -------------------------------------------------------------- shared parts
     def _read_bodies(self, with_velocity: bool) -> None:
@@ -272,10 +282,7 @@ def eval_body_kinematics(
 
     def mass_matrix(self) -> str:
         e = self
-        e.lines = []
-        e("w = wp.tid()")
-        e("zero = wp.float64(0.0)")
-        e("one = wp.float64(1.0)")
+        e.begin()
         self._read_bodies(False)
         self._motion_subspace(False)
         H = self._crba(False)
@@ -292,16 +299,13 @@ def eval_mass_matrix(
 ):
     \"\"\"Joint-space mass matrix (entries outside the tree pattern are left untouched).\"\"\"
 """
-        return sig + "\n".join(self.lines) + "\n"
+        return self.kernel(sig)
 
     # -------------------------------------------------------------- dynamics
     def dynamics(self) -> str:
         e = self
         t = self.t
-        e.lines = []
-        e("w = wp.tid()")
-        e("zero = wp.float64(0.0)")
-        e("one = wp.float64(1.0)")
+        e.begin()
         e("g = gravity[0]")
         self._read_bodies(True)
         self._motion_subspace(True)
@@ -359,7 +363,7 @@ def solve_body_dynamics(
 ):
     \"\"\"Linearised implicit velocity update (M + h D + h^2 K) qdd = tau; qd_out = qd + h qdd.\"\"\"
 """
-        return sig + "\n".join(self.lines) + "\n"
+        return self.kernel(sig)
 
     def _limits(self, diag_extra: dict, tau: dict, H: dict) -> None:
         """Penalty joint limits, implicit in stiffness and damping (active side only).
@@ -467,8 +471,7 @@ def solve_body_dynamics(
     # -------------------------------------------------------------- integration
     def integrate(self) -> str:
         e = self
-        e.lines = []
-        e("w = wp.tid()")
+        e.begin(constants=False)
         for j in self.t.joints:
             s, d = j.q_start, j.qd_start
             if j.type in ("free", "ball"):
@@ -496,7 +499,7 @@ def integrate_joint_coordinates(
 ):
     \"\"\"q_out = q (+) h qd (joint_qd is the new velocity): free/ball quaternions as r * exp(h w / 2).\"\"\"
 """
-        return sig + "\n".join(self.lines) + "\n"
+        return self.kernel(sig)
 
 
 def _cache_dir() -> Path:

@@ -135,13 +135,15 @@ def compute_normal_smooth(d: wp.float64, vn: wp.float64, k: wp.float64, c: wp.fl
     return fn, k * sig, c * sig * compute_sigmoid(-vn / v_eps)
 
 
-def _contact_response(normal_fn):
+def _contact_responses(normal_fn):
+    """The two contact responses built on the normal force ``normal_fn`` (hard or smooth):
+    against a static surface, and between two moving bodies."""
+
     @wp.func
-    def compute_contact_response(
-        p: wp.vec3d, n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64,
-        contact: ContactConstants,
-    ):
-        """Force on the body the normal points into, and its implicit 3x3 block."""
+    def compute_contact_terms(n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, contact: ContactConstants):
+        """What both responses are made of: normal velocity ``v_n``, the normal force
+        and its stiffness and damping slopes, the tangential velocity ``v_t`` and the
+        friction's viscous coefficient ``mu f_n / sqrt(|v_t|^2 + v_eps^2)``."""
         k = contact.stiffness
         c = contact.damping
         mu = contact.friction
@@ -151,15 +153,20 @@ def _contact_response(normal_fn):
         fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
         vt = v_rel - vn * n
         ct = mu * fn / wp.sqrt(wp.dot(vt, vt) + v_eps * v_eps)
+        return vn, fn, kn, cn, vt, ct
+
+    @wp.func
+    def compute_contact_response(
+        p: wp.vec3d, n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64,
+        contact: ContactConstants,
+    ):
+        """Force on the body the normal points into, and its implicit 3x3 block."""
+        vn, fn, kn, cn, vt, ct = compute_contact_terms(n, d, v_rel, contact)
         f = (fn - h * kn * vn) * n - ct * vt
         nn = wp.outer(n, n)
         A = (h * cn + h * h * kn) * nn + (h * ct) * (wp.identity(3, dtype=wp.float64) - nn)
         return f, A
 
-    return compute_contact_response
-
-
-def _pair_response(normal_fn):
     @wp.func
     def compute_pair_response(
         n: wp.vec3d, d: wp.float64, v_rel: wp.vec3d, h: wp.float64, m_eff: wp.float64,
@@ -168,20 +175,12 @@ def _pair_response(normal_fn):
         """Force between two moving bodies, implicit through an effective mass ``m_eff``:
         the force that the 1-D implicit step of a point of mass ``m_eff`` would feel, so
         that both bodies get exactly opposite impulses (momentum is conserved)."""
-        k = contact.stiffness
-        c = contact.damping
-        mu = contact.friction
-        v_eps = contact.friction_velocity
-        delta = contact.smooth_distance
-        vn = wp.dot(v_rel, n)
-        fn, kn, cn = normal_fn(d, vn, k, c, delta, v_eps)
-        vt = v_rel - vn * n
-        ct = mu * fn / wp.sqrt(wp.dot(vt, vt) + v_eps * v_eps)
+        vn, fn, kn, cn, vt, ct = compute_contact_terms(n, d, v_rel, contact)
         f_n = (fn - h * kn * vn) * m_eff / (m_eff + h * cn + h * h * kn)
         f_t = -ct * m_eff / (m_eff + h * ct)
         return f_n * n + f_t * vt
 
-    return compute_pair_response
+    return compute_contact_response, compute_pair_response
 
 
 @wp.func
@@ -280,9 +279,7 @@ def _static_surface_kernel(name: str, Surface, surface_distance, response):
 
 @functools.cache
 def _kernels(smooth: bool):
-    normal_fn = compute_normal_smooth if smooth else compute_normal_hard
-    response = _contact_response(normal_fn)
-    pair_response = _pair_response(normal_fn)
+    response, pair_response = _contact_responses(compute_normal_smooth if smooth else compute_normal_hard)
     eval_body_ground_contact = _static_surface_kernel("eval_body_ground_contact", GroundPlane,
                                                       compute_ground_distance, response)
     eval_body_box_contact = _static_surface_kernel("eval_body_box_contact", StaticBox, compute_box_distance,

@@ -188,11 +188,11 @@ def test_no_force_written_to_either_device_exceeds_its_own_limit(peaks, rows, ra
         np.testing.assert_array_equal(written[-1], np.zeros(3))
 
 
-class _FailingWrite(AbstractHapticDevice):
-    """Wraps a simulated device; ``write_force`` raises ``error`` from the ``after``-th call on."""
+class _Wrapping(AbstractHapticDevice):
+    """Passes every call on to the wrapped device ``inner``; subclasses change one of them."""
 
-    def __init__(self, device: HapticDeviceSimulated, after: int, error: BaseException):
-        self.inner, self.after, self.error = device, after, error
+    def __init__(self, device: AbstractHapticDevice):
+        self.inner = device
 
     spec = property(lambda self: self.inner.spec)
     is_open = property(lambda self: self.inner.is_open)
@@ -205,6 +205,17 @@ class _FailingWrite(AbstractHapticDevice):
 
     def read(self):
         return self.inner.read()
+
+    def write_force(self, force):
+        self.inner.write_force(force)
+
+
+class _FailingWrite(_Wrapping):
+    """Wraps a simulated device; ``write_force`` raises ``error`` from the ``after``-th call on."""
+
+    def __init__(self, device: HapticDeviceSimulated, after: int, error: BaseException):
+        super().__init__(device)
+        self.after, self.error = after, error
 
     def write_force(self, force):
         self.after -= 1
@@ -240,34 +251,18 @@ def test_both_motors_off_on_every_way_out(how):
         assert np.abs(forces[:-1]).max() == pytest.approx(0.5)  # it did get its force before
 
 
-class _UnpluggedAfter(AbstractHapticDevice):
+class _UnpluggedAfter(_Wrapping):
     """A simulated device that is unplugged after ``reads`` reads (simulate_disconnect)."""
 
     def __init__(self, device: HapticDeviceSimulated, reads: int):
-        self.inner, self.reads = device, reads
-
-    @property
-    def spec(self):
-        return self.inner.spec
-
-    @property
-    def is_open(self):
-        return self.inner.is_open
-
-    def open(self):
-        self.inner.open()
-
-    def close(self):
-        self.inner.close()
+        super().__init__(device)
+        self.reads = reads
 
     def read(self):
         self.reads -= 1
         if self.reads == 0:
             self.inner.simulate_disconnect()
         return self.inner.read()
-
-    def write_force(self, force):
-        self.inner.write_force(force)
 
 
 def test_one_device_unplugged_mid_run_turns_both_motors_off(model):
