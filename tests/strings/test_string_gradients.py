@@ -15,6 +15,8 @@ step for each case was chosen from a sweep over e = 1e-3 ... 1e-9 of the paramet
 - initial state: 1e-7 m, 1e-5 m/s.
 """
 
+import contextlib
+
 import numpy as np
 import pytest
 import warp as wp
@@ -70,20 +72,12 @@ class Problem:
         states += [m.state() for _ in range(STEPS)]
         controls = self.controls()
         loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
-        with tape if tape is not None else _nullcontext():
+        with tape if tape is not None else contextlib.nullcontext():
             for k in range(STEPS):
                 self.solver.step(states[k], states[k + 1], controls[k], DT, tape=tape)
             wp.launch(weighted_position_sum, dim=m.particle_count, inputs=[states[-1].particle_q, self.weight],
                       outputs=[loss])
         return loss, controls, states[0]
-
-
-class _nullcontext:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 @pytest.fixture(scope="module")
