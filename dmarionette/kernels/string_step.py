@@ -32,6 +32,7 @@ import functools
 import warp as wp
 
 from .string_integrate import string_output_function
+from .string_solve import thomas_row_functions
 from .string_spring import string_spring_functions
 from .string_system import string_system_row_function
 
@@ -50,6 +51,72 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     compute_string_spring = string_spring_functions(scalar).compute_string_spring_printed
     compute_string_system_row = string_system_row_function(scalar, effects)
     compute_string_outputs = string_output_function(scalar)
+    thomas = thomas_row_functions(scalar)
+    compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
+
+    @wp.func
+    def compute_forward_row(
+        p: int,
+        j: int,
+        is_last: bool,
+        x: vec3,
+        v: vec3,
+        v_prev: vec3,
+        f_prev: vec3,
+        k_prev: mat33,
+        upper_prev: mat33,
+        d_prev: vec3,
+        c_prev: mat33,
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        particle_mass: wp.array(dtype=scalar),
+        stiffness: scalar,
+        rest_length: scalar,
+        top_dx: vec3,
+        top_dv: vec3,
+        friction: scalar,
+        air_drag: scalar,
+        ground_stiffness: scalar,
+        ground_absorption: scalar,
+        ground_friction: scalar,
+        tie_stiffness: scalar,
+        tie_damping: scalar,
+        tie_x: vec3,
+        tie_v: vec3,
+        gravity: vec3,
+        ground_height: scalar,
+        dt: scalar,
+        scratch_c: wp.array(dtype=mat33),
+        scratch_d: wp.array(dtype=vec3),
+    ):
+        """Row ``p`` (``j = p - start``) of a chain: the spring of the segment below, the block row
+        (``compute_string_system_row``) and its forward elimination (``string_solve``), ``C'_p`` and
+        ``d'_p`` stored; returns what the next row needs: ``C'_p, d'_p, A_{p,p+1}``, the next
+        particle's position and velocity, this one's velocity, the segment below's force and block."""
+        zero = scalar(0.0)
+        x_next = x
+        v_next = vec3(zero)
+        f_next = vec3(zero)
+        k_next = mat33(zero)
+        if not is_last:
+            x_next = particle_q[p + 1]
+            v_next = particle_qd[p + 1]
+            f_next, k_next, _active = compute_string_spring(x, x_next, stiffness, rest_length)
+        diag, upper, rhs = compute_string_system_row(
+            j, is_last, x, v, v_prev, v_next, particle_mass[p], f_prev, k_prev, f_next, k_next,
+            top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
+            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
+        )
+        inv = mat33(zero)
+        c = mat33(zero)
+        d = vec3(zero)
+        if j == 1:
+            inv, c, d = compute_thomas_first_row(diag, upper, rhs)
+        else:
+            inv, c, d = compute_thomas_row(diag, upper, rhs, upper_prev, c_prev, d_prev)
+        scratch_c[p] = c
+        scratch_d[p] = d
+        return c, d, upper, x_next, v_next, v, f_next, k_next
 
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit(
@@ -109,51 +176,28 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         top_dv = top_dx / dt - particle_qd[start]
 
         # Forward sweep: assemble row p (the segment above carried from p - 1) and eliminate it.
+        # The first row (next to the top) and the last (the tie) apart, so that the rows between
+        # are compiled with their flags known (``compute_forward_row`` is inlined).
         x = particle_q[start + 1]
-        v = particle_qd[start + 1]
-        v_prev = particle_qd[start]
         f_prev, k_prev, _active = compute_string_spring(particle_q[start], x, stiffness, rest_length)
-        c_prev = mat33(zero)
-        d_prev = vec3(zero)
-        upper_prev = mat33(zero)
-        for p in range(start + 1, last + 1):
-            is_last = p == last
-            x_next = x
-            v_next = vec3(zero)
-            f_next = vec3(zero)
-            k_next = mat33(zero)
-            if not is_last:
-                x_next = particle_q[p + 1]
-                v_next = particle_qd[p + 1]
-                f_next, k_next, _active = compute_string_spring(x, x_next, stiffness, rest_length)
-            diag, upper, rhs = compute_string_system_row(
-                p - start, is_last, x, v, v_prev, v_next, particle_mass[p], f_prev, k_prev, f_next, k_next,
-                top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
-                tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
-            )
-            # Block Thomas, forward elimination (string_solve.compute_block_thomas).
-            inv = mat33(zero)
-            c = mat33(zero)
-            d = vec3(zero)
-            if p == start + 1:
-                inv = wp.inverse(diag)
-                c = inv * upper
-                d = inv * rhs
-            else:
-                lower = wp.transpose(upper_prev)
-                inv = wp.inverse(diag - lower * c_prev)
-                c = inv * upper
-                d = inv * (rhs - lower * d_prev)
-            scratch_c[p] = c
-            scratch_d[p] = d
-            c_prev = c
-            d_prev = d
-            upper_prev = upper
-            f_prev = f_next
-            k_prev = k_next
-            v_prev = v
-            x = x_next
-            v = v_next
+        c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
+            start + 1, 1, start + 1 == last, x, particle_qd[start + 1], particle_qd[start], f_prev, k_prev,
+            mat33(zero), vec3(zero), mat33(zero), particle_q, particle_qd, particle_mass, stiffness, rest_length,
+            top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
+            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, scratch_c, scratch_d)
+        for p in range(start + 2, last):
+            c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
+                p, 2, False, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd, particle_mass, stiffness,
+                rest_length, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption,
+                ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
+                scratch_c, scratch_d)
+        if last > start + 1:
+            c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
+                last, last - start, True, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd, particle_mass,
+                stiffness, rest_length, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption,
+                ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
+                scratch_c, scratch_d)
+        d_prev = d
 
         # Back substitution (x_j = d'_j - C'_j x_{j+1}) and v1 = v0 + dv, x1 = x0 + h v1, upwards.
         dv = d_prev

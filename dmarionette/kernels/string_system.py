@@ -142,64 +142,77 @@ def string_system_row_function(scalar, effects: tuple[bool, bool, bool, bool, bo
             ``(A_jj, A_{j,j+1}, b_j)`` (``A_{j,j+1}`` zero for the last particle).
         """
         zero = scalar(0.0)
-        eye = wp.identity(n=3, dtype=scalar)
-        force = vec3(zero)
-        stiff = mat33(zero)  # K_jj
-        damp = mat33(zero)  # D_jj
-        rhs_extra = vec3(zero)  # h^2 K_jk v0_k for free neighbours, h (K dx + D dv) for the top
+        h2 = dt * dt
+        # The springs' blocks are full 3x3; every other term's Jacobian is diagonal, kept as
+        # scalars: damping ``D = diag(d_xz, d_y, d_xz)``, stiffness ``diag(k_c, k_c + k_y, k_c)``.
+        d_xz = zero
+        d_y = zero
+        k_c = zero
+        k_y = zero
 
-        # Segment to the previous particle (paper term 1), and its internal friction (term 2).
-        # (segment p-1 -> p was evaluated from p-1's side: the force on p is its opposite).
-        force -= f_prev
-        stiff += k_prev
-        if j == 1:
-            rhs_extra += -dt * (k_prev * top_dx)
-        else:
-            rhs_extra += -(dt * dt) * (k_prev * v_prev)
-        if wp.static(FRICTION):
-            f_f, d_f = t.compute_internal_friction(v, v_prev, friction)
-            force += f_f
-            damp += d_f
-            if j == 1:
-                rhs_extra += -dt * (d_f * top_dv)
-
-        # Segment to the next particle.
+        # The segments above and below (paper term 1): (segment p-1 -> p was evaluated from
+        # p-1's side: the force on p is its opposite).
+        force = -f_prev
+        stiff = k_prev
         upper = mat33(zero)
         if not is_last:
-            force += f_next
-            stiff += k_next
-            rhs_extra += -(dt * dt) * (k_next * v_next)
-            upper = (dt * dt) * k_next
-            if wp.static(FRICTION):
+            force = f_next - f_prev
+            stiff = k_prev + k_next
+            upper = h2 * k_next
+        # h^2 K v0 - h^2 K_jk v0_k over the two segments; next to the top, h K_j0 dx_0 instead.
+        w_prev = h2 * (v - v_prev)
+        if j == 1:
+            w_prev = h2 * v - dt * top_dx
+        rhs_k = k_prev * w_prev
+        if not is_last:
+            rhs_k = rhs_k + k_next * (h2 * (v - v_next))
+        if wp.static(FRICTION):
+            # Internal friction (term 2) with each neighbour; its D = -k_f I per segment.
+            f_f, d_f = t.compute_internal_friction(v, v_prev, friction)
+            force = force + f_f
+            d_xz = d_xz + d_f[0, 0]
+            if j == 1:
+                rhs_k = rhs_k - dt * (d_f[0, 0] * top_dv)  # h D_j0 dv_0 with D_j0 = -D_jj
+            if not is_last:
                 f_f, d_f = t.compute_internal_friction(v, v_next, friction)
-                force += f_f
-                damp += d_f
-                upper += dt * d_f
-
+                force = force + f_f
+                d_xz = d_xz + d_f[0, 0]
+                g = dt * d_f[0, 0]
+                upper = upper + mat33(g, zero, zero, zero, g, zero, zero, zero, g)
         if wp.static(GRAVITY):
-            force += mass * gravity  # paper term 3
+            force = force + mass * gravity  # paper term 3
         if wp.static(AIR):
-            f_a, d_a = t.compute_air_drag(v, air_drag)
-            force += f_a
-            damp += d_a
+            f_a, d_a = t.compute_air_drag(v, air_drag)  # paper term 4, D = -k_air I
+            force = force + f_a
+            d_xz = d_xz + d_a[0, 0]
+        d_y = d_xz
         if wp.static(GROUND):
             if x[1] < ground_height:
+                # Paper term 6 (penalty and damper, ``compute_ground_contact``), term 5 in x and z.
                 f_g, k_g, d_g = t.compute_ground_contact(x, v, ground_height, ground_stiffness, ground_absorption)
-                force += f_g
-                stiff += k_g
-                damp += d_g
+                force = force + f_g
+                k_y = k_g[1, 1]
+                d_y = d_y + d_g[1, 1]
                 if wp.static(GROUND_FRICTION):
                     f_gf, d_gf = t.compute_ground_friction(v, ground_friction)
-                    force += f_gf
-                    damp += d_gf
+                    force = force + f_gf
+                    d_xz = d_xz + d_gf[0, 0]
         if is_last:
+            # The tie (eq. 2): K = -k I, D = -k_d I.
             f_t, k_t, d_t = t.compute_string_tie(x, v, tie_x, tie_v, tie_stiffness, tie_damping)
-            force += f_t
-            stiff += k_t
-            damp += d_t
+            force = force + f_t
+            k_c = k_t[0, 0]
+            d_xz = d_xz + d_t[0, 0]
+            d_y = d_y + d_t[0, 0]
 
-        diag = mass * eye - dt * damp - (dt * dt) * stiff
-        rhs = dt * force + (dt * dt) * (stiff * v) + rhs_extra
+        # A = M - h D - h^2 K, b = h f0 + h^2 K v0 (+ the neighbours' and the top's terms).
+        a_xz = mass - dt * d_xz - h2 * k_c
+        a_y = mass - dt * d_y - h2 * (k_c + k_y)
+        s = -h2 * stiff
+        diag = mat33(s[0, 0] + a_xz, s[0, 1], s[0, 2],
+                     s[1, 0], s[1, 1] + a_y, s[1, 2],
+                     s[2, 0], s[2, 1], s[2, 2] + a_xz)
+        rhs = dt * force + rhs_k + h2 * vec3(k_c * v[0], (k_c + k_y) * v[1], k_c * v[2])
         return diag, upper, rhs
 
     return compute_string_system_row
