@@ -13,7 +13,8 @@ Strings: the ``strings`` scene (6 x 50 particles, float64, all effects on): the 
 the taped step (spring, system, solve, integrate, tie force) one by one and together, and the
 plain step (``step``: one launch, ``kernels/string_step``, since issue 19; before it, the
 five passes). Marionette: the ``hanging`` scene at each ``--puppet-hz``, per puppet step and
-per simulated millisecond: the passes of ``SolverMarionette.step``.
+per simulated millisecond: the passes of ``SolverMarionette.step``. Live: the wall and CPU
+time of one live tick (``LiveMarionette.advance``, as the servo loop's physics calls it).
 """
 
 from __future__ import annotations
@@ -120,15 +121,43 @@ def profile_marionette(puppet_hz: float, repeats: int) -> None:
         print(f"| {name} | {seconds * 1e6:.1f} | {seconds / model.puppet_dt * 1e3:.2f} |")
 
 
+def profile_live_tick(ticks: int) -> None:
+    """``LiveMarionette.advance`` (one string step per tick, the puppet passes at the first and last
+    tick of a puppet step), the bars on their scene trajectories: median wall and thread CPU time."""
+    import numpy as np
+
+    from dmarionette.live.physics import LiveMarionette
+    from dmarionette.marionette.solver import bar_inputs
+
+    model = MarionetteModel(dm.load_scene("hanging"), optimization_level=2)
+    live = LiveMarionette(model)
+    times = model.string_dt * np.arange(1, ticks + 1)
+    tops, bar_q, bar_qd = bar_inputs(model, times)
+    for k in range(model.substeps):  # warm-up (graphs captured on construction)
+        live.advance(tops[k], bar_q[k], bar_qd[k])
+    wall, cpu = [], []
+    for k in range(model.substeps, ticks):
+        w, c = time.perf_counter(), time.thread_time()
+        live.advance(tops[k], bar_q[k], bar_qd[k])
+        cpu.append(time.thread_time() - c)
+        wall.append(time.perf_counter() - w)
+    print(f"\n## Live tick ('hanging', LiveMarionette.advance, {ticks - model.substeps} ticks)\n")
+    print(f"median wall {np.median(wall) * 1e6:.1f} µs, median thread CPU {np.median(cpu) * 1e6:.1f} µs, "
+          f"p99 wall {np.percentile(wall, 99) * 1e6:.1f} µs")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=9)
     p.add_argument("--puppet-hz", type=float, nargs="*", default=[30.0, 1000.0])
+    p.add_argument("--live-ticks", type=int, default=3000, help="ticks of the live-tick timing (0: skip)")
     args = p.parse_args()
     print(f"# Step profile — Warp {wp.config.version}, CPU (one thread)\n")
     profile_strings(args.repeats)
     for hz in args.puppet_hz:
         profile_marionette(hz, args.repeats)
+    if args.live_ticks:
+        profile_live_tick(args.live_ticks)
 
 
 if __name__ == "__main__":
