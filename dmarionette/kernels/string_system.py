@@ -19,6 +19,15 @@ than the arithmetic of a cheap term for 300 particles, and the step must run at 
 with room to spare. Effects a scene turns off
 are removed at code generation with ``wp.static``: the kernel built for that scene does
 not contain them.
+
+A particle's block row is :func:`string_system_row_function`'s ``compute_string_system_row``,
+shared with the one-launch plain step (``string_step``). It uses the Jacobians' structure:
+every term but the springs has a diagonal Jacobian (friction, air drag and the tie ``-k I``,
+the ground only in ``y``; x and z alike), so damping and the non-spring stiffness are scalars,
+the two spring blocks are summed once, and ``h^2 K v0 - h^2 K_jk v0_k`` is one product per
+segment, ``K_jk (h^2 (v0_j - v0_k))``: about a third of the flops of forming ``M - h D - h^2 K``
+from full 3x3 terms (issue 19; the sums' order changed, so results moved by rounding,
+``docs/performance.md``).
 """
 
 

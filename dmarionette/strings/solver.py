@@ -11,9 +11,9 @@ One step is five named passes::
 
 A plain step (no tape) with the printed spring launches them as one kernel instead,
 ``integrate_string_implicit`` (``kernels/string_step``: one string per thread, the same
-functions in the same order, so the same numbers bit for bit; four times fewer passes over
-memory, ``docs/performance.md``); a step on a tape, or with tension-only springs, launches
-the five passes.
+functions in the same order, so the same numbers bit for bit; about 1.2x faster,
+``docs/performance.md``); a step on a tape, or with tension-only springs, launches the five
+passes.
 
 A step recorded on a tape is asked for explicitly (``step(..., tape=tape)``): it writes its
 intermediates into a workspace of its own (one array per step, as Warp's reverse pass
