@@ -5,7 +5,7 @@ A plain printed-spring step runs as one launch per string (``kernels/string_step
 passes (spring, system, solve, integrate, tie force). Both call the same ``@wp.func``\\ s in the
 same order, so a taped re-run of a rollout (the gradient engine's backward pass) ends exactly
 where the plain run did. Checked on a hard case: strings swung fast, lowered onto the ground,
-their ties moving, every effect on, float64 and float32.
+their ties moving, every effect on, float64 and float32, chains of 2 to 50 particles.
 """
 
 import numpy as np
@@ -27,6 +27,10 @@ def _model(precision: str):
         spec(particle_count=7, top=(0.3, 0.4, 0.0), bottom=(0.6, 0.4, 0.2), length=0.45),
         spec(particle_count=50, top=(-0.3, 0.6, 0.1), bottom=(-0.3, 0.1, 0.1), length=0.55, load_mass=0.05,
              tie_point=(-0.3, 0.1, 0.1), tie_stiffness=800.0, tie_damping=2.0),
+        # The shortest chains: one free particle (both the first and the last row), two (no middle row).
+        spec(particle_count=2, top=(0.5, 0.4, 0.0), bottom=(0.5, 0.1, 0.0), length=0.3, load_mass=0.01,
+             tie_point=(0.5, 0.1, 0.0), tie_stiffness=500.0, tie_damping=1.0),
+        spec(particle_count=3, top=(0.7, 0.4, 0.0), bottom=(0.9, 0.4, 0.0), length=0.25, internal_friction=0.2),
     ]
     return make_model(strings, effects=StringEffects(), precision=precision)
 
