@@ -148,8 +148,9 @@ def profile_live_tick(ticks: int) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--repeats", type=int, default=9)
-    p.add_argument("--puppet-hz", type=float, nargs="*", default=[30.0, 1000.0])
+    p.add_argument("--repeats", type=int, default=9, help="replays of each captured pass (the least is kept)")
+    p.add_argument("--puppet-hz", type=float, nargs="*", default=[30.0, 1000.0],
+                   help="puppet rates of the marionette profiles (none: skip them)")
     p.add_argument("--live-ticks", type=int, default=3000, help="ticks of the live-tick timing (0: skip)")
     args = p.parse_args()
     print(f"# Step profile — Warp {wp.config.version}, CPU (one thread)\n")

@@ -11,7 +11,8 @@ contact and tie terms all act), the ``hanging`` marionette at the paper's rates 
 coupled at 1 kHz (0.2 s), the same with tension-only springs (0.5 s), and the gradients of a
 short ``MarionetteGradient`` rollout (10 puppet steps, ones on every output). ``--compare``
 prints, per array, whether the two are equal bit for bit (``np.array_equal``) and otherwise the
-largest absolute and relative difference. Written for issue 19 (a faster step must compute the
+largest absolute and relative difference; it exits 0 when all are equal, 1 when any differs, 2
+on a path that is not a readable dump. Written for issue 19 (a faster step must compute the
 same numbers); ``docs/performance.md`` quotes its output.
 """
 
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -134,9 +136,21 @@ def main() -> None:
     args = p.parse_args()
     if args.compare:
         if len(args.paths) != 2:
-            p.error("--compare takes two dumps")
+            p.error(f"--compare takes two dumps; got {len(args.paths)} paths")
+        for path in args.paths:
+            try:
+                np.load(path).close()
+            except (OSError, ValueError) as e:
+                print(f"error: {path}: not a readable .npz dump ({e})", file=sys.stderr)
+                sys.exit(2)
         sys.exit(compare(*args.paths))
-    dump(args.paths[0])
+    if len(args.paths) != 1:
+        p.error(f"a dump takes one output path; got {len(args.paths)}")
+    out = Path(args.paths[0])
+    if not out.parent.is_dir():
+        print(f"error: {out}: its folder {out.parent} does not exist", file=sys.stderr)
+        sys.exit(2)
+    dump(str(out))
 
 
 if __name__ == "__main__":
