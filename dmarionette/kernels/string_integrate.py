@@ -16,9 +16,31 @@ from .string_tie import compute_tie_force
 
 
 @functools.cache
+def string_output_function(scalar):
+    """Builds ``compute_string_outputs``: a string's tie force and taut flag from its new state,
+    shared by ``eval_string_tie_force`` and the one-launch step (``string_step``)."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.func
+    def compute_string_outputs(x_first: vec3, x_last: vec3, v_last: vec3, tie_x: vec3, tie_v: vec3,
+                               tie_stiffness: scalar, tie_damping: scalar, taut_distance: scalar):
+        """Paper eq. 2 (the force on the body [N]; ``tie_stiffness``/``tie_damping`` already times
+        the string's ``tied`` flag, so a cut tie gives 0) and §3.2 (taut, ``1``, when the
+        first-to-last distance exceeds ``taut_distance`` [m], else ``0``)."""
+        force = compute_tie_force(tie_x, tie_v, x_last, v_last, tie_stiffness, tie_damping)
+        taut = int(0)
+        if wp.length(x_last - x_first) > taut_distance:
+            taut = 1
+        return force, taut
+
+    return compute_string_outputs
+
+
+@functools.cache
 def integrate_string_kernels(scalar):
     """Builds ``(integrate_string_particles, eval_string_tie_force)`` for a float type."""
     vec3 = wp.types.vector(3, scalar)
+    compute_string_outputs = string_output_function(scalar)
 
     @wp.kernel(module="unique")
     def integrate_string_particles(
@@ -73,13 +95,11 @@ def integrate_string_kernels(scalar):
         x = particle_q[last]
         v = particle_qd[last]
         tied = string_tied[s]
-        # Paper eq. 2, the force on the body (0 for a cut tie: ``tied`` is 1 or 0).
-        tie_force[s] = compute_tie_force(tie_q[s], tie_qd[s], x, v, tied * string_tie_stiffness[s],
-                                         tied * string_tie_damping[s])
-        # Paper §3.2: taut when the first-to-last distance exceeds a threshold.
-        taut = int(0)
-        if wp.length(x - particle_q[first]) > string_taut_distance[s]:
-            taut = 1
+        # Paper eq. 2, the force on the body (0 for a cut tie: ``tied`` is 1 or 0), and §3.2's taut flag.
+        force, taut = compute_string_outputs(particle_q[first], x, v, tie_q[s], tie_qd[s],
+                                             tied * string_tie_stiffness[s], tied * string_tie_damping[s],
+                                             string_taut_distance[s])
+        tie_force[s] = force
         string_taut[s] = taut
 
     return integrate_string_particles, eval_string_tie_force

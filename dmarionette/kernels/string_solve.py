@@ -29,6 +29,7 @@ solve stores nothing more.
 
 
 import functools
+from types import SimpleNamespace
 from typing import Any
 
 import warp as wp
@@ -37,11 +38,43 @@ MAX_ACTIVE_SET_PASSES = 8  # re-solves per chain and step at most (each activate
 
 
 @functools.cache
+def thomas_row_functions(scalar) -> SimpleNamespace:
+    """Builds the two row steps of the block Thomas forward elimination for a float type, shared by
+    the solve kernels here and the one-launch step (``string_step``), so both give the same bits.
+
+    Returns:
+        A namespace with ``compute_thomas_first_row(A_jj, A_{j,j+1}, b_j)`` (the chain's first free
+        row) and ``compute_thomas_row(A_jj, A_{j,j+1}, b_j, A_{j-1,j}, C'_{j-1}, d'_{j-1})``, each
+        returning ``(pivot inverse, C'_j, d'_j)``.
+    """
+    vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+
+    @wp.func
+    def compute_thomas_first_row(diag: mat33, upper: mat33, rhs: vec3):
+        """``inv = A_jj^{-1}``, ``C'_j = inv A_{j,j+1}``, ``d'_j = inv b_j``."""
+        inv = wp.inverse(diag)
+        return inv, inv * upper, inv * rhs
+
+    @wp.func
+    def compute_thomas_row(diag: mat33, upper: mat33, rhs: vec3, upper_prev: mat33, c_prev: mat33, d_prev: vec3):
+        """``inv = (A_jj - L_j C'_{j-1})^{-1}`` with ``L_j = A_{j-1,j}^T``, ``C'_j = inv A_{j,j+1}``,
+        ``d'_j = inv (b_j - L_j d'_{j-1})``."""
+        lower = wp.transpose(upper_prev)
+        inv = wp.inverse(diag - lower * c_prev)
+        return inv, inv * upper, inv * (rhs - lower * d_prev)
+
+    return SimpleNamespace(compute_thomas_first_row=compute_thomas_first_row, compute_thomas_row=compute_thomas_row)
+
+
+@functools.cache
 def solve_string_system_kernels(scalar):
     """Builds ``(solve_string_system, solve_string_system_active, solve_string_system_recorded,
     solve_string_system_adjoint)`` for a float type."""
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
+    thomas = thomas_row_functions(scalar)
+    compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
 
     @wp.func
     def compute_back_substitution(
@@ -82,18 +115,18 @@ def solve_string_system_kernels(scalar):
             start = string_start[s]
             last = string_start[s + 1] - 1
             # Forward elimination over the free particles start+1 .. last.
-            inv = wp.inverse(system_diag[start + 1])
+            inv, c, d = compute_thomas_first_row(system_diag[start + 1], system_upper[start + 1], rhs[start + 1])
             if wp.static(KEEP):
                 pivot_inverse[start + 1] = inv
-            scratch_c[start + 1] = inv * system_upper[start + 1]
-            scratch_d[start + 1] = inv * rhs[start + 1]
+            scratch_c[start + 1] = c
+            scratch_d[start + 1] = d
             for p in range(start + 2, last + 1):
-                lower = wp.transpose(system_upper[p - 1])
-                inv = wp.inverse(system_diag[p] - lower * scratch_c[p - 1])
+                inv, c, d = compute_thomas_row(system_diag[p], system_upper[p], rhs[p], system_upper[p - 1],
+                                               scratch_c[p - 1], scratch_d[p - 1])
                 if wp.static(KEEP):
                     pivot_inverse[p] = inv
-                scratch_c[p] = inv * system_upper[p]
-                scratch_d[p] = inv * (rhs[p] - lower * scratch_d[p - 1])
+                scratch_c[p] = c
+                scratch_d[p] = d
             compute_back_substitution(string_start, s, scratch_c, scratch_d, solution)
 
         return compute_block_thomas

@@ -19,6 +19,15 @@ than the arithmetic of a cheap term for 300 particles, and the step must run at 
 with room to spare. Effects a scene turns off
 are removed at code generation with ``wp.static``: the kernel built for that scene does
 not contain them.
+
+A particle's block row is :func:`string_system_row_function`'s ``compute_string_system_row``,
+shared with the one-launch plain step (``string_step``). It uses the Jacobians' structure:
+every term but the springs has a diagonal Jacobian (friction, air drag and the tie ``-k I``,
+the ground only in ``y``; x and z alike), so damping and the non-spring stiffness are scalars,
+the two spring blocks are summed once, and ``h^2 K v0 - h^2 K_jk v0_k`` is one product per
+segment, ``K_jk (h^2 (v0_j - v0_k))``: about a third of the flops of forming ``M - h D - h^2 K``
+from full 3x3 terms (issue 19; the sums' order changed, so results moved by rounding,
+``docs/performance.md``).
 """
 
 
@@ -84,6 +93,141 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
 
 
 @functools.cache
+def string_system_row_function(scalar, effects: tuple[bool, bool, bool, bool, bool]):
+    """Builds ``compute_string_system_row``: one free particle's block row of ``A dv = b``, the
+    arithmetic that both schedules of the step share (``eval_string_system``, one particle per
+    thread, and ``integrate_string_implicit``, one string per thread), so they agree bit for bit."""
+    GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
+    t = string_terms(scalar)
+    vec3, mat33 = t.vec3, t.mat33
+
+    @wp.func
+    def compute_string_system_row(
+        j: int,
+        is_last: bool,
+        x: vec3,
+        v: vec3,
+        v_prev: vec3,
+        v_next: vec3,
+        mass: scalar,
+        f_prev: vec3,
+        k_prev: mat33,
+        f_next: vec3,
+        k_next: mat33,
+        top_dx: vec3,
+        top_dv: vec3,
+        friction: scalar,
+        air_drag: scalar,
+        ground_stiffness: scalar,
+        ground_absorption: scalar,
+        ground_friction: scalar,
+        tie_stiffness: scalar,
+        tie_damping: scalar,
+        tie_x: vec3,
+        tie_v: vec3,
+        gravity: vec3,
+        ground_height: scalar,
+        dt: scalar,
+    ):
+        """The block row of free particle ``j >= 1`` of a chain (module doc).
+
+        Args:
+            j: the particle's index in its chain (``1``: next to the kinematic top).
+            is_last: the chain's last particle (no segment below it; its tie acts).
+            x, v: the particle's position [m] and velocity [m/s] at the start of the step.
+            v_prev, v_next: its neighbours' velocities [m/s] (``v_next``: any value if ``is_last``).
+            mass: [kg].
+            f_prev, k_prev: the segment above, seen from the particle above (force on it [N],
+                ``K_aa`` [N/m]: ``compute_string_spring``); the particle feels ``-f_prev``.
+            f_next, k_next: the segment below, seen from this particle (unused if ``is_last``).
+            top_dx, top_dv: the kinematic top particle's motion over the step [m], [m/s].
+            friction, air_drag, ground_stiffness, ground_absorption, ground_friction: the
+                string's ``k_f``, ``k_air``, repulsion [N/m], absorption and ``k_ground`` [N s/m].
+            tie_stiffness, tie_damping: eq. 2 ``k``, ``k_d`` times the string's ``tied`` flag.
+            tie_x, tie_v: the tie target [m], [m/s].
+            gravity: [m/s^2]; ground_height: [m]; dt: the step [s].
+
+        Returns:
+            ``(A_jj, A_{j,j+1}, b_j)`` (``A_{j,j+1}`` zero for the last particle).
+        """
+        zero = scalar(0.0)
+        h2 = dt * dt
+        # The springs' blocks are full 3x3; every other term's Jacobian is diagonal, kept as
+        # scalars: damping ``D = diag(d_xz, d_y, d_xz)``, stiffness ``diag(k_c, k_c + k_y, k_c)``.
+        d_xz = zero
+        d_y = zero
+        k_c = zero
+        k_y = zero
+
+        # The segments above and below (paper term 1): (segment p-1 -> p was evaluated from
+        # p-1's side: the force on p is its opposite).
+        force = -f_prev
+        stiff = k_prev
+        upper = mat33(zero)
+        if not is_last:
+            force = f_next - f_prev
+            stiff = k_prev + k_next
+            upper = h2 * k_next
+        # h^2 K v0 - h^2 K_jk v0_k over the two segments; next to the top, h K_j0 dx_0 instead.
+        w_prev = h2 * (v - v_prev)
+        if j == 1:
+            w_prev = h2 * v - dt * top_dx
+        rhs_k = k_prev * w_prev
+        if not is_last:
+            rhs_k = rhs_k + k_next * (h2 * (v - v_next))
+        if wp.static(FRICTION):
+            # Internal friction (term 2) with each neighbour; its D = -k_f I per segment.
+            f_f, d_f = t.compute_internal_friction(v, v_prev, friction)
+            force = force + f_f
+            d_xz = d_xz + d_f[0, 0]
+            if j == 1:
+                rhs_k = rhs_k - dt * (d_f[0, 0] * top_dv)  # h D_j0 dv_0 with D_j0 = -D_jj
+            if not is_last:
+                f_f, d_f = t.compute_internal_friction(v, v_next, friction)
+                force = force + f_f
+                d_xz = d_xz + d_f[0, 0]
+                g = dt * d_f[0, 0]
+                upper = upper + mat33(g, zero, zero, zero, g, zero, zero, zero, g)
+        if wp.static(GRAVITY):
+            force = force + mass * gravity  # paper term 3
+        if wp.static(AIR):
+            f_a, d_a = t.compute_air_drag(v, air_drag)  # paper term 4, D = -k_air I
+            force = force + f_a
+            d_xz = d_xz + d_a[0, 0]
+        d_y = d_xz
+        if wp.static(GROUND):
+            if x[1] < ground_height:
+                # Paper term 6 (penalty and damper, ``compute_ground_contact``), term 5 in x and z.
+                f_g, k_g, d_g = t.compute_ground_contact(x, v, ground_height, ground_stiffness, ground_absorption)
+                force = force + f_g
+                k_y = k_g[1, 1]
+                d_y = d_y + d_g[1, 1]
+                if wp.static(GROUND_FRICTION):
+                    f_gf, d_gf = t.compute_ground_friction(v, ground_friction)
+                    force = force + f_gf
+                    d_xz = d_xz + d_gf[0, 0]
+        if is_last:
+            # The tie (eq. 2): K = -k I, D = -k_d I.
+            f_t, k_t, d_t = t.compute_string_tie(x, v, tie_x, tie_v, tie_stiffness, tie_damping)
+            force = force + f_t
+            k_c = k_t[0, 0]
+            d_xz = d_xz + d_t[0, 0]
+            d_y = d_y + d_t[0, 0]
+
+        # A = M - h D - h^2 K, b = h f0 + h^2 K v0 (+ the neighbours' and the top's terms).
+        a_xz = mass - dt * d_xz - h2 * k_c
+        a_y = mass - dt * d_y - h2 * (k_c + k_y)
+        s = -h2 * stiff
+        diag = mat33(s[0, 0] + a_xz, s[0, 1], s[0, 2],
+                     s[1, 0], s[1, 1] + a_y, s[1, 2],
+                     s[2, 0], s[2, 1], s[2, 2] + a_xz)
+        rhs = dt * force + rhs_k + h2 * vec3(k_c * v[0], (k_c + k_y) * v[1], k_c * v[2])
+        return diag, upper, rhs
+
+    return compute_string_system_row
+
+
+@functools.cache
 def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool]):
     """Builds ``eval_string_system`` for a float type and an effect set.
 
@@ -92,9 +236,9 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         effects: ``(gravity, internal_friction, air_drag, ground_contact, ground_friction)``
             as compile-time switches.
     """
-    GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     t = string_terms(scalar)
     vec3, mat33 = t.vec3, t.mat33
+    compute_string_system_row = string_system_row_function(scalar, effects)
 
     @wp.kernel(module="unique")
     def eval_string_system(
@@ -133,84 +277,34 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         last = string_start[s + 1] - 1
         j = p - start
         zero = scalar(0.0)
-        eye = wp.identity(n=3, dtype=scalar)
         if j == 0:
             # Kinematic top particle: not an unknown; an identity row keeps the array tidy.
-            system_diag[p] = eye
+            system_diag[p] = wp.identity(n=3, dtype=scalar)
             system_upper[p] = mat33(zero)
             system_rhs[p] = vec3(zero)
             return
-
-        x = particle_q[p]
-        v = particle_qd[p]
-        mass = particle_mass[p]
-        force = vec3(zero)
-        stiff = mat33(zero)  # K_jj
-        damp = mat33(zero)  # D_jj
-        rhs_extra = vec3(zero)  # h^2 K_jk v0_k for free neighbours, h (K dx + D dv) for the top
-
-        # Segment to the previous particle (paper term 1), and its internal friction (term 2).
-        # (segment p-1 -> p was evaluated from p-1's side: the force on p is its opposite).
-        k_prev = segment_jacobian[p - 1]
-        force -= segment_force[p - 1]
-        stiff += k_prev
+        is_last = p == last
+        v_next = vec3(zero)
+        f_next = vec3(zero)
+        k_next = mat33(zero)
+        if not is_last:
+            v_next = particle_qd[p + 1]
+            f_next = segment_force[p]
+            k_next = segment_jacobian[p]
         # Motion of the kinematic top particle over the step (used when j == 1).
         top_dx = top_q[s] - particle_q[start]
         top_dv = top_dx / dt - particle_qd[start]
-        if j == 1:
-            rhs_extra += -dt * (k_prev * top_dx)
-        else:
-            rhs_extra += -(dt * dt) * (k_prev * particle_qd[p - 1])
-        if wp.static(FRICTION):
-            f_f, d_f = t.compute_internal_friction(v, particle_qd[p - 1], string_internal_friction[s])
-            force += f_f
-            damp += d_f
-            if j == 1:
-                rhs_extra += -dt * (d_f * top_dv)
-
-        # Segment to the next particle.
-        upper = mat33(zero)
-        if p < last:
-            k_next = segment_jacobian[p]
-            force += segment_force[p]
-            stiff += k_next
-            rhs_extra += -(dt * dt) * (k_next * particle_qd[p + 1])
-            upper = (dt * dt) * k_next
-            if wp.static(FRICTION):
-                f_f, d_f = t.compute_internal_friction(v, particle_qd[p + 1], string_internal_friction[s])
-                force += f_f
-                damp += d_f
-                upper += dt * d_f
-
-        if wp.static(GRAVITY):
-            force += mass * gravity  # paper term 3
-        if wp.static(AIR):
-            f_a, d_a = t.compute_air_drag(v, string_air_drag[s])
-            force += f_a
-            damp += d_a
-        if wp.static(GROUND):
-            if x[1] < ground_height:
-                f_g, k_g, d_g = t.compute_ground_contact(
-                    x, v, ground_height, string_ground_stiffness[s], string_ground_absorption[s]
-                )
-                force += f_g
-                stiff += k_g
-                damp += d_g
-                if wp.static(GROUND_FRICTION):
-                    f_gf, d_gf = t.compute_ground_friction(v, string_ground_friction[s])
-                    force += f_gf
-                    damp += d_gf
-        if p == last:
-            tied = string_tied[s]
-            f_t, k_t, d_t = t.compute_string_tie(
-                x, v, tie_q[s], tie_qd[s], tied * string_tie_stiffness[s], tied * string_tie_damping[s]
-            )
-            force += f_t
-            stiff += k_t
-            damp += d_t
-
-        system_diag[p] = mass * eye - dt * damp - (dt * dt) * stiff
+        tied = string_tied[s]
+        diag, upper, rhs = compute_string_system_row(
+            j, is_last, particle_q[p], particle_qd[p], particle_qd[p - 1], v_next, particle_mass[p],
+            segment_force[p - 1], segment_jacobian[p - 1], f_next, k_next, top_dx, top_dv,
+            string_internal_friction[s], string_air_drag[s], string_ground_stiffness[s],
+            string_ground_absorption[s], string_ground_friction[s],
+            tied * string_tie_stiffness[s], tied * string_tie_damping[s], tie_q[s], tie_qd[s],
+            gravity, ground_height, dt,
+        )
+        system_diag[p] = diag
         system_upper[p] = upper
-        system_rhs[p] = dt * force + (dt * dt) * (stiff * v) + rhs_extra
+        system_rhs[p] = rhs
 
     return eval_string_system

@@ -9,6 +9,12 @@ One step is five named passes::
     integrate_string       v1 = v0 + dv, x1 = x0 + h v1; the top particle follows its bar
     eval_string_tie_force  eq. 2 force on each body point, taut flags (paper §3.2)
 
+A plain step (no tape) with the printed spring launches them as one kernel instead,
+``integrate_string_implicit`` (``kernels/string_step``: one string per thread, the same
+functions in the same order, so the same numbers bit for bit; about 1.2x faster,
+``docs/performance.md``); a step on a tape, or with tension-only springs, launches the five
+passes.
+
 A step recorded on a tape is asked for explicitly (``step(..., tape=tape)``): it writes its
 intermediates into a workspace of its own (one array per step, as Warp's reverse pass
 needs; given, or allocated by the step) and the solve records its hand-written adjoint
@@ -33,6 +39,7 @@ import warp as wp
 
 from dmarionette.kernels.string_integrate import integrate_string_kernels
 from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_system_kernels
+from dmarionette.kernels.string_step import integrate_string_implicit_kernel
 from dmarionette.kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
 
@@ -98,6 +105,8 @@ class SolverStringImplicit:
         (self._solve, self._solve_active, self._solve_recorded,
          self._solve_adjoint) = solve_string_system_kernels(model.scalar)
         self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
+        self._integrate_implicit = None if self._tension_only else \
+            integrate_string_implicit_kernel(model.scalar, model.effects.as_tuple())
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
 
@@ -124,6 +133,9 @@ class SolverStringImplicit:
         m = self.model
         h = m.scalar(dt)
         ws = workspace if workspace is not None else (self.new_workspace() if tape is not None else self.workspace)
+        if tape is None and self._integrate_implicit is not None:
+            self.integrate_string_implicit(state_in, state_out, control, h, ws)  # the five passes in one launch
+            return
         forced = self._none_forced  # every segment in the system (printed springs)
         if tape is not None and self._tension_only:
             self.eval_active_set(state_in, control, h, ws.active_set)  # unrecorded: which segments are taut
@@ -138,6 +150,29 @@ class SolverStringImplicit:
             self.apply_active_set_dv(ws)  # integrate the plain solve's dv (module doc)
         self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
         self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
+
+    def integrate_string_implicit(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
+        """The plain step's five passes as one launch, one string per thread (printed springs,
+        no tape; module doc). Writes ``state_out`` and ``ws``'s ``scratch_c``, ``scratch_d`` and
+        ``particle_dv`` (not the blocks of ``A``, which it never stores)."""
+        m = self.model
+        wp.launch(
+            self._integrate_implicit,
+            dim=m.string_count,
+            inputs=[
+                m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                m.string_internal_friction, m.string_air_drag,
+                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
+                m.string_tie_stiffness, m.string_tie_damping, m.string_tied, m.string_taut_distance,
+                m.gravity, m.ground_height,
+                state_in.particle_q, state_in.particle_qd,
+                control.top_q, control.tie_q, control.tie_qd, h,
+            ],
+            outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
+                     state_out.tie_force, state_out.string_taut],
+            device=m.device,
+            record_tape=False,
+        )
 
     def eval_active_set(self, state_in, control, h, ws: StringWorkspace) -> None:
         """Tension-only springs: the active set of a step from ``state_in`` (segments taut at

@@ -1,0 +1,165 @@
+"""Where the time of a string step and of a marionette step goes: the cost of each pass.
+
+Run:  python benchmarks/profile_steps.py [--repeats 9] [--puppet-hz 30 1000]
+
+Each pass (a solver method, as ``SolverStringImplicit.step`` and ``SolverMarionette.step`` call
+it) is captured ``R`` times in a row as one CPU graph and replayed ``--repeats`` times; the
+figure is the *minimum* over the replays of the calling thread's CPU time
+(``time.thread_time``) per pass: the thread's own cost, the least disturbed by other processes
+on a shared machine (wall-clock medians are for ``bench_strings.py``/``bench_marionette.py``).
+``empty launch`` is a kernel that does nothing, for the fixed cost of one launch in a graph.
+
+Strings: the ``strings`` scene (6 x 50 particles, float64, all effects on): the five passes of
+the taped step (spring, system, solve, integrate, tie force) one by one and together, and the
+plain step (``step``: one launch, ``kernels/string_step``, since issue 19; before it, the
+five passes). Marionette: the ``hanging`` scene at each ``--puppet-hz``, per puppet step and
+per simulated millisecond: the passes of ``SolverMarionette.step``. Live: the wall and CPU
+time of one live tick (``LiveMarionette.advance``, as the servo loop's physics calls it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING
+
+import dmarionette as dm  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel, SolverMarionette  # noqa: E402
+from dmarionette.strings.model import StringModel  # noqa: E402
+from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
+
+
+@wp.kernel
+def _empty(
+    # State out:
+    a: wp.array(dtype=wp.int32),
+):
+    wp.tid()
+
+
+def cost(fn, count: int, repeats: int) -> float:
+    """Least thread CPU time [s] of one ``fn()`` replayed from a graph of ``count`` calls."""
+    fn()  # loads the modules (no compiling while capturing)
+    with wp.ScopedCapture() as capture:
+        for _ in range(count):
+            fn()
+    times = []
+    for _ in range(repeats):
+        start = time.thread_time()
+        wp.capture_launch(capture.graph)
+        times.append(time.thread_time() - start)
+    return min(times) / count
+
+
+def profile_strings(repeats: int) -> None:
+    scene = dm.load_scene("strings")
+    model = StringModel(scene.strings, effects=scene.effects, gravity=scene.gravity,
+                        ground_height=scene.ground_height)
+    solver = SolverStringImplicit(model)
+    a, b, control = model.state(), model.state(), model.control()
+    h, ws = model.scalar(1e-3), solver.workspace
+    forced = solver.new_workspace(taped=False).segment_active  # zeros: no segment forced
+    flags = wp.zeros(model.particle_count, dtype=wp.int32)
+    for _ in range(3):
+        solver.step(a, b, control, 1e-3)
+        a.assign(b)
+
+    def five():
+        solver.eval_string_spring(a, forced, ws)
+        solver.eval_string_system(a, control, h, ws)
+        solver.solve_string_system(ws, None)
+        solver.integrate_string(a, b, control, h, ws)
+        solver.eval_string_tie_force(b, control)
+
+    rows = [
+        ("empty launch (dim = particles)", lambda: wp.launch(_empty, dim=model.particle_count, outputs=[flags])),
+        ("eval_string_spring", lambda: solver.eval_string_spring(a, forced, ws)),
+        ("eval_string_system", lambda: solver.eval_string_system(a, control, h, ws)),
+        ("solve_string_system", lambda: solver.solve_string_system(ws, None)),
+        ("integrate_string", lambda: solver.integrate_string(a, b, control, h, ws)),
+        ("eval_string_tie_force", lambda: solver.eval_string_tie_force(b, control)),
+        ("the five passes", five),
+        ("step (plain)", lambda: solver.step(a, b, control, 1e-3)),
+    ]
+    print(f"## Strings: 6 x 50 float64, thread CPU time per pass (min of {repeats})\n")
+    print("| pass | µs | ns per particle |")
+    print("|---|---:|---:|")
+    for name, fn in rows:
+        seconds = cost(fn, 1000, repeats)
+        print(f"| {name} | {seconds * 1e6:.2f} | {seconds * 1e9 / model.particle_count:.1f} |")
+
+
+def profile_marionette(puppet_hz: float, repeats: int) -> None:
+    scene = dataclasses.replace(dm.load_scene("hanging"), puppet_hz=puppet_hz)
+    model = MarionetteModel(scene, optimization_level=2)
+    solver = SolverMarionette(model)
+    a, b, control = model.state(), model.state(), model.control()
+    for _ in range(3):
+        solver.step(a, b, control)
+        a.assign(b)
+    n, ws = model.substeps, solver.workspace
+    rows = [
+        ("step (all passes)", lambda: solver.step(a, b, control)),
+        ("eval_body_points", lambda: solver.eval_body_points(a, ws.points)),
+        ("predict_body_points (the trial puppet step)", lambda: solver.predict_body_points(a, ws)),
+        ("begin_step (the two above + the tie path)", lambda: solver.begin_step(a, b)),
+        (f"{n} x step_string (string step + feedback)",
+         lambda: [solver.step_string(a, b, control, j) for j in range(n)]),
+        (f"{n} x eval_bar_feedback", lambda: [solver.eval_bar_feedback(b.strings, control, b, j) for j in range(n)]),
+        ("end_step (anchors + the puppet step)", lambda: solver.end_step(a, b)),
+    ]
+    print(f"\n## Marionette 'hanging', strings {scene.string_hz:g} Hz, puppet {puppet_hz:g} Hz "
+          f"(n = {n}), thread CPU time (min of {repeats})\n")
+    print("| pass | µs per puppet step | µs per simulated ms |")
+    print("|---|---:|---:|")
+    for name, fn in rows:
+        seconds = cost(fn, max(1, 300 // n), repeats)
+        print(f"| {name} | {seconds * 1e6:.1f} | {seconds / model.puppet_dt * 1e3:.2f} |")
+
+
+def profile_live_tick(ticks: int) -> None:
+    """``LiveMarionette.advance`` (one string step per tick, the puppet passes at the first and last
+    tick of a puppet step), the bars on their scene trajectories: median wall and thread CPU time."""
+    import numpy as np
+
+    from dmarionette.live.physics import LiveMarionette
+    from dmarionette.marionette.solver import bar_inputs
+
+    model = MarionetteModel(dm.load_scene("hanging"), optimization_level=2)
+    live = LiveMarionette(model)
+    times = model.string_dt * np.arange(1, ticks + 1)
+    tops, bar_q, bar_qd = bar_inputs(model, times)
+    for k in range(model.substeps):  # warm-up (graphs captured on construction)
+        live.advance(tops[k], bar_q[k], bar_qd[k])
+    wall, cpu = [], []
+    for k in range(model.substeps, ticks):
+        w, c = time.perf_counter(), time.thread_time()
+        live.advance(tops[k], bar_q[k], bar_qd[k])
+        cpu.append(time.thread_time() - c)
+        wall.append(time.perf_counter() - w)
+    print(f"\n## Live tick ('hanging', LiveMarionette.advance, {ticks - model.substeps} ticks)\n")
+    print(f"median wall {np.median(wall) * 1e6:.1f} µs, median thread CPU {np.median(cpu) * 1e6:.1f} µs, "
+          f"p99 wall {np.percentile(wall, 99) * 1e6:.1f} µs")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--repeats", type=int, default=9, help="replays of each captured pass (the least is kept)")
+    p.add_argument("--puppet-hz", type=float, nargs="*", default=[30.0, 1000.0],
+                   help="puppet rates of the marionette profiles (none: skip them)")
+    p.add_argument("--live-ticks", type=int, default=3000, help="ticks of the live-tick timing (0: skip)")
+    args = p.parse_args()
+    print(f"# Step profile — Warp {wp.config.version}, CPU (one thread)\n")
+    profile_strings(args.repeats)
+    for hz in args.puppet_hz:
+        profile_marionette(hz, args.repeats)
+    if args.live_ticks:
+        profile_live_tick(args.live_ticks)
+
+
+if __name__ == "__main__":
+    main()
