@@ -93,12 +93,14 @@ class KeyframePose:
         joints: joint name -> target angles [deg], one per axis of a hinge or universal joint.
         points: puppet point name -> world position [m].
         bodies: body name -> world position of its centre [m].
+        weight: multiplies this keyframe's residuals (1 by default; 0 leaves it out of the fit).
     """
 
     t: float
     joints: Mapping[str, tuple[float, ...]]
     points: Mapping[str, tuple[float, float, float]]
     bodies: Mapping[str, tuple[float, float, float]]
+    weight: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,8 +275,9 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
     poses = []
     for i, entry in enumerate(entries):
         where = f"{source}: [[keyframes]] #{i + 1}"
-        check_keys(entry, ["t", "joints", "points", "bodies"], where)
+        check_keys(entry, ["t", "weight", "joints", "points", "bodies"], where)
         t = read_float(entry, "t", where)
+        weight = read_float(entry, "weight", where, 1.0, minimum=0.0, maximum=1.0e6)
         if not 0.0 < t <= duration:
             raise KeyframeError(where, "t", t, f"a time inside the motion, 0 < t <= duration ({duration} s)")
         if round(t / puppet_step(scene)) == 0:
@@ -307,7 +310,7 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
         if not (joints or points or bodies):
             raise KeyframeError(where, "joints/points/bodies", None,
                                 "at least one target: [keyframes.joints], [keyframes.points] or [keyframes.bodies]")
-        poses.append(KeyframePose(t=t, joints=joints, points=points, bodies=bodies))
+        poses.append(KeyframePose(t=t, joints=joints, points=points, bodies=bodies, weight=weight))
     return tuple(poses)
 
 

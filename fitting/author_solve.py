@@ -1,0 +1,374 @@
+"""The keyframe solve: Levenberg-Marquardt on the keyframe residuals, hard device limits,
+continuation over keyframes, and an honest verdict per keyframe.
+
+- **Variables.** ``z``, the authored knots through :class:`fitting.knot_bounds.BoundedKnots`:
+  every bar path stays inside the device workspace by construction.
+- **Residuals.** Per keyframe target ``w k (x - x*)`` (``w`` the point or joint weight of
+  ``[weights]``, ``k`` the keyframe's own ``weight``), then the smoothness residuals.
+- **Jacobian.** Forward differences of whole rollouts (``n + 1`` forward rollouts for ``n``
+  knot coordinates) for the keyframe rows; the smoothness rows (a function of the knots
+  only) by JAX forward mode, exactly. Measured against the reverse-mode Jacobian
+  (``benchmarks/bench_author.py --jacobians``): forward differences are cheaper (one forward
+  rollout per coordinate against one backward pass, 4-5 forward rollouts' worth, per residual)
+  and agree with it to the rounding of the step (see docs/authoring.md).
+- **Device force.** A hard limit too: a trial point whose replay would send a device more
+  than its peak force is rejected like a cost increase (the start must be feasible; if the
+  scene's own start already exceeds it, no trial may exceed the start's peak, and the
+  result says the limit is not met).
+- **Continuation.** Keyframes are switched on in time order: stage ``k`` fits keyframes
+  ``1..k`` from where stage ``k - 1`` ended.
+- **Verdict.** A keyframe is *reached* when every target is within the position and angle
+  tolerances. When the solve stops at a stationary point with some missed, each missed one is
+  solved alone from there: if it still misses it is *unreachable* (it is then left out and the
+  others are solved again without it, so it cannot degrade them); if it is reached alone it
+  is *not converged* (it conflicts with the others). A run that ran out of steps or time with
+  a keyframe missed: *not converged*.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dmarionette.grad.engine import RolloutInputs
+
+from .knot_bounds import BoundedKnots
+from .least_squares import LMResult, levenberg_marquardt
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = ["EXIT_CODES", "KeyframeSolve", "KeyframeVerdict", "solve_keyframes"]
+
+#: The exit codes of ``dmarionette author`` (docs/authoring.md).
+EXIT_CODES = {"reached": 0, "not_converged": 3, "unreachable": 4, "force_limit": 5}
+MAX_STEP = 0.5  # the largest change of one coordinate of z in a step (2.5 cm, 0.05 rad, a bound's half)
+FD_STEP = 1e-6  # forward-difference step in z (about 5e-8 m or 1e-7 rad of a knot)
+
+
+@dataclasses.dataclass
+class KeyframeVerdict:
+    """One keyframe's outcome.
+
+    Attributes:
+        index: the keyframe's position in the file (0-based); t: its time [s].
+        status: ``"reached"``, ``"unreachable"`` or ``"not_converged"``.
+        errors: target name -> error (position [m], joint: largest axis error [deg]).
+        best: for an unreachable keyframe, target name -> the smallest error any solve reached.
+        reasons: plain sentences, one per missed target or limiting cause.
+    """
+
+    index: int
+    t: float
+    status: str
+    errors: dict
+    best: dict
+    reasons: list[str]
+
+
+@dataclasses.dataclass
+class KeyframeSolve:
+    """The result of :func:`solve_keyframes`."""
+
+    y: dict
+    z: np.ndarray
+    verdicts: list[KeyframeVerdict]
+    status: str
+    exit_code: int
+    history: list[dict]
+    lm_status: list[str]
+    messages: list[str]
+    peak_force: dict
+    seconds: float
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "reached"
+
+
+class KeyframeResiduals:
+    """Residuals and Jacobians of an :class:`fitting.author.AuthoringProblem` in ``z``."""
+
+    def __init__(self, problem, fd_step: float = FD_STEP):
+        self.problem = problem
+        objective = problem.objective
+        self.spec = spec = problem.spec
+        self.bounds = BoundedKnots(problem.param, objective.boxes if objective.limits is not None else None)
+        self.constants = {k: np.asarray(v) for k, v in objective.constants.items()}
+        self.fd_step = fd_step
+        param = problem.param
+        self._inputs = jax.jit(lambda z: param.rollout_inputs(self.bounds.y(z)))
+        smooth = lambda z: spec.weights.smoothness * param.acceleration_residuals(self.bounds.y(z))  # noqa: E731
+        self._smooth = jax.jit(smooth)
+        self._smooth_jac = jax.jit(jax.jacfwd(smooth))
+        # Every keyframe residual entry: its keyframe, its target's name and kind, its weight.
+        kf, names, kinds, weights = [], [], [], []
+        for kind, size in (("point", 3), ("body", 3), ("joint", 1)):
+            for k, pose in enumerate(spec.keyframes):
+                table = {"point": pose.points, "body": pose.bodies, "joint": pose.joints}[kind]
+                for name, value in table.items():
+                    count = size if kind != "joint" else len(value)
+                    kf += [k] * count
+                    names += [name] * count
+                    kinds += [kind] * count
+                    weights += [spec.weights.point if kind != "joint" else spec.weights.joint] * count
+        self.entry_keyframe = np.array(kf, dtype=np.int64)
+        self.entry_name = names
+        self.entry_kind = np.array(kinds)
+        self.entry_weight = np.array(weights, dtype=np.float64)
+        self.keyframe_weight = np.array([pose.weight for pose in spec.keyframes], dtype=np.float64)
+        self.active = np.ones(len(spec.keyframes))
+        self._cache: tuple[bytes, dict] | None = None
+
+    # ---------------------------------------------------------------- rollouts
+    def outputs(self, z) -> dict[str, np.ndarray]:
+        """The rollout's outputs at ``z`` (the last one is cached)."""
+        z = np.asarray(z, dtype=np.float64)
+        key = z.tobytes()
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        inputs = {k: np.asarray(v) for k, v in self._inputs(z).items()}
+        result = self.problem.engine.forward(RolloutInputs(**self.constants, **inputs))
+        outputs = {k: np.asarray(getattr(result, k)) for k in ("point_pos", "body_pos", "joint_q", "bar_reaction",
+                                                                "bar_feedback")}
+        self._cache = (key, outputs)
+        return outputs
+
+    def errors(self, outputs) -> np.ndarray:
+        """Unweighted keyframe errors, one per entry [m] or [rad]."""
+        key = self.problem.objective.keyframe_residuals(outputs)
+        return np.concatenate([np.asarray(key["point"]).ravel(), np.asarray(key["body"]).ravel(),
+                               np.asarray(key["joint"]).ravel()])
+
+    def row_weights(self) -> np.ndarray:
+        return self.entry_weight * (self.keyframe_weight * self.active)[self.entry_keyframe]
+
+    def residuals(self, z) -> np.ndarray:
+        """Weighted keyframe residuals of the active keyframes, then the smoothness residuals."""
+        return np.concatenate([self.row_weights() * self.errors(self.outputs(z)), np.asarray(self._smooth(z))])
+
+    def jacobian(self, z, r) -> np.ndarray:
+        """Forward differences of the keyframe rows (``n`` rollouts); exact smoothness rows."""
+        z = np.asarray(z, dtype=np.float64)
+        count = len(self.entry_keyframe)
+        base = self.errors(self.outputs(z))
+        jac = np.zeros((len(r), len(z)))
+        weights = self.row_weights()
+        for j in range(len(z)):
+            trial = z.copy()
+            trial[j] += self.fd_step
+            jac[:count, j] = weights * (self.errors(self.outputs(trial)) - base) / self.fd_step
+        jac[count:] = np.asarray(self._smooth_jac(z))
+        self.outputs(z)  # leave the cache at z
+        return jac
+
+    def error_jacobian(self, z) -> np.ndarray:
+        """Unweighted keyframe errors' Jacobian in ``z`` (forward differences)."""
+        saved = self.active
+        self.active = np.ones_like(saved)
+        try:
+            r = self.residuals(z)
+            jac = self.jacobian(z, r)[:len(self.entry_keyframe)]
+        finally:
+            self.active = saved
+        weights = self.entry_weight * self.keyframe_weight[self.entry_keyframe]
+        return jac / np.where(weights > 0, weights, 1.0)[:, None]
+
+    def peak_force(self, z) -> dict[str, float]:
+        """Per authored bar: the largest force the device would be sent over the motion [N]."""
+        outputs = self.outputs(z)
+        field = "bar_reaction" if self.spec.feedback == "reaction" else "bar_feedback"
+        return {a["name"]: float(self.spec.force_scale * np.linalg.norm(outputs[field][:, a["index"]], axis=-1).max())
+                for a in self.problem.param.authored}
+
+    # ---------------------------------------------------------------- verdicts
+    def target_errors(self, z) -> list[dict]:
+        """Per keyframe: target name -> error (position [m]; joint: largest axis error [deg])."""
+        errors = self.errors(self.outputs(z))
+        out = [dict() for _ in self.spec.keyframes]
+        i = 0
+        while i < len(errors):
+            k, name, kind = self.entry_keyframe[i], self.entry_name[i], self.entry_kind[i]
+            if kind == "joint":
+                j = i
+                while j < len(errors) and self.entry_keyframe[j] == k and self.entry_name[j] == name \
+                        and self.entry_kind[j] == "joint":
+                    j += 1
+                out[k][name] = float(np.degrees(np.abs(errors[i:j]).max()))
+                i = j
+            else:
+                label = name if kind == "point" else f"{name} (body)"
+                out[k][label] = float(np.linalg.norm(errors[i:i + 3]))
+                i += 3
+        return out
+
+    def reached(self, errors: dict, position_tolerance: float, angle_tolerance: float) -> bool:
+        return all(v <= (angle_tolerance if self._is_joint(n) else position_tolerance) for n, v in errors.items())
+
+    def _is_joint(self, label: str) -> bool:
+        return any(self.entry_name[i] == label and self.entry_kind[i] == "joint" for i in range(len(self.entry_name)))
+
+
+def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None, continuation: bool = True,
+                    position_tolerance: float = 1e-3, angle_tolerance: float = 0.5,
+                    say: Callable[[str], None] = lambda line: None, z0: np.ndarray | None = None) -> KeyframeSolve:
+    """Levenberg-Marquardt on the keyframes of ``problem`` with hard device limits and a verdict.
+
+    Args:
+        problem: an :class:`fitting.author.AuthoringProblem`.
+        max_steps: Jacobians at most, over all stages.
+        max_seconds: wall-time budget [s] of the solve (None: no limit).
+        continuation: switch keyframes on in time order (else all at once).
+        position_tolerance: [m], angle_tolerance: [deg]: a keyframe is reached within them.
+        say: receives progress lines.
+        z0: start (default: the scene's own bar motion).
+    """
+    started = time.perf_counter()
+    deadline = None if max_seconds is None else started + max_seconds
+    res = KeyframeResiduals(problem)
+    spec = problem.spec
+    count = len(spec.keyframes)
+    z = res.bounds.z0() if z0 is None else np.asarray(z0, dtype=np.float64)
+    limit = None if problem.objective.limits is None else problem.objective.limits["max_force"]
+    start_peak = res.peak_force(z)
+    allowed = {name: max(limit, peak) for name, peak in start_peak.items()} if limit is not None else None
+    messages = []
+    if allowed is not None:
+        for name, peak in start_peak.items():
+            if peak > limit:
+                messages.append(f"bar {name}: the scene's own start already sends the device {peak:.3g} N, above "
+                                f"its {limit:.3g} N limit (lower [author] force_scale, now {spec.force_scale:g}); "
+                                "no step may raise it further")
+
+    def feasible(zt) -> bool:
+        return allowed is None or all(p <= allowed[n] for n, p in res.peak_force(zt).items())
+
+    history: list[dict] = []
+    lm_status: list[str] = []
+    steps_left = [max_steps]
+
+    def record(stage: str):
+        def on_step(entry):
+            counts = problem.counter() if hasattr(problem, "counter") else {}
+            history.append({**entry, "stage": stage, "loss": entry["cost"], "grad_norm": entry["grad_inf"],
+                            "terms": {}, **counts})
+            say(f"{len(history):5d} {stage:>18s} cost {entry['cost']:11.4e} |J^T r| {entry['grad_inf']:10.3e} "
+                f"lambda {entry['lambda']:9.2e} {entry['elapsed']:7.1f}s")
+        return on_step
+
+    def run(stage: str, active: np.ndarray, z_start: np.ndarray) -> LMResult:
+        res.active = active.astype(np.float64)
+        on = [k for k in range(count) if active[k] > 0]
+
+        def done(zt, rt):
+            errors = res.target_errors(zt)
+            return all(res.reached(errors[k], position_tolerance / 2, angle_tolerance / 2) for k in on)
+
+        result = levenberg_marquardt(res.residuals, res.jacobian, z_start, max_steps=max(steps_left[0], 0),
+                                     deadline=deadline, done=done, feasible=feasible, max_step=MAX_STEP,
+                                     on_step=record(stage))
+        steps_left[0] -= result.steps
+        lm_status.append(f"{stage}: {result.status} after {result.steps} steps")
+        return result
+
+    ones = np.ones(count)
+    say(f"{'step':>5s} {'stage':>18s} (Levenberg-Marquardt, forward-difference Jacobian: "
+        f"{res.bounds.size + 1} rollouts a step)")
+    result = None
+    if continuation and count > 1:
+        for k in range(1, count):
+            active = np.where(np.arange(count) < k, 1.0, 0.0)
+            result = run(f"keyframes 1-{k}", active, z)
+            z = result.x
+            if steps_left[0] <= 0 or result.status == "max_seconds":
+                break
+    if steps_left[0] > 0 and (result is None or result.status != "max_seconds"):
+        result = run("all keyframes", ones, z)
+        z = result.x
+    final_status = result.status if result is not None else "max_steps"
+
+    # ---- the verdict
+    errors = res.target_errors(z)
+    missed = [k for k in range(count) if not res.reached(errors[k], position_tolerance, angle_tolerance)]
+    best = [dict() for _ in range(count)]
+    unreachable: list[int] = []
+    conflict: list[int] = []
+    stopped = final_status in ("stationary", "no_progress", "done")
+    if missed and stopped:
+        z_all = z
+        for k in missed:
+            if steps_left[0] <= 0 or (deadline is not None and time.perf_counter() >= deadline):
+                break
+            alone = run(f"keyframe {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all)
+            best[k] = res.target_errors(alone.x)[k]
+            if alone.status in ("stationary", "no_progress") and not res.reached(best[k], position_tolerance,
+                                                                                 angle_tolerance):
+                unreachable.append(k)
+            elif res.reached(best[k], position_tolerance, angle_tolerance):
+                conflict.append(k)
+        if unreachable and steps_left[0] > 0:
+            relaxed = np.where(np.isin(np.arange(count), unreachable), 0.0, 1.0)
+            again = run("without unreachable", relaxed, z_all)
+            z = again.x
+            final_status = again.status
+            errors = res.target_errors(z)
+    res.active = ones
+    peak = res.peak_force(z)
+    verdicts = []
+    jac = None
+    for k, pose in enumerate(spec.keyframes):
+        ok = res.reached(errors[k], position_tolerance, angle_tolerance)
+        status = "reached" if ok else ("unreachable" if k in unreachable else "not_converged")
+        reasons = []
+        if not ok:
+            for name, value in errors[k].items():
+                joint = res._is_joint(name)
+                tol = angle_tolerance if joint else position_tolerance
+                if value <= tol:
+                    continue
+                unit = (lambda v: f"{v:.3g} deg") if joint else (lambda v: f"{v * 1000:.3g} mm" if v < 1 else
+                                                                  f"{v:.3g} m")
+                line = f"{name}: {unit(value)} from the target"
+                if name in best[k]:
+                    line += (f"; the nearest any solve came (this keyframe alone, from the others' solution) is "
+                             f"{unit(best[k][name])}")
+                if status == "not_converged":
+                    line += ("; reachable alone but not together with the other keyframes" if k in conflict else
+                             f"; the solve stopped before reaching it ({final_status})")
+                reasons.append(line)
+        verdicts.append(KeyframeVerdict(index=k, t=pose.t, status=status, errors=errors[k], best=best[k],
+                                        reasons=reasons))
+        if not ok and jac is None:
+            jac = res.error_jacobian(z)
+    saturated = res.bounds.saturation(z)
+    labels = res.bounds.names()
+    flat = np.concatenate([v.ravel() for v in saturated.values()]) if saturated else np.zeros(0)
+    at_bound = [labels[i] for i in range(len(flat)) if np.isfinite(flat[i]) and flat[i] > 0.99]
+    if at_bound and any(v.status != "reached" for v in verdicts):
+        messages.append("knot coordinates at the device workspace bound: " + ", ".join(at_bound))
+    if jac is None:
+        jac = res.error_jacobian(z)
+    column = np.linalg.norm(jac, axis=0)
+    idle = [labels[i] for i in range(len(column)) if column[i] <= 1e-9 * max(column.max(), 1e-300)]
+    if idle:
+        messages.append("bar coordinates with no effect on any target: " + ", ".join(idle))
+    over = {n: p for n, p in peak.items() if limit is not None and p > limit}
+    if any(v.status == "not_converged" for v in verdicts):
+        status = "not_converged"
+    elif unreachable:
+        status = "unreachable"
+    elif over:
+        status = "force_limit"
+    else:
+        status = "reached"
+    if over:
+        messages.append("device force above the limit: " + ", ".join(f"{n} {p:.3g} N > {limit:g} N"
+                                                                       for n, p in over.items()))
+    y = {k: np.asarray(v) for k, v in res.bounds.y(z).items()}
+    return KeyframeSolve(y=y, z=z, verdicts=verdicts, status=status, exit_code=EXIT_CODES[status], history=history,
+                         lm_status=lm_status, messages=messages, peak_force=peak,
+                         seconds=time.perf_counter() - started)
