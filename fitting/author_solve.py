@@ -35,8 +35,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmarionette.grad.engine import RolloutInputs
-
 from .knot_bounds import BoundedKnots
 from .least_squares import LMResult, levenberg_marquardt
 
@@ -45,7 +43,7 @@ jax.config.update("jax_enable_x64", True)
 __all__ = ["EXIT_CODES", "KeyframeSolve", "KeyframeVerdict", "solve_keyframes"]
 
 #: The exit codes of ``dmarionette author`` (docs/authoring.md).
-EXIT_CODES = {"reached": 0, "not_converged": 3, "unreachable": 4, "force_limit": 5}
+EXIT_CODES = {"reached": 0, "not_converged": 3, "unreachable": 4, "limit_exceeded": 5}
 MAX_STEP = 0.5  # the largest change of one coordinate of z in a step (2.5 cm, 0.05 rad, a bound's half)
 FD_STEP = 1e-6  # forward-difference step in z (about 5e-8 m or 1e-7 rad of a knot)
 
@@ -60,6 +58,7 @@ class KeyframeVerdict:
         errors: target name -> error (position [m], joint: largest axis error [deg]).
         best: for an unreachable keyframe, target name -> the smallest error any solve reached.
         reasons: plain sentences, one per missed target or limiting cause.
+        units: target name -> ``"m"`` or ``"deg"``.
     """
 
     index: int
@@ -68,6 +67,7 @@ class KeyframeVerdict:
     errors: dict
     best: dict
     reasons: list[str]
+    units: dict
 
 
 @dataclasses.dataclass
@@ -98,13 +98,11 @@ class KeyframeResiduals:
         objective = problem.objective
         self.spec = spec = problem.spec
         self.bounds = BoundedKnots(problem.param, objective.boxes if objective.limits is not None else None)
-        self.constants = {k: np.asarray(v) for k, v in objective.constants.items()}
         self.fd_step = fd_step
         param = problem.param
-        self._inputs = jax.jit(lambda z: param.rollout_inputs(self.bounds.y(z)))
+        self._y = jax.jit(self.bounds.y)
         smooth = lambda z: spec.weights.smoothness * param.acceleration_residuals(self.bounds.y(z))  # noqa: E731
-        self._smooth = jax.jit(smooth)
-        self._smooth_jac = jax.jit(jax.jacfwd(smooth))
+        self._smooth_and_jac = jax.jit(lambda z: (smooth(z), jax.jacfwd(smooth)(z)))
         # Every keyframe residual entry: its keyframe, its target's name and kind, its weight.
         kf, names, kinds, weights = [], [], [], []
         for kind, size in (("point", 3), ("body", 3), ("joint", 1)):
@@ -122,21 +120,23 @@ class KeyframeResiduals:
         self.entry_weight = np.array(weights, dtype=np.float64)
         self.keyframe_weight = np.array([pose.weight for pose in spec.keyframes], dtype=np.float64)
         self.active = np.ones(len(spec.keyframes))
-        self._cache: tuple[bytes, dict] | None = None
+        self._cache: dict[bytes, dict] = {}
 
     # ---------------------------------------------------------------- rollouts
     def outputs(self, z) -> dict[str, np.ndarray]:
-        """The rollout's outputs at ``z`` (the last one is cached)."""
+        """The rollout's outputs at ``z`` (the last few are cached)."""
         z = np.asarray(z, dtype=np.float64)
         key = z.tobytes()
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
-        inputs = {k: np.asarray(v) for k, v in self._inputs(z).items()}
-        result = self.problem.engine.forward(RolloutInputs(**self.constants, **inputs))
-        outputs = {k: np.asarray(getattr(result, k)) for k in ("point_pos", "body_pos", "joint_q", "bar_reaction",
-                                                                "bar_feedback")}
-        self._cache = (key, outputs)
+        if key in self._cache:
+            return self._cache[key]
+        outputs = self._rollout(z)
+        if len(self._cache) >= 4:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[key] = outputs
         return outputs
+
+    def _rollout(self, z: np.ndarray) -> dict[str, np.ndarray]:
+        return self.problem.forward(self._y(z))
 
     def errors(self, outputs) -> np.ndarray:
         """Unweighted keyframe errors, one per entry [m] or [rad]."""
@@ -149,7 +149,7 @@ class KeyframeResiduals:
 
     def residuals(self, z) -> np.ndarray:
         """Weighted keyframe residuals of the active keyframes, then the smoothness residuals."""
-        return np.concatenate([self.row_weights() * self.errors(self.outputs(z)), np.asarray(self._smooth(z))])
+        return np.concatenate([self.row_weights() * self.errors(self.outputs(z)), np.asarray(self._smooth_and_jac(z)[0])])
 
     def jacobian(self, z, r) -> np.ndarray:
         """Forward differences of the keyframe rows (``n`` rollouts); exact smoothness rows."""
@@ -161,9 +161,8 @@ class KeyframeResiduals:
         for j in range(len(z)):
             trial = z.copy()
             trial[j] += self.fd_step
-            jac[:count, j] = weights * (self.errors(self.outputs(trial)) - base) / self.fd_step
-        jac[count:] = np.asarray(self._smooth_jac(z))
-        self.outputs(z)  # leave the cache at z
+            jac[:count, j] = weights * (self.errors(self._rollout(trial)) - base) / self.fd_step
+        jac[count:] = np.asarray(self._smooth_and_jac(z)[1])
         return jac
 
     def error_jacobian(self, z) -> np.ndarray:
@@ -254,8 +253,8 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     def record(stage: str):
         def on_step(entry):
             counts = problem.counter() if hasattr(problem, "counter") else {}
-            history.append({**entry, "stage": stage, "loss": entry["cost"], "grad_norm": entry["grad_inf"],
-                            "terms": {}, **counts})
+            history.append({**entry, "step": len(history), "stage": stage, "loss": entry["cost"],
+                            "grad_norm": entry["grad_inf"], "terms": {}, **counts})
             say(f"{len(history):5d} {stage:>18s} cost {entry['cost']:11.4e} |J^T r| {entry['grad_inf']:10.3e} "
                 f"lambda {entry['lambda']:9.2e} {entry['elapsed']:7.1f}s")
         return on_step
@@ -276,6 +275,11 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         return result
 
     ones = np.ones(count)
+    res.active = ones
+    r0 = res.residuals(z)
+    history.append({"step": 0, "stage": "start", "cost": 0.5 * float(r0 @ r0), "loss": 0.5 * float(r0 @ r0),
+                    "grad_norm": float("nan"), "terms": {}, "elapsed": 0.0,
+                    **(problem.counter() if hasattr(problem, "counter") else {})})
     say(f"{'step':>5s} {'stage':>18s} (Levenberg-Marquardt, forward-difference Jacobian: "
         f"{res.bounds.size + 1} rollouts a step)")
     result = None
@@ -341,7 +345,8 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                              f"; the solve stopped before reaching it ({final_status})")
                 reasons.append(line)
         verdicts.append(KeyframeVerdict(index=k, t=pose.t, status=status, errors=errors[k], best=best[k],
-                                        reasons=reasons))
+                                        reasons=reasons,
+                                        units={n: "deg" if res._is_joint(n) else "m" for n in errors[k]}))
         if not ok and jac is None:
             jac = res.error_jacobian(z)
     saturated = res.bounds.saturation(z)
@@ -362,13 +367,13 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     elif unreachable:
         status = "unreachable"
     elif over:
-        status = "force_limit"
+        status = "limit_exceeded"
     else:
         status = "reached"
     if over:
         messages.append("device force above the limit: " + ", ".join(f"{n} {p:.3g} N > {limit:g} N"
                                                                        for n, p in over.items()))
-    y = {k: np.asarray(v) for k, v in res.bounds.y(z).items()}
+    y = {k: np.asarray(v) for k, v in res._y(z).items()}
     return KeyframeSolve(y=y, z=z, verdicts=verdicts, status=status, exit_code=EXIT_CODES[status], history=history,
                          lm_status=lm_status, messages=messages, peak_force=peak,
                          seconds=time.perf_counter() - started)

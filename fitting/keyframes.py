@@ -24,14 +24,15 @@ from dmarionette.scene.scene import Scene, load_scene, scene_from_table
 from dmarionette.scene.fields import (SceneError, check_keys, read_choice, read_float, read_int, read_str, read_table,
                                       read_toml_file, read_vec3)
 
-__all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "Weights", "keyframes_from_table",
-           "load_keyframes",
-           "BAR_DOFS", "DEVICES"]
+__all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "METHODS", "Weights", "auto_knots",
+           "keyframes_from_table", "load_keyframes", "BAR_DOFS", "DEVICES"]
 
 BAR_DOFS = ("x", "y", "z", "rx", "ry", "rz")
 """A bar's six degrees of freedom: centre position [m] and XYZ Euler angles [deg]."""
 
 DEVICES = ("omni", "falcon", "none")
+#: ``[solver] method`` choices; the first is the default.
+METHODS = ("lm_fd", "bfgs", "lm", "gauss_newton")
 """Device specs the workspace and force terms can use (``none``: no such terms)."""
 
 
@@ -120,9 +121,15 @@ class AuthorSpec:
         force_scale: device force = ``force_scale`` x the strings' force on the bar (as ``live``).
         feedback: ``"reaction"`` (the strings' pull, what ``live`` sends) or ``"eq4"``.
         max_force: the device's force limit [N] (from the spec unless overridden).
-        max_steps: solver iterations at most; rtol, atol: its convergence tolerances.
-        method: ``"bfgs"`` (scalar loss, reverse-mode gradient) or ``"lm"``/``"gauss_newton"``
-            (residuals, reverse-mode Jacobian).
+        max_steps: solver iterations at most; rtol, atol: optimistix's convergence tolerances.
+        method: ``"lm_fd"`` (Levenberg-Marquardt on the keyframe residuals, forward-difference
+            Jacobian, hard device limits: :mod:`fitting.author_solve`), ``"bfgs"`` (scalar
+            loss, reverse-mode gradient) or ``"lm"``/``"gauss_newton"`` (optimistix on the
+            residuals, reverse-mode Jacobian).
+        position_tolerance: [m], angle_tolerance: [deg]: a keyframe is reached when every
+            target is within them.
+        max_seconds: the solve's wall-time budget [s], or None.
+        continuation: ``lm_fd`` switches keyframes on in time order.
     """
 
     source: str
@@ -141,6 +148,10 @@ class AuthorSpec:
     rtol: float
     atol: float
     method: str
+    position_tolerance: float = 1e-3
+    angle_tolerance: float = 0.5
+    max_seconds: float | None = None
+    continuation: bool = False
 
 
 _TOP_KEYS = ["author", "bars", "weights", "solver", "keyframes"]
@@ -181,7 +192,9 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     force_scale = read_float(head, "force_scale", where, 0.3, minimum=0.0)
     max_force = read_float(head, "max_force", where, positive=True) if "max_force" in head else None
 
-    bars = _read_bars(read_table(table, "bars", f"{source}: top level"), f"{source}: [bars]", scene, duration)
+    keyframes = _read_keyframes(table, source, scene, duration)
+    bars = _read_bars(read_table(table, "bars", f"{source}: top level"), f"{source}: [bars]", scene, duration,
+                      [k.t for k in keyframes])
     weights_table = read_table(table, "weights", f"{source}: top level", {})
     where = f"{source}: [weights]"
     check_keys(weights_table, [f.name for f in dataclasses.fields(Weights)], where)
@@ -189,16 +202,23 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
                          for f in dataclasses.fields(Weights)})
     solver = read_table(table, "solver", f"{source}: top level", {})
     where = f"{source}: [solver]"
-    check_keys(solver, ["method", "max_steps", "rtol", "atol"], where)
-    method = read_choice(solver, "method", where, ["bfgs", "lm", "gauss_newton"], "bfgs")
+    check_keys(solver, ["method", "max_steps", "rtol", "atol", "position_tolerance", "angle_tolerance",
+                        "max_seconds", "continuation"], where)
+    method = read_choice(solver, "method", where, list(METHODS), "lm_fd")
     max_steps = read_int(solver, "max_steps", where, 60, minimum=1, maximum=100_000)
     rtol = read_float(solver, "rtol", where, 1e-6, positive=True)
     atol = read_float(solver, "atol", where, 1e-8, positive=True)
-    keyframes = _read_keyframes(table, source, scene, duration)
+    position_tolerance = read_float(solver, "position_tolerance", where, 1e-3, positive=True, maximum=1.0)
+    angle_tolerance = read_float(solver, "angle_tolerance", where, 0.5, positive=True, maximum=180.0)
+    max_seconds = read_float(solver, "max_seconds", where, positive=True) if "max_seconds" in solver else None
+    continuation = solver.get("continuation", False)
+    if not isinstance(continuation, bool):
+        raise KeyframeError(where, "continuation", continuation, "true or false")
     return AuthorSpec(source=source, scene=scene, scene_table=scene_table, duration=duration, bars=bars,
                       keyframes=keyframes, weights=weights, device=device, workspace_scale=workspace_scale,
                       force_scale=force_scale, feedback=feedback, max_force=max_force, max_steps=max_steps,
-                      rtol=rtol, atol=atol, method=method)
+                      rtol=rtol, atol=atol, method=method, position_tolerance=position_tolerance,
+                      angle_tolerance=angle_tolerance, max_seconds=max_seconds, continuation=continuation)
 
 
 def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scene, dict[str, Any]]:
@@ -223,7 +243,21 @@ def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scen
     return scene_from_table(scene_table, base.source), scene_table
 
 
-def _read_bars(table: Mapping[str, Any], where: str, scene: Scene, duration: float) -> tuple[BarFreedom, ...]:
+def auto_knots(keyframe_times: list[float], duration: float, step: float) -> list[float]:
+    """Knot times placed from the keyframes: 0, every keyframe time and the end, leaving out a
+    time less than two puppet steps ``step`` [s] after the previous knot (the end is kept and
+    the knot before it dropped instead)."""
+    knots = [0.0]
+    for t in list(keyframe_times) + [duration]:
+        if t - knots[-1] >= 2.0 * step:
+            knots.append(float(t))
+        elif t == duration and len(knots) > 1:
+            knots[-1] = float(duration)
+    return knots if len(knots) >= 2 else [0.0, float(duration)]
+
+
+def _read_bars(table: Mapping[str, Any], where: str, scene: Scene, duration: float,
+               keyframe_times: list[float]) -> tuple[BarFreedom, ...]:
     names = [b.name for b in scene.bars]
     if not table:
         raise KeyframeError(where, "bars", {}, f"at least one [bars.NAME] table, NAME one of {names}")
@@ -235,11 +269,14 @@ def _read_bars(table: Mapping[str, Any], where: str, scene: Scene, duration: flo
         if not isinstance(entry, Mapping):
             raise KeyframeError(where, name, entry, "a table with knots and free")
         check_keys(entry, ["knots", "free"], w)
-        knots = entry.get("knots")
+        knots = entry.get("knots", "auto")
+        if knots == "auto":
+            knots = auto_knots(keyframe_times, duration, puppet_step(scene))
         ok = isinstance(knots, list) and len(knots) >= 2 and all(
             isinstance(k, (int, float)) and not isinstance(k, bool) for k in knots)
         if not ok:
-            raise KeyframeError(w, "knots", knots, "a list of at least two knot times [s], e.g. [0.0, 0.5, 1.0]")
+            raise KeyframeError(w, "knots", knots, "a list of at least two knot times [s], e.g. [0.0, 0.5, 1.0], "
+                                                  "or \"auto\" (the default: 0, the keyframe times and the end)")
         knots = [float(k) for k in knots]
         if not all(math.isfinite(k) for k in knots):
             raise KeyframeError(w, "knots", knots, "finite knot times (no NaN or infinity)")

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .bar_spline import BarParameterisation, HermiteSpans, hermite_evaluate
+from .bar_spline import BarParameterisation, HermiteSpans
 
 jax.config.update("jax_enable_x64", True)
 
@@ -55,7 +55,14 @@ def overshoot_factor(knot_times, times) -> float:
     knots = np.asarray(knot_times, dtype=np.float64)
     if len(knots) < 2:
         return 1.0
-    weights = np.asarray(hermite_evaluate(HermiteSpans.make(knots, times), jnp.eye(len(knots)))[0])
+    spans = HermiteSpans.make(knots, times)
+    values = np.eye(len(knots))  # the spline of each knot's unit value: its weight w_j(t)
+    tangents = np.zeros_like(values)  # Catmull-Rom inside, zero at the ends (bar_spline._tangents)
+    if len(knots) > 2:
+        tangents[1:-1] = (values[2:] - values[:-2]) / (knots[2:] - knots[:-2])[:, None]
+    i, u, span = spans.index, spans.u[:, None], spans.span[:, None]
+    weights = ((2 * u**3 - 3 * u**2 + 1) * values[i] + (u**3 - 2 * u**2 + u) * span * tangents[i]
+               + (-2 * u**3 + 3 * u**2) * values[i + 1] + (u**3 - u**2) * span * tangents[i + 1])
     return float(max(1.0, np.abs(weights[:, 1:]).sum(axis=1).max()))
 
 

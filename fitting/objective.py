@@ -124,8 +124,11 @@ class AuthoringObjective:
 
     def residuals(self, y, args=None) -> dict[str, jnp.ndarray]:
         """All weighted residuals, by term (``keyframes``, ``smoothness``, ``workspace``, ``force``)."""
+        return self.residuals_of(y, self.outputs(y))
+
+    def residuals_of(self, y, outputs: dict) -> dict[str, jnp.ndarray]:
+        """:meth:`residuals` from the rollout's ``outputs`` at ``y`` (no rollout)."""
         w = self.spec.weights
-        outputs = self.outputs(y)
         key = self.keyframe_residuals(outputs)
         terms = {"keyframes": jnp.concatenate([w.point * key["point"].ravel(), w.point * key["body"].ravel(),
                                                w.joint * key["joint"]]),
@@ -155,6 +158,13 @@ class AuthoringObjective:
         terms = {k: 0.5 * jnp.sum(r**2) for k, r in self.residuals(y).items()}
         return sum(terms.values()), terms
 
+    def loss_terms_of(self, y, outputs: dict) -> tuple[float, dict[str, float]]:
+        """:meth:`loss_terms` from the rollout's ``outputs`` at ``y`` (jitted, NumPy out)."""
+        if not hasattr(self, "_terms_of"):
+            self._terms_of = jax.jit(lambda y, o: {k: 0.5 * jnp.sum(r**2) for k, r in self.residuals_of(y, o).items()})
+        terms = {k: float(v) for k, v in self._terms_of(y, {k: jnp.asarray(v) for k, v in outputs.items()}).items()}
+        return sum(terms.values()), terms
+
     def residual_vector(self, y, args=None):
         """Every weighted residual in one vector (what Gauss-Newton / LM fit)."""
         return jnp.concatenate([r.ravel() for r in self.residuals(y).values()])
@@ -164,7 +174,9 @@ class AuthoringObjective:
         """Per authored bar: the largest device force ``force_scale |F|`` [N] and the largest
         distance outside the workspace box [m] over the motion (NumPy)."""
         report = {}
-        paths = self.param.bar_paths(y)
+        if not hasattr(self, "_bar_paths"):
+            self._bar_paths = jax.jit(self.param.bar_paths)
+        paths = self._bar_paths(y)
         for a in self.param.authored:
             force = np.asarray(outputs[self.feedback_output])[:, a["index"]]
             entry = {"max_device_force_N": float(self.spec.force_scale * np.linalg.norm(force, axis=-1).max())}
