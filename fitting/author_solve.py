@@ -120,6 +120,7 @@ class KeyframeResiduals:
         self.entry_weight = np.array(weights, dtype=np.float64)
         self.keyframe_weight = np.array([pose.weight for pose in spec.keyframes], dtype=np.float64)
         self.active = np.ones(len(spec.keyframes))
+        self.entry_mask = np.ones(len(kf))  # 0: a target left out (unreachable by the pre-check)
         self._cache: dict[bytes, dict] = {}
 
     # ---------------------------------------------------------------- rollouts
@@ -145,7 +146,7 @@ class KeyframeResiduals:
                                np.asarray(key["joint"]).ravel()])
 
     def row_weights(self) -> np.ndarray:
-        return self.entry_weight * (self.keyframe_weight * self.active)[self.entry_keyframe]
+        return self.entry_weight * self.entry_mask * (self.keyframe_weight * self.active)[self.entry_keyframe]
 
     def residuals(self, z) -> np.ndarray:
         """Weighted keyframe residuals of the active keyframes, then the smoothness residuals."""
@@ -205,8 +206,18 @@ class KeyframeResiduals:
                 i += 3
         return out
 
-    def reached(self, errors: dict, position_tolerance: float, angle_tolerance: float) -> bool:
-        return all(v <= (angle_tolerance if self._is_joint(n) else position_tolerance) for n, v in errors.items())
+    def leave_out(self, keyframe: int, label: str) -> None:
+        """Leaves target ``label`` (a :meth:`target_errors` name) of ``keyframe`` out of the fit."""
+        name, kind = (label[:-len(" (body)")], "body") if label.endswith(" (body)") else (label, None)
+        for i in range(len(self.entry_name)):
+            if self.entry_keyframe[i] == keyframe and self.entry_name[i] == name and (
+                    self.entry_kind[i] == kind if kind else self.entry_kind[i] != "body"):
+                self.entry_mask[i] = 0.0
+
+    def reached(self, errors: dict, position_tolerance: float, angle_tolerance: float,
+                skip: frozenset = frozenset()) -> bool:
+        return all(v <= (angle_tolerance if self._is_joint(n) else position_tolerance)
+                   for n, v in errors.items() if n not in skip)
 
     def _is_joint(self, label: str) -> bool:
         return any(self.entry_name[i] == label and self.entry_kind[i] == "joint" for i in range(len(self.entry_name)))
@@ -236,6 +247,17 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     start_peak = res.peak_force(z)
     allowed = {name: max(limit, peak) for name, peak in start_peak.items()} if limit is not None else None
     messages = []
+    from .reachability import unreachable_targets
+
+    prechecked = unreachable_targets(problem)
+    skip = [set() for _ in range(count)]
+    for reach in prechecked:
+        res.leave_out(reach.keyframe, reach.name)
+        skip[reach.keyframe].add(reach.name)
+    skip = [frozenset(v) for v in skip]
+    if prechecked:
+        say("unreachable targets, left out of the fit: " + "; ".join(
+            f"keyframe {r.keyframe + 1} {r.sentence()}" for r in prechecked))
     if allowed is not None:
         for name, peak in start_peak.items():
             if peak > limit:
@@ -265,7 +287,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
 
         def done(zt, rt):
             errors = res.target_errors(zt)
-            return all(res.reached(errors[k], position_tolerance / 2, angle_tolerance / 2) for k in on)
+            return all(res.reached(errors[k], position_tolerance / 2, angle_tolerance / 2, skip[k]) for k in on)
 
         result = levenberg_marquardt(res.residuals, res.jacobian, z_start, max_steps=max(steps_left[0], 0),
                                      deadline=deadline, done=done, feasible=feasible, max_step=MAX_STEP,
@@ -297,7 +319,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
 
     # ---- the verdict
     errors = res.target_errors(z)
-    missed = [k for k in range(count) if not res.reached(errors[k], position_tolerance, angle_tolerance)]
+    missed = [k for k in range(count) if not res.reached(errors[k], position_tolerance, angle_tolerance, skip[k])]
     best = [dict() for _ in range(count)]
     unreachable: list[int] = []
     conflict: list[int] = []
@@ -310,9 +332,9 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
             alone = run(f"keyframe {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all)
             best[k] = res.target_errors(alone.x)[k]
             if alone.status in ("stationary", "no_progress") and not res.reached(best[k], position_tolerance,
-                                                                                 angle_tolerance):
+                                                                                 angle_tolerance, skip[k]):
                 unreachable.append(k)
-            elif res.reached(best[k], position_tolerance, angle_tolerance):
+            elif res.reached(best[k], position_tolerance, angle_tolerance, skip[k]):
                 conflict.append(k)
         if unreachable and steps_left[0] > 0:
             relaxed = np.where(np.isin(np.arange(count), unreachable), 0.0, 1.0)
@@ -325,11 +347,20 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     verdicts = []
     jac = None
     for k, pose in enumerate(spec.keyframes):
-        ok = res.reached(errors[k], position_tolerance, angle_tolerance)
+        ok = res.reached(errors[k], position_tolerance, angle_tolerance, skip[k])
         status = "reached" if ok else ("unreachable" if k in unreachable else "not_converged")
-        reasons = []
+        if ok and skip[k]:
+            status = "unreachable"
+            prechecked_k = [r for r in prechecked if r.keyframe == k]
+        else:
+            prechecked_k = []
+        reasons = [r.sentence() + "; left out of the fit" for r in prechecked_k]
         if not ok:
             for name, value in errors[k].items():
+                if name in skip[k]:
+                    reasons.append([r for r in prechecked if r.keyframe == k and r.name == name][0].sentence()
+                                   + "; left out of the fit")
+                    continue
                 joint = res._is_joint(name)
                 tol = angle_tolerance if joint else position_tolerance
                 if value <= tol:
@@ -364,7 +395,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     over = {n: p for n, p in peak.items() if limit is not None and p > limit}
     if any(v.status == "not_converged" for v in verdicts):
         status = "not_converged"
-    elif unreachable:
+    elif unreachable or prechecked:
         status = "unreachable"
     elif over:
         status = "limit_exceeded"
