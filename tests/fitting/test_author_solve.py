@@ -1,0 +1,306 @@
+"""The authoring solve (fitting/author_solve.py, least_squares.py, knot_bounds.py, reachability.py):
+Levenberg-Marquardt on analytic problems, the bounded knots, the reachability bound, and
+``dmarionette author`` on the README's example (reached, exit 0), with an unreachable
+target added (exit 4, named, the others as accurate), and with a binding force limit (held
+exactly in the replay).
+"""
+
+import json
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+pytest.importorskip("optimistix")
+tomli_w = pytest.importorskip("tomli_w")
+
+from fitting.least_squares import levenberg_marquardt  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "keyframes_three_poses.toml"
+POSITION_TOLERANCE = 1e-3  # [m] the issue's accuracy: every keyframe within 1 mm ...
+ANGLE_TOLERANCE = 0.5      # [deg] ... and 0.5 deg
+
+
+# ------------------------------------------------------------------ Levenberg-Marquardt
+
+def _rosenbrock(x):
+    return np.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+
+
+def _rosenbrock_jacobian(x, r):
+    return np.array([[-20.0 * x[0], 10.0], [-1.0, 0.0]])
+
+
+def test_lm_solves_rosenbrock_from_far():
+    result = levenberg_marquardt(_rosenbrock, _rosenbrock_jacobian, np.array([-1.2, 1.0]), max_steps=100)
+    assert result.status in ("stationary", "no_progress"), result.status
+    assert np.abs(result.x - 1.0).max() <= 1e-8, result.x
+    costs = [h["cost"] for h in result.history]
+    assert all(b <= a for a, b in zip(costs, costs[1:]))  # only descent steps are taken
+
+
+def test_lm_stops_when_done_and_reports_max_steps():
+    done = levenberg_marquardt(_rosenbrock, _rosenbrock_jacobian, np.array([-1.2, 1.0]), max_steps=100,
+                               done=lambda x, r: float(r @ r) < 1e-2)
+    assert done.status == "done" and float(done.residuals @ done.residuals) < 1e-2
+    short = levenberg_marquardt(_rosenbrock, _rosenbrock_jacobian, np.array([-1.2, 1.0]), max_steps=2)
+    assert short.status == "max_steps" and short.steps == 2
+
+
+def test_lm_never_accepts_an_infeasible_point():
+    """The minimum (1, 1) lies outside x0 <= 0.5: every accepted point stays feasible and the
+    solver stops on the boundary side, not past it."""
+    seen = []
+
+    def feasible(x):
+        seen.append(x.copy())
+        return x[0] <= 0.5
+
+    result = levenberg_marquardt(_rosenbrock, _rosenbrock_jacobian, np.array([-1.2, 1.0]), max_steps=200,
+                                 feasible=feasible, max_step=0.3)
+    assert result.x[0] <= 0.5
+    assert result.x[0] > 0.3  # it did move towards the limit
+    assert any(s[0] > 0.5 for s in seen)  # and infeasible trials were rejected on the way
+
+
+def test_lm_trust_region_bounds_every_trial_step():
+    steps = []
+    x0 = np.array([-1.2, 1.0])
+
+    def residuals(x):
+        steps.append(x.copy())
+        return _rosenbrock(x)
+
+    levenberg_marquardt(residuals, _rosenbrock_jacobian, x0, max_steps=30, max_step=0.1)
+    # every trial is within 0.1 of an accepted point (the previous accepted one)
+    assert all(min(np.abs(b - a).max() for a in steps[:i]) <= 0.1 + 1e-12 for i, b in enumerate(steps) if i)
+
+
+# ------------------------------------------------------------------ bounded knots, reachability
+
+@pytest.fixture(scope="module")
+def problem():
+    from fitting import build_problem, load_keyframes
+
+    return build_problem(load_keyframes(EXAMPLE))
+
+
+def test_overshoot_factor_is_the_spline_weight_sum():
+    """The NumPy factor equals the sum of |weights| of the JAX spline's basis, sampled densely."""
+    import jax.numpy as jnp
+
+    from fitting.bar_spline import HermiteSpans, hermite_evaluate
+    from fitting.knot_bounds import overshoot_factor
+
+    for knots in ([0.0, 0.5, 1.0, 1.5], [0.0, 0.2, 1.0, 1.5], [0.0, 0.75, 1.5], [0.0, 1.0]):
+        times = np.linspace(0.0, knots[-1] + 0.2, 2001)
+        weights = np.asarray(hermite_evaluate(HermiteSpans.make(np.array(knots), times), jnp.eye(len(knots)))[0])
+        assert overshoot_factor(knots, times) == pytest.approx(max(1.0, np.abs(weights[:, 1:]).sum(1).max()),
+                                                               rel=1e-12)
+    assert overshoot_factor([0.0, 0.5, 1.0, 1.5], np.linspace(0, 1.5, 3001)) > 1.19  # Catmull-Rom overshoots
+
+
+def test_bounded_knots_keep_every_path_inside_the_workspace(problem):
+    """Any z, however large, gives bar paths inside the device box at every string step."""
+    from fitting.knot_bounds import BoundedKnots
+
+    bounds = BoundedKnots(problem.param, problem.objective.boxes)
+    rng = np.random.default_rng(7)
+    worst = -np.inf
+    for scale in (0.3, 3.0, 300.0):
+        for _ in range(5):
+            z = rng.normal(scale=scale, size=bounds.size)
+            paths = problem.param.bar_paths(bounds.y(z))
+            for name, (path, _) in paths.items():
+                lo, hi = problem.objective.boxes[name]
+                path = np.asarray(path)
+                worst = max(worst, float(np.max(path - hi)), float(np.max(lo - path)))
+    assert worst <= 0.0, worst
+    assert worst > -0.02  # and the paths do reach out towards the box (2 cm from its faces)
+    y = {k: np.asarray(v) for k, v in bounds.y(bounds.z0()).items()}
+    assert all(np.abs(v).max() <= 1e-12 for v in y.values())  # z0 is the scene's own motion
+
+
+def test_reachability_bound_is_true_and_flags_far_targets(problem):
+    """The site graph's path lengths bound real distances in the rolled-out motion, and a
+    target 2 m out is flagged while the example's own targets are not."""
+    import dataclasses
+
+    from fitting.reachability import site_distances, unreachable_targets
+
+    puppet = problem.spec.scene.puppet
+    sites, dist = site_distances(puppet)
+    names = [b.name for b in puppet.bodies]
+    outputs = problem.forward(problem.param.initial())
+    base = len(puppet.bodies) + 2 * len(puppet.joints)
+    points = problem.model.puppet.point_names
+    for i, p in enumerate(puppet.points):
+        for j, q in enumerate(puppet.points):
+            actual = np.linalg.norm(outputs["point_pos"][:, points.index(p.name)]
+                                    - outputs["point_pos"][:, points.index(q.name)], axis=-1).max()
+            assert actual <= dist[base + i, base + j] + 1e-9, (p.name, q.name)
+        torso = names.index("torso")
+        actual = np.linalg.norm(outputs["point_pos"][:, points.index(p.name)] - outputs["body_pos"][:, torso],
+                                axis=-1).max()
+        assert actual <= dist[base + i, torso] + 1e-9
+    assert unreachable_targets(problem) == []
+    spec = problem.spec
+    far = dataclasses.replace(spec.keyframes[1], points={**spec.keyframes[1].points, "hand_right": (2.0, 0.4, 0.0)})
+    problem.spec = dataclasses.replace(spec, keyframes=(spec.keyframes[0], far, spec.keyframes[2]))
+    try:
+        flagged = unreachable_targets(problem)
+    finally:
+        problem.spec = spec
+    assert [(r.keyframe, r.name) for r in flagged] == [(1, "hand_right")]
+    assert flagged[0].distance > flagged[0].reach and "hand_right" in flagged[0].sentence()
+
+
+def test_string_stretch_is_inside_the_bound(problem):
+    """The bound assumes strings stretch less than STRETCH: measured on the example's start."""
+    from fitting.reachability import STRETCH
+
+    outputs = problem.forward(problem.param.initial())
+    inputs = problem.param.rollout_inputs(problem.param.initial())
+    tops = np.asarray(inputs["top_q"])[problem.model.substeps - 1::problem.model.substeps]
+    points = problem.model.puppet.point_names
+    for s, spec in enumerate(problem.model.strings.specs):
+        p = problem.model.string_point[s]
+        if p < 0:
+            continue
+        distance = np.linalg.norm(outputs["point_pos"][1:, p] - tops[:, s], axis=-1).max()
+        assert distance <= spec.length * (1.0 + STRETCH / 2), (points[p], distance, spec.length)
+
+
+# ------------------------------------------------------------------ the command
+
+def _author(path, out, *extra):
+    from dmarionette import cli
+
+    code = cli.main(["author", str(path), "--out", str(out), "--no-animation", "--no-export", "--quiet", *extra])
+    return code, json.loads((Path(out) / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def example(tmp_path_factory):
+    out = tmp_path_factory.mktemp("example")
+    code, summary = _author(EXAMPLE, out)
+    return code, summary, out
+
+
+def test_readme_example_reaches_every_keyframe(example):
+    code, summary, _ = example
+    assert code == 0 and summary["status"] == "reached" and summary["converged"], summary["verdicts"]
+    for entry in summary["keyframes_after"]:
+        assert entry["max_position_error_m"] <= POSITION_TOLERANCE, entry
+        assert entry["max_joint_error_deg"] <= ANGLE_TOLERANCE, entry
+    before = max(e["max_position_error_m"] for e in summary["keyframes_before"])
+    assert before > 20 * POSITION_TOLERANCE  # from far: the start is centimetres away
+    assert summary["replay_gap"]["body_pos_max_abs_m"] <= 1e-9
+
+
+def test_example_targets_are_the_reference_motions():
+    """The file's targets are what its reference motion produces now (re-record if the dynamics change)."""
+    import jax.numpy as jnp
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    try:
+        from example_author_keyframes import REFERENCE
+    finally:
+        sys.path.pop(0)
+    from fitting import build_problem, load_keyframes
+
+    problem = build_problem(load_keyframes(EXAMPLE))
+    outputs = problem.forward({k: jnp.asarray(v) for k, v in REFERENCE.items()})
+    key = problem.objective.keyframe_residuals(outputs)
+    assert np.abs(np.asarray(key["point"])).max() <= 1e-6 and np.abs(np.asarray(key["body"])).max() <= 1e-6
+    assert np.degrees(np.abs(np.asarray(key["joint"])).max()) <= 1e-5
+
+
+def _replay_limits(out: Path, spec) -> tuple[float, float]:
+    """Largest excursion outside the workspace [m] (every string step, the scene's own spline)
+    and largest device force [N] of the authored bars in the simulator's replay."""
+    from dmarionette.scene.scene import load_scene
+    from fitting.objective import device_limits
+
+    scene = load_scene(out / "authored_scene.toml")
+    replay = np.load(out / "trajectory.npz")
+    limits = device_limits(spec)
+    names = [b.name for b in scene.bars]
+    outside, force = -np.inf, 0.0
+    for freedom in spec.bars:
+        bar = scene.bars[names.index(freedom.name)]
+        start = bar.trajectory.pose(np.array([0.0]))[0][0]
+        lo = start + spec.workspace_scale * limits["workspace_min"]
+        hi = start + spec.workspace_scale * limits["workspace_max"]
+        path = bar.trajectory.pose(replay["step_time"])[0]
+        outside = max(outside, float(np.max(path - hi)), float(np.max(lo - path)))
+        force = max(force, spec.force_scale * float(np.linalg.norm(replay["bar_reaction"][:, names.index(freedom.name)],
+                                                                   axis=-1).max()))
+    return outside, force
+
+
+def test_example_replay_keeps_the_device_limits(example):
+    from fitting import load_keyframes
+
+    _, summary, out = example
+    spec = load_keyframes(EXAMPLE)
+    outside, force = _replay_limits(out, spec)
+    assert outside <= 0.0 and force <= 3.3, (outside, force)
+
+
+def test_unreachable_target_is_named_and_does_not_degrade_the_others(example, tmp_path):
+    _, reference, _ = example
+    table = tomllib.loads(EXAMPLE.read_text())
+    table["author"]["scene"] = "hanging"
+    table["keyframes"][1]["points"]["hand_right"] = [2.0, 0.4, 0.0]  # 2 m out: no string is that long
+    path = tmp_path / "far.toml"
+    path.write_text(tomli_w.dumps(table))
+    code, summary = _author(path, tmp_path / "out")
+    assert code == 4 and summary["status"] == "unreachable" and summary["exit_code"] == 4
+    verdicts = summary["verdicts"]
+    assert [v["status"] for v in verdicts] == ["reached", "unreachable", "reached"]
+    assert any("hand_right" in reason and "unreachable" in reason for reason in verdicts[1]["reasons"])
+    for k, v in enumerate(verdicts):
+        for name, error in v["errors"].items():
+            if name == "hand_right" and k == 1:
+                continue
+            tolerance = ANGLE_TOLERANCE if v["units"][name] == "deg" else POSITION_TOLERANCE
+            assert error <= tolerance, (k, name, error)
+            # as accurate as without the far target (within a tenth of the tolerance)
+            assert abs(error - reference["verdicts"][k]["errors"][name]) <= 0.1 * tolerance, (k, name)
+
+
+def test_binding_force_limit_holds_exactly_in_the_replay(example, tmp_path):
+    """A peak force between the start's and the free solution's: the limit binds, and the
+    replay never sends the device more, whatever the verdict."""
+    from fitting import load_keyframes
+
+    _, reference, _ = example
+    start = max(v["max_device_force_N"] for v in reference["limits_before"].values())
+    free = max(v["max_device_force_N"] for v in reference["limits_after"].values())
+    assert free > start + 0.02, (start, free)  # the unconstrained answer pulls harder than the start
+    table = tomllib.loads(EXAMPLE.read_text())
+    table["author"]["scene"] = "hanging"
+    table["author"]["max_force"] = limit = round(start + 0.4 * (free - start), 4)
+    path = tmp_path / "limited.toml"
+    path.write_text(tomli_w.dumps(table))
+    code, summary = _author(path, tmp_path / "out")
+    outside, force = _replay_limits(tmp_path / "out", load_keyframes(path))
+    assert force <= limit and outside <= 0.0, (force, limit, outside)
+    assert code in (0, 3, 4) and code == summary["exit_code"]
+    if code != 0:
+        assert any(v["reasons"] for v in summary["verdicts"])
+
+
+@pytest.mark.parametrize("flag", ["--max-seconds=0", "--max-seconds=nan", "--max-seconds=-1"])
+def test_bad_max_seconds_refused(flag, tmp_path, capsys):
+    from dmarionette import cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["author", str(EXAMPLE), "--out", str(tmp_path / "o"), flag])
+    assert exit_.value.code == 2
+    assert "--max-seconds" in capsys.readouterr().err
