@@ -264,12 +264,12 @@ def _export(trajectory, scene, out: Path) -> dict:
 
 
 def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, method: str | None = None,
-           max_seconds: float | None = None, continuation: bool | None = None,
+           max_seconds: float | None = None, continuation: bool | None = None, jacobian: str | None = None,
            progress: bool = True, animation: bool = True, exports: bool = True, optimization_level: int = 2,
            checkpoint_steps: int | None = None, fps: float = 15.0) -> dict:
     """Solves ``spec`` and writes its outputs to ``out``; returns the summary (also ``summary.json``).
 
-    ``method``, ``max_steps``, ``max_seconds`` and ``continuation`` override the file's
+    ``method``, ``max_steps``, ``max_seconds``, ``continuation`` and ``jacobian`` override the file's
     ``[solver]``. The summary's ``status`` is ``"reached"``, ``"not_converged"``,
     ``"unreachable"`` or ``"limit_exceeded"`` and ``exit_code`` the command's exit code for it
     (:data:`fitting.author_solve.EXIT_CODES`); ``verdicts`` says, per keyframe, why.
@@ -295,7 +295,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
         outcome = solve_keyframes(problem, max_steps=max_steps, max_seconds=max_seconds,
                                   continuation=spec.continuation if continuation is None else continuation,
                                   position_tolerance=spec.position_tolerance, angle_tolerance=spec.angle_tolerance,
-                                  say=say)
+                                  say=say, secant=(jacobian or spec.jacobian) == "secant")
         y_final = {k: jnp.asarray(v) for k, v in outcome.y.items()}
         history, solve_seconds, solver_result = outcome.history, outcome.seconds, "; ".join(outcome.lm_status)
         verdicts = [dataclasses.asdict(v) for v in outcome.verdicts]

@@ -152,6 +152,10 @@ class KeyframeResiduals:
         """Weighted keyframe residuals of the active keyframes, then the smoothness residuals."""
         return np.concatenate([self.row_weights() * self.errors(self.outputs(z)), np.asarray(self._smooth_and_jac(z)[0])])
 
+    def smoothness_jacobian(self, z) -> np.ndarray:
+        """The smoothness rows of the Jacobian (exact, JAX forward mode)."""
+        return np.asarray(self._smooth_and_jac(np.asarray(z, dtype=np.float64))[1])
+
     def jacobian(self, z, r) -> np.ndarray:
         """Forward differences of the keyframe rows (``n`` rollouts); exact smoothness rows."""
         z = np.asarray(z, dtype=np.float64)
@@ -225,17 +229,21 @@ class KeyframeResiduals:
 
 def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None, continuation: bool = True,
                     position_tolerance: float = 1e-3, angle_tolerance: float = 0.5,
-                    say: Callable[[str], None] = lambda line: None, z0: np.ndarray | None = None) -> KeyframeSolve:
+                    say: Callable[[str], None] = lambda line: None, z0: np.ndarray | None = None,
+                    secant: bool = True) -> KeyframeSolve:
     """Levenberg-Marquardt on the keyframes of ``problem`` with hard device limits and a verdict.
 
     Args:
         problem: an :class:`fitting.author.AuthoringProblem`.
-        max_steps: Jacobians at most, over all stages.
+        max_steps: solver iterations (trial points) at most, over all stages.
         max_seconds: wall-time budget [s] of the solve (None: no limit).
         continuation: switch keyframes on in time order (else all at once).
         position_tolerance: [m], angle_tolerance: [deg]: a keyframe is reached within them.
         say: receives progress lines.
         z0: start (default: the scene's own bar motion).
+        secant: update the keyframe rows of the Jacobian by Broyden's secant formula between
+            forward-difference Jacobians (one rollout a step instead of ``n + 1``; see
+            :func:`fitting.least_squares.levenberg_marquardt`).
     """
     started = time.perf_counter()
     deadline = None if max_seconds is None else started + max_seconds
@@ -277,8 +285,8 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
             counts = problem.counter() if hasattr(problem, "counter") else {}
             history.append({**entry, "step": len(history), "stage": stage, "loss": entry["cost"],
                             "grad_norm": entry["grad_inf"], "terms": {}, **counts})
-            say(f"{len(history):5d} {stage:>18s} cost {entry['cost']:11.4e} |J^T r| {entry['grad_inf']:10.3e} "
-                f"lambda {entry['lambda']:9.2e} {entry['elapsed']:7.1f}s")
+            say(f"{len(history) - 1:5d} {stage:>18s} cost {entry['cost']:11.4e} |J^T r| {entry['grad_inf']:10.3e} "
+                f"lambda {entry['lambda']:9.2e} Jacobians {entry['jacobians']:3d} {entry['elapsed']:7.1f}s")
         return on_step
 
     def run(stage: str, active: np.ndarray, z_start: np.ndarray) -> LMResult:
@@ -291,7 +299,8 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
 
         result = levenberg_marquardt(res.residuals, res.jacobian, z_start, max_steps=max(steps_left[0], 0),
                                      deadline=deadline, done=done, feasible=feasible, max_step=MAX_STEP,
-                                     on_step=record(stage))
+                                     secant_rows=len(res.entry_keyframe) if secant else 0,
+                                     exact_rows=res.smoothness_jacobian, on_step=record(stage))
         steps_left[0] -= result.steps
         lm_status.append(f"{stage}: {result.status} after {result.steps} steps")
         return result
@@ -302,8 +311,8 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     history.append({"step": 0, "stage": "start", "cost": 0.5 * float(r0 @ r0), "loss": 0.5 * float(r0 @ r0),
                     "grad_norm": float("nan"), "terms": {}, "elapsed": 0.0,
                     **(problem.counter() if hasattr(problem, "counter") else {})})
-    say(f"{'step':>5s} {'stage':>18s} (Levenberg-Marquardt, forward-difference Jacobian: "
-        f"{res.bounds.size + 1} rollouts a step)")
+    say(f"{'step':>5s} {'stage':>18s} (Levenberg-Marquardt; a forward-difference Jacobian costs "
+        f"{res.bounds.size} rollouts{', updated by secant steps in between' if secant else ''})")
     result = None
     if continuation and count > 1:
         for k in range(1, count):

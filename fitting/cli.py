@@ -52,6 +52,10 @@ def add_author_command(commands) -> None:
                         help="wall-time budget of the solve: no solver step starts after it; a keyframe still "
                              "missed then is reported as not converged (default: the file's [solver] max_seconds, "
                              "else none)")
+    author.add_argument("--jacobian", choices=["secant", "fd"], default=None,
+                        help="lm_fd: between forward-difference Jacobians (n rollouts each), update the keyframe "
+                             "rows by Broyden's secant formula (secant: about one rollout a step) or recompute them "
+                             "every step (fd) (default: the file's [solver] jacobian, else secant)")
     author.add_argument("--continuation", action="store_true", default=None,
                         help="lm_fd: switch the keyframes on in time order (default: the file's [solver] "
                              "continuation, else all at once)")
@@ -82,7 +86,7 @@ def _run_author(args: argparse.Namespace) -> int:
     out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / args.keyframes.stem)
     enable_compilation_cache()
     summary = author(spec, out, max_steps=args.max_steps, method=args.method, max_seconds=args.max_seconds,
-                     continuation=args.continuation, progress=not args.quiet,
+                     continuation=args.continuation, jacobian=args.jacobian, progress=not args.quiet,
                      animation=not args.no_animation, exports=not args.no_export,
                      optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
                      fps=args.fps)

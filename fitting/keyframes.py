@@ -130,6 +130,8 @@ class AuthorSpec:
             target is within them.
         max_seconds: the solve's wall-time budget [s], or None.
         continuation: ``lm_fd`` switches keyframes on in time order.
+        jacobian: ``lm_fd``'s keyframe Jacobian between forward-difference ones: ``"secant"``
+            (Broyden updates) or ``"fd"`` (a forward-difference Jacobian every step).
     """
 
     source: str
@@ -152,6 +154,7 @@ class AuthorSpec:
     angle_tolerance: float = 0.5
     max_seconds: float | None = None
     continuation: bool = False
+    jacobian: str = "secant"
 
 
 _TOP_KEYS = ["author", "bars", "weights", "solver", "keyframes"]
@@ -203,7 +206,7 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     solver = read_table(table, "solver", f"{source}: top level", {})
     where = f"{source}: [solver]"
     check_keys(solver, ["method", "max_steps", "rtol", "atol", "position_tolerance", "angle_tolerance",
-                        "max_seconds", "continuation"], where)
+                        "max_seconds", "continuation", "jacobian"], where)
     method = read_choice(solver, "method", where, list(METHODS), "lm_fd")
     max_steps = read_int(solver, "max_steps", where, 60, minimum=1, maximum=100_000)
     rtol = read_float(solver, "rtol", where, 1e-6, positive=True)
@@ -214,11 +217,13 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     continuation = solver.get("continuation", False)
     if not isinstance(continuation, bool):
         raise KeyframeError(where, "continuation", continuation, "true or false")
+    jacobian = read_choice(solver, "jacobian", where, ["secant", "fd"], "secant")
     return AuthorSpec(source=source, scene=scene, scene_table=scene_table, duration=duration, bars=bars,
                       keyframes=keyframes, weights=weights, device=device, workspace_scale=workspace_scale,
                       force_scale=force_scale, feedback=feedback, max_force=max_force, max_steps=max_steps,
                       rtol=rtol, atol=atol, method=method, position_tolerance=position_tolerance,
-                      angle_tolerance=angle_tolerance, max_seconds=max_seconds, continuation=continuation)
+                      angle_tolerance=angle_tolerance, max_seconds=max_seconds, continuation=continuation,
+                      jacobian=jacobian)
 
 
 def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scene, dict[str, Any]]:

@@ -55,14 +55,16 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
                         done: Callable[[np.ndarray, np.ndarray], bool] | None = None,
                         feasible: Callable[[np.ndarray], bool] | None = None,
                         gtol: float = 1e-10, xtol: float = 1e-10, ftol: float = 1e-12,
-                        lam0: float = 1e-3, max_step: float | None = None, on_step: Callable[[dict], None] | None = None) -> LMResult:
+                        lam0: float = 1e-3, max_step: float | None = None,
+                        secant_rows: int = 0, exact_rows: Callable[[np.ndarray], np.ndarray] | None = None,
+                        on_step: Callable[[dict], None] | None = None) -> LMResult:
     """Minimises ``0.5 |r(x)|^2``.
 
     Args:
         residuals: ``x (n,) -> r (m,)``; may return non-finite values (the trial is rejected).
-        jacobian: ``(x, r(x)) -> J (m, n)``.
+        jacobian: ``(x, r(x)) -> J (m, n)`` (the expensive, exact one).
         x0: the start ``(n,)``.
-        max_steps: Jacobians at most.
+        max_steps: iterations (trial points) at most.
         deadline: ``time.perf_counter()`` value after which no new step starts.
         done: ``(x, r) -> bool``, checked at every accepted point (and the start).
         feasible: ``x -> bool``, called after ``residuals(x)`` on each trial point; an
@@ -70,6 +72,12 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
         gtol, xtol, ftol: stationarity, step and cost-change tolerances (see the module).
         lam0: initial damping (times ``D``).
         max_step: the largest ``|dx|_inf`` of a trial step (``lam`` grows until it fits), or None.
+        secant_rows: with ``k > 0``, the first ``k`` rows of ``J`` are not recomputed after each
+            step but updated from it (Broyden's rank-one secant update, as in the secant
+            version of L-M of Madsen, Nielsen & Tingleff, sec. 3.4), and the other rows come
+            from ``exact_rows(x)``; ``jacobian`` is called again only when two trials in a row
+            fail, or before the run would stop at a stationary point or for lack of progress.
+        exact_rows: ``x -> J[k:]`` (cheap), with ``secant_rows``.
         on_step: receives each iteration's history entry.
     """
     x = np.asarray(x0, dtype=np.float64).copy()
@@ -79,27 +87,32 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
     cost = 0.5 * float(r @ r)
     history = []
     start = time.perf_counter()
-    jac = np.zeros((len(r), len(x)))
     if done is not None and done(x, r):
-        return LMResult(x, r, cost, jac, "done", 0, history)
-    lam, nu = None, 2.0
+        return LMResult(x, r, cost, np.zeros((len(r), len(x))), "done", 0, history)
+    jac, fresh, jacobians = np.asarray(jacobian(x, r), dtype=np.float64), True, 1
+    lam, nu, failures = lam0, 2.0, 0
     status = "max_steps"
-    for step in range(1, max_steps + 1):
+
+    def refresh():
+        nonlocal jac, fresh, jacobians, failures
+        jac, fresh, failures = np.asarray(jacobian(x, r), dtype=np.float64), True, 0
+        jacobians += 1
+
+    step = 0
+    while step < max_steps:
         if deadline is not None and time.perf_counter() >= deadline:
             status = "max_seconds"
             break
-        jac = np.asarray(jacobian(x, r), dtype=np.float64)
         grad = jac.T @ r
         if np.max(np.abs(grad), initial=0.0) <= gtol * (1.0 + cost):
+            if not fresh:
+                refresh()
+                continue
             status = "stationary"
             break
         jtj = jac.T @ jac
         diag = np.maximum(np.diag(jtj), DIAGONAL_FLOOR * max(np.max(np.diag(jtj)), 1e-300))
-        if lam is None:
-            lam = lam0
-        accepted, tries = False, 0
-        while not accepted:
-            tries += 1
+        while True:
             try:
                 dx = np.linalg.solve(jtj + lam * np.diag(diag), -grad)
             except np.linalg.LinAlgError:
@@ -108,35 +121,54 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
             if max_step is not None and np.max(np.abs(dx), initial=0.0) > max_step:
                 lam, nu = lam * nu, nu * 2.0  # a trust region: more damping until the step fits
                 continue
-            trial = x + dx
-            r_trial = np.asarray(residuals(trial), dtype=np.float64)
-            ok = np.all(np.isfinite(r_trial)) and (feasible is None or feasible(trial))
-            cost_trial = 0.5 * float(r_trial @ r_trial) if ok else np.inf
-            predicted = -(grad @ dx) - 0.5 * dx @ jtj @ dx
-            rho = (cost - cost_trial) / predicted if predicted > 0 else -1.0
-            if ok and cost_trial < cost and rho > 0:
-                accepted = True
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
-                small_x = np.linalg.norm(dx) <= xtol * (np.linalg.norm(x) + xtol)
-                small_f = cost - cost_trial <= ftol * cost
-                x, r, cost = trial, r_trial, cost_trial
-            else:
-                lam, nu = lam * nu, nu * 2.0
-                if lam > 1e16 or (deadline is not None and time.perf_counter() >= deadline):
-                    break
+            break
+        step += 1
+        trial = x + dx
+        r_trial = np.asarray(residuals(trial), dtype=np.float64)
+        finite = bool(np.all(np.isfinite(r_trial)))
+        ok = finite and (feasible is None or feasible(trial))
+        cost_trial = 0.5 * float(r_trial @ r_trial) if ok else np.inf
+        predicted = -(grad @ dx) - 0.5 * dx @ jtj @ dx
+        rho = (cost - cost_trial) / predicted if predicted > 0 else -1.0
+        if secant_rows and finite:
+            k = secant_rows
+            jac[:k] += np.outer(r_trial[:k] - r[:k] - jac[:k] @ dx, dx) / float(dx @ dx)
+            fresh = False
+        accepted = ok and cost_trial < cost and rho > 0
+        if accepted:
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu, failures = 2.0, 0
+            small_x = np.linalg.norm(dx) <= xtol * (np.linalg.norm(x) + xtol)
+            small_f = cost - cost_trial <= ftol * cost
+            x, r, cost = trial, r_trial, cost_trial
+        else:
+            lam, nu, failures = lam * nu, nu * 2.0, failures + 1
         entry = {"step": step, "cost": cost, "grad_inf": float(np.max(np.abs(grad))), "lambda": float(lam),
-                 "trials": tries, "accepted": accepted, "elapsed": time.perf_counter() - start}
+                 "accepted": bool(accepted), "jacobians": jacobians, "elapsed": time.perf_counter() - start}
         history.append(entry)
         if on_step is not None:
             on_step(entry)
-        if not accepted:
-            status = "no_progress" if lam > 1e16 else "max_seconds"
-            break
-        if done is not None and done(x, r):
-            status = "done"
-            break
-        if small_x or small_f:
-            status = "no_progress"
-            break
+        if accepted:
+            if done is not None and done(x, r):
+                status = "done"
+                break
+            if small_x or small_f:
+                if fresh or not secant_rows:
+                    status = "no_progress"
+                    break
+                refresh()
+                continue
+            if secant_rows:
+                if exact_rows is not None:
+                    jac[secant_rows:] = exact_rows(x)
+            else:
+                refresh()
+        elif lam > 1e16:
+            if fresh or not secant_rows:
+                status = "no_progress"
+                break
+            lam, nu = lam0, 2.0
+            refresh()
+        elif secant_rows and failures >= 2 and not fresh:
+            refresh()
     return LMResult(x, r, cost, jac, status, len(history), history)
