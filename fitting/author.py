@@ -199,8 +199,9 @@ def _plain_verdicts(spec: AuthorSpec, report: list[dict], stopped: str) -> list[
     verdicts = []
     for k, entry in enumerate(report):
         errors = {**entry["points_m"], **{f"{n} (body)": v for n, v in entry["bodies_m"].items()},
-                  **{n: max(abs(a) for a in v) for n, v in entry["joints_deg"].items()}}
-        joints = set(entry["joints_deg"])
+                  **{n: max(abs(a) for a in v) for n, v in entry["joints_deg"].items()},
+                  **{f"{n} (orientation)": v for n, v in entry["orientations_deg"].items()}}
+        joints = set(entry["joints_deg"]) | {f"{n} (orientation)" for n in entry["orientations_deg"]}
         missed = {n: v for n, v in errors.items()
                   if v > (spec.angle_tolerance if n in joints else spec.position_tolerance)}
         reasons = [f"{n}: {v:.3g} {'deg' if n in joints else 'm'} from the target; the solver {stopped}"

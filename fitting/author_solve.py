@@ -105,15 +105,16 @@ class KeyframeResiduals:
         self._smooth_and_jac = jax.jit(lambda z: (smooth(z), jax.jacfwd(smooth)(z)))
         # Every keyframe residual entry: its keyframe, its target's name and kind, its weight.
         kf, names, kinds, weights = [], [], [], []
-        for kind, size in (("point", 3), ("body", 3), ("joint", 1)):
+        for kind, size in (("point", 3), ("body", 3), ("joint", 1), ("orientation", 3)):
             for k, pose in enumerate(spec.keyframes):
-                table = {"point": pose.points, "body": pose.bodies, "joint": pose.joints}[kind]
+                table = {"point": pose.points, "body": pose.bodies, "joint": pose.joints,
+                         "orientation": pose.orientations}[kind]
                 for name, value in table.items():
                     count = size if kind != "joint" else len(value)
                     kf += [k] * count
                     names += [name] * count
                     kinds += [kind] * count
-                    weights += [spec.weights.point if kind != "joint" else spec.weights.joint] * count
+                    weights += [spec.weights.point if kind in ("point", "body") else spec.weights.joint] * count
         self.entry_keyframe = np.array(kf, dtype=np.int64)
         self.entry_name = names
         self.entry_kind = np.array(kinds)
@@ -142,8 +143,7 @@ class KeyframeResiduals:
     def errors(self, outputs) -> np.ndarray:
         """Unweighted keyframe errors, one per entry [m] or [rad]."""
         key = self.problem.objective.keyframe_residuals(outputs)
-        return np.concatenate([np.asarray(key["point"]).ravel(), np.asarray(key["body"]).ravel(),
-                               np.asarray(key["joint"]).ravel()])
+        return np.concatenate([np.asarray(key[kind]).ravel() for kind in ("point", "body", "joint", "orientation")])
 
     def row_weights(self) -> np.ndarray:
         return self.entry_weight * self.entry_mask * (self.keyframe_weight * self.active)[self.entry_keyframe]
@@ -204,6 +204,10 @@ class KeyframeResiduals:
                     j += 1
                 out[k][name] = float(np.degrees(np.abs(errors[i:j]).max()))
                 i = j
+            elif kind == "orientation":
+                half = min(float(np.linalg.norm(errors[i:i + 3])) / 2.0, 1.0)  # |2 v| = 2 sin(angle / 2)
+                out[k][f"{name} (orientation)"] = float(np.degrees(2.0 * np.arcsin(half)))
+                i += 3
             else:
                 label = name if kind == "point" else f"{name} (body)"
                 out[k][label] = float(np.linalg.norm(errors[i:i + 3]))
@@ -212,10 +216,13 @@ class KeyframeResiduals:
 
     def leave_out(self, keyframe: int, label: str) -> None:
         """Leaves target ``label`` (a :meth:`target_errors` name) of ``keyframe`` out of the fit."""
-        name, kind = (label[:-len(" (body)")], "body") if label.endswith(" (body)") else (label, None)
+        name, kind = label, None
+        for suffix in ("body", "orientation"):
+            if label.endswith(f" ({suffix})"):
+                name, kind = label[:-len(suffix) - 3], suffix
         for i in range(len(self.entry_name)):
             if self.entry_keyframe[i] == keyframe and self.entry_name[i] == name and (
-                    self.entry_kind[i] == kind if kind else self.entry_kind[i] != "body"):
+                    self.entry_kind[i] == kind if kind else self.entry_kind[i] in ("point", "joint")):
                 self.entry_mask[i] = 0.0
 
     def reached(self, errors: dict, position_tolerance: float, angle_tolerance: float,
@@ -224,7 +231,9 @@ class KeyframeResiduals:
                    for n, v in errors.items() if n not in skip)
 
     def _is_joint(self, label: str) -> bool:
-        return any(self.entry_name[i] == label and self.entry_kind[i] == "joint" for i in range(len(self.entry_name)))
+        """Whether a :meth:`target_errors` name is an angle (a joint, an orientation) [deg]."""
+        return label.endswith(" (orientation)") or any(
+            self.entry_name[i] == label and self.entry_kind[i] == "joint" for i in range(len(self.entry_name)))
 
 
 def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None, continuation: bool = True,

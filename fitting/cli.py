@@ -94,7 +94,8 @@ def _run_author(args: argparse.Namespace) -> int:
             "files")
     print(json.dumps({k: summary[k] for k in keys}
                      | {"max_keyframe_error_m": max(e["max_position_error_m"] for e in summary["keyframes_after"]),
-                        "max_keyframe_error_deg": max(e["max_joint_error_deg"] for e in summary["keyframes_after"])},
+                        "max_keyframe_error_deg": max(max(e["max_joint_error_deg"], e["max_orientation_error_deg"])
+                                                      for e in summary["keyframes_after"])},
                      indent=2))
     print(verdict_text(summary, bold=sys.stderr.isatty()), file=sys.stderr)
     return summary["exit_code"]

@@ -95,6 +95,8 @@ class KeyframePose:
         points: puppet point name -> world position [m].
         bodies: body name -> world position of its centre [m].
         weight: multiplies this keyframe's residuals (1 by default; 0 leaves it out of the fit).
+        orientations: body name -> target world orientation, XYZ Euler angles [deg]
+            (``R = Rz Ry Rx``, as the bars').
     """
 
     t: float
@@ -102,6 +104,7 @@ class KeyframePose:
     points: Mapping[str, tuple[float, float, float]]
     bodies: Mapping[str, tuple[float, float, float]]
     weight: float = 1.0
+    orientations: Mapping[str, tuple[float, float, float]] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -317,7 +320,7 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
     poses = []
     for i, entry in enumerate(entries):
         where = f"{source}: [[keyframes]] #{i + 1}"
-        check_keys(entry, ["t", "weight", "joints", "points", "bodies"], where)
+        check_keys(entry, ["t", "weight", "joints", "points", "bodies", "orientations"], where)
         t = read_float(entry, "t", where)
         weight = read_float(entry, "weight", where, 1.0, minimum=0.0, maximum=1.0e6)
         if not 0.0 < t <= duration:
@@ -349,10 +352,23 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
             joints[name] = tuple(float(a) for a in angles)
         points = _read_positions(read_table(entry, "points", where, {}), f"{where}.points", point_names, "point")
         bodies = _read_positions(read_table(entry, "bodies", where, {}), f"{where}.bodies", body_names, "body")
-        if not (joints or points or bodies):
-            raise KeyframeError(where, "joints/points/bodies", None,
-                                "at least one target: [keyframes.joints], [keyframes.points] or [keyframes.bodies]")
-        poses.append(KeyframePose(t=t, joints=joints, points=points, bodies=bodies, weight=weight))
+        orientations = {}
+        table_o = read_table(entry, "orientations", where, {})
+        for name in table_o:
+            if name not in body_names:
+                raise KeyframeError(f"{where}.orientations", name, table_o[name],
+                                    f"the name of a puppet body, one of {body_names}")
+            angles = read_vec3(table_o, name, f"{where}.orientations")
+            if not all(abs(a) <= MAX_TARGET_ANGLE_DEG for a in angles):
+                raise KeyframeError(f"{where}.orientations", name, list(angles),
+                                    f"XYZ Euler angles within +-{MAX_TARGET_ANGLE_DEG:g} degrees")
+            orientations[name] = tuple(float(a) for a in angles)
+        if not (joints or points or bodies or orientations):
+            raise KeyframeError(where, "joints/points/bodies/orientations", None,
+                                "at least one target: [keyframes.joints], [keyframes.points], [keyframes.bodies] or "
+                                "[keyframes.orientations]")
+        poses.append(KeyframePose(t=t, joints=joints, points=points, bodies=bodies, weight=weight,
+                                  orientations=orientations))
     return tuple(poses)
 
 

@@ -97,7 +97,9 @@ def _attach_regions(problem) -> dict[int, tuple[np.ndarray, np.ndarray, float]]:
         lo, hi = path.min(axis=0), path.max(axis=0)
         free = [d for d in a["free"] if d < 3]
         if free and objective.limits is None:
-            continue  # unbounded: no constraint from this bar
+            for s in a["strings"]:
+                regions.pop(int(s), None)  # an unbounded bar: its strings constrain nothing
+            continue
         if free:
             box_lo, box_hi = objective.boxes[a["name"]]
             lo, hi = lo.copy(), hi.copy()

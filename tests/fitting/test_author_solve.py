@@ -304,3 +304,35 @@ def test_bad_max_seconds_refused(flag, tmp_path, capsys):
         cli.main(["author", str(EXAMPLE), "--out", str(tmp_path / "o"), flag])
     assert exit_.value.code == 2
     assert "--max-seconds" in capsys.readouterr().err
+
+
+def test_orientation_target_reached(tmp_path):
+    """A torso orientation target (XYZ Euler, recorded with a hand position from a reference
+    hand-bar motion) is reached within the angle tolerance, from a start degrees away."""
+    import jax.numpy as jnp
+
+    from dmarionette.rotations import matrix_to_euler, quat_to_matrix
+    from fitting import author, build_problem, keyframes_from_table
+
+    table = {"author": {"scene": "hanging", "duration": 1.0, "particle_count": 10, "force_scale": 0.2},
+             "bars": {"hand": {"knots": [0.0, 0.5, 1.0], "free": ["x", "y", "z"]},
+                      "main": {"knots": [0.0, 1.0], "free": ["x", "z"]}},
+             "weights": {"smoothness": 0.01},
+             "keyframes": [{"t": 0.99, "points": {"hand_left": [0.0, 0.4, 0.0]},
+                            "orientations": {"torso": [0.0, 0.0, 0.0]}}]}
+    problem = build_problem(keyframes_from_table(table, str(tmp_path / "kf.toml")))
+    reference = {"hand": jnp.asarray([[0.04, 0.03, 0.02], [0.05, 0.0, -0.02]]), "main": jnp.asarray([[0.03, 0.02]])}
+    outputs = problem.forward(reference)
+    step = int(problem.objective.steps[0])
+    names = problem.model.puppet.body_names
+    rotation = quat_to_matrix(outputs["body_rot"][step, names.index("torso")])
+    table["keyframes"][0]["orientations"]["torso"] = matrix_to_euler(rotation).tolist()
+    table["keyframes"][0]["points"]["hand_left"] = outputs["point_pos"][
+        step, problem.model.puppet.point_names.index("hand_left")].tolist()
+    spec = keyframes_from_table(table, str(tmp_path / "kf.toml"))
+    summary = author(spec, tmp_path / "out", animation=False, exports=False, progress=False)
+    before = summary["keyframes_before"][0]["max_orientation_error_deg"]
+    after = summary["verdicts"][0]["errors"]["torso (orientation)"]
+    assert before > 2.0, before
+    assert summary["status"] == "reached" and after <= ANGLE_TOLERANCE, summary["verdicts"]
+    assert summary["keyframes_after"][0]["max_orientation_error_deg"] == pytest.approx(after, rel=1e-6, abs=1e-9)
