@@ -45,6 +45,8 @@ __all__ = ["EXIT_CODES", "KeyframeSolve", "KeyframeVerdict", "solve_keyframes"]
 #: The exit codes of ``dmarionette author`` (docs/authoring.md).
 EXIT_CODES = {"reached": 0, "not_converged": 3, "unreachable": 4, "limit_exceeded": 5}
 MAX_STEP = 0.5  # the largest change of one coordinate of z in a step (2.5 cm, 0.05 rad, a bound's half)
+STALL_STEPS = 10  # a stage stops when 10 accepted steps lower the cost by less than 1 %
+REST = "end at rest"  # the target name of [author] end_at_rest (the last keyframe's)
 FD_STEP = 1e-6  # forward-difference step in z (about 5e-8 m or 1e-7 rad of a knot)
 
 
@@ -93,8 +95,13 @@ class KeyframeSolve:
 class KeyframeResiduals:
     """Residuals and Jacobians of an :class:`fitting.author.AuthoringProblem` in ``z``."""
 
-    def __init__(self, problem, fd_step: float = FD_STEP):
+    def __init__(self, problem, fd_step: float = FD_STEP, position_tolerance: float | None = None,
+                 angle_tolerance: float | None = None):
         self.problem = problem
+        spec = problem.spec
+        self.tolerance = {"m": spec.position_tolerance if position_tolerance is None else position_tolerance,
+                          "deg": spec.angle_tolerance if angle_tolerance is None else angle_tolerance,
+                          "m/s": spec.rest_tolerance}
         objective = problem.objective
         self.spec = spec = problem.spec
         self.bounds = BoundedKnots(problem.param, objective.boxes if objective.limits is not None else None)
@@ -115,6 +122,12 @@ class KeyframeResiduals:
                     names += [name] * count
                     kinds += [kind] * count
                     weights += [spec.weights.point if kind in ("point", "body") else spec.weights.joint] * count
+        if spec.end_at_rest:  # every body's end velocity, a target of the last keyframe
+            count = 3 * len(problem.model.puppet.body_names)
+            kf += [len(spec.keyframes) - 1] * count
+            names += [REST] * count
+            kinds += ["rest"] * count
+            weights += [spec.weights.rest] * count
         self.entry_keyframe = np.array(kf, dtype=np.int64)
         self.entry_name = names
         self.entry_kind = np.array(kinds)
@@ -143,7 +156,10 @@ class KeyframeResiduals:
     def errors(self, outputs) -> np.ndarray:
         """Unweighted keyframe errors, one per entry [m] or [rad]."""
         key = self.problem.objective.keyframe_residuals(outputs)
-        return np.concatenate([np.asarray(key[kind]).ravel() for kind in ("point", "body", "joint", "orientation")])
+        parts = [np.asarray(key[kind]).ravel() for kind in ("point", "body", "joint", "orientation")]
+        if self.spec.end_at_rest:
+            parts.append(np.asarray(self.problem.objective.end_velocity(outputs)).ravel())
+        return np.concatenate(parts)
 
     def row_weights(self) -> np.ndarray:
         return self.entry_weight * self.entry_mask * (self.keyframe_weight * self.active)[self.entry_keyframe]
@@ -204,6 +220,10 @@ class KeyframeResiduals:
                     j += 1
                 out[k][name] = float(np.degrees(np.abs(errors[i:j]).max()))
                 i = j
+            elif kind == "rest":
+                speeds = np.linalg.norm(errors[i:].reshape(-1, 3), axis=1)
+                out[k][REST] = float(speeds.max())
+                i = len(errors)
             elif kind == "orientation":
                 half = min(float(np.linalg.norm(errors[i:i + 3])) / 2.0, 1.0)  # |2 v| = 2 sin(angle / 2)
                 out[k][f"{name} (orientation)"] = float(np.degrees(2.0 * np.arcsin(half)))
@@ -225,15 +245,18 @@ class KeyframeResiduals:
                     self.entry_kind[i] == kind if kind else self.entry_kind[i] in ("point", "joint")):
                 self.entry_mask[i] = 0.0
 
-    def reached(self, errors: dict, position_tolerance: float, angle_tolerance: float,
-                skip: frozenset = frozenset()) -> bool:
-        return all(v <= (angle_tolerance if self._is_joint(n) else position_tolerance)
-                   for n, v in errors.items() if n not in skip)
+    def reached(self, errors: dict, skip: frozenset = frozenset(), scale: float = 1.0) -> bool:
+        """Whether every target of ``errors`` (but ``skip``) is within ``scale`` x its tolerance."""
+        return all(v <= scale * self.tolerance[self.unit(n)] for n, v in errors.items() if n not in skip)
 
-    def _is_joint(self, label: str) -> bool:
-        """Whether a :meth:`target_errors` name is an angle (a joint, an orientation) [deg]."""
-        return label.endswith(" (orientation)") or any(
-            self.entry_name[i] == label and self.entry_kind[i] == "joint" for i in range(len(self.entry_name)))
+    def unit(self, label: str) -> str:
+        """The unit of a :meth:`target_errors` name: ``"m"``, ``"deg"`` (joints, orientations), ``"m/s"``."""
+        if label == REST:
+            return "m/s"
+        if label.endswith(" (orientation)") or any(
+                self.entry_name[i] == label and self.entry_kind[i] == "joint" for i in range(len(self.entry_name))):
+            return "deg"
+        return "m"
 
 
 def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None, continuation: bool = True,
@@ -256,7 +279,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     """
     started = time.perf_counter()
     deadline = None if max_seconds is None else started + max_seconds
-    res = KeyframeResiduals(problem)
+    res = KeyframeResiduals(problem, position_tolerance=position_tolerance, angle_tolerance=angle_tolerance)
     spec = problem.spec
     count = len(spec.keyframes)
     z = res.bounds.z0() if z0 is None else np.asarray(z0, dtype=np.float64)
@@ -304,12 +327,13 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
 
         def done(zt, rt):
             errors = res.target_errors(zt)
-            return all(res.reached(errors[k], position_tolerance / 2, angle_tolerance / 2, skip[k]) for k in on)
+            return all(res.reached(errors[k], skip[k], scale=0.5) for k in on)
 
         result = levenberg_marquardt(res.residuals, res.jacobian, z_start, max_steps=max(steps_left[0], 0),
                                      deadline=deadline, done=done, feasible=feasible, max_step=MAX_STEP,
                                      secant_rows=len(res.entry_keyframe) if secant else 0,
-                                     exact_rows=res.smoothness_jacobian, on_step=record(stage))
+                                     exact_rows=res.smoothness_jacobian, stall_steps=STALL_STEPS,
+                                     on_step=record(stage))
         steps_left[0] -= result.steps
         lm_status.append(f"{stage}: {result.status} after {result.steps} steps")
         return result
@@ -337,7 +361,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
 
     # ---- the verdict
     errors = res.target_errors(z)
-    missed = [k for k in range(count) if not res.reached(errors[k], position_tolerance, angle_tolerance, skip[k])]
+    missed = [k for k in range(count) if not res.reached(errors[k], skip[k])]
     best = [dict() for _ in range(count)]
     unreachable: list[int] = []
     conflict: list[int] = []
@@ -349,10 +373,9 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                 break
             alone = run(f"keyframe {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all)
             best[k] = res.target_errors(alone.x)[k]
-            if alone.status in ("stationary", "no_progress") and not res.reached(best[k], position_tolerance,
-                                                                                 angle_tolerance, skip[k]):
+            if alone.status in ("stationary", "no_progress") and not res.reached(best[k], skip[k]):
                 unreachable.append(k)
-            elif res.reached(best[k], position_tolerance, angle_tolerance, skip[k]):
+            elif res.reached(best[k], skip[k]):
                 conflict.append(k)
         if unreachable and steps_left[0] > 0:
             relaxed = np.where(np.isin(np.arange(count), unreachable), 0.0, 1.0)
@@ -365,7 +388,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     verdicts = []
     jac = None
     for k, pose in enumerate(spec.keyframes):
-        ok = res.reached(errors[k], position_tolerance, angle_tolerance, skip[k])
+        ok = res.reached(errors[k], skip[k])
         status = "reached" if ok else ("unreachable" if k in unreachable else "not_converged")
         if ok and skip[k]:
             status = "unreachable"
@@ -379,23 +402,22 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                     reasons.append([r for r in prechecked if r.keyframe == k and r.name == name][0].sentence()
                                    + "; left out of the fit")
                     continue
-                joint = res._is_joint(name)
-                tol = angle_tolerance if joint else position_tolerance
-                if value <= tol:
+                kind = res.unit(name)
+                if value <= res.tolerance[kind]:
                     continue
-                unit = (lambda v: f"{v:.3g} deg") if joint else (lambda v: f"{v * 1000:.3g} mm" if v < 1 else
-                                                                  f"{v:.3g} m")
+                unit = {"deg": lambda v: f"{v:.3g} deg", "m/s": lambda v: f"{v:.3g} m/s (a body's speed)",
+                        "m": lambda v: f"{v * 1000:.3g} mm" if v < 1 else f"{v:.3g} m"}[kind]
                 line = f"{name}: {unit(value)} from the target"
                 if name in best[k]:
-                    line += (f"; the nearest any solve came (this keyframe alone, from the others' solution) is "
-                             f"{unit(best[k][name])}")
+                    line += (f"; the nearest a solve for this keyframe alone came is {unit(best[k][name])}, where "
+                             "it stopped (no small change of the bars brings it closer)")
                 if status == "not_converged":
                     line += ("; reachable alone but not together with the other keyframes" if k in conflict else
                              f"; the solve stopped before reaching it ({final_status})")
                 reasons.append(line)
         verdicts.append(KeyframeVerdict(index=k, t=pose.t, status=status, errors=errors[k], best=best[k],
                                         reasons=reasons,
-                                        units={n: "deg" if res._is_joint(n) else "m" for n in errors[k]}))
+                                        units={n: res.unit(n) for n in errors[k]}))
         if not ok and jac is None:
             jac = res.error_jacobian(z)
     saturated = res.bounds.saturation(z)

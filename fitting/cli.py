@@ -109,7 +109,7 @@ def verdict_text(summary: dict, *, bold: bool = False) -> str:
     lines = []
     for v in summary["verdicts"]:
         label = {"reached": "reached", "unreachable": "UNREACHABLE", "not_converged": "NOT CONVERGED"}[v["status"]]
-        worst = ", ".join(f"{n} {e:.3g} deg" if v["units"][n] == "deg" else
+        worst = ", ".join(f"{n} {e:.3g} {v['units'][n]}" if v["units"][n] != "m" else
                           f"{n} {e * 1000:.3g} mm" if e < 1.0 else f"{n} {e:.3g} m" for n, e in v["errors"].items())
         line = f"keyframe {v['index'] + 1} (t = {v['t']:g} s): {label} ({worst})"
         lines.append(line if v["status"] == "reached" else strong(line))

@@ -58,6 +58,8 @@ class Weights:
         smoothness: on the bar's acceleration, integrated over time [s^1.5/m] (positions)
             and [s^1.5/rad] (angles): ``0.5 w^2 \\int |a|^2 dt``.
         workspace: per metre outside the device workspace, integrated over time [1/(m s^0.5)].
+        rest: with ``[author] end_at_rest``, per m/s of every body centre's speed over the
+            last puppet step [s/m] (100: 1 cm/s costs 0.5).
         force: per newton of device force above the device's limit, integrated over time
             [1/(N s^0.5)].
     """
@@ -67,6 +69,7 @@ class Weights:
     smoothness: float = 0.05
     workspace: float = 1000.0
     force: float = 10.0
+    rest: float = 100.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,6 +138,8 @@ class AuthorSpec:
         continuation: ``lm_fd`` switches keyframes on in time order.
         jacobian: ``lm_fd``'s keyframe Jacobian between forward-difference ones: ``"secant"``
             (Broyden updates) or ``"fd"`` (a forward-difference Jacobian every step).
+        end_at_rest: the puppet must end at rest: every body centre's speed over the last
+            puppet step within ``rest_tolerance`` [m/s].
     """
 
     source: str
@@ -158,10 +163,13 @@ class AuthorSpec:
     max_seconds: float | None = None
     continuation: bool = False
     jacobian: str = "secant"
+    end_at_rest: bool = False
+    rest_tolerance: float = 0.01
 
 
 _TOP_KEYS = ["author", "bars", "weights", "solver", "keyframes"]
-_AUTHOR_KEYS = ["scene", "duration", "particle_count", "string_hz", "puppet_hz", "device", "workspace_scale",
+_AUTHOR_KEYS = ["scene", "duration", "end_at_rest", "particle_count", "string_hz", "puppet_hz", "device",
+                "workspace_scale",
                 "force_scale", "feedback", "max_force"]
 
 
@@ -197,6 +205,9 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     workspace_scale = read_float(head, "workspace_scale", where, 1.0, positive=True)
     force_scale = read_float(head, "force_scale", where, 0.3, minimum=0.0)
     max_force = read_float(head, "max_force", where, positive=True) if "max_force" in head else None
+    end_at_rest = head.get("end_at_rest", False)
+    if not isinstance(end_at_rest, bool):
+        raise KeyframeError(where, "end_at_rest", end_at_rest, "true or false")
 
     keyframes = _read_keyframes(table, source, scene, duration)
     bars = _read_bars(read_table(table, "bars", f"{source}: top level"), f"{source}: [bars]", scene, duration,
@@ -209,7 +220,7 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     solver = read_table(table, "solver", f"{source}: top level", {})
     where = f"{source}: [solver]"
     check_keys(solver, ["method", "max_steps", "rtol", "atol", "position_tolerance", "angle_tolerance",
-                        "max_seconds", "continuation", "jacobian"], where)
+                        "max_seconds", "continuation", "jacobian", "rest_tolerance"], where)
     method = read_choice(solver, "method", where, list(METHODS), "lm_fd")
     max_steps = read_int(solver, "max_steps", where, 60, minimum=1, maximum=100_000)
     rtol = read_float(solver, "rtol", where, 1e-6, positive=True)
@@ -221,12 +232,13 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     if not isinstance(continuation, bool):
         raise KeyframeError(where, "continuation", continuation, "true or false")
     jacobian = read_choice(solver, "jacobian", where, ["secant", "fd"], "secant")
+    rest_tolerance = read_float(solver, "rest_tolerance", where, 0.01, positive=True, maximum=10.0)
     return AuthorSpec(source=source, scene=scene, scene_table=scene_table, duration=duration, bars=bars,
                       keyframes=keyframes, weights=weights, device=device, workspace_scale=workspace_scale,
                       force_scale=force_scale, feedback=feedback, max_force=max_force, max_steps=max_steps,
                       rtol=rtol, atol=atol, method=method, position_tolerance=position_tolerance,
                       angle_tolerance=angle_tolerance, max_seconds=max_seconds, continuation=continuation,
-                      jacobian=jacobian)
+                      jacobian=jacobian, end_at_rest=end_at_rest, rest_tolerance=rest_tolerance)
 
 
 def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scene, dict[str, Any]]:

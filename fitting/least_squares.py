@@ -57,6 +57,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
                         gtol: float = 1e-10, xtol: float = 1e-10, ftol: float = 1e-12,
                         lam0: float = 1e-3, max_step: float | None = None,
                         secant_rows: int = 0, exact_rows: Callable[[np.ndarray], np.ndarray] | None = None,
+                        stall_steps: int | None = None, stall_rtol: float = 1e-2,
                         on_step: Callable[[dict], None] | None = None) -> LMResult:
     """Minimises ``0.5 |r(x)|^2``.
 
@@ -78,6 +79,9 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
             from ``exact_rows(x)``; ``jacobian`` is called again only when two trials in a row
             fail, or before the run would stop at a stationary point or for lack of progress.
         exact_rows: ``x -> J[k:]`` (cheap), with ``secant_rows``.
+        stall_steps: with ``N``, the run stops as ``"no_progress"`` when the last ``N`` accepted
+            steps lowered the cost by less than ``stall_rtol`` of it (after a fresh Jacobian,
+            with ``secant_rows``): a crawl along a valley that would eat the whole budget.
         on_step: receives each iteration's history entry.
     """
     x = np.asarray(x0, dtype=np.float64).copy()
@@ -94,11 +98,13 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
     status = "max_steps"
 
     def refresh():
-        nonlocal jac, fresh, jacobians, failures
+        nonlocal jac, fresh, jacobians, failures, costs
         jac, fresh, failures = np.asarray(jacobian(x, r), dtype=np.float64), True, 0
         jacobians += 1
+        costs = [cost]
 
     step = 0
+    costs = [cost]  # at the accepted points since the last fresh Jacobian
     while step < max_steps:
         if deadline is not None and time.perf_counter() >= deadline:
             status = "max_seconds"
@@ -149,9 +155,17 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
         if on_step is not None:
             on_step(entry)
         if accepted:
+            costs.append(cost)
             if done is not None and done(x, r):
                 status = "done"
                 break
+            if stall_steps and len(costs) > stall_steps and costs[-1 - stall_steps] - cost < stall_rtol * cost:
+                if fresh or not secant_rows:
+                    status = "no_progress"
+                    break
+                refresh()
+                costs = [cost]
+                continue
             if small_x or small_f:
                 if fresh or not secant_rows:
                     status = "no_progress"

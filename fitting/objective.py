@@ -77,6 +77,7 @@ class AuthoringObjective:
         self.rollout = rollout
         self.constants = {k: jnp.asarray(v) for k, v in constants.items()}
         self.steps = keyframe_steps(spec, model.puppet_dt)
+        self.puppet_dt = float(model.puppet_dt)
         puppet = model.puppet
         joint_offset, offset = {}, 7  # the free root: position, quaternion
         for joint in spec.scene.puppet.joints:
@@ -151,6 +152,8 @@ class AuthoringObjective:
         terms = {"keyframes": jnp.concatenate([w.point * key["point"].ravel(), w.point * key["body"].ravel(),
                                                w.joint * key["joint"], w.joint * key["orientation"].ravel()]),
                  "smoothness": w.smoothness * self.param.acceleration_residuals(y)}
+        if self.spec.end_at_rest:
+            terms["rest"] = w.rest * self.end_velocity(outputs).ravel()
         if self.limits is not None:
             root_dt = np.sqrt(self.param.string_dt)
             paths = self.param.bar_paths(y)
@@ -165,6 +168,11 @@ class AuthoringObjective:
             terms["workspace"] = w.workspace * root_dt * jnp.concatenate(outside)
             terms["force"] = w.force * root_dt * jnp.concatenate(excess)
         return terms
+
+    def end_velocity(self, outputs: dict):
+        """Every body centre's mean velocity over the last puppet step [m/s], ``(B, 3)``."""
+        body = outputs["body_pos"]
+        return (body[-1] - body[-2]) / self.puppet_dt
 
     # ----------------------------------------------------------------- solver functions
     def loss(self, y, args=None):

@@ -336,3 +336,29 @@ def test_orientation_target_reached(tmp_path):
     assert before > 2.0, before
     assert summary["status"] == "reached" and after <= ANGLE_TOLERANCE, summary["verdicts"]
     assert summary["keyframes_after"][0]["max_orientation_error_deg"] == pytest.approx(after, rel=1e-6, abs=1e-9)
+
+
+def test_end_at_rest_is_a_target_of_the_last_keyframe(problem):
+    """With end_at_rest, the last keyframe gets the target "end at rest": the largest body
+    speed over the last puppet step [m/s], judged against rest_tolerance."""
+    import dataclasses
+
+    from fitting.author_solve import REST, KeyframeResiduals
+
+    spec = problem.spec
+    problem.spec = dataclasses.replace(spec, end_at_rest=True, rest_tolerance=0.01)
+    try:
+        res = KeyframeResiduals(problem)
+        z = res.bounds.z0()
+        errors = res.target_errors(z)
+        outputs = problem.forward(problem.param.initial())
+        speed = np.linalg.norm(outputs["body_pos"][-1] - outputs["body_pos"][-2], axis=1).max() / problem.model.puppet_dt
+        assert errors[-1][REST] == pytest.approx(speed, rel=1e-12) and REST not in errors[0]
+        assert res.unit(REST) == "m/s"
+        assert res.reached({REST: 0.009}) and not res.reached({REST: 0.011})
+        rows = res.residuals(z)[:len(res.entry_keyframe)]
+        assert np.abs(rows[-3 * len(problem.model.puppet.body_names):]).max() == pytest.approx(
+            spec.weights.rest * np.abs(outputs["body_pos"][-1] - outputs["body_pos"][-2]).max()
+            / problem.model.puppet_dt, rel=1e-12)
+    finally:
+        problem.spec = spec
