@@ -362,3 +362,48 @@ def test_end_at_rest_is_a_target_of_the_last_keyframe(problem):
             / problem.model.puppet_dt, rel=1e-12)
     finally:
         problem.spec = spec
+
+
+@pytest.mark.parametrize("change, key, words", [
+    ({"orientations": {"pelvis": [0.0, 0.0, 0.0]}}, "pelvis", ["torso"]),
+    ({"orientations": {"torso": [0.0, 0.0]}}, "torso", ["three numbers"]),
+    ({"orientations": {"torso": [0.0, 900.0, 0.0]}}, "torso", ["720"]),
+    ({"weight": -1.0}, "weight", [">= 0"]),
+    ({"author.end_at_rest": "yes"}, "end_at_rest", ["true or false"]),
+    ({"solver.jacobian": "bfgs"}, "jacobian", ["secant"]),
+    ({"solver.method": "newton"}, "method", ["lm_fd"]),
+    ({"solver.max_seconds": 0.0}, "max_seconds", ["> 0"]),
+    ({"solver.continuation": 1}, "continuation", ["true or false"]),
+    ({"solver.position_tolerance": -1e-3}, "position_tolerance", ["> 0"]),
+])
+def test_new_keyframe_keys_refused_when_bad(tmp_path, change, key, words):
+    from fitting.keyframes import KeyframeError, load_keyframes
+
+    table = tomllib.loads(EXAMPLE.read_text())
+    for path, value in change.items():
+        if "." in path:
+            section, name = path.split(".")
+            table.setdefault(section, {})[name] = value
+        else:
+            table["keyframes"][0][path] = value
+    file = tmp_path / "bad.toml"
+    file.write_text(tomli_w.dumps(table))
+    with pytest.raises(KeyframeError) as info:
+        load_keyframes(file)
+    message = str(info.value)
+    assert str(file) in message and f"'{key}'" in message, message
+    for word in words:
+        assert word in message, message
+
+
+def test_auto_knots_from_keyframe_times(tmp_path):
+    from fitting.keyframes import auto_knots, load_keyframes
+
+    assert auto_knots([0.495, 0.99, 1.485], 1.5, 0.033) == [0.0, 0.495, 0.99, 1.5]  # 1.485 too close to the end
+    assert auto_knots([0.5, 0.51, 1.0], 2.0, 0.033) == [0.0, 0.5, 1.0, 2.0]
+    table = tomllib.loads(EXAMPLE.read_text())
+    del table["bars"]["hand"]["knots"]
+    file = tmp_path / "auto.toml"
+    file.write_text(tomli_w.dumps(table))
+    spec = load_keyframes(file)
+    assert spec.bars[0].knots == (0.0, 0.495, 0.99, 1.5)
