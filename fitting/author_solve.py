@@ -45,7 +45,8 @@ __all__ = ["EXIT_CODES", "KeyframeSolve", "KeyframeVerdict", "solve_keyframes"]
 #: The exit codes of ``dmarionette author`` (docs/authoring.md).
 EXIT_CODES = {"reached": 0, "not_converged": 3, "unreachable": 4, "limit_exceeded": 5}
 MAX_STEP = 0.5  # the largest change of one coordinate of z in a step (2.5 cm, 0.05 rad, a bound's half)
-STALL_STEPS = 10  # a stage stops when 10 accepted steps lower the cost by less than 1 %
+STALL_STEPS = 10  # a stage stops when 10 accepted steps lower the cost by less than STALL_RTOL of it
+STALL_RTOL = 0.03
 REST = "end at rest"  # the target name of [author] end_at_rest (the last keyframe's)
 FD_STEP = 1e-6  # forward-difference step in z (about 5e-8 m or 1e-7 rad of a knot)
 
@@ -259,7 +260,7 @@ class KeyframeResiduals:
         return "m"
 
 
-def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None, continuation: bool = True,
+def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None, continuation: bool = False,
                     position_tolerance: float = 1e-3, angle_tolerance: float = 0.5,
                     say: Callable[[str], None] = lambda line: None, z0: np.ndarray | None = None,
                     secant: bool = True) -> KeyframeSolve:
@@ -332,7 +333,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         result = levenberg_marquardt(res.residuals, res.jacobian, z_start, max_steps=max(steps_left[0], 0),
                                      deadline=deadline, done=done, feasible=feasible, max_step=MAX_STEP,
                                      secant_rows=len(res.entry_keyframe) if secant else 0,
-                                     exact_rows=res.smoothness_jacobian, stall_steps=STALL_STEPS,
+                                     exact_rows=res.smoothness_jacobian, stall_steps=STALL_STEPS, stall_rtol=STALL_RTOL,
                                      on_step=record(stage))
         steps_left[0] -= result.steps
         lm_status.append(f"{stage}: {result.status} after {result.steps} steps")
@@ -365,6 +366,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     best = [dict() for _ in range(count)]
     unreachable: list[int] = []
     conflict: list[int] = []
+    how = {}
     stopped = final_status in ("stationary", "no_progress", "done")
     if missed and stopped:
         z_all = z
@@ -373,6 +375,10 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                 break
             alone = run(f"keyframe {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all)
             best[k] = res.target_errors(alone.x)[k]
+            how[k] = ("where it stopped at a stationary point (no small change of the bars brings it closer)"
+                      if alone.status == "stationary" else
+                      f"where it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
+                      "reach within the device limits as far as this solver can tell")
             if alone.status in ("stationary", "no_progress") and not res.reached(best[k], skip[k]):
                 unreachable.append(k)
             elif res.reached(best[k], skip[k]):
@@ -409,8 +415,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                         "m": lambda v: f"{v * 1000:.3g} mm" if v < 1 else f"{v:.3g} m"}[kind]
                 line = f"{name}: {unit(value)} from the target"
                 if name in best[k]:
-                    line += (f"; the nearest a solve for this keyframe alone came is {unit(best[k][name])}, where "
-                             "it stopped (no small change of the bars brings it closer)")
+                    line += f"; the nearest a solve for this keyframe alone came is {unit(best[k][name])}, {how[k]}"
                 if status == "not_converged":
                     line += ("; reachable alone but not together with the other keyframes" if k in conflict else
                              f"; the solve stopped before reaching it ({final_status})")
@@ -423,11 +428,22 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     saturated = res.bounds.saturation(z)
     labels = res.bounds.names()
     flat = np.concatenate([v.ravel() for v in saturated.values()]) if saturated else np.zeros(0)
-    at_bound = [labels[i] for i in range(len(flat)) if np.isfinite(flat[i]) and flat[i] > 0.99]
-    if at_bound and any(v.status != "reached" for v in verdicts):
-        messages.append("knot coordinates at the device workspace bound: " + ", ".join(at_bound))
+    at_bound = [i for i in range(len(flat)) if np.isfinite(flat[i]) and flat[i] > 0.99]
     if jac is None:
         jac = res.error_jacobian(z)
+    if at_bound and any(v.status != "reached" for v in verdicts):
+        # The cost's slope along each bounded knot value: value = start + a sin z, so
+        # d cost / d value has the sign of (J^T r)_z cos z; the targets pull the knot out of the
+        # box when lowering the cost means moving the value past the bound (the side of sin z).
+        weights = res.entry_weight * res.entry_mask * res.keyframe_weight[res.entry_keyframe]
+        slope = (jac * weights[:, None]).T @ (weights * res.errors(res.outputs(z)))
+        pulled = [labels[i] for i in at_bound if -np.sign(slope[i] * np.cos(z[i])) == np.sign(np.sin(z[i]))]
+        if pulled:
+            messages.append("the device workspace limits the motion: these knot coordinates are on its bound and "
+                            "the targets pull them further out: " + ", ".join(pulled))
+        rest = [labels[i] for i in at_bound if labels[i] not in pulled]
+        if rest:
+            messages.append("knot coordinates at the device workspace bound: " + ", ".join(rest))
     column = np.linalg.norm(jac, axis=0)
     idle = [labels[i] for i in range(len(column)) if column[i] <= 1e-9 * max(column.max(), 1e-300)]
     if idle:
