@@ -449,6 +449,11 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     if idle:
         messages.append("bar coordinates with no effect on any target: " + ", ".join(idle))
     over = {n: p for n, p in peak.items() if limit is not None and p > limit}
+    binding = {n: p for n, p in peak.items() if limit is not None and limit >= p >= 0.999 * limit}
+    if binding and any(v.status != "reached" for v in verdicts):
+        messages.append("the device force limit binds: " + ", ".join(
+            f"bar {n} sends {p:.4g} N of the {limit:g} N allowed" for n, p in binding.items())
+            + " (no step may raise it; the missed targets may need more force)")
     if any(v.status == "not_converged" for v in verdicts):
         status = "not_converged"
     elif unreachable or prechecked:

@@ -407,3 +407,37 @@ def test_auto_knots_from_keyframe_times(tmp_path):
     file.write_text(tomli_w.dumps(table))
     spec = load_keyframes(file)
     assert spec.bars[0].knots == (0.0, 0.495, 0.99, 1.5)
+
+
+def test_budget_run_out_exits_3_and_says_so(tmp_path, capsys):
+    """--max-seconds that stops the solve before it reaches a reachable target: exit code 3,
+    every missed keyframe 'not converged' with the reason, the headline in bold."""
+    from dmarionette import cli
+
+    out = tmp_path / "out"
+    code = cli.main(["author", str(EXAMPLE), "--out", str(out), "--no-animation", "--no-export", "--quiet",
+                     "--max-seconds", "1e-6"])
+    summary = json.loads((out / "summary.json").read_text())
+    err = capsys.readouterr().err
+    assert code == 3 and summary["status"] == "not_converged" and summary["exit_code"] == 3
+    assert summary["steps"] == 0
+    missed = [v for v in summary["verdicts"] if v["status"] == "not_converged"]
+    assert missed and all(any("max_seconds" in r for r in v["reasons"]) for v in missed)
+    assert "**NOT CONVERGED" in err and "exit code 3" in err
+
+
+def test_verdict_text_marks_misses_in_bold():
+    from fitting.cli import verdict_text
+
+    summary = {"tolerances": {"position_m": 1e-3, "angle_deg": 0.5}, "status": "unreachable", "exit_code": 4,
+               "messages": ["a note"],
+               "verdicts": [{"index": 0, "t": 0.5, "status": "reached", "errors": {"head": 2e-4},
+                             "units": {"head": "m"}, "reasons": []},
+                            {"index": 1, "t": 1.0, "status": "unreachable", "errors": {"hand_left": 1.9,
+                                                                                        "elbow_left": 3.0},
+                             "units": {"hand_left": "m", "elbow_left": "deg"}, "reasons": ["hand_left: far"]}]}
+    plain = verdict_text(summary)
+    assert "keyframe 1 (t = 0.5 s): reached (head 0.2 mm)" in plain
+    assert "**keyframe 2 (t = 1 s): UNREACHABLE (hand_left 1.9 m, elbow_left 3 deg)**" in plain
+    assert "    hand_left: far" in plain and "note: a note" in plain and "exit code 4: **UNREACHABLE" in plain
+    assert "\033[1m" in verdict_text(summary, bold=True)
