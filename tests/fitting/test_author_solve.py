@@ -441,3 +441,17 @@ def test_verdict_text_marks_misses_in_bold():
     assert "**keyframe 2 (t = 1 s): UNREACHABLE (hand_left 1.9 m, elbow_left 3 deg)**" in plain
     assert "    hand_left: far" in plain and "note: a note" in plain and "exit code 4: **UNREACHABLE" in plain
     assert "\033[1m" in verdict_text(summary, bold=True)
+
+
+def test_a_bar_coordinate_without_effect_is_named(tmp_path):
+    """The hand bar's attach points lie on its x axis, so rotating it about x moves no target:
+    the solve names hand.rx; the other coordinates do act."""
+    from fitting import build_problem, keyframes_from_table, solve_keyframes
+
+    table = {"author": {"scene": "hanging", "duration": 0.5, "particle_count": 10, "force_scale": 0.2},
+             "bars": {"hand": {"knots": [0.0, 0.5], "free": ["y", "rx"]}},
+             "keyframes": [{"t": 0.495, "points": {"hand_left": [0.15, 0.45, 0.12]}}]}
+    problem = build_problem(keyframes_from_table(table, str(tmp_path / "kf.toml")))
+    result = solve_keyframes(problem, max_steps=2)
+    idle = [m for m in result.messages if "no effect" in m]
+    assert idle and "hand.rx@0.5s" in idle[0] and "hand.y@0.5s" not in idle[0], result.messages
