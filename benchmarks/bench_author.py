@@ -20,7 +20,8 @@ with BFGS for the same problem, so the two costs can be compared.
 Usage::
 
     .venv/bin/python benchmarks/bench_author.py [--particles 50] [--max-steps 40] [--repeats 1]
-                                                [--method lm_fd|bfgs|lm|gauss_newton] [--continuation] [--jacobian secant|fd]
+                                                [--method lm_fd|bfgs|lm|gauss_newton] [--continuation]
+                                                [--jacobian secant|fd]
                                                 [--jacobians] [--puppet-hz HZ] [--compare-lm]
                                                 [--out out/bench_author]
 """

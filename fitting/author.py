@@ -38,7 +38,8 @@ from .keyframes import AuthorSpec
 from .objective import AuthoringObjective
 from .solve import SolveResult, solve
 
-__all__ = ["AuthoringProblem", "author", "enable_compilation_cache", "authored_scene_table", "build_problem", "write_scene"]
+__all__ = ["AuthoringProblem", "author", "authored_scene_table", "build_problem", "enable_compilation_cache",
+           "write_scene"]
 
 
 def enable_compilation_cache(folder: str | Path | None = None) -> Path:

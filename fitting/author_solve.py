@@ -32,7 +32,6 @@ import time
 from collections.abc import Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .knot_bounds import BoundedKnots
@@ -167,7 +166,8 @@ class KeyframeResiduals:
 
     def residuals(self, z) -> np.ndarray:
         """Weighted keyframe residuals of the active keyframes, then the smoothness residuals."""
-        return np.concatenate([self.row_weights() * self.errors(self.outputs(z)), np.asarray(self._smooth_and_jac(z)[0])])
+        smooth = np.asarray(self._smooth_and_jac(z)[0])
+        return np.concatenate([self.row_weights() * self.errors(self.outputs(z)), smooth])
 
     def smoothness_jacobian(self, z) -> np.ndarray:
         """The smoothness rows of the Jacobian (exact, JAX forward mode)."""

@@ -53,7 +53,8 @@ class TargetReach:
     def sentence(self) -> str:
         return (f"{self.name}: the target is {self.distance:.3g} m from anywhere string {self.string}'s attach "
                 f"point can go, and the puppet holds it within {self.reach:.3g} m of it (the string's length "
-                f"with {STRETCH:.0%} stretch, plus the body between): unreachable by {self.distance - self.reach:.3g} m")
+                f"with {STRETCH:.0%} stretch, plus the body between): unreachable by "
+                f"{self.distance - self.reach:.3g} m")
 
 
 def site_distances(puppet) -> tuple[list[tuple[str, np.ndarray]], np.ndarray]:

@@ -352,7 +352,8 @@ def test_end_at_rest_is_a_target_of_the_last_keyframe(problem):
         z = res.bounds.z0()
         errors = res.target_errors(z)
         outputs = problem.forward(problem.param.initial())
-        speed = np.linalg.norm(outputs["body_pos"][-1] - outputs["body_pos"][-2], axis=1).max() / problem.model.puppet_dt
+        step = outputs["body_pos"][-1] - outputs["body_pos"][-2]
+        speed = np.linalg.norm(step, axis=1).max() / problem.model.puppet_dt
         assert errors[-1][REST] == pytest.approx(speed, rel=1e-12) and REST not in errors[0]
         assert res.unit(REST) == "m/s"
         assert res.reached({REST: 0.009}) and not res.reached({REST: 0.011})
