@@ -109,12 +109,13 @@ def test_bounded_knots_keep_every_path_inside_the_workspace(problem):
     from fitting.knot_bounds import BoundedKnots
 
     bounds = BoundedKnots(problem.param, problem.objective.boxes)
+    bar_paths = jax.jit(lambda z: problem.param.bar_paths(bounds.y(z)))
     rng = np.random.default_rng(7)
     worst = -np.inf
     for scale in (0.3, 3.0, 300.0):
         for _ in range(5):
             z = rng.normal(scale=scale, size=bounds.size)
-            paths = problem.param.bar_paths(bounds.y(z))
+            paths = bar_paths(z)
             for name, (path, _) in paths.items():
                 lo, hi = problem.objective.boxes[name]
                 path = np.asarray(path)
