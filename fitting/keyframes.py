@@ -97,7 +97,7 @@ class KeyframePose:
         joints: joint name -> target angles [deg], one per axis of a hinge or universal joint.
         points: puppet point name -> world position [m].
         bodies: body name -> world position of its centre [m].
-        weight: multiplies this keyframe's residuals (1 by default; 0 leaves it out of the fit).
+        weight: multiplies this keyframe's residuals (> 0; 1 by default).
         orientations: body name -> target world orientation, XYZ Euler angles [deg]
             (``R = Rz Ry Rx``, as the bars').
     """
@@ -334,7 +334,7 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
         where = f"{source}: [[keyframes]] #{i + 1}"
         check_keys(entry, ["t", "weight", "joints", "points", "bodies", "orientations"], where)
         t = read_float(entry, "t", where)
-        weight = read_float(entry, "weight", where, 1.0, minimum=0.0, maximum=1.0e6)
+        weight = read_float(entry, "weight", where, 1.0, positive=True, maximum=1.0e6)
         if not 0.0 < t <= duration:
             raise KeyframeError(where, "t", t, f"a time inside the motion, 0 < t <= duration ({duration} s)")
         if round(t / puppet_step(scene)) == 0:

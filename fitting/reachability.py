@@ -11,7 +11,8 @@ tied string at once,
     |p - A| <= l (1 + STRETCH) + d(p, tie),
 
 with ``A`` anywhere its bar can take it: an authored bar's centre anywhere in the device
-workspace box (its free coordinates; the others follow the scene) plus the attach point's
+workspace box (its free coordinates, unbounded without a device; the others follow the
+scene's path) plus the attach point's
 distance from the centre (any rotation), a bar that is not authored along its scene path.
 A target farther than that from the attach region of some string is unreachable, for every
 bar motion, static or not; :func:`unreachable_targets` says by how much.
@@ -97,13 +98,11 @@ def _attach_regions(problem) -> dict[int, tuple[np.ndarray, np.ndarray, float]]:
         path = np.asarray(path)
         lo, hi = path.min(axis=0), path.max(axis=0)
         free = [d for d in a["free"] if d < 3]
+        lo, hi = lo.copy(), hi.copy()
         if free and objective.limits is None:
-            for s in a["strings"]:
-                regions.pop(int(s), None)  # an unbounded bar: its strings constrain nothing
-            continue
-        if free:
+            lo[free], hi[free] = -np.inf, np.inf  # no device: a free coordinate goes anywhere
+        elif free:
             box_lo, box_hi = objective.boxes[a["name"]]
-            lo, hi = lo.copy(), hi.copy()
             lo[free], hi[free] = box_lo[free], box_hi[free]
         for s, local in zip(a["strings"], a["local"]):
             regions[int(s)] = (lo, hi, float(np.linalg.norm(local)))
