@@ -18,11 +18,13 @@ continuation over keyframes, and an honest verdict per keyframe.
 - **Continuation.** Keyframes are switched on in time order: stage ``k`` fits keyframes
   ``1..k`` from where stage ``k - 1`` ended.
 - **Verdict.** A keyframe is *reached* when every target is within the position and angle
-  tolerances. When the solve stops at a stationary point with some missed, each missed one is
-  solved alone from there: if it still misses it is *unreachable* (it is then left out and the
-  others are solved again without it, so it cannot degrade them); if it is reached alone it
-  is *not converged* (it conflicts with the others). A run that ran out of steps or time with
-  a keyframe missed: *not converged*.
+  tolerances. Targets the reachability pre-check (:mod:`fitting.reachability`) rules out are
+  left out from the start. When the solve ends with keyframes missed, each missed one is solved
+  alone from there (with a budget of ``max_steps`` more steps): if it is reached alone, it
+  conflicts with the others (*not converged*); if that solve stops at a stationary point or
+  stalls short of some targets, those targets are *unreachable*: they are left out and all the
+  keyframes solved again without them, so they cannot degrade the others. Anything else
+  missed: *not converged*.
 """
 
 from __future__ import annotations
@@ -364,61 +366,63 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     errors = res.target_errors(z)
     missed = [k for k in range(count) if not res.reached(errors[k], skip[k])]
     best = [dict() for _ in range(count)]
-    unreachable: list[int] = []
+    found: dict[tuple[int, str], str] = {}  # (keyframe, target) -> why it is unreachable
     conflict: list[int] = []
-    how = {}
-    stopped = final_status in ("stationary", "no_progress", "done")
-    if missed and stopped:
+    # The analysis of missed keyframes has a budget of its own (max_steps again, and the time left).
+    steps_left[0] = max_steps
+    if missed and final_status != "max_seconds":
         z_all = z
         for k in missed:
             if steps_left[0] <= 0 or (deadline is not None and time.perf_counter() >= deadline):
                 break
             alone = run(f"keyframe {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all)
             best[k] = res.target_errors(alone.x)[k]
-            how[k] = ("where it stopped at a stationary point (no small change of the bars brings it closer)"
-                      if alone.status == "stationary" else
-                      f"where it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
-                      "reach within the device limits as far as this solver can tell")
-            if alone.status in ("stationary", "no_progress") and not res.reached(best[k], skip[k]):
-                unreachable.append(k)
-            elif res.reached(best[k], skip[k]):
+            if res.reached(best[k], skip[k]):
                 conflict.append(k)
-        if unreachable and steps_left[0] > 0:
-            relaxed = np.where(np.isin(np.arange(count), unreachable), 0.0, 1.0)
-            again = run("without unreachable", relaxed, z_all)
+            elif alone.status in ("stationary", "no_progress"):
+                how = ("it stopped at a stationary point (no small change of the bars brings it closer)"
+                       if alone.status == "stationary" else
+                       f"it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
+                       "reach within the device limits as far as this solver can tell")
+                for name, value in best[k].items():
+                    if name not in skip[k] and value > res.tolerance[res.unit(name)]:
+                        found[(k, name)] = how
+        if found and steps_left[0] > 0:
+            for k, name in found:
+                res.leave_out(k, name)
+            skip = [frozenset(skip[k] | {n for (j, n) in found if j == k}) for k in range(count)]
+            again = run("without unreachable", ones, z_all)
             z = again.x
             final_status = again.status
             errors = res.target_errors(z)
+        else:
+            found = {}
     res.active = ones
     peak = res.peak_force(z)
     verdicts = []
     jac = None
+    sentences = {(r.keyframe, r.name): r.sentence() + "; left out of the fit" for r in prechecked}
+    unit_text = {"deg": lambda v: f"{v:.3g} deg", "m/s": lambda v: f"{v:.3g} m/s (a body's speed)",
+                 "m": lambda v: f"{v * 1000:.3g} mm" if v < 1 else f"{v:.3g} m"}
     for k, pose in enumerate(spec.keyframes):
         ok = res.reached(errors[k], skip[k])
-        status = "reached" if ok else ("unreachable" if k in unreachable else "not_converged")
-        if ok and skip[k]:
-            status = "unreachable"
-            prechecked_k = [r for r in prechecked if r.keyframe == k]
-        else:
-            prechecked_k = []
-        reasons = [r.sentence() + "; left out of the fit" for r in prechecked_k]
-        if not ok:
-            for name, value in errors[k].items():
-                if name in skip[k]:
-                    reasons.append([r for r in prechecked if r.keyframe == k and r.name == name][0].sentence()
-                                   + "; left out of the fit")
-                    continue
-                kind = res.unit(name)
-                if value <= res.tolerance[kind]:
-                    continue
-                unit = {"deg": lambda v: f"{v:.3g} deg", "m/s": lambda v: f"{v:.3g} m/s (a body's speed)",
-                        "m": lambda v: f"{v * 1000:.3g} mm" if v < 1 else f"{v:.3g} m"}[kind]
+        status = "reached" if ok and not skip[k] else "unreachable" if ok else "not_converged"
+        reasons = []
+        for name, value in errors[k].items():
+            unit = unit_text[res.unit(name)]
+            if (k, name) in sentences:
+                reasons.append(sentences[(k, name)])
+            elif (k, name) in found:
+                reasons.append(f"{name}: {unit(value)} from the target; a solve for this keyframe alone came no "
+                               f"nearer than {unit(best[k][name])}, where {found[(k, name)]}; left out of the "
+                               "final fit")
+            elif value > res.tolerance[res.unit(name)]:
                 line = f"{name}: {unit(value)} from the target"
-                if name in best[k]:
-                    line += f"; the nearest a solve for this keyframe alone came is {unit(best[k][name])}, {how[k]}"
-                if status == "not_converged":
-                    line += ("; reachable alone but not together with the other keyframes" if k in conflict else
-                             f"; the solve stopped before reaching it ({final_status})")
+                if k in conflict:
+                    line += (f"; a solve for this keyframe alone reaches it ({unit(best[k][name])}), but not together "
+                             "with the other keyframes")
+                else:
+                    line += f"; the solve stopped before reaching it ({final_status})"
                 reasons.append(line)
         verdicts.append(KeyframeVerdict(index=k, t=pose.t, status=status, errors=errors[k], best=best[k],
                                         reasons=reasons,
@@ -456,7 +460,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
             + " (no step may raise it; the missed targets may need more force)")
     if any(v.status == "not_converged" for v in verdicts):
         status = "not_converged"
-    elif unreachable or prechecked:
+    elif any(v.status == "unreachable" for v in verdicts):
         status = "unreachable"
     elif over:
         status = "limit_exceeded"
