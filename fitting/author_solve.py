@@ -19,11 +19,12 @@ continuation over keyframes, and an honest verdict per keyframe.
   ``1..k`` from where stage ``k - 1`` ended.
 - **Verdict.** A keyframe is *reached* when every target is within the position and angle
   tolerances. Targets the reachability pre-check (:mod:`fitting.reachability`) rules out are
-  left out from the start. When the solve ends with keyframes missed, each missed one is solved
-  alone from there (with a budget of ``max_steps`` more steps): if it is reached alone, it
-  conflicts with the others (*not converged*); if that solve stops at a stationary point or
-  stalls short of some targets, those targets are *unreachable*: they are left out and all the
-  keyframes solved again without them, so they cannot degrade the others. Anything else
+  left out from the start. When the solve ends with targets missed, each missed target is
+  solved alone from there, the farthest first (with a budget of ``max_steps`` more steps, and
+  ``max_steps`` again for the final solve without the unreachable ones): if
+  it is reached alone, it conflicts with the others (*not converged*); if that solve stops at a
+  stationary point or stalls short of it, it is *unreachable*: such targets are left out and all
+  the keyframes solved again without them, so they cannot degrade the others. Anything else
   missed: *not converged*.
 """
 
@@ -248,6 +249,15 @@ class KeyframeResiduals:
                     self.entry_kind[i] == kind if kind else self.entry_kind[i] in ("point", "joint")):
                 self.entry_mask[i] = 0.0
 
+    def target_mask(self, keyframe: int, label: str) -> np.ndarray:
+        """1 on the entries of target ``label`` of ``keyframe``, 0 elsewhere."""
+        saved = self.entry_mask
+        self.entry_mask = np.ones_like(saved)
+        self.leave_out(keyframe, label)
+        mask = 1.0 - self.entry_mask
+        self.entry_mask = saved
+        return mask
+
     def reached(self, errors: dict, skip: frozenset = frozenset(), scale: float = 1.0) -> bool:
         """Whether every target of ``errors`` (but ``skip``) is within ``scale`` x its tolerance."""
         return all(v <= scale * self.tolerance[self.unit(n)] for n, v in errors.items() if n not in skip)
@@ -324,12 +334,18 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                 f"lambda {entry['lambda']:9.2e} Jacobians {entry['jacobians']:3d} {entry['elapsed']:7.1f}s")
         return on_step
 
-    def run(stage: str, active: np.ndarray, z_start: np.ndarray) -> LMResult:
+    def run(stage: str, active: np.ndarray, z_start: np.ndarray, target: tuple[int, str] | None = None) -> LMResult:
+        """One LM stage on the ``active`` keyframes (or on the single ``target``)."""
         res.active = active.astype(np.float64)
         on = [k for k in range(count) if active[k] > 0]
+        saved_mask = res.entry_mask.copy()
+        if target is not None:
+            res.entry_mask = saved_mask * res.target_mask(*target)
 
         def done(zt, rt):
             errors = res.target_errors(zt)
+            if target is not None:
+                return res.reached({target[1]: errors[target[0]][target[1]]}, scale=0.5)
             return all(res.reached(errors[k], skip[k], scale=0.5) for k in on)
 
         result = levenberg_marquardt(res.residuals, res.jacobian, z_start, max_steps=max(steps_left[0], 0),
@@ -338,6 +354,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                                      exact_rows=res.smoothness_jacobian, stall_steps=STALL_STEPS, stall_rtol=STALL_RTOL,
                                      on_step=record(stage))
         steps_left[0] -= result.steps
+        res.entry_mask = saved_mask
         lm_status.append(f"{stage}: {result.status} after {result.steps} steps")
         return result
 
@@ -372,22 +389,26 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     steps_left[0] = max_steps
     if missed and final_status != "max_seconds":
         z_all = z
-        for k in missed:
+        # every missed target, the farthest (relative to its tolerance) first, solved alone from here
+        targets = sorted(((k, n) for k in missed for n, v in errors[k].items()
+                          if n not in skip[k] and v > res.tolerance[res.unit(n)]),
+                         key=lambda kn: -errors[kn[0]][kn[1]] / res.tolerance[res.unit(kn[1])])
+        for k, name in targets:
             if steps_left[0] <= 0 or (deadline is not None and time.perf_counter() >= deadline):
                 break
-            alone = run(f"keyframe {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all)
-            best[k] = res.target_errors(alone.x)[k]
-            if res.reached(best[k], skip[k]):
-                conflict.append(k)
+            alone = run(f"{name} @ {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all,
+                        target=(k, name))
+            best[k][name] = res.target_errors(alone.x)[k][name]
+            if res.reached({name: best[k][name]}):
+                conflict.append((k, name))
             elif alone.status in ("stationary", "no_progress"):
-                how = ("it stopped at a stationary point (no small change of the bars brings it closer)"
-                       if alone.status == "stationary" else
-                       f"it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
-                       "reach within the device limits as far as this solver can tell")
-                for name, value in best[k].items():
-                    if name not in skip[k] and value > res.tolerance[res.unit(name)]:
-                        found[(k, name)] = how
-        if found and steps_left[0] > 0:
+                found[(k, name)] = (
+                    "it stopped at a stationary point (no small change of the bars brings it closer)"
+                    if alone.status == "stationary" else
+                    f"it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
+                    "reach within the device limits as far as this solver can tell")
+        if found:
+            steps_left[0] = max_steps  # the final solve without them has a budget of its own too
             for k, name in found:
                 res.leave_out(k, name)
             skip = [frozenset(skip[k] | {n for (j, n) in found if j == k}) for k in range(count)]
@@ -413,14 +434,14 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
             if (k, name) in sentences:
                 reasons.append(sentences[(k, name)])
             elif (k, name) in found:
-                reasons.append(f"{name}: {unit(value)} from the target; a solve for this keyframe alone came no "
+                reasons.append(f"{name}: {unit(value)} from the target; a solve for this target alone came no "
                                f"nearer than {unit(best[k][name])}, where {found[(k, name)]}; left out of the "
                                "final fit")
             elif value > res.tolerance[res.unit(name)]:
                 line = f"{name}: {unit(value)} from the target"
-                if k in conflict:
-                    line += (f"; a solve for this keyframe alone reaches it ({unit(best[k][name])}), but not together "
-                             "with the other keyframes")
+                if (k, name) in conflict:
+                    line += (f"; a solve for this target alone reaches it ({unit(best[k][name])}), but not together "
+                             "with the other targets")
                 else:
                     line += f"; the solve stopped before reaching it ({final_status})"
                 reasons.append(line)

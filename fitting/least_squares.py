@@ -160,11 +160,10 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
                 status = "done"
                 break
             if stall_steps and len(costs) > stall_steps and costs[-1 - stall_steps] - cost < stall_rtol * cost:
-                if fresh or not secant_rows:
+                if len(costs) == stall_steps + 1 or not secant_rows:  # the window began with a fresh J
                     status = "no_progress"
                     break
                 refresh()
-                costs = [cost]
                 continue
             if small_x or small_f:
                 if fresh or not secant_rows:

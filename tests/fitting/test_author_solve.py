@@ -458,3 +458,29 @@ def test_a_bar_coordinate_without_effect_is_named(tmp_path):
     result = solve_keyframes(problem, max_steps=2)
     idle = [m for m in result.messages if "no effect" in m]
     assert idle and "hand.rx@0.5s" in idle[0] and "hand.y@0.5s" not in idle[0], result.messages
+
+
+def test_unreachable_target_found_by_the_solve(tmp_path):
+    """A target the pre-check lets through (a hand 35 cm above where it hangs: within its
+    string's length, but the bars cannot lift it there): the solve for it alone stalls, it is
+    named unreachable and left out, and every other target is reached (exit 4)."""
+    from fitting import load_keyframes
+    from fitting.reachability import unreachable_targets
+
+    table = tomllib.loads(EXAMPLE.read_text())
+    table["keyframes"][1]["points"]["hand_right"] = [-0.08, 0.75, 0.05]
+    path = tmp_path / "high.toml"
+    path.write_text(tomli_w.dumps(table))
+    from fitting import build_problem
+
+    assert unreachable_targets(build_problem(load_keyframes(path))) == []  # not the pre-check's
+    code, summary = _author(path, tmp_path / "out")
+    assert code == 4 and summary["status"] == "unreachable"
+    verdicts = summary["verdicts"]
+    assert [v["status"] for v in verdicts] == ["reached", "unreachable", "reached"]
+    assert any(r.startswith("hand_right:") and "alone" in r for r in verdicts[1]["reasons"])
+    for k, v in enumerate(verdicts):
+        for name, error in v["errors"].items():
+            if (k, name) != (1, "hand_right"):
+                tolerance = ANGLE_TOLERANCE if v["units"][name] == "deg" else POSITION_TOLERANCE
+                assert error <= tolerance, (k, name, error)
