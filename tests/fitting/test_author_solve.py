@@ -484,3 +484,19 @@ def test_unreachable_target_found_by_the_solve(tmp_path):
             if (k, name) != (1, "hand_right"):
                 tolerance = ANGLE_TOLERANCE if v["units"][name] == "deg" else POSITION_TOLERANCE
                 assert error <= tolerance, (k, name, error)
+
+
+def test_bfgs_keeps_working_with_the_verdict(tmp_path):
+    """--method bfgs (penalties, reverse-mode gradient) still runs, and its result gets the
+    same verdict and exit code: here 3 steps cannot reach a target 3 cm off."""
+    table = {"author": {"scene": "hanging", "duration": 0.5, "particle_count": 10, "force_scale": 0.2},
+             "bars": {"hand": {"knots": [0.0, 0.5], "free": ["x", "y", "z"]}},
+             "keyframes": [{"t": 0.495, "points": {"hand_left": [0.18, 0.42, 0.15]}}]}
+    path = tmp_path / "kf.toml"
+    path.write_text(tomli_w.dumps(table))
+    code, summary = _author(path, tmp_path / "out", "--method", "bfgs", "--max-steps", "3")
+    assert summary["method"] == "bfgs" and summary["steps"] <= 3
+    assert code == summary["exit_code"] == 3 and summary["status"] == "not_converged"
+    verdict = summary["verdicts"][0]
+    assert verdict["status"] == "not_converged" and verdict["units"] == {"hand_left": "m"}
+    assert any("ran out of steps or time" in r for r in verdict["reasons"])
