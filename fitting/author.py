@@ -42,16 +42,20 @@ __all__ = ["AuthoringProblem", "author", "authored_scene_table", "build_problem"
            "write_scene"]
 
 
-def enable_compilation_cache(folder: str | Path | None = None) -> Path:
+def enable_compilation_cache(folder: str | Path | None = None) -> Path | None:
     """Keeps JAX's compiled functions (the spline, the smoothness Jacobian, the loss terms) on
     disk, as Warp keeps its kernels: a second ``dmarionette author`` skips their compilation
     (several seconds on one core). ``folder``: default ``$JAX_COMPILATION_CACHE_DIR``, else
-    ``~/.cache/dmarionette/jax``. Returns the folder."""
+    ``~/.cache/dmarionette/jax``. Returns the folder, or None when it cannot be created (the
+    cache is only an optimisation: the command then compiles every time)."""
     import os
 
     folder = Path(folder or os.environ.get("JAX_COMPILATION_CACHE_DIR") or Path.home() / ".cache" / "dmarionette"
                   / "jax")
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return folder
