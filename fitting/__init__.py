@@ -9,6 +9,9 @@ custom VJP (docs/gradients.md).
 from .author import AuthoringProblem as AuthoringProblem
 from .author import author as author
 from .author import build_problem as build_problem
+from .author import enable_compilation_cache as enable_compilation_cache
+from .author_solve import EXIT_CODES as EXIT_CODES
+from .author_solve import solve_keyframes as solve_keyframes
 from .bar_spline import BarParameterisation as BarParameterisation
 from .keyframes import AuthorSpec as AuthorSpec
 from .keyframes import KeyframeError as KeyframeError
@@ -22,6 +25,6 @@ from .solve import solve as solve
 from .calibration_data import read_calibration_data as read_calibration_data
 from .calibration_fit import calibrate_session as calibrate_session
 
-__all__ = ["AuthorSpec", "AuthoringObjective", "AuthoringProblem", "BarParameterisation", "KeyframeError",
-           "author", "build_problem", "calibrate_session", "keyframes_from_table", "load_keyframes",
+__all__ = ["AuthorSpec", "AuthoringObjective", "AuthoringProblem", "BarParameterisation", "EXIT_CODES",
+           "KeyframeError", "author", "build_problem", "enable_compilation_cache", "solve_keyframes", "calibrate_session", "keyframes_from_table", "load_keyframes",
            "marionette_rollout", "read_calibration_data", "solve"]

@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from dmarionette.scene.bars import BarTrajectory
@@ -36,7 +38,27 @@ from .keyframes import AuthorSpec
 from .objective import AuthoringObjective
 from .solve import SolveResult, solve
 
-__all__ = ["AuthoringProblem", "author", "authored_scene_table", "build_problem", "write_scene"]
+__all__ = ["AuthoringProblem", "author", "authored_scene_table", "build_problem", "enable_compilation_cache",
+           "write_scene"]
+
+
+def enable_compilation_cache(folder: str | Path | None = None) -> Path | None:
+    """Keeps JAX's compiled functions (the spline, the smoothness Jacobian, the loss terms) on
+    disk, as Warp keeps its kernels: a second ``dmarionette author`` skips their compilation
+    (several seconds on one core). ``folder``: default ``$JAX_COMPILATION_CACHE_DIR``, else
+    ``~/.cache/dmarionette/jax``. Returns the folder, or None when it cannot be created (the
+    cache is only an optimisation: the command then compiles every time)."""
+    import os
+
+    folder = Path(folder or os.environ.get("JAX_COMPILATION_CACHE_DIR") or Path.home() / ".cache" / "dmarionette"
+                  / "jax")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    return folder
 
 
 def _count_passes(engine) -> dict:
@@ -71,6 +93,17 @@ class AuthoringProblem:
 
     def counter(self) -> dict:
         return {k: v for k, v in self.counts.items() if k in ("forward", "backward")}
+
+    def forward(self, y: dict) -> dict[str, np.ndarray]:
+        """The rollout's outputs for knots ``y`` (NumPy; no JAX dispatch but the jitted spline)."""
+        from dmarionette.grad.engine import OUTPUT_FIELDS, RolloutInputs
+
+        if not hasattr(self, "_inputs"):
+            self._inputs = jax.jit(self.param.rollout_inputs)
+        inputs = {k: np.asarray(v) for k, v in self._inputs({k: jnp.asarray(v) for k, v in y.items()}).items()}
+        constants = {k: np.asarray(v) for k, v in self.objective.constants.items()}
+        result = self.engine.forward(RolloutInputs(**constants, **inputs))
+        return {k: np.asarray(getattr(result, k)) for k in OUTPUT_FIELDS}
 
 
 def build_problem(spec: AuthorSpec, *, optimization_level: int = 2,
@@ -166,6 +199,24 @@ def replay_gap(problem: AuthoringProblem, trajectory, outputs: dict) -> dict:
             "bar_reaction_max_abs_N": float(reaction)}
 
 
+def _plain_verdicts(spec: AuthorSpec, report: list[dict], stopped: str) -> list[dict]:
+    """Per keyframe (``bfgs``, ``lm``, ``gauss_newton``): reached within the tolerances, else not converged."""
+    verdicts = []
+    for k, entry in enumerate(report):
+        errors = {**entry["points_m"], **{f"{n} (body)": v for n, v in entry["bodies_m"].items()},
+                  **{n: max(abs(a) for a in v) for n, v in entry["joints_deg"].items()},
+                  **{f"{n} (orientation)": v for n, v in entry["orientations_deg"].items()}}
+        joints = set(entry["joints_deg"]) | {f"{n} (orientation)" for n in entry["orientations_deg"]}
+        missed = {n: v for n, v in errors.items()
+                  if v > (spec.angle_tolerance if n in joints else spec.position_tolerance)}
+        reasons = [f"{n}: {v:.3g} {'deg' if n in joints else 'm'} from the target; the solver {stopped}"
+                   for n, v in missed.items()]
+        verdicts.append({"index": k, "t": entry["t"], "status": "not_converged" if missed else "reached",
+                         "errors": errors, "best": {}, "reasons": reasons,
+                         "units": {n: "deg" if n in joints else "m" for n in errors}})
+    return verdicts
+
+
 def _convergence_plot(path: Path, history: list[dict], title: str) -> Path:
     import matplotlib
 
@@ -219,9 +270,16 @@ def _export(trajectory, scene, out: Path) -> dict:
 
 
 def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, method: str | None = None,
+           max_seconds: float | None = None, continuation: bool | None = None, jacobian: str | None = None,
            progress: bool = True, animation: bool = True, exports: bool = True, optimization_level: int = 2,
            checkpoint_steps: int | None = None, fps: float = 15.0) -> dict:
-    """Solves ``spec`` and writes its outputs to ``out``; returns the summary (also ``summary.json``)."""
+    """Solves ``spec`` and writes its outputs to ``out``; returns the summary (also ``summary.json``).
+
+    ``method``, ``max_steps``, ``max_seconds``, ``continuation`` and ``jacobian`` override the file's
+    ``[solver]``. The summary's ``status`` is ``"reached"``, ``"not_converged"``,
+    ``"unreachable"`` or ``"limit_exceeded"`` and ``exit_code`` the command's exit code for it
+    (:data:`fitting.author_solve.EXIT_CODES`); ``verdicts`` says, per keyframe, why.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     say = (lambda line: print(line, file=sys.stderr, flush=True)) if progress else (lambda line: None)
@@ -231,22 +289,53 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
     objective, param = problem.objective, problem.param
     built = time.perf_counter()
     y0 = param.initial()
-    before = _plain(objective.outputs(y0))
+    before = problem.forward(y0)
     method = method or spec.method
+    max_steps = max_steps or spec.max_steps
+    max_seconds = max_seconds if max_seconds is not None else spec.max_seconds
     say(f"solving with {method}: {sum(int(np.size(v)) for v in y0.values())} knot coordinates, "
         f"{problem.puppet_steps} puppet steps of {problem.model.puppet_dt:.6g} s")
-    result: SolveResult = solve(objective, y0, method=method, max_steps=max_steps or spec.max_steps,
-                                rtol=spec.rtol, atol=spec.atol, progress=progress, counter=problem.counter,
-                                y_scale=param.y_scale())
-    after = _plain(objective.outputs(result.y))
-    loss_after, terms_after = objective.loss_terms(result.y)
+    if method == "lm_fd":
+        from .author_solve import solve_keyframes
+
+        outcome = solve_keyframes(problem, max_steps=max_steps, max_seconds=max_seconds,
+                                  continuation=spec.continuation if continuation is None else continuation,
+                                  position_tolerance=spec.position_tolerance, angle_tolerance=spec.angle_tolerance,
+                                  say=say, secant=(jacobian or spec.jacobian) == "secant")
+        y_final = {k: jnp.asarray(v) for k, v in outcome.y.items()}
+        history, solve_seconds, solver_result = outcome.history, outcome.seconds, "; ".join(outcome.lm_status)
+        verdicts = [dataclasses.asdict(v) for v in outcome.verdicts]
+        messages = list(outcome.messages)
+    else:
+        result: SolveResult = solve(objective, y0, method=method, max_steps=max_steps, rtol=spec.rtol,
+                                    atol=spec.atol, progress=progress, counter=problem.counter,
+                                    y_scale=param.y_scale(), max_seconds=max_seconds)
+        y_final, history, solve_seconds, solver_result = result.y, result.history, result.seconds, result.result
+        verdicts = _plain_verdicts(spec, objective.keyframe_report(problem.forward(y_final)),
+                                   "met its termination test there" if result.converged
+                                   else "ran out of steps or time")
+        messages = []
+    after = problem.forward(y_final)
+    loss_before, terms_before = objective.loss_terms_of(y0, before)
+    loss_after, terms_after = objective.loss_terms_of(y_final, after)
+    limits_after = objective.limits_report(y_final, after)
+    over = [f"{name}: {entry['max_outside_workspace_m'] * 1000:.3g} mm outside the device workspace"
+            for name, entry in limits_after.items() if entry.get("max_outside_workspace_m", 0.0) > 0.0]
+    over += [f"{name}: device force {entry['max_device_force_N']:.3g} N above the {entry['max_force_N']:g} N limit"
+             for name, entry in limits_after.items() if entry["max_device_force_N"] > entry.get("max_force_N", np.inf)]
+    messages += [line for line in over if line not in messages]
+    statuses = [v["status"] for v in verdicts]
+    status = ("not_converged" if "not_converged" in statuses else "unreachable" if "unreachable" in statuses
+              else "limit_exceeded" if over else "reached")
+    from .author_solve import EXIT_CODES
+
     stem = Path(spec.source).stem
     files = {}
     initial_path = write_scene(out / "initial_scene.toml", authored_scene_table(
         spec, param.trajectories(y0), name=f"{stem}_initial", description=f"{stem}: initial bar knots"),
         f"Initial bar knots of the keyframes file {spec.source} (dmarionette author).")
     authored_path = write_scene(out / "authored_scene.toml", authored_scene_table(
-        spec, param.trajectories(result.y), name=f"{stem}_authored",
+        spec, param.trajectories(y_final), name=f"{stem}_authored",
         description=f"{stem}: bars authored from keyframes"),
         f"Bars authored from the keyframes file {spec.source} by dmarionette author.\n"
         "Replay: dmarionette simulate authored_scene.toml")
@@ -259,8 +348,8 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
     files["trajectory"] = str(write_marionette_trajectory(out / "trajectory.npz", trajectory, scene))
     if exports:
         files.update(_export(trajectory, scene, out))
-    files["convergence"] = str(_convergence_plot(out / "convergence.png", result.history,
-                                                 f"{stem}: {method}, {len(result.history) - 1} steps"))
+    files["convergence"] = str(_convergence_plot(out / "convergence.png", history,
+                                                 f"{stem}: {method}, {len(history) - 1} steps"))
     if animation:
         from dmarionette.render.marionette import render_marionette_animation
 
@@ -282,17 +371,19 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
                                                "workspace_scale": spec.workspace_scale,
                                                "force_scale": spec.force_scale, "feedback": spec.feedback},
         "weights": dataclasses.asdict(spec.weights),
-        "converged": result.converged, "solver_result": result.result,
-        "steps": len(result.history) - 1, "loss_before": result.history[0]["loss"],
-        "loss_after": float(loss_after), "terms_before": result.history[0]["terms"],
+        "status": status, "exit_code": EXIT_CODES[status], "converged": status == "reached",
+        "verdicts": verdicts, "messages": messages,
+        "tolerances": {"position_m": spec.position_tolerance, "angle_deg": spec.angle_tolerance},
+        "solver_result": solver_result, "steps": len(history) - 1, "loss_before": float(loss_before),
+        "loss_after": float(loss_after), "terms_before": {k: float(v) for k, v in terms_before.items()},
         "terms_after": {k: float(v) for k, v in terms_after.items()},
         "keyframes_before": objective.keyframe_report(before), "keyframes_after": objective.keyframe_report(after),
-        "limits_before": objective.limits_report(y0, before), "limits_after": objective.limits_report(result.y, after),
+        "limits_before": objective.limits_report(y0, before), "limits_after": limits_after,
         "replay_gap": gap, "rollouts": dict(problem.counts),
-        "seconds": {"build": built - started, "solve": result.seconds, "total": time.perf_counter() - started},
+        "seconds": {"build": built - started, "solve": solve_seconds, "total": time.perf_counter() - started},
         "knots": {name: {"t": tr.times.tolist(), "position": tr.positions.tolist(), "rotation": tr.rotations.tolist()}
-                  for name, tr in param.trajectories(result.y).items()},
-        "history": result.history, "files": files,
+                  for name, tr in param.trajectories(y_final).items()},
+        "history": history, "files": files,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

@@ -32,14 +32,33 @@ def add_author_command(commands) -> None:
                     "and 'live' take it), initial_scene.toml, trajectory.npz (the simulator's replay), "
                     "motion.bvh and motion.glb, animation_before.gif and animation_after.gif, convergence.png "
                     "and summary.json (per-keyframe errors before and after, the solver history). Prints one "
-                    "line per solver step, then the summary's main numbers as JSON.")
+                    "line per solver step, a verdict per keyframe (reached / unreachable / not converged, with "
+                    "the reason), then the summary's main numbers as JSON. Exit codes: 0 every keyframe reached "
+                    "within the tolerances and the device limits held; 3 not converged (a keyframe that is "
+                    "reachable, or not shown unreachable, was missed: the solver stopped or ran out of steps "
+                    "or time); 4 some keyframe unreachable (named; the others reached); 5 a device limit "
+                    "exceeded; 2 bad input.")
     author.add_argument("keyframes", type=Path, help="the keyframes TOML file")
     author.add_argument("--out", type=Path, default=None, help="output folder (default: out/<keyframes file name>)")
     author.add_argument("--max-steps", type=integer(1, 100_000), default=None,
                         help="solver steps at most (default: the file's [solver] max_steps, else 60)")
-    author.add_argument("--method", choices=["bfgs", "lm", "gauss_newton"], default=None,
-                        help="bfgs: the scalar loss with reverse-mode gradients (default); lm / gauss_newton: the "
-                             "residual vector with a reverse-mode Jacobian (one backward pass per residual)")
+    author.add_argument("--method", choices=["lm_fd", "bfgs", "lm", "gauss_newton"], default=None,
+                        help="lm_fd (default): Levenberg-Marquardt on the keyframe residuals with a forward-"
+                             "difference Jacobian and the device limits as hard limits; bfgs: the scalar loss with "
+                             "reverse-mode gradients; lm / gauss_newton: optimistix on the residual vector with a "
+                             "reverse-mode Jacobian (one backward pass per residual); the last three keep the "
+                             "device limits as penalties (default: the file's [solver] method)")
+    author.add_argument("--max-seconds", type=number(0.0, low_open=True, unit="s"), default=None,
+                        help="wall-time budget of the solve: no solver step starts after it; a keyframe still "
+                             "missed then is reported as not converged (default: the file's [solver] max_seconds, "
+                             "else none)")
+    author.add_argument("--jacobian", choices=["secant", "fd"], default=None,
+                        help="lm_fd: between forward-difference Jacobians (n rollouts each), update the keyframe "
+                             "rows by Broyden's secant formula (secant: about one rollout a step) or recompute them "
+                             "every step (fd) (default: the file's [solver] jacobian, else secant)")
+    author.add_argument("--continuation", action="store_true", default=None,
+                        help="lm_fd: switch the keyframes on in time order (default: the file's [solver] "
+                             "continuation, else all at once)")
     author.add_argument("--checkpoint-steps", type=integer(1, 1_000_000), default=None,
                         help="puppet steps per taped gradient segment (default: sqrt of the rollout's steps)")
     author.add_argument("--no-animation", action="store_true", help="skip the before/after animations")
@@ -60,21 +79,50 @@ def _run_author(args: argparse.Namespace) -> int:
     except ImportError as error:
         raise RuntimeError(f"'dmarionette author' needs the fitting extra ({error.name} is missing): "
                            "pip install 'dmarionette[fitting]'") from None
-    from .author import author
+    from .author import author, enable_compilation_cache
     from .keyframes import load_keyframes
 
     spec = load_keyframes(args.keyframes)
     out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / args.keyframes.stem)
-    summary = author(spec, out, max_steps=args.max_steps, method=args.method, progress=not args.quiet,
+    enable_compilation_cache()
+    summary = author(spec, out, max_steps=args.max_steps, method=args.method, max_seconds=args.max_seconds,
+                     continuation=args.continuation, jacobian=args.jacobian, progress=not args.quiet,
                      animation=not args.no_animation, exports=not args.no_export,
                      optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
                      fps=args.fps)
-    keys = ("loss_before", "loss_after", "steps", "converged", "replay_gap", "seconds", "files")
+    keys = ("status", "exit_code", "loss_before", "loss_after", "steps", "converged", "replay_gap", "seconds",
+            "files")
     print(json.dumps({k: summary[k] for k in keys}
                      | {"max_keyframe_error_m": max(e["max_position_error_m"] for e in summary["keyframes_after"]),
-                        "max_keyframe_error_deg": max(e["max_joint_error_deg"] for e in summary["keyframes_after"])},
+                        "max_keyframe_error_deg": max(max(e["max_joint_error_deg"], e["max_orientation_error_deg"])
+                                                      for e in summary["keyframes_after"])},
                      indent=2))
-    return 0
+    print(verdict_text(summary, bold=sys.stderr.isatty()), file=sys.stderr)
+    return summary["exit_code"]
+
+
+def verdict_text(summary: dict, *, bold: bool = False) -> str:
+    """The verdict of an authoring summary, one line per keyframe and message; a miss in bold
+    (ANSI when ``bold``, else between ``**``)."""
+    strong = (lambda text: f"\033[1m{text}\033[0m") if bold else (lambda text: f"**{text}**")
+    tol = summary["tolerances"]
+    lines = []
+    for v in summary["verdicts"]:
+        label = {"reached": "reached", "unreachable": "UNREACHABLE", "not_converged": "NOT CONVERGED"}[v["status"]]
+        worst = ", ".join(f"{n} {e:.3g} {v['units'][n]}" if v["units"][n] != "m" else
+                          f"{n} {e * 1000:.3g} mm" if e < 1.0 else f"{n} {e:.3g} m" for n, e in v["errors"].items())
+        line = f"keyframe {v['index'] + 1} (t = {v['t']:g} s): {label} ({worst})"
+        lines.append(line if v["status"] == "reached" else strong(line))
+        lines += [f"    {reason}" for reason in v["reasons"]]
+    lines += [f"note: {m}" for m in summary["messages"]]
+    headline = {"reached": f"every keyframe reached (within {tol['position_m'] * 1000:g} mm and "
+                           f"{tol['angle_deg']:g} deg)",
+                "not_converged": "NOT CONVERGED: a keyframe was missed that was not shown unreachable",
+                "unreachable": "UNREACHABLE keyframes (named above); the others are reached",
+                "limit_exceeded": "DEVICE LIMIT EXCEEDED (see the notes)"}[summary["status"]]
+    lines.append(f"exit code {summary['exit_code']}: " + (headline if summary["status"] == "reached"
+                                                             else strong(headline)))
+    return "\n".join(lines)
 
 
 def add_calibrate_command(commands) -> None:

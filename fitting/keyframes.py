@@ -24,14 +24,15 @@ from dmarionette.scene.scene import Scene, load_scene, scene_from_table
 from dmarionette.scene.fields import (SceneError, check_keys, read_choice, read_float, read_int, read_str, read_table,
                                       read_toml_file, read_vec3)
 
-__all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "Weights", "keyframes_from_table",
-           "load_keyframes",
-           "BAR_DOFS", "DEVICES"]
+__all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "METHODS", "Weights", "auto_knots",
+           "keyframes_from_table", "load_keyframes", "BAR_DOFS", "DEVICES"]
 
 BAR_DOFS = ("x", "y", "z", "rx", "ry", "rz")
 """A bar's six degrees of freedom: centre position [m] and XYZ Euler angles [deg]."""
 
 DEVICES = ("omni", "falcon", "none")
+#: ``[solver] method`` choices; the first is the default.
+METHODS = ("lm_fd", "bfgs", "lm", "gauss_newton")
 """Device specs the workspace and force terms can use (``none``: no such terms)."""
 
 
@@ -57,6 +58,8 @@ class Weights:
         smoothness: on the bar's acceleration, integrated over time [s^1.5/m] (positions)
             and [s^1.5/rad] (angles): ``0.5 w^2 \\int |a|^2 dt``.
         workspace: per metre outside the device workspace, integrated over time [1/(m s^0.5)].
+        rest: with ``[author] end_at_rest``, per m/s of every body centre's speed over the
+            last puppet step [s/m] (100: 1 cm/s costs 0.5).
         force: per newton of device force above the device's limit, integrated over time
             [1/(N s^0.5)].
     """
@@ -66,6 +69,7 @@ class Weights:
     smoothness: float = 0.05
     workspace: float = 1000.0
     force: float = 10.0
+    rest: float = 100.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,12 +97,17 @@ class KeyframePose:
         joints: joint name -> target angles [deg], one per axis of a hinge or universal joint.
         points: puppet point name -> world position [m].
         bodies: body name -> world position of its centre [m].
+        weight: multiplies this keyframe's residuals (> 0; 1 by default).
+        orientations: body name -> target world orientation, XYZ Euler angles [deg]
+            (``R = Rz Ry Rx``, as the bars').
     """
 
     t: float
     joints: Mapping[str, tuple[float, ...]]
     points: Mapping[str, tuple[float, float, float]]
     bodies: Mapping[str, tuple[float, float, float]]
+    weight: float = 1.0
+    orientations: Mapping[str, tuple[float, float, float]] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,9 +127,19 @@ class AuthorSpec:
         force_scale: device force = ``force_scale`` x the strings' force on the bar (as ``live``).
         feedback: ``"reaction"`` (the strings' pull, what ``live`` sends) or ``"eq4"``.
         max_force: the device's force limit [N] (from the spec unless overridden).
-        max_steps: solver iterations at most; rtol, atol: its convergence tolerances.
-        method: ``"bfgs"`` (scalar loss, reverse-mode gradient) or ``"lm"``/``"gauss_newton"``
-            (residuals, reverse-mode Jacobian).
+        max_steps: solver iterations at most; rtol, atol: optimistix's convergence tolerances.
+        method: ``"lm_fd"`` (Levenberg-Marquardt on the keyframe residuals, forward-difference
+            Jacobian, hard device limits: :mod:`fitting.author_solve`), ``"bfgs"`` (scalar
+            loss, reverse-mode gradient) or ``"lm"``/``"gauss_newton"`` (optimistix on the
+            residuals, reverse-mode Jacobian).
+        position_tolerance: [m], angle_tolerance: [deg]: a keyframe is reached when every
+            target is within them.
+        max_seconds: the solve's wall-time budget [s], or None.
+        continuation: ``lm_fd`` switches keyframes on in time order.
+        jacobian: ``lm_fd``'s keyframe Jacobian between forward-difference ones: ``"secant"``
+            (Broyden updates) or ``"fd"`` (a forward-difference Jacobian every step).
+        end_at_rest: the puppet must end at rest: every body centre's speed over the last
+            puppet step within ``rest_tolerance`` [m/s].
     """
 
     source: str
@@ -139,10 +158,18 @@ class AuthorSpec:
     rtol: float
     atol: float
     method: str
+    position_tolerance: float = 1e-3
+    angle_tolerance: float = 0.5
+    max_seconds: float | None = None
+    continuation: bool = False
+    jacobian: str = "secant"
+    end_at_rest: bool = False
+    rest_tolerance: float = 0.01
 
 
 _TOP_KEYS = ["author", "bars", "weights", "solver", "keyframes"]
-_AUTHOR_KEYS = ["scene", "duration", "particle_count", "string_hz", "puppet_hz", "device", "workspace_scale",
+_AUTHOR_KEYS = ["scene", "duration", "end_at_rest", "particle_count", "string_hz", "puppet_hz", "device",
+                "workspace_scale",
                 "force_scale", "feedback", "max_force"]
 
 
@@ -178,8 +205,13 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     workspace_scale = read_float(head, "workspace_scale", where, 1.0, positive=True)
     force_scale = read_float(head, "force_scale", where, 0.3, minimum=0.0)
     max_force = read_float(head, "max_force", where, positive=True) if "max_force" in head else None
+    end_at_rest = head.get("end_at_rest", False)
+    if not isinstance(end_at_rest, bool):
+        raise KeyframeError(where, "end_at_rest", end_at_rest, "true or false")
 
-    bars = _read_bars(read_table(table, "bars", f"{source}: top level"), f"{source}: [bars]", scene, duration)
+    keyframes = _read_keyframes(table, source, scene, duration)
+    bars = _read_bars(read_table(table, "bars", f"{source}: top level"), f"{source}: [bars]", scene, duration,
+                      [k.t for k in keyframes])
     weights_table = read_table(table, "weights", f"{source}: top level", {})
     where = f"{source}: [weights]"
     check_keys(weights_table, [f.name for f in dataclasses.fields(Weights)], where)
@@ -187,16 +219,26 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
                          for f in dataclasses.fields(Weights)})
     solver = read_table(table, "solver", f"{source}: top level", {})
     where = f"{source}: [solver]"
-    check_keys(solver, ["method", "max_steps", "rtol", "atol"], where)
-    method = read_choice(solver, "method", where, ["bfgs", "lm", "gauss_newton"], "bfgs")
+    check_keys(solver, ["method", "max_steps", "rtol", "atol", "position_tolerance", "angle_tolerance",
+                        "max_seconds", "continuation", "jacobian", "rest_tolerance"], where)
+    method = read_choice(solver, "method", where, list(METHODS), "lm_fd")
     max_steps = read_int(solver, "max_steps", where, 60, minimum=1, maximum=100_000)
     rtol = read_float(solver, "rtol", where, 1e-6, positive=True)
     atol = read_float(solver, "atol", where, 1e-8, positive=True)
-    keyframes = _read_keyframes(table, source, scene, duration)
+    position_tolerance = read_float(solver, "position_tolerance", where, 1e-3, positive=True, maximum=1.0)
+    angle_tolerance = read_float(solver, "angle_tolerance", where, 0.5, positive=True, maximum=180.0)
+    max_seconds = read_float(solver, "max_seconds", where, positive=True) if "max_seconds" in solver else None
+    continuation = solver.get("continuation", False)
+    if not isinstance(continuation, bool):
+        raise KeyframeError(where, "continuation", continuation, "true or false")
+    jacobian = read_choice(solver, "jacobian", where, ["secant", "fd"], "secant")
+    rest_tolerance = read_float(solver, "rest_tolerance", where, 0.01, positive=True, maximum=10.0)
     return AuthorSpec(source=source, scene=scene, scene_table=scene_table, duration=duration, bars=bars,
                       keyframes=keyframes, weights=weights, device=device, workspace_scale=workspace_scale,
                       force_scale=force_scale, feedback=feedback, max_force=max_force, max_steps=max_steps,
-                      rtol=rtol, atol=atol, method=method)
+                      rtol=rtol, atol=atol, method=method, position_tolerance=position_tolerance,
+                      angle_tolerance=angle_tolerance, max_seconds=max_seconds, continuation=continuation,
+                      jacobian=jacobian, end_at_rest=end_at_rest, rest_tolerance=rest_tolerance)
 
 
 def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scene, dict[str, Any]]:
@@ -221,7 +263,21 @@ def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scen
     return scene_from_table(scene_table, base.source), scene_table
 
 
-def _read_bars(table: Mapping[str, Any], where: str, scene: Scene, duration: float) -> tuple[BarFreedom, ...]:
+def auto_knots(keyframe_times: list[float], duration: float, step: float) -> list[float]:
+    """Knot times placed from the keyframes: 0, every keyframe time and the end, leaving out a
+    time less than two puppet steps ``step`` [s] after the previous knot (the end is kept and
+    the knot before it dropped instead)."""
+    knots = [0.0]
+    for t in list(keyframe_times) + [duration]:
+        if t - knots[-1] >= 2.0 * step:
+            knots.append(float(t))
+        elif t == duration and len(knots) > 1:
+            knots[-1] = float(duration)
+    return knots if len(knots) >= 2 else [0.0, float(duration)]
+
+
+def _read_bars(table: Mapping[str, Any], where: str, scene: Scene, duration: float,
+               keyframe_times: list[float]) -> tuple[BarFreedom, ...]:
     names = [b.name for b in scene.bars]
     if not table:
         raise KeyframeError(where, "bars", {}, f"at least one [bars.NAME] table, NAME one of {names}")
@@ -233,11 +289,14 @@ def _read_bars(table: Mapping[str, Any], where: str, scene: Scene, duration: flo
         if not isinstance(entry, Mapping):
             raise KeyframeError(where, name, entry, "a table with knots and free")
         check_keys(entry, ["knots", "free"], w)
-        knots = entry.get("knots")
+        knots = entry.get("knots", "auto")
+        if knots == "auto":
+            knots = auto_knots(keyframe_times, duration, puppet_step(scene))
         ok = isinstance(knots, list) and len(knots) >= 2 and all(
             isinstance(k, (int, float)) and not isinstance(k, bool) for k in knots)
         if not ok:
-            raise KeyframeError(w, "knots", knots, "a list of at least two knot times [s], e.g. [0.0, 0.5, 1.0]")
+            raise KeyframeError(w, "knots", knots, "a list of at least two knot times [s], e.g. [0.0, 0.5, 1.0], "
+                                                  "or \"auto\" (the default: 0, the keyframe times and the end)")
         knots = [float(k) for k in knots]
         if not all(math.isfinite(k) for k in knots):
             raise KeyframeError(w, "knots", knots, "finite knot times (no NaN or infinity)")
@@ -273,8 +332,9 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
     poses = []
     for i, entry in enumerate(entries):
         where = f"{source}: [[keyframes]] #{i + 1}"
-        check_keys(entry, ["t", "joints", "points", "bodies"], where)
+        check_keys(entry, ["t", "weight", "joints", "points", "bodies", "orientations"], where)
         t = read_float(entry, "t", where)
+        weight = read_float(entry, "weight", where, 1.0, positive=True, maximum=1.0e6)
         if not 0.0 < t <= duration:
             raise KeyframeError(where, "t", t, f"a time inside the motion, 0 < t <= duration ({duration} s)")
         if round(t / puppet_step(scene)) == 0:
@@ -304,10 +364,23 @@ def _read_keyframes(table: Mapping[str, Any], source: str, scene: Scene, duratio
             joints[name] = tuple(float(a) for a in angles)
         points = _read_positions(read_table(entry, "points", where, {}), f"{where}.points", point_names, "point")
         bodies = _read_positions(read_table(entry, "bodies", where, {}), f"{where}.bodies", body_names, "body")
-        if not (joints or points or bodies):
-            raise KeyframeError(where, "joints/points/bodies", None,
-                                "at least one target: [keyframes.joints], [keyframes.points] or [keyframes.bodies]")
-        poses.append(KeyframePose(t=t, joints=joints, points=points, bodies=bodies))
+        orientations = {}
+        table_o = read_table(entry, "orientations", where, {})
+        for name in table_o:
+            if name not in body_names:
+                raise KeyframeError(f"{where}.orientations", name, table_o[name],
+                                    f"the name of a puppet body, one of {body_names}")
+            angles = read_vec3(table_o, name, f"{where}.orientations")
+            if not all(abs(a) <= MAX_TARGET_ANGLE_DEG for a in angles):
+                raise KeyframeError(f"{where}.orientations", name, list(angles),
+                                    f"XYZ Euler angles within +-{MAX_TARGET_ANGLE_DEG:g} degrees")
+            orientations[name] = tuple(float(a) for a in angles)
+        if not (joints or points or bodies or orientations):
+            raise KeyframeError(where, "joints/points/bodies/orientations", None,
+                                "at least one target: [keyframes.joints], [keyframes.points], [keyframes.bodies] or "
+                                "[keyframes.orientations]")
+        poses.append(KeyframePose(t=t, joints=joints, points=points, bodies=bodies, weight=weight,
+                                  orientations=orientations))
     return tuple(poses)
 
 

@@ -5,9 +5,10 @@ drive a scalar minimiser (BFGS on the loss, reverse-mode gradient) and a least-s
 solver (Gauss-Newton / Levenberg-Marquardt on the residual vector). With weights ``w``
 from the keyframes file (``[weights]``, :class:`fitting.keyframes.Weights`):
 
-- **keyframes**: ``w_point (x - x*)`` for every targeted point or body centre [m] and
-  ``w_joint (q - q*)`` for every targeted joint angle [rad], at the puppet step nearest
-  each keyframe time;
+- **keyframes**: ``w_point (x - x*)`` for every targeted point or body centre [m],
+  ``w_joint (q - q*)`` for every targeted joint angle [rad] and ``w_joint`` times the
+  rotation vector of every targeted body orientation's error [rad], at the puppet step
+  nearest each keyframe time;
 - **smoothness**: ``w_smoothness`` times the authored bars' accelerations, so that
   ``0.5 sum r^2 = 0.5 w^2 \\int (|a|^2 + |alpha|^2) dt`` (exact for the Hermite spline;
   positions in m/s^2, angles in rad/s^2);
@@ -31,6 +32,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from dmarionette.rotations import euler_to_matrix, matrix_to_quat
 
 from .bar_spline import BarParameterisation
 from .keyframes import AuthorSpec, keyframe_steps
@@ -74,15 +77,16 @@ class AuthoringObjective:
         self.rollout = rollout
         self.constants = {k: jnp.asarray(v) for k, v in constants.items()}
         self.steps = keyframe_steps(spec, model.puppet_dt)
+        self.puppet_dt = float(model.puppet_dt)
         puppet = model.puppet
         joint_offset, offset = {}, 7  # the free root: position, quaternion
         for joint in spec.scene.puppet.joints:
             count = 4 if joint.type == "ball" else len(joint.axes)
             joint_offset[joint.name] = offset
             offset += count
-        rows = {"point": [], "body": [], "joint": []}
-        cols = {"point": [], "body": [], "joint": []}
-        targets = {"point": [], "body": [], "joint": []}
+        rows = {"point": [], "body": [], "joint": [], "orientation": []}
+        cols = {"point": [], "body": [], "joint": [], "orientation": []}
+        targets = {"point": [], "body": [], "joint": [], "orientation": []}
         for k, pose in enumerate(spec.keyframes):
             for name, value in pose.points.items():
                 rows["point"].append(self.steps[k]), cols["point"].append(puppet.point_names.index(name))
@@ -94,11 +98,16 @@ class AuthoringObjective:
                 for axis, angle in enumerate(angles):
                     rows["joint"].append(self.steps[k]), cols["joint"].append(joint_offset[name] + axis)
                     targets["joint"].append(np.radians(angle))
+        for k, pose in enumerate(spec.keyframes):
+            for name, angles in pose.orientations.items():
+                rows["orientation"].append(self.steps[k]), cols["orientation"].append(puppet.body_names.index(name))
+                targets["orientation"].append(matrix_to_quat(euler_to_matrix(np.asarray(angles, float))))
         self.rows = {k: np.array(v, dtype=np.int64) for k, v in rows.items()}
         self.cols = {k: np.array(v, dtype=np.int64) for k, v in cols.items()}
         self.targets = {"point": np.array(targets["point"], float).reshape(-1, 3),
                         "body": np.array(targets["body"], float).reshape(-1, 3),
-                        "joint": np.array(targets["joint"], float)}
+                        "joint": np.array(targets["joint"], float),
+                        "orientation": np.array(targets["orientation"], float).reshape(-1, 4)}
         self.limits = device_limits(spec)
         self.feedback_output = "bar_reaction" if spec.feedback == "reaction" else "bar_feedback"
         self.boxes = {}
@@ -114,22 +123,37 @@ class AuthoringObjective:
         return self.rollout({**self.constants, **self.param.rollout_inputs(y)})
 
     def keyframe_residuals(self, outputs: dict) -> dict[str, jnp.ndarray]:
-        """Unweighted keyframe errors: points and bodies [m] ``(N, 3)``, joints [rad] ``(N,)``."""
+        """Unweighted keyframe errors: points and bodies [m] ``(N, 3)``, joints [rad] ``(N,)``,
+        orientations ``(N, 3)``: ``2 sign(w) v`` of ``q_target^-1 q`` [rad] (the rotation
+        vector of the error, to second order; its length is ``2 sin(angle / 2)``).
+        NumPy in, NumPy out; JAX in, JAX out."""
         r = self.rows, self.cols, self.targets
+        xp = np if isinstance(outputs["body_rot"], np.ndarray) else jnp
+        q = outputs["body_rot"][r[0]["orientation"], r[1]["orientation"]]
+        t = r[2]["orientation"]
+        tv, tw, qv, qw = -t[:, :3], t[:, 3:], q[:, :3], q[:, 3:]  # conj(target) * q, (x, y, z, w)
+        v = tw * qv + qw * tv + xp.cross(tv, qv)
+        w = tw * qw - xp.sum(tv * qv, axis=1, keepdims=True)
         return {
             "point": outputs["point_pos"][r[0]["point"], r[1]["point"]] - r[2]["point"],
             "body": outputs["body_pos"][r[0]["body"], r[1]["body"]] - r[2]["body"],
             "joint": outputs["joint_q"][r[0]["joint"], r[1]["joint"]] - r[2]["joint"],
+            "orientation": 2.0 * xp.where(w < 0.0, -1.0, 1.0) * v,
         }
 
     def residuals(self, y, args=None) -> dict[str, jnp.ndarray]:
         """All weighted residuals, by term (``keyframes``, ``smoothness``, ``workspace``, ``force``)."""
+        return self.residuals_of(y, self.outputs(y))
+
+    def residuals_of(self, y, outputs: dict) -> dict[str, jnp.ndarray]:
+        """:meth:`residuals` from the rollout's ``outputs`` at ``y`` (no rollout)."""
         w = self.spec.weights
-        outputs = self.outputs(y)
         key = self.keyframe_residuals(outputs)
         terms = {"keyframes": jnp.concatenate([w.point * key["point"].ravel(), w.point * key["body"].ravel(),
-                                               w.joint * key["joint"]]),
+                                               w.joint * key["joint"], w.joint * key["orientation"].ravel()]),
                  "smoothness": w.smoothness * self.param.acceleration_residuals(y)}
+        if self.spec.end_at_rest:
+            terms["rest"] = w.rest * self.end_velocity(outputs).ravel()
         if self.limits is not None:
             root_dt = np.sqrt(self.param.string_dt)
             paths = self.param.bar_paths(y)
@@ -145,6 +169,11 @@ class AuthoringObjective:
             terms["force"] = w.force * root_dt * jnp.concatenate(excess)
         return terms
 
+    def end_velocity(self, outputs: dict):
+        """Every body centre's mean velocity over the last puppet step [m/s], ``(B, 3)``."""
+        body = outputs["body_pos"]
+        return (body[-1] - body[-2]) / self.puppet_dt
+
     # ----------------------------------------------------------------- solver functions
     def loss(self, y, args=None):
         """``0.5 * sum(r^2)`` over every term (the scalar BFGS minimises)."""
@@ -153,6 +182,13 @@ class AuthoringObjective:
     def loss_terms(self, y, args=None):
         """``(loss, {term: 0.5 sum r^2})``: the loss with the terms as aux."""
         terms = {k: 0.5 * jnp.sum(r**2) for k, r in self.residuals(y).items()}
+        return sum(terms.values()), terms
+
+    def loss_terms_of(self, y, outputs: dict) -> tuple[float, dict[str, float]]:
+        """:meth:`loss_terms` from the rollout's ``outputs`` at ``y`` (jitted, NumPy out)."""
+        if not hasattr(self, "_terms_of"):
+            self._terms_of = jax.jit(lambda y, o: {k: 0.5 * jnp.sum(r**2) for k, r in self.residuals_of(y, o).items()})
+        terms = {k: float(v) for k, v in self._terms_of(y, {k: jnp.asarray(v) for k, v in outputs.items()}).items()}
         return sum(terms.values()), terms
 
     def residual_vector(self, y, args=None):
@@ -164,7 +200,9 @@ class AuthoringObjective:
         """Per authored bar: the largest device force ``force_scale |F|`` [N] and the largest
         distance outside the workspace box [m] over the motion (NumPy)."""
         report = {}
-        paths = self.param.bar_paths(y)
+        if not hasattr(self, "_bar_paths"):
+            self._bar_paths = jax.jit(self.param.bar_paths)
+        paths = self._bar_paths(y)
         for a in self.param.authored:
             force = np.asarray(outputs[self.feedback_output])[:, a["index"]]
             entry = {"max_device_force_N": float(self.spec.force_scale * np.linalg.norm(force, axis=-1).max())}
@@ -181,10 +219,10 @@ class AuthoringObjective:
         """Per keyframe: its time, the step time used, and errors per target (NumPy)."""
         key = {k: np.asarray(v) for k, v in self.keyframe_residuals(outputs).items()}
         puppet_dt = self.param.string_dt * round(self.spec.scene.string_hz / self.spec.scene.puppet_hz)
-        report, counts = [], {"point": 0, "body": 0, "joint": 0}
+        report, counts = [], {"point": 0, "body": 0, "joint": 0, "orientation": 0}
         for k, pose in enumerate(self.spec.keyframes):
             entry = {"t": pose.t, "t_step": float(self.steps[k] * puppet_dt), "points_m": {}, "bodies_m": {},
-                     "joints_deg": {}}
+                     "joints_deg": {}, "orientations_deg": {}}
             for name in pose.points:
                 entry["points_m"][name] = float(np.linalg.norm(key["point"][counts["point"]]))
                 counts["point"] += 1
@@ -195,9 +233,14 @@ class AuthoringObjective:
                 n = len(angles)
                 entry["joints_deg"][name] = np.degrees(key["joint"][counts["joint"]:counts["joint"] + n]).tolist()
                 counts["joint"] += n
+            for name in pose.orientations:
+                half = min(float(np.linalg.norm(key["orientation"][counts["orientation"]])) / 2.0, 1.0)
+                entry["orientations_deg"][name] = float(np.degrees(2.0 * np.arcsin(half)))
+                counts["orientation"] += 1
             positions = list(entry["points_m"].values()) + list(entry["bodies_m"].values())
             entry["max_position_error_m"] = max(positions) if positions else 0.0
             angles = [abs(a) for v in entry["joints_deg"].values() for a in v]
             entry["max_joint_error_deg"] = max(angles) if angles else 0.0
+            entry["max_orientation_error_deg"] = max(entry["orientations_deg"].values(), default=0.0)
             report.append(entry)
         return report

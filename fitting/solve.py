@@ -61,7 +61,8 @@ class SolveResult:
 
 def solve(objective, y0: dict, *, method: str = "bfgs", max_steps: int = 60, rtol: float = 1e-6,
           atol: float = 1e-8, progress: bool | Callable[[str], None] = True,
-          counter: Callable[[], dict] | None = None, y_scale: dict | None = None) -> SolveResult:
+          counter: Callable[[], dict] | None = None, y_scale: dict | None = None,
+          max_seconds: float | None = None) -> SolveResult:
     """Minimises ``objective`` (an :class:`AuthoringObjective`) from the knots ``y0``.
 
     Args:
@@ -75,6 +76,7 @@ def solve(objective, y0: dict, *, method: str = "bfgs", max_steps: int = 60, rto
             works on ``z = y / y_scale`` and on the loss divided by its value at ``y0``, so
             that BFGS's first steps (identity Hessian) are of about the right size; the
             history reports the loss unscaled.
+        max_seconds: wall-time budget [s]: no step starts after it (None: no limit).
     """
     say = progress if callable(progress) else ((lambda line: print(line, file=sys.stderr, flush=True))
                                                if progress else (lambda line: None))
@@ -142,6 +144,8 @@ def solve(objective, y0: dict, *, method: str = "bfgs", max_steps: int = 60, rto
             f"{entry['elapsed']:8.1f}s")
         if bool(done) and i > 0:
             converged = result == optx.RESULTS.successful
+            break
+        if max_seconds is not None and time.perf_counter() - start >= max_seconds:
             break
     return SolveResult(y=unscale(z), history=history, converged=bool(converged),
                        result=str(optx.RESULTS[result]) if hasattr(optx.RESULTS, "__getitem__") else str(result),
