@@ -105,11 +105,17 @@ class CalibrationProblem:
         noise_force: noise scale of a reaction component [N].
         optimization_level: Warp optimisation of the puppet kernels (0 compiles fast).
         checkpoint_steps: puppet steps per taped segment of the gradient engine.
+        window_steps: multiple shooting (:mod:`fitting.calibration_windows`): puppet steps per
+            window, each started from the recorded puppet state; None: one rollout over the
+            whole session (single shooting). Needs ``joint_q`` in ``/puppet/state`` at every
+            frame; the forward-only residuals (:meth:`host_residuals`, :meth:`fd_jacobian`)
+            use the windows, the reverse-mode ones (:meth:`jax_residuals`) do not.
     """
 
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
                  start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
-                 noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None):
+                 noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None,
+                 window_steps: int | None = None):
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.grad.engine import MarionetteGradient
 
@@ -135,6 +141,23 @@ class CalibrationProblem:
         self.labels = [label for p in self.params for label in p.labels(self.string_names)]
         self.theta_start = self._start_theta(start or {})
         self._rows_of = self._target_layout()
+        self.windows = None
+        self.use_windows(window_steps)
+
+    def use_windows(self, window_steps: int | None) -> None:
+        """Multiple shooting with ``window_steps`` puppet steps per window from now on (None: one
+        rollout over the session); the model and its compiled kernels are kept."""
+        if window_steps is None:
+            self.windows = None
+            return
+        from .calibration_windows import WindowedRollout, recorded_joint_q
+
+        joint_q = recorded_joint_q(self.data)
+        if joint_q is None:
+            raise ValueError(f"{self.data.path}: multiple shooting (windows) starts each window from the recorded "
+                             "puppet state, but channel /puppet/state does not hold 'joint_q' at every puppet "
+                             "frame; calibrate with one rollout (windows off) instead")
+        self.windows = WindowedRollout(self.model, self.data, joint_q, int(window_steps))
 
     # ------------------------------------------------------------------ parameters
     def _wrap_engine(self) -> None:
@@ -222,8 +245,14 @@ class CalibrationProblem:
     def host_residuals(self, theta: np.ndarray) -> np.ndarray:
         """Residuals ``(m,)`` at ``theta`` from one forward rollout (numpy, no JAX)."""
         inputs = dataclasses.replace(self.base, **self.constants(np.asarray(theta, np.float64)))
-        outputs = self.engine.forward(inputs)
-        return np.asarray(self.residuals_from_outputs(dataclasses.asdict(outputs)))
+        if self.windows is None:
+            outputs = dataclasses.asdict(self.engine.forward(inputs))
+        else:
+            self.counts["forward"] += 1  # one pass over every window: one rollout of the session
+            if self.on_forward is not None:
+                self.on_forward(self.counts["forward"])
+            outputs = self.windows.forward(inputs)
+        return np.asarray(self.residuals_from_outputs(outputs))
 
     def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the

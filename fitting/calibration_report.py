@@ -35,19 +35,54 @@ def format_table(result: CalibrationResult) -> str:
         lines.append(f"RMS residual, {target:<8}: {result.rms_before[target]:.4g} -> {result.rms_after[target]:.4g} "
                      f"{_RMS_UNITS[target]}")
     u = result.uncertainty
-    lines.append(f"solver {result.solver}: {result.solver_steps} steps, {result.message}; "
+    v = result.verdict
+    if v is not None:
+        for target, chi2 in v.reduced_chi2.items():
+            lines.append(f"residual / given noise, {target:<8}: {v.noise_ratio[target]:.3g} (reduced chi^2 {chi2:.3g})")
+    shooting = "one rollout" if result.window_steps is None else \
+        f"windows of {result.window_steps} puppet steps ({result.window_steps * result.data.puppet_dt:.3g} s)"
+    lines.append(f"solver {result.solver}, {shooting}: {result.solver_steps} steps, {result.message}; "
                  f"{result.cost['forward_passes']} forward and {result.cost['backward_passes']} backward rollouts, "
                  f"{result.cost['seconds']:.1f} s")
     lines.append(f"uncertainty: Jacobian by {'central differences' if result.jacobian['method'] == 'fd' else 'reverse mode'}"
                  f" ({result.jacobian['rows']} residuals, {result.jacobian['forward_passes']} forward and "
                  f"{result.jacobian['backward_passes']} backward rollouts), cond(J^T J) = {u.condition_number:.3g}")
+    if v is not None:
+        for direction in v.null_directions:
+            parts = ", ".join(f"{w:+.2f} {label}" for label, w in direction["components"].items())
+            lines.append(f"unidentifiable direction (log space): {parts}; singular value {direction['singular_ratio']:.2g}"
+                         f" of the largest, standard error {direction['log_error']:.3g}")
+        lines.append("")
+        if v.warnings:
+            lines.extend(f"**WARNING: {w}**" for w in v.warnings)
+        lines.append(f"**RESULT: {_verdict_line(v)} (exit code {v.exit_code})**" if v.exit_code else
+                     f"RESULT: {_verdict_line(v)} (exit code 0)")
     return "\n".join(lines)
+
+
+def _verdict_line(v) -> str:
+    from .calibration_verdict import EXIT_CODES
+
+    return EXIT_CODES[v.exit_code]
+
+
+def _finite_or_text(value):
+    """JSON has no infinity: infinite and NaN numbers are written as the strings "inf" and "nan"."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return "nan" if np.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, dict):
+        return {k: _finite_or_text(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_text(v) for v in value]
+    return value
 
 
 def result_summary(result: CalibrationResult) -> dict[str, Any]:
     """A JSON-ready summary (``calibration.json``)."""
     u, d = result.uncertainty, result.data
-    return {
+    verdict = result.verdict.summary() if result.verdict is not None else None
+    return _finite_or_text({
+        "status": verdict, "window_steps": result.window_steps,
         "session": str(d.path), "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),
@@ -58,8 +93,10 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
         "uncertainty": {"jacobian": result.jacobian, "condition_number": u.condition_number,
                         "noise_variance": u.noise_variance, "known_noise": result.known_noise,
                         "noise_scales": result.noise, "residual_count": u.residual_count,
-                        "correlation": u.correlation.tolist(), "covariance_log": u.covariance.tolist()},
-    }
+                        "correlation": u.correlation.tolist(), "covariance_log": u.covariance.tolist(),
+                        "singular_values": u.singular_values.tolist(),
+                        "identifiable": [bool(x) for x in u.identifiable]},
+    })
 
 
 def calibrated_scene_table(result: CalibrationResult) -> dict[str, Any]:
