@@ -32,7 +32,7 @@ import numpy as np
 from .calibration_data import CalibrationData
 from .synthetic_session import SPEC_FIELDS
 
-__all__ = ["SOLVERS", "CalibrationProblem", "Parameter", "parse_parameters"]
+__all__ = ["SOLVERS", "CalibrationProblem", "Parameter", "parse_parameters", "parse_priors"]
 
 SOLVERS = ("lm-fd", "lm-bwd", "bfgs")
 #: Input field of the rollout engine for each constant.
@@ -93,6 +93,38 @@ def parse_parameters(text: str | Sequence[str], data: CalibrationData) -> list[P
     return params
 
 
+def parse_priors(text: str | Mapping[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]]:
+    """Parses ``"k=300±100,k_d=3+-1"``: a Gaussian prior (mean, standard deviation, in the
+    constant's unit) per constant name, for every string's constant of that name.
+
+    Raises:
+        ValueError: an unknown constant, a malformed entry, a non-positive mean or deviation.
+    """
+    if text is None:
+        return {}
+    if isinstance(text, Mapping):
+        items = {k: (float(v[0]), float(v[1])) for k, v in text.items()}
+    else:
+        items = {}
+        for part in (p.strip() for p in text.split(",") if p.strip()):
+            name, eq, value = part.partition("=")
+            name = name.strip()
+            mean, sep, sd = value.replace("+-", "±").partition("±")
+            try:
+                items[name] = (float(mean), float(sd))
+            except ValueError:
+                sep = ""
+            if not eq or not sep:
+                raise ValueError(f"--prior: got {part!r} in {text!r}; expected NAME=MEAN±SD (or MEAN+-SD), e.g. "
+                                 "'k=300±100,k_d=3+-1'") from None
+    for name, (mean, sd) in items.items():
+        if name not in ENGINE_FIELDS:
+            raise ValueError(f"--prior: unknown constant {name!r}; expected some of {sorted(ENGINE_FIELDS)}")
+        if not (np.isfinite(mean) and mean > 0 and np.isfinite(sd) and sd > 0):
+            raise ValueError(f"--prior {name}: got mean {mean} and deviation {sd}; expected positive finite numbers")
+    return items
+
+
 class CalibrationProblem:
     """The residuals of a session as a function of the log-constants, and their Jacobians.
 
@@ -105,6 +137,8 @@ class CalibrationProblem:
         noise_force: noise scale of a reaction component [N].
         optimization_level: Warp optimisation of the puppet kernels (0 compiles fast).
         checkpoint_steps: puppet steps per taped segment of the gradient engine.
+        priors: Gaussian priors ``{name: (mean, sd)}`` (:func:`parse_priors`): one residual row
+            ``(c - mean) / sd`` per fitted constant of that name, after the data's rows.
         window_steps: multiple shooting (:mod:`fitting.calibration_windows`): puppet steps per
             window, each started from the recorded puppet state; None: one rollout over the
             whole session (single shooting). Needs ``joint_q`` in ``/puppet/state`` at every
@@ -115,7 +149,7 @@ class CalibrationProblem:
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
                  start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
                  noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None,
-                 window_steps: int | None = None):
+                 window_steps: int | None = None, priors: Mapping[str, tuple[float, float]] | None = None):
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.grad.engine import MarionetteGradient
 
@@ -141,8 +175,39 @@ class CalibrationProblem:
         self.labels = [label for p in self.params for label in p.labels(self.string_names)]
         self.theta_start = self._start_theta(start or {})
         self._rows_of = self._target_layout()
+        self.priors = parse_priors(priors)
+        unknown = sorted(set(self.priors) - {p.name for p in self.params})
+        if unknown:
+            raise ValueError(f"--prior: {unknown} not fitted (fitted: {[p.name for p in self.params]})")
+        offset, self._prior_index = 0, []
+        for p in self.params:
+            if p.name in self.priors:
+                self._prior_index += list(range(offset, offset + p.size))
+            offset += p.size
+        self._prior_mean = np.array([self.priors[self._name_of(i)][0] for i in self._prior_index])
+        self._prior_sd = np.array([self.priors[self._name_of(i)][1] for i in self._prior_index])
+        self.data_residual_count = self.residual_count
+        self.residual_count += len(self._prior_index)
         self.windows = None
         self.use_windows(window_steps)
+
+    def _name_of(self, index: int) -> str:
+        offset = 0
+        for p in self.params:
+            if offset <= index < offset + p.size:
+                return p.name
+            offset += p.size
+        raise IndexError(index)
+
+    def prior_residuals(self, theta):
+        """``(exp(theta_i) - mean_i) / sd_i`` for the constants with a prior, ``(priors,)`` (numpy or JAX)."""
+        xp = _array_module(theta)
+        index = np.array(self._prior_index, dtype=int)
+        return (xp.exp(theta[index]) - self._prior_mean) / self._prior_sd
+
+    def prior_slice(self) -> tuple[int, int]:
+        """Residual index range of the prior rows (empty without priors)."""
+        return self.data_residual_count, self.residual_count
 
     def use_windows(self, window_steps: int | None) -> None:
         """Multiple shooting with ``window_steps`` puppet steps per window from now on (None: one
@@ -252,7 +317,9 @@ class CalibrationProblem:
             if self.on_forward is not None:
                 self.on_forward(self.counts["forward"])
             outputs = self.windows.forward(inputs)
-        return np.asarray(self.residuals_from_outputs(outputs))
+        data = np.asarray(self.residuals_from_outputs(outputs))
+        return np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
+            else data
 
     def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the
@@ -292,7 +359,8 @@ class CalibrationProblem:
 
         def residuals(theta, base):
             outputs = rollout({**base, **self.constants(theta)})
-            return self.residuals_from_outputs(outputs)
+            data = self.residuals_from_outputs(outputs)
+            return jnp.concatenate([data, self.prior_residuals(theta)]) if self._prior_index else data
 
         return residuals, base
 
@@ -334,6 +402,7 @@ class CalibrationProblem:
             want = max(1, round(rows * (b - a) / total / per))
             chosen = np.unique(np.linspace(0, times - 1, min(want, times)).round().astype(int))
             picked.append((a + chosen[:, None] * per + np.arange(per)[None, :]).reshape(-1))
+        picked.append(np.arange(*self.prior_slice()))  # the prior rows, always
         return np.concatenate(picked)
 
     def target_slices(self) -> dict[str, tuple[int, int]]:

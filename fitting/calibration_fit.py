@@ -41,6 +41,7 @@ class CalibrationResult:
         verdict: the honest assessment (:mod:`fitting.calibration_verdict`): reduced chi-squared
             per target, unidentifiable constants, warnings, the exit code.
         window_steps: puppet steps per multiple-shooting window (None: one rollout).
+        priors: the Gaussian priors used, ``{name: (mean, sd)}``.
         jacobian: how the uncertainty's Jacobian was computed: ``method`` (``"fd"``: central
             differences, ``"bwd"``: reverse mode), ``rows``, ``forward_passes``,
             ``backward_passes``, ``seconds``.
@@ -70,6 +71,7 @@ class CalibrationResult:
     theta: np.ndarray
     verdict: Verdict | None = None
     window_steps: int | None = None
+    priors: dict = dataclasses.field(default_factory=dict)
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -240,7 +242,8 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
                       duration: float | None = None, rows: int = 96, jacobian: str | None = None,
                       optimization_level: int = 2, checkpoint_steps: int | None = None,
                       progress=None, data: CalibrationData | None = None,
-                      window: float | Sequence[float] | None = "default") -> CalibrationResult:
+                      window: float | Sequence[float] | None = "default",
+                      prior: str | Mapping[str, tuple[float, float]] | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -267,6 +270,8 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
             the constants down); 0 or None: one rollout over the whole session. ``"default"``:
             :data:`DEFAULT_WINDOWS` with ``lm-fd`` when the session records ``joint_q``, else
             one rollout.
+        prior: Gaussian priors per constant name, ``"k=300±100,k_d=3+-1"`` or ``{"k": (300, 100)}``
+            (:func:`fitting.calibrate.parse_priors`): residual rows ``(c - mean) / sd``.
     """
     total = time.perf_counter()
     data = read_calibration_data(path, targets, duration=duration) if data is None else data
@@ -282,7 +287,7 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     schedule = [window_steps_for(data, w, solver) for w in windows]
     problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
                                  noise_force=noise_force, optimization_level=optimization_level,
-                                 checkpoint_steps=checkpoint_steps, window_steps=schedule[-1])
+                                 checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior)
     stage = {"name": "start"}
     if progress is not None:
         problem.on_forward = lambda count: progress(stage["name"], count)
@@ -306,11 +311,13 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     used = fit["rows"] if solver == "lm-bwd" else None
     residuals, jac, jac_cost = jacobian_at(problem, theta, method, used)
     slices = problem.target_slices()
+    all_slices = {**slices, "prior": problem.prior_slice()}
     if used is None:
-        rows_of = {t: np.arange(a, b) for t, (a, b) in slices.items()}
+        rows_of = {t: np.arange(a, b) for t, (a, b) in all_slices.items() if b > a}
     else:
-        rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in slices.items()}
-    uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise)
+        rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
+    uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
+                                           known=("prior",))
     stage["name"] = "residuals"
     r1 = problem.host_residuals(theta)
     verdict = judge_fit(r1, slices, problem.noise, problem.labels, uncertainty, fit["converged"], fit["message"])
@@ -326,4 +333,4 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
               "seconds": fit["seconds"], "total_seconds": time.perf_counter() - total,
               "residual_count": problem.residual_count, "stages": stages},
         noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
-        window_steps=schedule[-1])
+        window_steps=schedule[-1], priors=dict(problem.priors))

@@ -30,6 +30,8 @@ def format_table(result: CalibrationResult) -> str:
         unit = _UNITS[row["label"].split("[")[0]]
         lines.append(f"{row['label']:<22} {row['start']:>12.5g} {row['fitted']:>12.6g} "
                      f"{row['standard_error']:>12.3g} {100 * row['relative_error']:>8.3f}%  {unit}")
+    for name, (mean, sd) in result.priors.items():
+        lines.append(f"prior on {name}: {mean:.6g} ± {sd:.3g} {_UNITS[name]} (Gaussian)")
     lines.append("")
     for target in result.rms_before:
         lines.append(f"RMS residual, {target:<8}: {result.rms_before[target]:.4g} -> {result.rms_after[target]:.4g} "
@@ -83,6 +85,7 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
     verdict = result.verdict.summary() if result.verdict is not None else None
     return _finite_or_text({
         "status": verdict, "window_steps": result.window_steps,
+        "priors": {name: {"mean": m, "sd": sd} for name, (m, sd) in result.priors.items()},
         "session": str(d.path), "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),

@@ -118,6 +118,9 @@ def add_calibrate_command(commands) -> None:
                            help="use only the first S seconds")
     calibrate.add_argument("--rows", type=integer(1, 1_000_000), default=96,
                            help="residuals kept by --solver lm-bwd (default 96)")
+    calibrate.add_argument("--prior", type=_priors, default=None,
+                           help="Gaussian priors per constant, in its unit: 'k=300±100,k_d=3+-1' (every string's "
+                                "constant of that name; a residual row (c - mean) / sd each)")
     calibrate.add_argument("--window", type=_windows, default=None,
                            help="multiple shooting: seconds per window, each window started from the recorded "
                                 "puppet state; a comma-separated list fits once per entry, each from the previous "
@@ -127,6 +130,16 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
     calibrate.set_defaults(handler=_run_calibrate)
+
+
+def _priors(text: str) -> dict:
+    """``--prior``: ``NAME=MEAN±SD`` (or ``+-``), comma-separated."""
+    from .calibrate import parse_priors
+
+    try:
+        return parse_priors(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--prior: ")) from None
 
 
 def _windows(text: str) -> list[float]:
@@ -165,6 +178,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    noise_force=args.noise_force, known_noise=args.known_noise,
                                    duration=args.duration, rows=args.rows,
                                    window="default" if args.window is None else args.window,
+                                   prior=args.prior,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None)
     finally:

@@ -76,7 +76,7 @@ class GaussNewtonUncertainty:
 
 def gauss_newton_uncertainty(jacobian: np.ndarray, residuals: np.ndarray, values: np.ndarray,
                              targets: Mapping[str, np.ndarray] | None = None, *,
-                             known_noise: bool = False) -> GaussNewtonUncertainty:
+                             known_noise: bool = False, known: tuple[str, ...] = ()) -> GaussNewtonUncertainty:
     """Covariance and standard errors from the Jacobian at the optimum.
 
     Args:
@@ -85,6 +85,7 @@ def gauss_newton_uncertainty(jacobian: np.ndarray, residuals: np.ndarray, values
         values: the fitted constants ``exp(theta)``, ``(n,)``.
         targets: target name -> the indices of its rows (default: one target, every row).
         known_noise: the noise scales were the true standard deviations (``s_c = 1``).
+        known: targets whose rows have unit variance whatever ``known_noise`` (a prior's rows).
 
     Returns:
         The covariance on the identifiable directions; unidentifiable constants get infinite
@@ -116,7 +117,7 @@ def gauss_newton_uncertainty(jacobian: np.ndarray, residuals: np.ndarray, values
     variance = {}
     for name, rows in targets.items():
         r = residuals[rows]
-        if known_noise:
+        if known_noise or name in known:
             s2 = 1.0
         else:
             share = len(rows) - n * len(rows) / m

@@ -211,3 +211,35 @@ def test_command_prints_the_warning_and_exits_with_its_code(sessions, tmp_path, 
     assert "**WARNING: not identifiable" in printed and "**RESULT:" in printed
     status = json.loads((tmp_path / "out" / "calibration.json").read_text())["status"]
     assert status["exit_code"] == EXIT_UNIDENTIFIABLE and status["unidentifiable"]
+
+
+def test_priors_parse_and_refuse_bad_entries():
+    from fitting.calibrate import parse_priors
+
+    assert parse_priors("k=300±100,k_d=3+-1") == {"k": (300.0, 100.0), "k_d": (3.0, 1.0)}
+    for bad, message in (("k=300", "expected NAME=MEAN±SD"), ("k=a±1", "expected NAME=MEAN±SD"),
+                         ("q=1±1", "unknown constant 'q'"), ("k=300±0", "expected positive")):
+        with pytest.raises(ValueError, match=message):
+            parse_priors(bad)
+
+
+def test_a_prior_pins_down_what_the_data_do_not(sessions, tmp_path, capsys):
+    """The unidentifiable request above (k_s on 0.1 s of body poses) with priors (k_s tight,
+    k and k_d broad, ascii +-): every direction is determined; the k_s intervals are finite and no
+    wider than the prior's deviation; exit code 0; the priors are printed and written."""
+    from dmarionette.cli import main
+
+    _, _, path = sessions["roll_yaw"]
+    code = main(["calibrate", str(path), "--params", "k,k_d,k_s", "--duration", "0.1", "--targets", "bodies",
+                 "--noise-position", str(SUITE_NOISE[0]), "--prior", "k_s=500+-50,k=300±150,k_d=3+-1.5", "--fast-compile", "--quiet",
+                 "--no-picture", "--out", str(tmp_path / "out")])
+    printed = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert summary["priors"]["k_s"] == {"mean": 500.0, "sd": 50.0}
+    assert "prior on k_s: 500 ± 50 N/m" in printed
+    rows = {row["label"]: row for row in summary["constants"]}
+    for label, row in rows.items():
+        if label.startswith("k_s["):
+            assert row["standard_error"] != "inf" and row["standard_error"] <= 50.0 * 1.01, row
+    assert summary["status"]["unidentifiable"] == []
+    assert code == EXIT_OK, printed
