@@ -32,7 +32,7 @@ import numpy as np
 from .calibration_data import CalibrationData
 from .synthetic_session import SPEC_FIELDS
 
-__all__ = ["SOLVERS", "CalibrationProblem", "Parameter", "parse_parameters", "parse_priors"]
+__all__ = ["SOLVERS", "CalibrationProblem", "Parameter", "parse_bounds", "parse_parameters", "parse_priors"]
 
 SOLVERS = ("lm-fd", "lm-bwd", "bfgs")
 #: Input field of the rollout engine for each constant.
@@ -60,15 +60,68 @@ class Parameter:
         return 1 if self.shared else len(self.strings)
 
 
-def parse_parameters(text: str | Sequence[str], data: CalibrationData) -> list[Parameter]:
+def parse_parameters(text: str | Sequence[str], data: CalibrationData,
+                     freeze: str | Sequence[str] | None = None) -> list[Parameter]:
     """Parses ``"k,k_d"`` or ``"k,k_d,k_s:shared"``: constants fitted per string, or shared.
 
     ``k`` and ``k_d`` (eq. 2) apply to the strings tied to a body point; ``k_s`` (the whole
-    string's stiffness) to every string.
+    string's stiffness) to every string. ``freeze`` lists per-string constants held at their
+    start values, by label: ``"k[head],k_d[hand_left]"``.
 
     Raises:
-        ValueError: an unknown constant, an unknown suffix, or a constant named twice.
+        ValueError: an unknown constant, an unknown suffix, a constant named twice, or a frozen
+            label that is not a fitted per-string constant.
     """
+    params = _parse_parameters(text, data)
+    frozen = [s.strip() for s in (freeze.split(",") if isinstance(freeze, str) else (freeze or ())) if s.strip()]
+    names = [s.name for s in data.scene.strings]
+    for label in frozen:
+        name, _, rest = label.partition("[")
+        string = rest.rstrip("]")
+        match = [p for p in params if p.name == name and not p.shared]
+        if not rest.endswith("]") or not match or string not in names or names.index(string) not in match[0].strings:
+            fitted = [lab for p in params if not p.shared for lab in p.labels(names)]
+            raise ValueError(f"--freeze: got {label!r}; expected labels of fitted per-string constants, some of "
+                             f"{fitted}")
+        index = params.index(match[0])
+        params[index] = Parameter(name, False, tuple(i for i in match[0].strings if i != names.index(string)))
+    params = [p for p in params if p.strings]
+    if not params:
+        raise ValueError(f"--freeze {freeze!r}: every fitted constant is frozen; nothing to fit")
+    return params
+
+
+def parse_bounds(text: str | Mapping[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]]:
+    """Parses ``"k=100:1000,k_d=0.5:10"``: lower and upper bounds per constant name, in its unit.
+
+    Raises:
+        ValueError: an unknown constant, a malformed entry, bounds not ``0 < low < high``.
+    """
+    if text is None:
+        return {}
+    if isinstance(text, Mapping):
+        items = {k: (float(v[0]), float(v[1])) for k, v in text.items()}
+    else:
+        items = {}
+        for part in (p.strip() for p in text.split(",") if p.strip()):
+            name, eq, value = part.partition("=")
+            low, sep, high = value.partition(":")
+            try:
+                items[name.strip()] = (float(low), float(high))
+            except ValueError:
+                sep = ""
+            if not eq or not sep:
+                raise ValueError(f"--bounds: got {part!r} in {text!r}; expected NAME=LOW:HIGH, e.g. "
+                                 "'k=100:1000,k_d=0.5:10'") from None
+    for name, (low, high) in items.items():
+        if name not in ENGINE_FIELDS:
+            raise ValueError(f"--bounds: unknown constant {name!r}; expected some of {sorted(ENGINE_FIELDS)}")
+        if not (np.isfinite(low) and np.isfinite(high) and 0 < low < high):
+            raise ValueError(f"--bounds {name}: got {low}:{high}; expected 0 < LOW < HIGH")
+    return items
+
+
+def _parse_parameters(text: str | Sequence[str], data: CalibrationData) -> list[Parameter]:
     items = [s.strip() for s in (text.split(",") if isinstance(text, str) else text) if s.strip()]
     if not items:
         raise ValueError(f"--params: got {text!r}; expected a comma-separated list of {sorted(ENGINE_FIELDS)}, "
@@ -139,6 +192,8 @@ class CalibrationProblem:
         checkpoint_steps: puppet steps per taped segment of the gradient engine.
         priors: Gaussian priors ``{name: (mean, sd)}`` (:func:`parse_priors`): one residual row
             ``(c - mean) / sd`` per fitted constant of that name, after the data's rows.
+        bounds: ``{name: (low, high)}`` (:func:`parse_bounds`): the solver keeps the constants
+            inside (``log_bounds``); the start must lie inside.
         window_steps: multiple shooting (:mod:`fitting.calibration_windows`): puppet steps per
             window, each started from the recorded puppet state; None: one rollout over the
             whole session (single shooting). Needs ``joint_q`` in ``/puppet/state`` at every
@@ -149,7 +204,8 @@ class CalibrationProblem:
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
                  start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
                  noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None,
-                 window_steps: int | None = None, priors: Mapping[str, tuple[float, float]] | None = None):
+                 window_steps: int | None = None, priors: Mapping[str, tuple[float, float]] | None = None,
+                 bounds: Mapping[str, tuple[float, float]] | None = None):
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.grad.engine import MarionetteGradient
 
@@ -174,6 +230,9 @@ class CalibrationProblem:
         self.string_names = [s.name for s in data.scene.strings]
         self.labels = [label for p in self.params for label in p.labels(self.string_names)]
         self.theta_start = self._start_theta(start or {})
+        for name, values in (start or {}).items():  # every string's, the frozen ones included
+            field = ENGINE_FIELDS[name]
+            setattr(self.base, field, np.broadcast_to(np.asarray(values, float), (len(data.scene.strings),)).copy())
         self._rows_of = self._target_layout()
         self.priors = parse_priors(priors)
         unknown = sorted(set(self.priors) - {p.name for p in self.params})
@@ -186,6 +245,18 @@ class CalibrationProblem:
             offset += p.size
         self._prior_mean = np.array([self.priors[self._name_of(i)][0] for i in self._prior_index])
         self._prior_sd = np.array([self.priors[self._name_of(i)][1] for i in self._prior_index])
+        self.bounds = parse_bounds(bounds)
+        unknown = sorted(set(self.bounds) - {p.name for p in self.params})
+        if unknown:
+            raise ValueError(f"--bounds: {unknown} not fitted (fitted: {[p.name for p in self.params]})")
+        names = [self._name_of(i) for i in range(len(self.theta_start))]
+        self.log_bounds = (np.array([np.log(self.bounds[n][0]) if n in self.bounds else -np.inf for n in names]),
+                           np.array([np.log(self.bounds[n][1]) if n in self.bounds else np.inf for n in names]))
+        outside = [(label, float(np.exp(t))) for label, t, lo, hi in zip(self.labels, self.theta_start, *self.log_bounds)
+                   if not lo <= t <= hi]
+        if outside:
+            raise ValueError(f"--bounds: start values {outside} lie outside their bounds {self.bounds}; give "
+                             "--start values inside")
         self.data_residual_count = self.residual_count
         self.residual_count += len(self._prior_index)
         self.windows = None

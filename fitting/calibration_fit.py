@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .calibrate import SOLVERS, CalibrationProblem, parse_parameters
+from .calibrate import ENGINE_FIELDS, SOLVERS, CalibrationProblem, parse_parameters
 from .calibration_data import CalibrationData, read_calibration_data
 from .calibration_verdict import Verdict, judge_fit
 from .uncertainty import GaussNewtonUncertainty, gauss_newton_uncertainty
@@ -42,6 +42,8 @@ class CalibrationResult:
             per target, unidentifiable constants, warnings, the exit code.
         window_steps: puppet steps per multiple-shooting window (None: one rollout).
         priors: the Gaussian priors used, ``{name: (mean, sd)}``.
+        string_constants: every string's value of each fitted constant name as simulated at the
+            end (fitted, or held: frozen), ``{name: (S,)}``.
         jacobian: how the uncertainty's Jacobian was computed: ``method`` (``"fd"``: central
             differences, ``"bwd"``: reverse mode), ``rows``, ``forward_passes``,
             ``backward_passes``, ``seconds``.
@@ -72,6 +74,7 @@ class CalibrationResult:
     verdict: Verdict | None = None
     window_steps: int | None = None
     priors: dict = dataclasses.field(default_factory=dict)
+    string_constants: dict = dataclasses.field(default_factory=dict)
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -128,8 +131,11 @@ def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps
     theta0 = jnp.asarray(problem.theta_start if theta_start is None else theta_start)
     u0 = jnp.zeros_like(theta0)
 
+    low, high = (jnp.asarray(b) for b in getattr(problem, "log_bounds", (-np.inf, np.inf)))
+
     def theta_of(u):
-        return theta0 + STEP_UNIT * u
+        # Bounds (--bounds) by projection: outside them a constant stays at its bound (zero derivative).
+        return jnp.clip(theta0 + STEP_UNIT * u, low, high)
 
     chosen = None
     if solver == "lm-fd":
@@ -243,7 +249,9 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
                       optimization_level: int = 2, checkpoint_steps: int | None = None,
                       progress=None, data: CalibrationData | None = None,
                       window: float | Sequence[float] | None = "default",
-                      prior: str | Mapping[str, tuple[float, float]] | None = None) -> CalibrationResult:
+                      prior: str | Mapping[str, tuple[float, float]] | None = None,
+                      bounds: str | Mapping[str, tuple[float, float]] | None = None,
+                      freeze: str | Sequence[str] | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -272,10 +280,13 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
             one rollout.
         prior: Gaussian priors per constant name, ``"k=300±100,k_d=3+-1"`` or ``{"k": (300, 100)}``
             (:func:`fitting.calibrate.parse_priors`): residual rows ``(c - mean) / sd``.
+        bounds: per constant name, ``"k=100:1000"`` or ``{"k": (100, 1000)}``: the solver keeps the
+            constants inside (projection); a constant that ends at a bound is warned about.
+        freeze: per-string constants held at their start values, ``"k[head],k_d[back]"``.
     """
     total = time.perf_counter()
     data = read_calibration_data(path, targets, duration=duration) if data is None else data
-    parameters = parse_parameters(params, data)
+    parameters = parse_parameters(params, data, freeze)
     if isinstance(window, str) and window == "default":
         from .calibration_windows import recorded_joint_q
 
@@ -287,7 +298,8 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     schedule = [window_steps_for(data, w, solver) for w in windows]
     problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
                                  noise_force=noise_force, optimization_level=optimization_level,
-                                 checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior)
+                                 checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior,
+                                 bounds=bounds)
     stage = {"name": "start"}
     if progress is not None:
         problem.on_forward = lambda count: progress(stage["name"], count)
@@ -320,7 +332,10 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
                                            known=("prior",))
     stage["name"] = "residuals"
     r1 = problem.host_residuals(theta)
-    verdict = judge_fit(r1, slices, problem.noise, problem.labels, uncertainty, fit["converged"], fit["message"])
+    at_bound = [label for label, t, lo, hi in zip(problem.labels, theta, *problem.log_bounds)
+                if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
+    verdict = judge_fit(r1, slices, problem.noise, problem.labels, uncertainty, fit["converged"], fit["message"],
+                        at_bound=at_bound)
     message = "converged" if verdict.converged else \
         ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
     before, after = _unscaled(problem, r0), _unscaled(problem, r1)
@@ -333,4 +348,5 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
               "seconds": fit["seconds"], "total_seconds": time.perf_counter() - total,
               "residual_count": problem.residual_count, "stages": stages},
         noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
-        window_steps=schedule[-1], priors=dict(problem.priors))
+        window_steps=schedule[-1], priors=dict(problem.priors),
+        string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters})

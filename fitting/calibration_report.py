@@ -124,6 +124,8 @@ def calibrated_scene_table(result: CalibrationResult) -> dict[str, Any]:
             value = getattr(spec, key)
             entry[key] = int(value) if key == "particle_count" else float(value)
         entry.update(fitted[spec.name])
+        for name, values in result.string_constants.items():  # frozen ones too: as simulated
+            entry[SPEC_FIELDS[name]] = float(values[scene.strings.index(spec)])
     info = table.setdefault("scene", {})
     info["description"] = (f"{info.get('description', '')} Calibrated from {result.data.path.name}: "
                            f"{len(result.labels)} constants ({result.solver}).").strip()

@@ -55,6 +55,8 @@ class Verdict:
         null_directions: each unidentifiable direction: ``singular_ratio`` (its singular value of
             ``J`` over the largest), ``log_error`` (its standard error in log space) and
             ``components`` (label -> weight, those above 0.1).
+        at_bound: labels of the constants the solver left at a bound (``--bounds``): the data pull
+            them further; their intervals describe the constrained fit only.
         converged: ``solver_converged and explains_data``.
         warnings: plain sentences, one per problem.
         exit_code: :data:`EXIT_CODES`.
@@ -66,6 +68,7 @@ class Verdict:
     explains_data: bool
     unidentifiable: list[str]
     null_directions: list[dict]
+    at_bound: list[str]
     converged: bool
     warnings: list[str]
     exit_code: int
@@ -77,7 +80,7 @@ class Verdict:
 
 def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noise: Mapping[str, float],
               labels: Sequence[str], uncertainty: GaussNewtonUncertainty, solver_converged: bool,
-              solver_message: str) -> Verdict:
+              solver_message: str, at_bound: Sequence[str] = ()) -> Verdict:
     """Judges a fit from its scaled residuals ``(m,)`` at the optimum.
 
     Args:
@@ -87,6 +90,7 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
         labels: the constants' labels ``(n,)``.
         uncertainty: at the optimum.
         solver_converged, solver_message: the solver's own result.
+        at_bound: labels of constants at a bound.
     """
     m, n = len(residuals), len(labels)
     chi2, ratio = {}, {}
@@ -120,6 +124,9 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
                         f"{u.condition_number:.3g}; {len(directions)} combination(s) of the constants the data do "
                         "not determine): their intervals are infinite. Fit fewer constants (freeze or share them), "
                         "add a prior, or record a longer or richer motion")
+    if at_bound:
+        warnings.append(f"at a bound (--bounds): {', '.join(at_bound)}: the data pull them beyond it; their values "
+                        "and intervals describe the constrained fit, not the data alone")
     if not solver_converged or not explains:
         code = EXIT_NOT_EXPLAINED
     elif unidentifiable:
@@ -128,4 +135,5 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
         code = EXIT_OK
     return Verdict(solver_converged=bool(solver_converged), reduced_chi2=chi2, noise_ratio=ratio,
                    explains_data=explains, unidentifiable=unidentifiable, null_directions=directions,
+                   at_bound=list(at_bound),
                    converged=bool(solver_converged and explains), warnings=warnings, exit_code=code)

@@ -121,6 +121,11 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--prior", type=_priors, default=None,
                            help="Gaussian priors per constant, in its unit: 'k=300±100,k_d=3+-1' (every string's "
                                 "constant of that name; a residual row (c - mean) / sd each)")
+    calibrate.add_argument("--bounds", type=_bounds, default=None,
+                           help="bounds per constant, in its unit: 'k=100:1000,k_d=0.5:10' (the solver keeps every "
+                                "string's constant of that name inside; one left at a bound is warned about)")
+    calibrate.add_argument("--freeze", default=None,
+                           help="per-string constants held at their start values, by label: 'k[head],k_d[back]'")
     calibrate.add_argument("--window", type=_windows, default=None,
                            help="multiple shooting: seconds per window, each window started from the recorded "
                                 "puppet state; a comma-separated list fits once per entry, each from the previous "
@@ -140,6 +145,16 @@ def _priors(text: str) -> dict:
         return parse_priors(text)
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error).removeprefix("--prior: ")) from None
+
+
+def _bounds(text: str) -> dict:
+    """``--bounds``: ``NAME=LOW:HIGH``, comma-separated."""
+    from .calibrate import parse_bounds
+
+    try:
+        return parse_bounds(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--bounds: ")) from None
 
 
 def _windows(text: str) -> list[float]:
@@ -178,7 +193,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    noise_force=args.noise_force, known_noise=args.known_noise,
                                    duration=args.duration, rows=args.rows,
                                    window="default" if args.window is None else args.window,
-                                   prior=args.prior,
+                                   prior=args.prior, bounds=args.bounds, freeze=args.freeze,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None)
     finally:

@@ -243,3 +243,36 @@ def test_a_prior_pins_down_what_the_data_do_not(sessions, tmp_path, capsys):
             assert row["standard_error"] != "inf" and row["standard_error"] <= 50.0 * 1.01, row
     assert summary["status"]["unidentifiable"] == []
     assert code == EXIT_OK, printed
+
+
+def test_frozen_constants_keep_their_start_values(sessions):
+    _, _, path = sessions["sway"]
+    truth = SUITE["sway"][2]
+    result = calibrate_session(path, targets="both", duration=0.5, start=truth, freeze="k[head],k_d[back]",
+                               optimization_level=0, **NOISE)
+    assert "k[head]" not in result.labels and "k_d[back]" not in result.labels and len(result.labels) == 10
+    scene = result.data.scene
+    from fitting.calibration_report import calibrated_scene_table
+
+    table = {s["name"]: s for s in calibrated_scene_table(result)["strings"]}
+    assert table["head"]["tie_stiffness"] == truth["k"][0] and table["back"]["tie_damping"] == truth["k_d"][1]
+    assert result.verdict.exit_code == EXIT_OK, result.verdict.warnings
+    assert len(scene.strings) == 6
+    with pytest.raises(ValueError, match=r"--freeze: got 'k\[nose\]'"):
+        calibrate_session(path, targets="both", duration=0.5, freeze="k[nose]", optimization_level=0)
+
+
+def test_bounds_hold_and_a_constant_at_its_bound_is_warned_about(sessions):
+    """Bounds that exclude the truth (k of the head string is 121 N/m, the bound 200:400): the
+    solver keeps every k inside, the ones it leaves at a bound are named in a warning, and the
+    fit that cannot reach the truth does not pass as converged."""
+    _, _, path = sessions["sway"]
+    result = calibrate_session(path, targets="both", duration=0.5, bounds="k=200:400", optimization_level=0,
+                               **NOISE)
+    k = result.fitted[:6]
+    assert np.all((k >= 200 * (1 - 1e-9)) & (k <= 400 * (1 + 1e-9))), k
+    assert "k[head]" in result.verdict.at_bound
+    assert any("at a bound" in w for w in result.verdict.warnings)
+    assert result.verdict.exit_code != EXIT_OK
+    with pytest.raises(ValueError, match=r"--bounds k: got 5.0:1.0"):
+        calibrate_session(path, duration=0.5, bounds="k=5:1", optimization_level=0)
