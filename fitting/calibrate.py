@@ -260,6 +260,7 @@ class CalibrationProblem:
         self.data_residual_count = self.residual_count
         self.residual_count += len(self._prior_index)
         self.windows = None
+        self.active_rows = None
         self.use_windows(window_steps)
 
     def _name_of(self, index: int) -> str:
@@ -280,12 +281,24 @@ class CalibrationProblem:
         """Residual index range of the prior rows (empty without priors)."""
         return self.data_residual_count, self.residual_count
 
-    def use_windows(self, window_steps: int | None) -> None:
+    def use_windows(self, window_steps: int | None, prefix_steps: int | None = None) -> None:
         """Multiple shooting with ``window_steps`` puppet steps per window from now on (None: one
-        rollout over the session); the model and its compiled kernels are kept."""
+        rollout over the session); the model and its compiled kernels are kept. ``prefix_steps``:
+        only the first puppet steps of the session (windows over them; the forward-only residuals
+        and Jacobians then hold only their rows, ``active_rows``, and the prior's)."""
+        self.active_rows = None
         if window_steps is None:
             self.windows = None
             return
+        if prefix_steps is not None and prefix_steps < self.data.puppet_steps:
+            rows = []
+            for target, (a, _) in self._rows_of.items():
+                per_step = 3 * (len(self.data.bodies) if target == "bodies" else len(self.data.bars) * self.data.substeps)
+                rows.append(np.arange(a, a + prefix_steps * per_step))
+            rows.append(np.arange(*self.prior_slice()))
+            self.active_rows = np.concatenate(rows)
+        else:
+            prefix_steps = None
         from .calibration_windows import WindowedRollout, recorded_joint_q
 
         joint_q = recorded_joint_q(self.data)
@@ -293,7 +306,7 @@ class CalibrationProblem:
             raise ValueError(f"{self.data.path}: multiple shooting (windows) starts each window from the recorded "
                              "puppet state, but channel /puppet/state does not hold 'joint_q' at every puppet "
                              "frame; calibrate with one rollout (windows off) instead")
-        self.windows = WindowedRollout(self.model, self.data, joint_q, int(window_steps))
+        self.windows = WindowedRollout(self.model, self.data, joint_q, int(window_steps), puppet_steps=prefix_steps)
 
     # ------------------------------------------------------------------ parameters
     def _wrap_engine(self) -> None:
@@ -389,8 +402,9 @@ class CalibrationProblem:
                 self.on_forward(self.counts["forward"])
             outputs = self.windows.forward(inputs)
         data = np.asarray(self.residuals_from_outputs(outputs))
-        return np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
+        full = np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
             else data
+        return full if self.active_rows is None else full[self.active_rows]
 
     def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the
@@ -403,7 +417,7 @@ class CalibrationProblem:
         """
         theta = np.asarray(theta, np.float64)
         value = self.host_residuals(theta)
-        jacobian = np.empty((self.residual_count, len(theta)))
+        jacobian = np.empty((len(value), len(theta)))
         step = _FD_STEP if central else _FD_STEP_ONE_SIDED
         for j in range(len(theta)):
             up = theta.copy()
@@ -443,7 +457,8 @@ class CalibrationProblem:
         import jax
         import jax.numpy as jnp
 
-        m, n = self.residual_count, len(self.theta_start)
+        m = self.residual_count if self.active_rows is None else len(self.active_rows)
+        n = len(self.theta_start)
         value_shape = jax.ShapeDtypeStruct((m,), jnp.float64)
         both = (value_shape, jax.ShapeDtypeStruct((m, n), jnp.float64))
 

@@ -222,6 +222,9 @@ DEFAULT_WINDOWS = (1.0 / 30.0, 1.0 / 3.0)
 #: The solvers' absolute tolerance (:func:`fit_problem`) in the stages before the last: they only
 #: need to bring the constants into the last stage's basin (1e-4 of each constant per step).
 STAGE_ATOL = 1e-2
+#: The stages before the last fit only the session's first seconds [s]: enough to find the basin,
+#: and the shortest windows (most rollouts' overhead) then stay cheap on long sessions.
+STAGE_SECONDS = 2.0
 
 
 def window_steps_for(data: CalibrationData, window: float | None, solver: str) -> int | None:
@@ -307,14 +310,15 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     theta, stages = problem.theta_start, []
     for index, steps in enumerate(schedule):
         stage["name"] = "fit" if len(schedule) == 1 else f"fit {index + 1}/{len(schedule)}"
-        problem.use_windows(steps)
         last = index == len(schedule) - 1
+        prefix = None if last or steps is None else max(1, int(round(STAGE_SECONDS / data.puppet_dt)))
+        problem.use_windows(steps, prefix)
         fit = fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta,
                           atol=1e-3 if last else STAGE_ATOL)
         theta = fit["theta"]
-        stages.append({"window_steps": steps, "steps": fit["steps"], "converged": fit["converged"],
-                       "message": fit["message"], "forward_passes": fit["forward_passes"],
-                       "seconds": fit["seconds"]})
+        stages.append({"window_steps": steps, "puppet_steps": min(prefix or data.puppet_steps, data.puppet_steps),
+                       "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
+                       "forward_passes": fit["forward_passes"], "seconds": fit["seconds"]})
     fit = {**fit, "steps": sum(st["steps"] for st in stages),
            "forward_passes": sum(st["forward_passes"] for st in stages),
            "backward_passes": fit["backward_passes"], "seconds": sum(st["seconds"] for st in stages)}

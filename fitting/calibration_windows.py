@@ -116,14 +116,17 @@ class WindowedRollout:
         data: the session (its ``/puppet/state`` must hold ``joint_q`` at every puppet frame).
         joint_q: the recorded coordinates ``(P + 1, q)`` (:func:`recorded_joint_q`).
         window_steps: puppet steps per window.
+        puppet_steps: run only the first puppet steps (default: the whole session); the outputs
+            beyond stay zero.
     """
 
-    def __init__(self, model, data: CalibrationData, joint_q: np.ndarray, window_steps: int):
+    def __init__(self, model, data: CalibrationData, joint_q: np.ndarray, window_steps: int, *,
+                 puppet_steps: int | None = None):
         from dmarionette.grad.engine import MarionetteGradient
 
         self.model = model
         self.data = data
-        self.windows = window_bounds(data.puppet_steps, window_steps)
+        self.windows = window_bounds(data.puppet_steps if puppet_steps is None else int(puppet_steps), window_steps)
         self.engines = {}
         for a, b in self.windows:
             if b - a not in self.engines:
@@ -138,8 +141,9 @@ class WindowedRollout:
         # The recorded tie points at every frame (positions only: a window's velocity correction
         # is the difference of two frames', below, the same for the recording and the simulation).
         state = model.puppet.state()
-        self._recorded_points = np.zeros((data.puppet_steps + 1, len(self._tied), 3))
-        for f in range(data.puppet_steps + 1):
+        last = self.windows[-1][1]
+        self._recorded_points = np.zeros((last + 1, len(self._tied), 3))
+        for f in range(last + 1):
             self._recorded_points[f] = self._points(state, joint_q[f], np.zeros(topology.qd_count))
         self._starts = {a: (joint_q[a].copy(), joint_velocity_between(topology, joint_q[a - 1], joint_q[a], h))
                         for a, _ in self.windows[1:]}
