@@ -103,7 +103,8 @@ def gauss_newton_uncertainty(jacobian: np.ndarray, residuals: np.ndarray, values
     if not (np.all(np.isfinite(jacobian)) and np.all(np.isfinite(residuals))):
         raise ValueError("the Jacobian or the residuals at the optimum hold non-finite values")
     targets = {"all": np.arange(m)} if targets is None else {k: np.asarray(v) for k, v in targets.items()}
-    _, singular, directions = np.linalg.svd(jacobian, full_matrices=True)
+    # V is (n, n) either way; U stays (m, min(m, n)) (a full U would be m x m: 38 GiB on the benchmark).
+    _, singular, directions = np.linalg.svd(jacobian, full_matrices=m < n)
     singular = np.concatenate([singular, np.zeros(n - len(singular))])
     condition = float((singular[0] / singular[-1]) ** 2) if singular[-1] > 0 else float("inf")
     dof = m - n
