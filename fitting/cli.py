@@ -124,12 +124,13 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--bounds", type=_bounds, default=None,
                            help="bounds per constant, in its unit: 'k=100:1000,k_d=0.5:10' (the solver keeps every "
                                 "string's constant of that name inside; one left at a bound is warned about)")
-    calibrate.add_argument("--freeze", default=None,
+    calibrate.add_argument("--freeze", type=_labels, default=None,
                            help="per-string constants held at their start values, by label: 'k[head],k_d[back]'")
     calibrate.add_argument("--window", type=_windows, default=None,
                            help="multiple shooting: seconds per window, each window started from the recorded "
                                 "puppet state; a comma-separated list fits once per entry, each from the previous "
-                                "result (default 0.1,0.33 with --solver lm-fd when /puppet/state records joint_q; "
+                                "result (default 1/30 s then 1/3 s, the first stage on the first 2 s only, with --solver lm-fd when "
+                                "/puppet/state records joint_q; "
                                 "0: one rollout over the whole session)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
@@ -155,6 +156,18 @@ def _bounds(text: str) -> dict:
         return parse_bounds(text)
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error).removeprefix("--bounds: ")) from None
+
+
+def _labels(text: str) -> list[str]:
+    """``--freeze``: constant labels ``NAME[STRING]``, comma-separated (checked against the session later)."""
+    import re
+
+    labels = [part.strip() for part in text.split(",") if part.strip()]
+    bad = [label for label in labels if not re.fullmatch(r"(k|k_d|k_s)\[[^\[\]]+\]", label)]
+    if not labels or bad:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected labels like 'k[head],k_d[hand_left]' (constant "
+                                         "k, k_d or k_s and a string name in brackets)")
+    return labels
 
 
 def _windows(text: str) -> list[float]:
