@@ -97,27 +97,31 @@ def parse_bounds(text: str | Mapping[str, tuple[float, float]] | None) -> dict[s
     Raises:
         ValueError: an unknown constant, a malformed entry, bounds not ``0 < low < high``.
     """
-    if text is None:
-        return {}
-    if isinstance(text, Mapping):
-        items = {k: (float(v[0]), float(v[1])) for k, v in text.items()}
-    else:
-        items = {}
-        for part in (p.strip() for p in text.split(",") if p.strip()):
-            name, eq, value = part.partition("=")
-            low, sep, high = value.partition(":")
-            try:
-                items[name.strip()] = (float(low), float(high))
-            except ValueError:
-                sep = ""
-            if not eq or not sep:
-                raise ValueError(f"--bounds: got {part!r} in {text!r}; expected NAME=LOW:HIGH, e.g. "
-                                 "'k=100:1000,k_d=0.5:10'") from None
+    items = _parse_pairs(text, "--bounds", ":", "NAME=LOW:HIGH, e.g. 'k=100:1000,k_d=0.5:10'")
     for name, (low, high) in items.items():
         if name not in ENGINE_FIELDS:
             raise ValueError(f"--bounds: unknown constant {name!r}; expected some of {sorted(ENGINE_FIELDS)}")
         if not (np.isfinite(low) and np.isfinite(high) and 0 < low < high):
             raise ValueError(f"--bounds {name}: got {low}:{high}; expected 0 < LOW < HIGH")
+    return items
+
+
+def _parse_pairs(text, flag: str, separator: str, expected: str) -> dict[str, tuple[float, float]]:
+    """``"NAME=A<sep>B,..."`` (or a mapping) as ``{name: (A, B)}``; a ``ValueError`` naming ``flag``."""
+    if text is None:
+        return {}
+    if isinstance(text, Mapping):
+        return {k: (float(v[0]), float(v[1])) for k, v in text.items()}
+    items = {}
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        name, eq, value = part.partition("=")
+        first, sep, second = value.partition(separator)
+        try:
+            items[name.strip()] = (float(first), float(second))
+        except ValueError:
+            sep = ""
+        if not eq or not sep:
+            raise ValueError(f"{flag}: got {part!r} in {text!r}; expected {expected}") from None
     return items
 
 
@@ -153,23 +157,9 @@ def parse_priors(text: str | Mapping[str, tuple[float, float]] | None) -> dict[s
     Raises:
         ValueError: an unknown constant, a malformed entry, a non-positive mean or deviation.
     """
-    if text is None:
-        return {}
-    if isinstance(text, Mapping):
-        items = {k: (float(v[0]), float(v[1])) for k, v in text.items()}
-    else:
-        items = {}
-        for part in (p.strip() for p in text.split(",") if p.strip()):
-            name, eq, value = part.partition("=")
-            name = name.strip()
-            mean, sep, sd = value.replace("+-", "±").partition("±")
-            try:
-                items[name] = (float(mean), float(sd))
-            except ValueError:
-                sep = ""
-            if not eq or not sep:
-                raise ValueError(f"--prior: got {part!r} in {text!r}; expected NAME=MEAN±SD (or MEAN+-SD), e.g. "
-                                 "'k=300±100,k_d=3+-1'") from None
+    if isinstance(text, str):
+        text = text.replace("+-", "±")
+    items = _parse_pairs(text, "--prior", "±", "NAME=MEAN±SD (or MEAN+-SD), e.g. 'k=300±100,k_d=3+-1'")
     for name, (mean, sd) in items.items():
         if name not in ENGINE_FIELDS:
             raise ValueError(f"--prior: unknown constant {name!r}; expected some of {sorted(ENGINE_FIELDS)}")
