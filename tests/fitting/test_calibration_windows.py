@@ -267,8 +267,8 @@ def test_bounds_hold_and_a_constant_at_its_bound_is_warned_about(sessions):
     solver keeps every k inside, the ones it leaves at a bound are named in a warning, and the
     fit that cannot reach the truth does not pass as converged."""
     _, _, path = sessions["sway"]
-    result = calibrate_session(path, targets="both", duration=0.5, bounds="k=200:400", optimization_level=0,
-                               **NOISE)
+    result = calibrate_session(path, targets="both", duration=0.4, bounds="k=200:400", optimization_level=0,
+                               max_steps=15, **NOISE)
     k = result.fitted[:6]
     assert np.all((k >= 200 * (1 - 1e-9)) & (k <= 400 * (1 + 1e-9))), k
     assert "k[head]" in result.verdict.at_bound
