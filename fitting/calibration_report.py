@@ -146,8 +146,9 @@ def write_calibrated_scene(result: CalibrationResult, path: str | Path) -> Path:
 
 
 def write_plot(result: CalibrationResult, path: str | Path) -> Path:
-    """``calibration.png``: RMS residual over time before and after, and the constants (start,
-    fitted with 2 standard errors)."""
+    """``calibration.png``: RMS residual over time per target before and after, the constants
+    (start, fitted with 2 standard errors, "± ∞" where unidentifiable, the prior's band), the
+    verdict in the title and the warnings under the panels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -178,15 +179,30 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
         rows = [i for i, label in enumerate(result.labels) if label.split("[")[0] == name]
         x = np.arange(len(rows))
         ax.plot(x, result.start[rows], "x", color="C3", label="start")
-        ax.errorbar(x, result.fitted[rows], yerr=2 * result.uncertainty.standard_error[rows], fmt="o", color="C0",
+        se = result.uncertainty.standard_error[rows]
+        finite = np.isfinite(se)
+        ax.errorbar(x, result.fitted[rows], yerr=np.where(finite, 2 * se, 0.0), fmt="o", color="C0",
                     capsize=3, label="fitted ± 2 s.e.")
+        for xi, yi in zip(x[~finite], result.fitted[rows][~finite]):  # unidentifiable: an unbounded interval
+            ax.annotate("± ∞", (xi, yi), textcoords="offset points", xytext=(5, 5), color="C3", fontsize=8)
+        if name in result.priors:
+            mean, sd = result.priors[name]
+            ax.axhspan(mean - sd, mean + sd, color="C2", alpha=0.15, label=f"prior {mean:g} ± {sd:g}")
         ax.set_xticks(x, [result.labels[i].split("[")[1].rstrip("]") for i in rows], rotation=30, fontsize=8)
         ax.set_ylabel(f"{name} [{_UNITS[name]}]")
         ax.legend(fontsize=8)
     for c in range(len(names), axes.shape[1]):
         axes[1, c].axis("off")
-    fig.suptitle(f"calibration of {d.path.name}: {result.solver}, {result.solver_steps} steps")
+    v = result.verdict
+    status = "" if v is None else (" — converged" if v.exit_code == 0 else f" — exit code {v.exit_code}")
+    fig.suptitle(f"calibration of {d.path.name}: {result.solver}, {result.solver_steps} steps{status}")
     fig.tight_layout()
+    if v is not None and v.warnings:  # the warnings, in red, under the panels
+        import textwrap
+
+        text = "\n".join(textwrap.fill(f"WARNING: {w}", 160) for w in v.warnings)
+        fig.subplots_adjust(bottom=0.08 + 0.035 * text.count("\n") + 0.035 * len(v.warnings))
+        fig.text(0.01, 0.01, text, color="C3", fontsize=8, va="bottom")
     path = Path(path)
     fig.savefig(path, dpi=90)
     plt.close(fig)

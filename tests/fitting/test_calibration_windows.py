@@ -13,6 +13,7 @@ exit with their codes, not answer confidently.
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -141,7 +142,7 @@ def test_noise_scales_set_too_small_do_not_pass_as_converged(sessions):
     assert any("does not explain the data" in w for w in result.verdict.warnings)
 
 
-def test_string_stiffness_on_a_short_session_is_unidentifiable(sessions):
+def test_string_stiffness_on_a_short_session_is_unidentifiable(sessions, tmp_path):
     """``k_s`` of every string besides ``k`` and ``k_d`` (18 constants) from 0.1 s of body poses:
     string and tie act in series, and three frames do not tell them apart. Infinite intervals
     for the constants of the null directions, their names in the warning, exit code 4. (On 0.2 s
@@ -157,6 +158,12 @@ def test_string_stiffness_on_a_short_session_is_unidentifiable(sessions):
     assert v.null_directions and any("not identifiable" in w for w in v.warnings)
     summary = result_summary(result)
     assert any(row["standard_error"] == "inf" for row in summary["constants"])
+    from fitting.calibration_report import write_outputs
+
+    files = write_outputs(result, tmp_path / "out")  # the picture with infinite intervals and the warnings
+    assert Path(files["plot"]).stat().st_size > 10_000
+    text = Path(files["summary"]).read_text()
+    assert "Infinity" not in text and "NaN" not in text  # strict JSON: infinite intervals as "inf"
 
 
 def test_slack_strings_make_their_constants_unidentifiable(sessions, tmp_path):
