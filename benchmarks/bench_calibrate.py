@@ -146,7 +146,8 @@ def suite(level: int) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for i, name in enumerate(SUITE):
-            _, _, path = record_suite_session(name, Path(folder) / f"{name}.mcap", seed=10 + i, optimization_level=level)
+            _, _, path = record_suite_session(name, Path(folder) / f"{name}.mcap", seed=10 + i,
+                                              optimization_level=level)
             truth = np.concatenate([SUITE[name][2]["k"], SUITE[name][2]["k_d"]])
             for method, window in (("one rollout", 0), ("windows (default)", "default")):
                 result = calibrate_session(path, targets="both", window=window, optimization_level=level,

@@ -242,8 +242,8 @@ class CalibrationProblem:
         names = [self._name_of(i) for i in range(len(self.theta_start))]
         self.log_bounds = (np.array([np.log(self.bounds[n][0]) if n in self.bounds else -np.inf for n in names]),
                            np.array([np.log(self.bounds[n][1]) if n in self.bounds else np.inf for n in names]))
-        outside = [(label, float(np.exp(t))) for label, t, lo, hi in zip(self.labels, self.theta_start, *self.log_bounds)
-                   if not lo <= t <= hi]
+        outside = [(label, float(np.exp(t)))
+                   for label, t, lo, hi in zip(self.labels, self.theta_start, *self.log_bounds) if not lo <= t <= hi]
         if outside:
             raise ValueError(f"--bounds: start values {outside} lie outside their bounds {self.bounds}; give "
                              "--start values inside")
@@ -283,7 +283,8 @@ class CalibrationProblem:
         if prefix_steps is not None and prefix_steps < self.data.puppet_steps:
             rows = []
             for target, (a, _) in self._rows_of.items():
-                per_step = 3 * (len(self.data.bodies) if target == "bodies" else len(self.data.bars) * self.data.substeps)
+                d = self.data
+                per_step = 3 * (len(d.bodies) if target == "bodies" else len(d.bars) * d.substeps)
                 rows.append(np.arange(a, a + prefix_steps * per_step))
             rows.append(np.arange(*self.prior_slice()))
             self.active_rows = np.concatenate(rows)

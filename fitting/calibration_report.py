@@ -52,8 +52,8 @@ def format_table(result: CalibrationResult) -> str:
     if v is not None:
         for direction in v.null_directions:
             parts = ", ".join(f"{w:+.2f} {label}" for label, w in direction["components"].items())
-            lines.append(f"unidentifiable direction (log space): {parts}; singular value {direction['singular_ratio']:.2g}"
-                         f" of the largest, standard error {direction['log_error']:.3g}")
+            lines.append(f"unidentifiable direction (log space): {parts}; singular value "
+                         f"{direction['singular_ratio']:.2g} of the largest, standard error {direction['log_error']:.3g}")
         lines.append("")
         if v.warnings:
             lines.extend(f"**WARNING: {w}**" for w in v.warnings)

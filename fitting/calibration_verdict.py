@@ -115,9 +115,11 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
     directions = []
     for i in u.unidentifiable_directions:
         vector = u.directions[i]
-        components = {labels[j]: float(vector[j]) for j in np.argsort(-np.abs(vector)) if abs(vector[j]) > COMPONENT_LIMIT}
+        components = {labels[j]: float(vector[j]) for j in np.argsort(-np.abs(vector))
+                      if abs(vector[j]) > COMPONENT_LIMIT}
         ratio_i = float(u.singular_values[i] / u.singular_values[0]) if u.singular_values[0] > 0 else 0.0
-        directions.append({"singular_ratio": ratio_i, "log_error": float(u.direction_error[i]), "components": components})
+        directions.append({"singular_ratio": ratio_i, "log_error": float(u.direction_error[i]),
+                           "components": components})
     unidentifiable = [label for label, ok in zip(labels, u.identifiable) if not ok]
     if unidentifiable:
         warnings.append(f"not identifiable from this session: {', '.join(unidentifiable)} (cond(J^T J) = "

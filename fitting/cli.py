@@ -129,8 +129,8 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--window", type=_windows, default=None,
                            help="multiple shooting: seconds per window, each window started from the recorded "
                                 "puppet state; a comma-separated list fits once per entry, each from the previous "
-                                "result (default 1/30 s then 1/3 s, the first stage on the first 2 s only, with --solver lm-fd when "
-                                "/puppet/state records joint_q; "
+                                "result (default 1/30 s then 1/3 s, the first stage on the first 2 s only, with "
+                                "--solver lm-fd when /puppet/state records joint_q; "
                                 "0: one rollout over the whole session)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")

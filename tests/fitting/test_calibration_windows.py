@@ -238,7 +238,8 @@ def test_a_prior_pins_down_what_the_data_do_not(sessions, tmp_path, capsys):
 
     _, _, path = sessions["roll_yaw"]
     code = main(["calibrate", str(path), "--params", "k,k_d,k_s", "--duration", "0.1", "--targets", "bodies",
-                 "--noise-position", str(SUITE_NOISE[0]), "--prior", "k_s=500+-50,k=300±150,k_d=3+-1.5", "--fast-compile", "--quiet",
+                 "--noise-position", str(SUITE_NOISE[0]), "--prior", "k_s=500+-50,k=300±150,k_d=3+-1.5",
+                 "--fast-compile", "--quiet",
                  "--no-picture", "--out", str(tmp_path / "out")])
     printed = capsys.readouterr().out
     summary = json.loads((tmp_path / "out" / "calibration.json").read_text())
