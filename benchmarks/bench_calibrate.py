@@ -3,6 +3,7 @@ strings) to a 10 s session, on one core; and what each solver costs.
 
 Run:  python benchmarks/bench_calibrate.py [--seconds 10] [--scene hanging] [--targets both]
       python benchmarks/bench_calibrate.py --compare [--seconds 1.5 --scene examples/calibration_scene.toml]
+      python benchmarks/bench_calibrate.py --suite [--fast-compile]
 
 The session is simulated first (not timed) with constants 5-17 % away from the scene's, a
 different one per string, with 0.1 mm noise on body coordinates and 0.01 N on forces
@@ -13,6 +14,12 @@ peak resident memory (``ru_maxrss``) is its own. Timed: everything ``dmarionette
 does (reading the session, building the model with optimised kernels already compiled and
 cached by a warm-up run, the fit, the uncertainty, the residuals), ``--repeats`` times; the
 median is reported.
+
+``--suite`` calibrates the five fast sessions of ``fitting.synthetic_scenes.SUITE`` (issue #14's
+hard cases, the test suite's) twice, with one rollout (``window=0``, the method before the issue)
+and with the default multiple shooting, from the scene's constants, and prints per session the
+exit code, steps, rollouts, seconds, the largest error in standard errors and the largest
+relative errors of ``k`` and ``k_d``.
 
 ``--compare`` times the pieces on the session instead: one forward rollout and one backward
 pass (median of repeats), and each solver: ``lm-fd`` and ``bfgs`` to convergence, ``lm-bwd``
@@ -127,6 +134,37 @@ def compare(session: Path, targets: str, level: int, rows: int, bwd_steps: int, 
     return out
 
 
+def suite(level: int) -> list[dict]:
+    """One rollout against the default windows on every session of the suite (this process)."""
+    import numpy as np
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    from fitting.calibration_fit import calibrate_session
+    from fitting.synthetic_scenes import SUITE, SUITE_NOISE, record_suite_session
+
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        for i, name in enumerate(SUITE):
+            _, _, path = record_suite_session(name, Path(folder) / f"{name}.mcap", seed=10 + i,
+                                              optimization_level=level)
+            truth = np.concatenate([SUITE[name][2]["k"], SUITE[name][2]["k_d"]])
+            for method, window in (("one rollout", 0), ("windows (default)", "default")):
+                result = calibrate_session(path, targets="both", window=window, optimization_level=level,
+                                           noise_position=SUITE_NOISE[0], noise_force=SUITE_NOISE[1])
+                error = result.fitted / truth - 1.0
+                se = result.uncertainty.standard_error
+                rows.append({"session": name, "seconds_long": SUITE[name][1], "method": method,
+                             "exit_code": result.verdict.exit_code, "steps": result.solver_steps,
+                             "rollouts": result.cost["forward_passes"], "seconds": round(result.cost["seconds"], 1),
+                             "max_error_in_se": float(np.max(np.abs(result.fitted - truth) / se)),
+                             "max_rel_error_k": float(np.abs(error[:6]).max()),
+                             "max_rel_error_k_d": float(np.abs(error[6:]).max()),
+                             "reduced_chi2": result.verdict.reduced_chi2, "load_average": os.getloadavg()})
+                print(json.dumps(rows[-1]), file=sys.stderr)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="session length [s] (default 10)")
@@ -136,6 +174,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     parser.add_argument("--compare", action="store_true", help="time the pieces and every solver instead")
+    parser.add_argument("--suite", action="store_true",
+                        help="one rollout against the default windows on the five fast sessions of the test suite")
     parser.add_argument("--rows", type=int, default=48, help="residuals of lm-bwd (--compare)")
     parser.add_argument("--bwd-steps", type=int, default=2, help="steps of lm-bwd timed (--compare)")
     parser.add_argument("--session", type=Path, default=None, help="(internal) calibrate this session in a child")
@@ -143,6 +183,9 @@ def main() -> None:
     level = 0 if args.fast_compile else 2
     if args.session is not None:
         print(json.dumps(calibrate_child(args.session, args.targets, level, args.solver)))
+        return
+    if args.suite:
+        print(json.dumps(suite(level), indent=2))
         return
     with tempfile.TemporaryDirectory() as folder:
         session = Path(folder) / "session.mcap"

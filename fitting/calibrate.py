@@ -32,7 +32,7 @@ import numpy as np
 from .calibration_data import CalibrationData
 from .synthetic_session import SPEC_FIELDS
 
-__all__ = ["SOLVERS", "CalibrationProblem", "Parameter", "parse_parameters"]
+__all__ = ["SOLVERS", "CalibrationProblem", "Parameter", "parse_bounds", "parse_parameters", "parse_priors"]
 
 SOLVERS = ("lm-fd", "lm-bwd", "bfgs")
 #: Input field of the rollout engine for each constant.
@@ -60,15 +60,72 @@ class Parameter:
         return 1 if self.shared else len(self.strings)
 
 
-def parse_parameters(text: str | Sequence[str], data: CalibrationData) -> list[Parameter]:
+def parse_parameters(text: str | Sequence[str], data: CalibrationData,
+                     freeze: str | Sequence[str] | None = None) -> list[Parameter]:
     """Parses ``"k,k_d"`` or ``"k,k_d,k_s:shared"``: constants fitted per string, or shared.
 
     ``k`` and ``k_d`` (eq. 2) apply to the strings tied to a body point; ``k_s`` (the whole
-    string's stiffness) to every string.
+    string's stiffness) to every string. ``freeze`` lists per-string constants held at their
+    start values, by label: ``"k[head],k_d[hand_left]"``.
 
     Raises:
-        ValueError: an unknown constant, an unknown suffix, or a constant named twice.
+        ValueError: an unknown constant, an unknown suffix, a constant named twice, or a frozen
+            label that is not a fitted per-string constant.
     """
+    params = _parse_parameters(text, data)
+    frozen = [s.strip() for s in (freeze.split(",") if isinstance(freeze, str) else (freeze or ())) if s.strip()]
+    names = [s.name for s in data.scene.strings]
+    for label in frozen:
+        name, _, rest = label.partition("[")
+        string = rest.rstrip("]")
+        match = [p for p in params if p.name == name and not p.shared]
+        if not rest.endswith("]") or not match or string not in names or names.index(string) not in match[0].strings:
+            fitted = [lab for p in params if not p.shared for lab in p.labels(names)]
+            raise ValueError(f"--freeze: got {label!r}; expected labels of fitted per-string constants, some of "
+                             f"{fitted}")
+        index = params.index(match[0])
+        params[index] = Parameter(name, False, tuple(i for i in match[0].strings if i != names.index(string)))
+    params = [p for p in params if p.strings]
+    if not params:
+        raise ValueError(f"--freeze {freeze!r}: every fitted constant is frozen; nothing to fit")
+    return params
+
+
+def parse_bounds(text: str | Mapping[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]]:
+    """Parses ``"k=100:1000,k_d=0.5:10"``: lower and upper bounds per constant name, in its unit.
+
+    Raises:
+        ValueError: an unknown constant, a malformed entry, bounds not ``0 < low < high``.
+    """
+    items = _parse_pairs(text, "--bounds", ":", "NAME=LOW:HIGH, e.g. 'k=100:1000,k_d=0.5:10'")
+    for name, (low, high) in items.items():
+        if name not in ENGINE_FIELDS:
+            raise ValueError(f"--bounds: unknown constant {name!r}; expected some of {sorted(ENGINE_FIELDS)}")
+        if not (np.isfinite(low) and np.isfinite(high) and 0 < low < high):
+            raise ValueError(f"--bounds {name}: got {low}:{high}; expected 0 < LOW < HIGH")
+    return items
+
+
+def _parse_pairs(text, flag: str, separator: str, expected: str) -> dict[str, tuple[float, float]]:
+    """``"NAME=A<sep>B,..."`` (or a mapping) as ``{name: (A, B)}``; a ``ValueError`` naming ``flag``."""
+    if text is None:
+        return {}
+    if isinstance(text, Mapping):
+        return {k: (float(v[0]), float(v[1])) for k, v in text.items()}
+    items = {}
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        name, eq, value = part.partition("=")
+        first, sep, second = value.partition(separator)
+        try:
+            items[name.strip()] = (float(first), float(second))
+        except ValueError:
+            sep = ""
+        if not eq or not sep:
+            raise ValueError(f"{flag}: got {part!r} in {text!r}; expected {expected}") from None
+    return items
+
+
+def _parse_parameters(text: str | Sequence[str], data: CalibrationData) -> list[Parameter]:
     items = [s.strip() for s in (text.split(",") if isinstance(text, str) else text) if s.strip()]
     if not items:
         raise ValueError(f"--params: got {text!r}; expected a comma-separated list of {sorted(ENGINE_FIELDS)}, "
@@ -93,6 +150,24 @@ def parse_parameters(text: str | Sequence[str], data: CalibrationData) -> list[P
     return params
 
 
+def parse_priors(text: str | Mapping[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]]:
+    """Parses ``"k=300±100,k_d=3+-1"``: a Gaussian prior (mean, standard deviation, in the
+    constant's unit) per constant name, for every string's constant of that name.
+
+    Raises:
+        ValueError: an unknown constant, a malformed entry, a non-positive mean or deviation.
+    """
+    if isinstance(text, str):
+        text = text.replace("+-", "±")
+    items = _parse_pairs(text, "--prior", "±", "NAME=MEAN±SD (or MEAN+-SD), e.g. 'k=300±100,k_d=3+-1'")
+    for name, (mean, sd) in items.items():
+        if name not in ENGINE_FIELDS:
+            raise ValueError(f"--prior: unknown constant {name!r}; expected some of {sorted(ENGINE_FIELDS)}")
+        if not (np.isfinite(mean) and mean > 0 and np.isfinite(sd) and sd > 0):
+            raise ValueError(f"--prior {name}: got mean {mean} and deviation {sd}; expected positive finite numbers")
+    return items
+
+
 class CalibrationProblem:
     """The residuals of a session as a function of the log-constants, and their Jacobians.
 
@@ -105,11 +180,22 @@ class CalibrationProblem:
         noise_force: noise scale of a reaction component [N].
         optimization_level: Warp optimisation of the puppet kernels (0 compiles fast).
         checkpoint_steps: puppet steps per taped segment of the gradient engine.
+        priors: Gaussian priors ``{name: (mean, sd)}`` (:func:`parse_priors`): one residual row
+            ``(c - mean) / sd`` per fitted constant of that name, after the data's rows.
+        bounds: ``{name: (low, high)}`` (:func:`parse_bounds`): the solver keeps the constants
+            inside (``log_bounds``); the start must lie inside.
+        window_steps: multiple shooting (:mod:`fitting.calibration_windows`): puppet steps per
+            window, each started from the recorded puppet state; None: one rollout over the
+            whole session (single shooting). Needs ``joint_q`` in ``/puppet/state`` at every
+            frame; the forward-only residuals (:meth:`host_residuals`, :meth:`fd_jacobian`)
+            use the windows, the reverse-mode ones (:meth:`jax_residuals`) do not.
     """
 
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
                  start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
-                 noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None):
+                 noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None,
+                 window_steps: int | None = None, priors: Mapping[str, tuple[float, float]] | None = None,
+                 bounds: Mapping[str, tuple[float, float]] | None = None):
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.grad.engine import MarionetteGradient
 
@@ -134,7 +220,84 @@ class CalibrationProblem:
         self.string_names = [s.name for s in data.scene.strings]
         self.labels = [label for p in self.params for label in p.labels(self.string_names)]
         self.theta_start = self._start_theta(start or {})
+        for name, values in (start or {}).items():  # every string's, the frozen ones included
+            field = ENGINE_FIELDS[name]
+            setattr(self.base, field, np.broadcast_to(np.asarray(values, float), (len(data.scene.strings),)).copy())
         self._rows_of = self._target_layout()
+        self.priors = parse_priors(priors)
+        unknown = sorted(set(self.priors) - {p.name for p in self.params})
+        if unknown:
+            raise ValueError(f"--prior: {unknown} not fitted (fitted: {[p.name for p in self.params]})")
+        offset, self._prior_index = 0, []
+        for p in self.params:
+            if p.name in self.priors:
+                self._prior_index += list(range(offset, offset + p.size))
+            offset += p.size
+        self._prior_mean = np.array([self.priors[self._name_of(i)][0] for i in self._prior_index])
+        self._prior_sd = np.array([self.priors[self._name_of(i)][1] for i in self._prior_index])
+        self.bounds = parse_bounds(bounds)
+        unknown = sorted(set(self.bounds) - {p.name for p in self.params})
+        if unknown:
+            raise ValueError(f"--bounds: {unknown} not fitted (fitted: {[p.name for p in self.params]})")
+        names = [self._name_of(i) for i in range(len(self.theta_start))]
+        self.log_bounds = (np.array([np.log(self.bounds[n][0]) if n in self.bounds else -np.inf for n in names]),
+                           np.array([np.log(self.bounds[n][1]) if n in self.bounds else np.inf for n in names]))
+        outside = [(label, float(np.exp(t)))
+                   for label, t, lo, hi in zip(self.labels, self.theta_start, *self.log_bounds) if not lo <= t <= hi]
+        if outside:
+            raise ValueError(f"--bounds: start values {outside} lie outside their bounds {self.bounds}; give "
+                             "--start values inside")
+        self.data_residual_count = self.residual_count
+        self.residual_count += len(self._prior_index)
+        self.windows = None
+        self.active_rows = None
+        self.use_windows(window_steps)
+
+    def _name_of(self, index: int) -> str:
+        offset = 0
+        for p in self.params:
+            if offset <= index < offset + p.size:
+                return p.name
+            offset += p.size
+        raise IndexError(index)
+
+    def prior_residuals(self, theta):
+        """``(exp(theta_i) - mean_i) / sd_i`` for the constants with a prior, ``(priors,)`` (numpy or JAX)."""
+        xp = _array_module(theta)
+        index = np.array(self._prior_index, dtype=int)
+        return (xp.exp(theta[index]) - self._prior_mean) / self._prior_sd
+
+    def prior_slice(self) -> tuple[int, int]:
+        """Residual index range of the prior rows (empty without priors)."""
+        return self.data_residual_count, self.residual_count
+
+    def use_windows(self, window_steps: int | None, prefix_steps: int | None = None) -> None:
+        """Multiple shooting with ``window_steps`` puppet steps per window from now on (None: one
+        rollout over the session); the model and its compiled kernels are kept. ``prefix_steps``:
+        only the first puppet steps of the session (windows over them; the forward-only residuals
+        and Jacobians then hold only their rows, ``active_rows``, and the prior's)."""
+        self.active_rows = None
+        if window_steps is None:
+            self.windows = None
+            return
+        if prefix_steps is not None and prefix_steps < self.data.puppet_steps:
+            rows = []
+            for target, (a, _) in self._rows_of.items():
+                d = self.data
+                per_step = 3 * (len(d.bodies) if target == "bodies" else len(d.bars) * d.substeps)
+                rows.append(np.arange(a, a + prefix_steps * per_step))
+            rows.append(np.arange(*self.prior_slice()))
+            self.active_rows = np.concatenate(rows)
+        else:
+            prefix_steps = None
+        from .calibration_windows import WindowedRollout, recorded_joint_q
+
+        joint_q = recorded_joint_q(self.data)
+        if joint_q is None:
+            raise ValueError(f"{self.data.path}: multiple shooting (windows) starts each window from the recorded "
+                             "puppet state, but channel /puppet/state does not hold 'joint_q' at every puppet "
+                             "frame; calibrate with one rollout (windows off) instead")
+        self.windows = WindowedRollout(self.model, self.data, joint_q, int(window_steps), puppet_steps=prefix_steps)
 
     # ------------------------------------------------------------------ parameters
     def _wrap_engine(self) -> None:
@@ -222,8 +385,17 @@ class CalibrationProblem:
     def host_residuals(self, theta: np.ndarray) -> np.ndarray:
         """Residuals ``(m,)`` at ``theta`` from one forward rollout (numpy, no JAX)."""
         inputs = dataclasses.replace(self.base, **self.constants(np.asarray(theta, np.float64)))
-        outputs = self.engine.forward(inputs)
-        return np.asarray(self.residuals_from_outputs(dataclasses.asdict(outputs)))
+        if self.windows is None:
+            outputs = dataclasses.asdict(self.engine.forward(inputs))
+        else:
+            self.counts["forward"] += 1  # one pass over every window: one rollout of the session
+            if self.on_forward is not None:
+                self.on_forward(self.counts["forward"])
+            outputs = self.windows.forward(inputs)
+        data = np.asarray(self.residuals_from_outputs(outputs))
+        full = np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
+            else data
+        return full if self.active_rows is None else full[self.active_rows]
 
     def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the
@@ -236,7 +408,7 @@ class CalibrationProblem:
         """
         theta = np.asarray(theta, np.float64)
         value = self.host_residuals(theta)
-        jacobian = np.empty((self.residual_count, len(theta)))
+        jacobian = np.empty((len(value), len(theta)))
         step = _FD_STEP if central else _FD_STEP_ONE_SIDED
         for j in range(len(theta)):
             up = theta.copy()
@@ -263,7 +435,8 @@ class CalibrationProblem:
 
         def residuals(theta, base):
             outputs = rollout({**base, **self.constants(theta)})
-            return self.residuals_from_outputs(outputs)
+            data = self.residuals_from_outputs(outputs)
+            return jnp.concatenate([data, self.prior_residuals(theta)]) if self._prior_index else data
 
         return residuals, base
 
@@ -275,7 +448,8 @@ class CalibrationProblem:
         import jax
         import jax.numpy as jnp
 
-        m, n = self.residual_count, len(self.theta_start)
+        m = self.residual_count if self.active_rows is None else len(self.active_rows)
+        n = len(self.theta_start)
         value_shape = jax.ShapeDtypeStruct((m,), jnp.float64)
         both = (value_shape, jax.ShapeDtypeStruct((m, n), jnp.float64))
 
@@ -305,6 +479,7 @@ class CalibrationProblem:
             want = max(1, round(rows * (b - a) / total / per))
             chosen = np.unique(np.linspace(0, times - 1, min(want, times)).round().astype(int))
             picked.append((a + chosen[:, None] * per + np.arange(per)[None, :]).reshape(-1))
+        picked.append(np.arange(*self.prior_slice()))  # the prior rows, always
         return np.concatenate(picked)
 
     def target_slices(self) -> dict[str, tuple[int, int]]:

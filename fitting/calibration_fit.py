@@ -15,11 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from .calibrate import SOLVERS, CalibrationProblem, parse_parameters
+from .calibrate import ENGINE_FIELDS, SOLVERS, CalibrationProblem, parse_parameters
 from .calibration_data import CalibrationData, read_calibration_data
+from .calibration_verdict import Verdict, judge_fit
 from .uncertainty import GaussNewtonUncertainty, gauss_newton_uncertainty
 
-__all__ = ["CalibrationResult", "calibrate_session", "fit_problem"]
+__all__ = ["DEFAULT_WINDOWS", "CalibrationResult", "calibrate_session", "fit_problem", "window_steps_for"]
 
 
 @dataclasses.dataclass
@@ -35,8 +36,14 @@ class CalibrationResult:
             ``"feedback"`` [N]).
         residuals_before, residuals_after: unscaled residual vectors per target (body
             ``(P, bodies, 3)`` [m], feedback ``(T, B, 3)`` [N]).
-        solver: the solver's name; ``solver_steps``; ``converged`` (optimistix's result);
-            ``message``.
+        solver: the solver's name; ``solver_steps``; ``converged``: the solver converged *and*
+            the fit explains the data (``verdict``); ``message``.
+        verdict: the honest assessment (:mod:`fitting.calibration_verdict`): reduced chi-squared
+            per target, unidentifiable constants, warnings, the exit code.
+        window_steps: puppet steps per multiple-shooting window (None: one rollout).
+        priors: the Gaussian priors used, ``{name: (mean, sd)}``.
+        string_constants: every string's value of each fitted constant name as simulated at the
+            end (fitted, or held: frozen), ``{name: (S,)}``.
         jacobian: how the uncertainty's Jacobian was computed: ``method`` (``"fd"``: central
             differences, ``"bwd"``: reverse mode), ``rows``, ``forward_passes``,
             ``backward_passes``, ``seconds``.
@@ -64,6 +71,10 @@ class CalibrationResult:
     noise: dict[str, float]
     known_noise: bool
     theta: np.ndarray
+    verdict: Verdict | None = None
+    window_steps: int | None = None
+    priors: dict = dataclasses.field(default_factory=dict)
+    string_constants: dict = dataclasses.field(default_factory=dict)
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -93,8 +104,8 @@ STEP_UNIT = 1e-2
 
 
 def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps: int = 50, rows: int = 96,
-                atol: float = 1e-3, rtol: float = 0.0) -> dict[str, Any]:
-    """Minimises ``0.5 |r|^2`` from ``problem.theta_start``; returns ``theta``, ``steps``,
+                atol: float = 1e-3, rtol: float = 0.0, theta_start: np.ndarray | None = None) -> dict[str, Any]:
+    """Minimises ``0.5 |r|^2`` from ``theta_start`` (default ``problem.theta_start``); returns ``theta``, ``steps``,
     ``converged``, ``message``, ``rows`` (the residual indices the solver used, or None for
     all), ``forward_passes``, ``backward_passes``, ``seconds``.
 
@@ -117,11 +128,14 @@ def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps
         raise ValueError(f"max_steps: got {max_steps!r}; expected an integer >= 1")
     before = dict(problem.counts)
     start = time.perf_counter()
-    theta0 = jnp.asarray(problem.theta_start)
+    theta0 = jnp.asarray(problem.theta_start if theta_start is None else theta_start)
     u0 = jnp.zeros_like(theta0)
 
+    low, high = (jnp.asarray(b) for b in getattr(problem, "log_bounds", (-np.inf, np.inf)))
+
     def theta_of(u):
-        return theta0 + STEP_UNIT * u
+        # Bounds (--bounds) by projection: outside them a constant stays at its bound (zero derivative).
+        return jnp.clip(theta0 + STEP_UNIT * u, low, high)
 
     chosen = None
     if solver == "lm-fd":
@@ -202,12 +216,45 @@ def jacobian_at(problem: CalibrationProblem, theta: np.ndarray, method: str,
     return residuals, jacobian, cost
 
 
+#: Default multiple-shooting windows [s], one fit per entry, each from the previous one's result
+#: (docs/calibration.md, "Windows": measured on five sessions).
+DEFAULT_WINDOWS = (1.0 / 30.0, 1.0 / 3.0)
+#: The solvers' absolute tolerance (:func:`fit_problem`) in the stages before the last: they only
+#: need to bring the constants into the last stage's basin (1e-4 of each constant per step).
+STAGE_ATOL = 1e-2
+#: The stages before the last fit only the session's first seconds [s]: enough to find the basin,
+#: and the shortest windows (most rollouts' overhead) then stay cheap on long sessions.
+STAGE_SECONDS = 2.0
+
+
+def window_steps_for(data: CalibrationData, window: float | None, solver: str) -> int | None:
+    """Puppet steps per window for ``window`` seconds (None or 0: one rollout)."""
+    from .calibration_windows import recorded_joint_q
+
+    if window is None or window == 0:
+        return None
+    if not (isinstance(window, (int, float, np.floating)) and window > 0):
+        raise ValueError(f"window: got {window!r}; expected a positive number of seconds, or 0 for one rollout")
+    if solver != "lm-fd":
+        raise ValueError(f"window {window} s: multiple shooting runs with --solver lm-fd only (got {solver!r}); "
+                         "use --window 0 with the reverse-mode solvers")
+    if recorded_joint_q(data) is None:
+        raise ValueError(f"{data.path}: multiple shooting (--window {window}) starts each window from the recorded "
+                         "puppet state, but /puppet/state does not hold 'joint_q' at every puppet frame; use "
+                         "--window 0 (one rollout over the whole session)")
+    return max(1, int(round(window / data.puppet_dt)))
+
+
 def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str | Sequence[str] = "k,k_d",
                       solver: str = "lm-fd", max_steps: int = 50, start: Mapping[str, Any] | None = None,
                       noise_position: float = 1e-3, noise_force: float = 1e-2, known_noise: bool = False,
                       duration: float | None = None, rows: int = 96, jacobian: str | None = None,
                       optimization_level: int = 2, checkpoint_steps: int | None = None,
-                      progress=None, data: CalibrationData | None = None) -> CalibrationResult:
+                      progress=None, data: CalibrationData | None = None,
+                      window: float | Sequence[float] | None = "default",
+                      prior: str | Mapping[str, tuple[float, float]] | None = None,
+                      bounds: str | Mapping[str, tuple[float, float]] | None = None,
+                      freeze: str | Sequence[str] | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -228,39 +275,82 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
         checkpoint_steps: puppet steps per taped segment.
         progress: called as ``progress(stage, forward_passes)`` while it runs (a progress display).
         data: the session already read (else read from ``path``).
+        window: multiple shooting, seconds per window (:mod:`fitting.calibration_windows`), or a
+            sequence of them: one fit per entry, each started from the previous one's result (a
+            continuation from short windows, which find the basin, to longer ones, which pin
+            the constants down); 0 or None: one rollout over the whole session. ``"default"``:
+            :data:`DEFAULT_WINDOWS` with ``lm-fd`` when the session records ``joint_q``, else
+            one rollout.
+        prior: Gaussian priors per constant name, ``"k=300±100,k_d=3+-1"`` or ``{"k": (300, 100)}``
+            (:func:`fitting.calibrate.parse_priors`): residual rows ``(c - mean) / sd``.
+        bounds: per constant name, ``"k=100:1000"`` or ``{"k": (100, 1000)}``: the solver keeps the
+            constants inside (projection); a constant that ends at a bound is warned about.
+        freeze: per-string constants held at their start values, ``"k[head],k_d[back]"``.
     """
     total = time.perf_counter()
     data = read_calibration_data(path, targets, duration=duration) if data is None else data
-    parameters = parse_parameters(params, data)
+    parameters = parse_parameters(params, data, freeze)
+    if isinstance(window, str) and window == "default":
+        from .calibration_windows import recorded_joint_q
+
+        usable = solver == "lm-fd" and recorded_joint_q(data) is not None
+        window = DEFAULT_WINDOWS if usable else None
+    windows = list(window) if isinstance(window, (list, tuple)) else [window]
+    if not windows:
+        raise ValueError("window: got an empty list; expected seconds per window, or 0 for one rollout")
+    schedule = [window_steps_for(data, w, solver) for w in windows]
     problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
                                  noise_force=noise_force, optimization_level=optimization_level,
-                                 checkpoint_steps=checkpoint_steps)
+                                 checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior,
+                                 bounds=bounds)
     stage = {"name": "start"}
     if progress is not None:
         problem.on_forward = lambda count: progress(stage["name"], count)
-    r0 = problem.host_residuals(problem.theta_start)
-    stage["name"] = "fit"
-    fit = fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows)
-    theta = fit["theta"]
+    r0 = problem.host_residuals(problem.theta_start)  # as the last stage measures them
+    theta, stages = problem.theta_start, []
+    for index, steps in enumerate(schedule):
+        stage["name"] = "fit" if len(schedule) == 1 else f"fit {index + 1}/{len(schedule)}"
+        last = index == len(schedule) - 1
+        prefix = None if last or steps is None else max(1, int(round(STAGE_SECONDS / data.puppet_dt)))
+        problem.use_windows(steps, prefix)
+        fit = fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta,
+                          atol=1e-3 if last else STAGE_ATOL)
+        theta = fit["theta"]
+        stages.append({"window_steps": steps, "puppet_steps": min(prefix or data.puppet_steps, data.puppet_steps),
+                       "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
+                       "forward_passes": fit["forward_passes"], "seconds": fit["seconds"]})
+    fit = {**fit, "steps": sum(st["steps"] for st in stages),
+           "forward_passes": sum(st["forward_passes"] for st in stages),
+           "backward_passes": fit["backward_passes"], "seconds": sum(st["seconds"] for st in stages)}
     stage["name"] = "uncertainty"
     method = jacobian or ("bwd" if solver == "lm-bwd" else "fd")
     used = fit["rows"] if solver == "lm-bwd" else None
     residuals, jac, jac_cost = jacobian_at(problem, theta, method, used)
     slices = problem.target_slices()
+    all_slices = {**slices, "prior": problem.prior_slice()}
     if used is None:
-        rows_of = {t: np.arange(a, b) for t, (a, b) in slices.items()}
+        rows_of = {t: np.arange(a, b) for t, (a, b) in all_slices.items() if b > a}
     else:
-        rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in slices.items()}
-    uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise)
+        rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
+    uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
+                                           known=("prior",))
     stage["name"] = "residuals"
     r1 = problem.host_residuals(theta)
+    at_bound = [label for label, t, lo, hi in zip(problem.labels, theta, *problem.log_bounds)
+                if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
+    verdict = judge_fit(r1, slices, problem.noise, problem.labels, uncertainty, fit["converged"], fit["message"],
+                        at_bound=at_bound)
+    message = "converged" if verdict.converged else \
+        ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
     before, after = _unscaled(problem, r0), _unscaled(problem, r1)
     return CalibrationResult(
         data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
         fitted=problem.values(theta), uncertainty=uncertainty, rms_before=_rms(before), rms_after=_rms(after),
         residuals_before=before, residuals_after=after, solver=solver, solver_steps=fit["steps"],
-        converged=fit["converged"], message=fit["message"], jacobian=jac_cost,
+        converged=verdict.converged, message=message, jacobian=jac_cost,
         cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
               "seconds": fit["seconds"], "total_seconds": time.perf_counter() - total,
-              "residual_count": problem.residual_count},
-        noise=dict(problem.noise), known_noise=known_noise, theta=theta)
+              "residual_count": problem.residual_count, "stages": stages},
+        noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
+        window_steps=schedule[-1], priors=dict(problem.priors),
+        string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters})

@@ -30,24 +30,62 @@ def format_table(result: CalibrationResult) -> str:
         unit = _UNITS[row["label"].split("[")[0]]
         lines.append(f"{row['label']:<22} {row['start']:>12.5g} {row['fitted']:>12.6g} "
                      f"{row['standard_error']:>12.3g} {100 * row['relative_error']:>8.3f}%  {unit}")
+    for name, (mean, sd) in result.priors.items():
+        lines.append(f"prior on {name}: {mean:.6g} ± {sd:.3g} {_UNITS[name]} (Gaussian)")
     lines.append("")
     for target in result.rms_before:
         lines.append(f"RMS residual, {target:<8}: {result.rms_before[target]:.4g} -> {result.rms_after[target]:.4g} "
                      f"{_RMS_UNITS[target]}")
     u = result.uncertainty
-    lines.append(f"solver {result.solver}: {result.solver_steps} steps, {result.message}; "
+    v = result.verdict
+    if v is not None:
+        for target, chi2 in v.reduced_chi2.items():
+            lines.append(f"residual / given noise, {target:<8}: {v.noise_ratio[target]:.3g} (reduced chi^2 {chi2:.3g})")
+    shooting = "one rollout" if result.window_steps is None else \
+        f"windows of {result.window_steps} puppet steps ({result.window_steps * result.data.puppet_dt:.3g} s)"
+    lines.append(f"solver {result.solver}, {shooting}: {result.solver_steps} steps, {result.message}; "
                  f"{result.cost['forward_passes']} forward and {result.cost['backward_passes']} backward rollouts, "
                  f"{result.cost['seconds']:.1f} s")
     lines.append(f"uncertainty: Jacobian by {'central differences' if result.jacobian['method'] == 'fd' else 'reverse mode'}"
                  f" ({result.jacobian['rows']} residuals, {result.jacobian['forward_passes']} forward and "
                  f"{result.jacobian['backward_passes']} backward rollouts), cond(J^T J) = {u.condition_number:.3g}")
+    if v is not None:
+        for direction in v.null_directions:
+            parts = ", ".join(f"{w:+.2f} {label}" for label, w in direction["components"].items())
+            lines.append(f"unidentifiable direction (log space): {parts}; singular value "
+                         f"{direction['singular_ratio']:.2g} of the largest, standard error {direction['log_error']:.3g}")
+        lines.append("")
+        if v.warnings:
+            lines.extend(f"**WARNING: {w}**" for w in v.warnings)
+        lines.append(f"**RESULT: {_verdict_line(v)} (exit code {v.exit_code})**" if v.exit_code else
+                     f"RESULT: {_verdict_line(v)} (exit code 0)")
     return "\n".join(lines)
+
+
+def _verdict_line(v) -> str:
+    from .calibration_verdict import EXIT_CODES
+
+    return EXIT_CODES[v.exit_code]
+
+
+def _finite_or_text(value):
+    """JSON has no infinity: infinite and NaN numbers are written as the strings "inf" and "nan"."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return "nan" if np.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, dict):
+        return {k: _finite_or_text(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_text(v) for v in value]
+    return value
 
 
 def result_summary(result: CalibrationResult) -> dict[str, Any]:
     """A JSON-ready summary (``calibration.json``)."""
     u, d = result.uncertainty, result.data
-    return {
+    verdict = result.verdict.summary() if result.verdict is not None else None
+    return _finite_or_text({
+        "status": verdict, "window_steps": result.window_steps,
+        "priors": {name: {"mean": m, "sd": sd} for name, (m, sd) in result.priors.items()},
         "session": str(d.path), "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),
@@ -58,8 +96,10 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
         "uncertainty": {"jacobian": result.jacobian, "condition_number": u.condition_number,
                         "noise_variance": u.noise_variance, "known_noise": result.known_noise,
                         "noise_scales": result.noise, "residual_count": u.residual_count,
-                        "correlation": u.correlation.tolist(), "covariance_log": u.covariance.tolist()},
-    }
+                        "correlation": u.correlation.tolist(), "covariance_log": u.covariance.tolist(),
+                        "singular_values": u.singular_values.tolist(),
+                        "identifiable": [bool(x) for x in u.identifiable]},
+    })
 
 
 def calibrated_scene_table(result: CalibrationResult) -> dict[str, Any]:
@@ -84,6 +124,8 @@ def calibrated_scene_table(result: CalibrationResult) -> dict[str, Any]:
             value = getattr(spec, key)
             entry[key] = int(value) if key == "particle_count" else float(value)
         entry.update(fitted[spec.name])
+        for name, values in result.string_constants.items():  # frozen ones too: as simulated
+            entry[SPEC_FIELDS[name]] = float(values[scene.strings.index(spec)])
     info = table.setdefault("scene", {})
     info["description"] = (f"{info.get('description', '')} Calibrated from {result.data.path.name}: "
                            f"{len(result.labels)} constants ({result.solver}).").strip()
@@ -104,8 +146,9 @@ def write_calibrated_scene(result: CalibrationResult, path: str | Path) -> Path:
 
 
 def write_plot(result: CalibrationResult, path: str | Path) -> Path:
-    """``calibration.png``: RMS residual over time before and after, and the constants (start,
-    fitted with 2 standard errors)."""
+    """``calibration.png``: RMS residual over time per target before and after, the constants
+    (start, fitted with 2 standard errors, "± ∞" where unidentifiable, the prior's band), the
+    verdict in the title and the warnings under the panels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -136,15 +179,30 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
         rows = [i for i, label in enumerate(result.labels) if label.split("[")[0] == name]
         x = np.arange(len(rows))
         ax.plot(x, result.start[rows], "x", color="C3", label="start")
-        ax.errorbar(x, result.fitted[rows], yerr=2 * result.uncertainty.standard_error[rows], fmt="o", color="C0",
+        se = result.uncertainty.standard_error[rows]
+        finite = np.isfinite(se)
+        ax.errorbar(x, result.fitted[rows], yerr=np.where(finite, 2 * se, 0.0), fmt="o", color="C0",
                     capsize=3, label="fitted ± 2 s.e.")
+        for xi, yi in zip(x[~finite], result.fitted[rows][~finite]):  # unidentifiable: an unbounded interval
+            ax.annotate("± ∞", (xi, yi), textcoords="offset points", xytext=(5, 5), color="C3", fontsize=8)
+        if name in result.priors:
+            mean, sd = result.priors[name]
+            ax.axhspan(mean - sd, mean + sd, color="C2", alpha=0.15, label=f"prior {mean:g} ± {sd:g}")
         ax.set_xticks(x, [result.labels[i].split("[")[1].rstrip("]") for i in rows], rotation=30, fontsize=8)
         ax.set_ylabel(f"{name} [{_UNITS[name]}]")
         ax.legend(fontsize=8)
     for c in range(len(names), axes.shape[1]):
         axes[1, c].axis("off")
-    fig.suptitle(f"calibration of {d.path.name}: {result.solver}, {result.solver_steps} steps")
+    v = result.verdict
+    status = "" if v is None else (" — converged" if v.exit_code == 0 else f" — exit code {v.exit_code}")
+    fig.suptitle(f"calibration of {d.path.name}: {result.solver}, {result.solver_steps} steps{status}")
     fig.tight_layout()
+    if v is not None and v.warnings:  # the warnings, in red, under the panels
+        import textwrap
+
+        text = "\n".join(textwrap.fill(f"WARNING: {w}", 160) for w in v.warnings)
+        fig.subplots_adjust(bottom=0.08 + 0.035 * text.count("\n") + 0.035 * len(v.warnings))
+        fig.text(0.01, 0.01, text, color="C3", fontsize=8, va="bottom")
     path = Path(path)
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -133,7 +133,12 @@ def add_calibrate_command(commands) -> None:
                     "drive the simulation, the recorded body centres and/or feedback forces are the targets. "
                     "Prints the fitted values with standard errors (Gauss-Newton) and the residuals before and "
                     "after; writes OUT/calibration.json, OUT/calibration.png and OUT/calibrated.toml (a scene "
-                    "with the fitted constants, for 'dmarionette simulate'). Needs the 'fitting' extra.")
+                    "with the fitted constants, for 'dmarionette simulate'). Needs the 'fitting' extra. "
+                    "Exit codes: 0 converged, the fit explains the data (reduced chi^2 <= 2 against the given "
+                    "noise scales) and every constant is identifiable; 2 bad input; 3 the solver did not converge "
+                    "or the fit does not explain the data; 4 some constants are not identifiable (their "
+                    "intervals are infinite). Warnings are printed in bold (**WARNING: ...**) and written to "
+                    "calibration.json's 'status'.")
     calibrate.add_argument("session", type=Path, help="the .mcap session file")
     calibrate.add_argument("--targets", choices=["bodies", "feedback", "both"], default="bodies",
                            help="fit the recorded body centres (default), the bars' feedback (exact reaction), "
@@ -161,10 +166,65 @@ def add_calibrate_command(commands) -> None:
                            help="use only the first S seconds")
     calibrate.add_argument("--rows", type=integer(1, 1_000_000), default=96,
                            help="residuals kept by --solver lm-bwd (default 96)")
+    calibrate.add_argument("--prior", type=_priors, default=None,
+                           help="Gaussian priors per constant, in its unit: 'k=300±100,k_d=3+-1' (every string's "
+                                "constant of that name; a residual row (c - mean) / sd each)")
+    calibrate.add_argument("--bounds", type=_bounds, default=None,
+                           help="bounds per constant, in its unit: 'k=100:1000,k_d=0.5:10' (the solver keeps every "
+                                "string's constant of that name inside; one left at a bound is warned about)")
+    calibrate.add_argument("--freeze", type=_labels, default=None,
+                           help="per-string constants held at their start values, by label: 'k[head],k_d[back]'")
+    calibrate.add_argument("--window", type=_windows, default=None,
+                           help="multiple shooting: seconds per window, each window started from the recorded "
+                                "puppet state; a comma-separated list fits once per entry, each from the previous "
+                                "result (default 1/30 s then 1/3 s, the first stage on the first 2 s only, with "
+                                "--solver lm-fd when /puppet/state records joint_q; "
+                                "0: one rollout over the whole session)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
     calibrate.set_defaults(handler=_run_calibrate)
+
+
+def _priors(text: str) -> dict:
+    """``--prior``: ``NAME=MEAN±SD`` (or ``+-``), comma-separated."""
+    from .calibrate import parse_priors
+
+    try:
+        return parse_priors(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--prior: ")) from None
+
+
+def _bounds(text: str) -> dict:
+    """``--bounds``: ``NAME=LOW:HIGH``, comma-separated."""
+    from .calibrate import parse_bounds
+
+    try:
+        return parse_bounds(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--bounds: ")) from None
+
+
+def _labels(text: str) -> list[str]:
+    """``--freeze``: constant labels ``NAME[STRING]``, comma-separated (checked against the session later)."""
+    import re
+
+    labels = [part.strip() for part in text.split(",") if part.strip()]
+    bad = [label for label in labels if not re.fullmatch(r"(k|k_d|k_s)\[[^\[\]]+\]", label)]
+    if not labels or bad:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected labels like 'k[head],k_d[hand_left]' (constant "
+                                         "k, k_d or k_s and a string name in brackets)")
+    return labels
+
+
+def _windows(text: str) -> list[float]:
+    """``--window``: seconds per window, comma-separated (``0``: one rollout)."""
+    parse = number(0.0, 1e4, unit="s")
+    values = [parse(part.strip()) for part in text.split(",")]
+    if len(values) > 1 and 0.0 in values[:-1]:
+        raise argparse.ArgumentTypeError(f"got {text!r}; 0 (one rollout) may only be the last entry")
+    return values
 
 
 def _run_calibrate(args: argparse.Namespace) -> int:
@@ -193,6 +253,8 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    max_steps=args.max_steps, start=start, noise_position=args.noise_position,
                                    noise_force=args.noise_force, known_noise=args.known_noise,
                                    duration=args.duration, rows=args.rows,
+                                   window="default" if args.window is None else args.window,
+                                   prior=args.prior, bounds=args.bounds, freeze=args.freeze,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None)
     finally:
@@ -201,7 +263,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     files = write_outputs(result, out, plot=not args.no_picture)
     print(format_table(result))
     print(json.dumps(files, indent=2))
-    return 0
+    return result.verdict.exit_code
 
 
 def _outputs(args: argparse.Namespace) -> Outputs:

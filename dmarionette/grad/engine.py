@@ -307,10 +307,15 @@ class MarionetteGradient:
             upload_values(pup.spring_stiffness, inputs.tie_stiffness[m.spring_string])
             upload_values(pup.spring_damping, inputs.tie_damping[m.spring_string])
 
-    def _start_state(self, inputs: RolloutInputs) -> Checkpoint:
+    def _start_state(self, inputs: RolloutInputs, tie_target0: np.ndarray | None = None,
+                     tie_force0: np.ndarray | None = None) -> Checkpoint:
         r = self._rest
+        tie_target = r.tie_target.copy() if tie_target0 is None else \
+            _checked("tie_target0", tie_target0, r.tie_target.shape)
+        tie_force = np.zeros_like(r.tie_force) if tie_force0 is None else \
+            _checked("tie_force0", tie_force0, r.tie_force.shape)
         return Checkpoint(inputs.particle_q0.copy(), inputs.particle_qd0.copy(), inputs.joint_q0[None].copy(),
-                          inputs.joint_qd0[None].copy(), r.tie_target.copy(), np.zeros_like(r.tie_force))
+                          inputs.joint_qd0[None].copy(), tie_target, tie_force)
 
     # ------------------------------------------------------------------ forward
     def _chunk(self, steps: int) -> _PlainChunk:
@@ -318,8 +323,16 @@ class MarionetteGradient:
             self._chunks[steps] = _PlainChunk(self, steps, self._capture)
         return self._chunks[steps]
 
-    def forward(self, inputs: RolloutInputs) -> RolloutOutputs:
-        """Runs the rollout without a tape, keeping the checkpoints; returns all outputs."""
+    def forward(self, inputs: RolloutInputs, *, tie_target0: np.ndarray | None = None,
+                tie_force0: np.ndarray | None = None) -> RolloutOutputs:
+        """Runs the rollout without a tape, keeping the checkpoints; returns all outputs.
+
+        ``tie_target0`` (the tie targets [m], ``(S, 3)``) and ``tie_force0`` (the previous puppet
+        step's tie forces [N], ``(n, S, 3)``) complete a start state taken mid-motion (a
+        multiple-shooting window, ``fitting.calibration_windows``); default: the scene's rest tie
+        points and no force, as at the start of a session. They are constants: :meth:`backward`
+        returns no gradient for them.
+        """
         inputs = self.check_inputs(inputs)
         m = self.model
         self._set_constants(inputs)
@@ -327,7 +340,7 @@ class MarionetteGradient:
         out = {name: np.zeros(shape) for name, shape in shapes.items()}
         n = m.substeps
         checkpoints = []
-        start = self._start_state(inputs)
+        start = self._start_state(inputs, tie_target0, tie_force0)
         start.load(self.state)
         for a, b in self.segments:
             checkpoints.append(Checkpoint.of(self.state))

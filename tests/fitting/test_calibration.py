@@ -209,9 +209,11 @@ def test_command_writes_its_outputs(recorded, tmp_path, capsys):
     out = tmp_path / "out"
     code = main(["calibrate", str(path), "--targets", "feedback", "--params", "k", "--duration", "0.5", "--max-steps", "3",
                  "--noise-force", str(NOISE_FORCE), "--fast-compile", "--quiet", "--out", str(out)])
-    assert code == 0
+    # 3 solver steps do not converge: since issue #14 that is said (exit code 3), not passed as success
+    assert code == 3
     printed = capsys.readouterr().out
     assert "k[head]" in printed and "RMS residual, feedback" in printed
+    assert "**WARNING: the solver did not converge" in printed
     assert {p.name for p in out.iterdir()} == {"calibration.json", "calibration.png", "calibrated.toml"}
 
 
