@@ -50,6 +50,9 @@ class CalibrationResult:
         cost: rollouts and seconds of the fit alone: ``forward_passes``, ``backward_passes``,
             ``seconds``; and of the whole run (``total_seconds``).
         noise: the noise scales used (``bodies`` [m], ``feedback`` [N]); ``known_noise``.
+        validation: with ``validate``, the held-out end's residuals
+            (:func:`fitting.calibration_validation.held_out_residuals`; ``data`` is then the part
+            fitted), else None.
     """
 
     data: CalibrationData
@@ -75,6 +78,7 @@ class CalibrationResult:
     window_steps: int | None = None
     priors: dict = dataclasses.field(default_factory=dict)
     string_constants: dict = dataclasses.field(default_factory=dict)
+    validation: dict | None = None
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -254,7 +258,8 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
                       window: float | Sequence[float] | None = "default",
                       prior: str | Mapping[str, tuple[float, float]] | None = None,
                       bounds: str | Mapping[str, tuple[float, float]] | None = None,
-                      freeze: str | Sequence[str] | None = None) -> CalibrationResult:
+                      freeze: str | Sequence[str] | None = None,
+                      validate: float | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -286,9 +291,18 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
         bounds: per constant name, ``"k=100:1000"`` or ``{"k": (100, 1000)}``: the solver keeps the
             constants inside (projection); a constant that ends at a bound is warned about.
         freeze: per-string constants held at their start values, ``"k[head],k_d[back]"``.
+        validate: hold out this fraction of the session's end (``0 < validate < 1``): fit on the
+            rest, then simulate the whole session with the fitted constants and judge the
+            held-out residuals (:mod:`fitting.calibration_validation`; a reduced chi-squared
+            above 2 there is a warning and exit code 3).
     """
     total = time.perf_counter()
     data = read_calibration_data(path, targets, duration=duration) if data is None else data
+    whole = None
+    if validate is not None:
+        from .calibration_validation import split_for_validation
+
+        whole, data = data, split_for_validation(data, validate, targets)
     parameters = parse_parameters(params, data, freeze)
     if isinstance(window, str) and window == "default":
         from .calibration_windows import recorded_joint_q
@@ -340,6 +354,18 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
                 if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
     verdict = judge_fit(r1, slices, problem.noise, problem.labels, uncertainty, fit["converged"], fit["message"],
                         at_bound=at_bound)
+    validation = None
+    if whole is not None:
+        from .calibration_validation import held_out_residuals, judge_validation
+
+        stage["name"] = "validation"
+        full = CalibrationProblem(whole, parameters, start=start, noise_position=noise_position,
+                                  noise_force=noise_force, optimization_level=optimization_level,
+                                  checkpoint_steps=checkpoint_steps, window_steps=schedule[-1])
+        if progress is not None:
+            full.on_forward = lambda count: progress(stage["name"], count)
+        validation = held_out_residuals(full, theta, data)
+        judge_validation(verdict, validation, problem.noise)
     message = "converged" if verdict.converged else \
         ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
     before, after = _unscaled(problem, r0), _unscaled(problem, r1)
@@ -353,4 +379,5 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
               "residual_count": problem.residual_count, "stages": stages},
         noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
         window_steps=schedule[-1], priors=dict(problem.priors),
-        string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters})
+        string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
+        validation=validation)

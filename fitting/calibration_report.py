@@ -41,6 +41,9 @@ def format_table(result: CalibrationResult) -> str:
     if v is not None:
         for target, chi2 in v.reduced_chi2.items():
             lines.append(f"residual / given noise, {target:<8}: {v.noise_ratio[target]:.3g} (reduced chi^2 {chi2:.3g})")
+    from .calibration_validation import validation_lines
+
+    lines.extend(validation_lines(result.validation, _RMS_UNITS))
     shooting = "one rollout" if result.window_steps is None else \
         f"windows of {result.window_steps} puppet steps ({result.window_steps * result.data.puppet_dt:.3g} s)"
     lines.append(f"solver {result.solver}, {shooting}: {result.solver_steps} steps, {result.message}; "
@@ -91,6 +94,8 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
         "constants": result.table(),
         "units": {label: _UNITS[label.split("[")[0]] for label in result.labels},
         "rms_before": result.rms_before, "rms_after": result.rms_after, "rms_units": _RMS_UNITS,
+        "validation": None if result.validation is None else
+        {k: v for k, v in result.validation.items() if k != "residuals"},
         "solver": {"name": result.solver, "steps": result.solver_steps, "converged": result.converged,
                    "message": result.message, **result.cost},
         "uncertainty": {"jacobian": result.jacobian, "condition_number": u.condition_number,
@@ -167,6 +172,15 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
                                         ("after", result.residuals_after, "C0")):
             rms = np.sqrt(np.mean(residuals[target] ** 2, axis=(1, 2))) * scale
             ax.plot(times, rms, style, lw=1, label=f"{label} (RMS {getattr(result, f'rms_{label}')[target] * scale:.3g} {unit})")
+        if result.validation is not None:  # the whole session simulated with the fitted constants
+            val = result.validation
+            whole = np.sqrt(np.mean(val["residuals"][target] ** 2, axis=(1, 2))) * scale
+            step = d.frame_time[1] - d.frame_time[0] if target == "bodies" else d.step_time[1] - d.step_time[0]
+            first = (d.frame_time[1] if target == "bodies" else d.step_time[0])
+            ax.plot(first + step * np.arange(len(whole)), whole, "C2", lw=1, alpha=0.8,
+                    label=f"validation, held out t > {val['start_time']:.3g} s (RMS {val['rms'][target] * scale:.3g} "
+                          f"{unit}, chi^2 {val['reduced_chi2'][target]:.3g})")
+            ax.axvline(val["start_time"], color="k", ls="--", lw=0.8)
         ax.set_xlabel("time [s]")
         ax.set_ylabel(f"RMS residual [{unit}]")
         ax.set_yscale("log")

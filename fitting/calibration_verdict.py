@@ -60,6 +60,8 @@ class Verdict:
         converged: ``solver_converged and explains_data``.
         warnings: plain sentences, one per problem.
         exit_code: :data:`EXIT_CODES`.
+        validation: the held-out part's summary (``--validate``,
+            :mod:`fitting.calibration_validation`), or None.
     """
 
     solver_converged: bool
@@ -72,6 +74,7 @@ class Verdict:
     converged: bool
     warnings: list[str]
     exit_code: int
+    validation: dict | None = None
 
     def summary(self) -> dict:
         """A JSON-ready dict."""

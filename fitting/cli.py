@@ -180,6 +180,11 @@ def add_calibrate_command(commands) -> None:
                                 "result (default 1/30 s then 1/3 s, the first stage on the first 2 s only, with "
                                 "--solver lm-fd when /puppet/state records joint_q; "
                                 "0: one rollout over the whole session)")
+    calibrate.add_argument("--validate", type=_fraction, default=None, metavar="F",
+                           help="hold out the last fraction F of the session (0 < F < 1, e.g. 0.25): fit on the "
+                                "rest, then simulate the whole session with the fitted constants and report the "
+                                "held-out residuals (RMS, reduced chi^2); a held-out reduced chi^2 > 2 is a warning "
+                                "and exit code 3")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
@@ -216,6 +221,14 @@ def _labels(text: str) -> list[str]:
         raise argparse.ArgumentTypeError(f"got {text!r}; expected labels like 'k[head],k_d[hand_left]' (constant "
                                          "k, k_d or k_s and a string name in brackets)")
     return labels
+
+
+def _fraction(text: str) -> float:
+    """``--validate``: a fraction strictly between 0 and 1."""
+    value = number(0.0, 1.0, low_open=True)(text)
+    if value >= 1.0:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected a fraction of the session held out, 0 < F < 1")
+    return value
 
 
 def _windows(text: str) -> list[float]:
@@ -255,6 +268,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    duration=args.duration, rows=args.rows,
                                    window="default" if args.window is None else args.window,
                                    prior=args.prior, bounds=args.bounds, freeze=args.freeze,
+                                   validate=args.validate,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None)
     finally:

@@ -1,0 +1,115 @@
+"""Calibration features of issue #14 item 3 (docs/calibration.md): the held-out validation split
+(``--validate``), several sessions sharing the constants, the Huber loss.
+
+The sessions are short (1.2 s) recordings of ``examples/calibration_scene.toml`` with known
+per-string eq. 2 constants and Gaussian noise (0.1 mm, 0.01 N), every string taut; fits start
+from the scene's 300 N/m and 3 N s/m. Puppet kernels compile with ``optimization_level=0``.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+pytest.importorskip("jax")
+pytest.importorskip("optimistix")
+
+import dmarionette as dm  # noqa: E402
+from fitting.calibration_data import read_calibration_data  # noqa: E402
+from fitting.calibration_fit import calibrate_session  # noqa: E402
+from fitting.calibration_report import format_table, result_summary, write_outputs  # noqa: E402
+from fitting.calibration_validation import judge_validation  # noqa: E402
+from fitting.calibration_verdict import EXIT_NOT_EXPLAINED, EXIT_OK, Verdict  # noqa: E402
+from fitting.synthetic_session import record_synthetic_session  # noqa: E402
+
+wp.config.log_level = wp.LOG_WARNING
+SCENE = Path(__file__).resolve().parents[2] / "examples" / "calibration_scene.toml"
+TRUTH = {"k": [330.0, 280.0, 310.0, 260.0, 350.0, 240.0], "k_d": [3.4, 2.6, 3.1, 2.2, 3.8, 2.9]}
+NOISE_POSITION, NOISE_FORCE = 1e-4, 1e-2  # [m], [N]
+DURATION = 1.2
+START = {"k": 300.0, "k_d": 3.0}
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    scene = dm.load_scene(SCENE)
+    path = tmp_path_factory.mktemp("features") / "take.mcap"
+    record_synthetic_session(scene, SCENE.read_text(), TRUTH, DURATION, path, noise_position=NOISE_POSITION,
+                             noise_force=NOISE_FORCE, seed=3, optimization_level=0)
+    return path
+
+
+def _truth():
+    return np.concatenate([TRUTH["k"], TRUTH["k_d"]])
+
+
+def test_validation_split_fits_the_start_and_predicts_the_held_out_end(session, tmp_path):
+    result = calibrate_session(session, params="k,k_d", start=START, noise_position=NOISE_POSITION,
+                               known_noise=True, optimization_level=0, validate=0.25)
+    v = result.validation
+    # fitted on the first floor(0.75 P) puppet steps, judged on the rest
+    whole = read_calibration_data(session).puppet_steps
+    fit = int(np.floor(0.75 * whole))
+    assert result.data.puppet_steps == fit and v["rows"]["bodies"] == (whole - fit) * len(result.data.bodies) * 3
+    assert v["start_time"] == pytest.approx(result.data.frame_time[-1]) and v["fraction"] == (whole - fit) / whole
+    # at the fitted constants the held-out residuals are the added noise: reduced chi^2 ~ 1 with a
+    # sampling deviation sqrt(2 / m)
+    m = v["rows"]["bodies"]
+    assert abs(v["reduced_chi2"]["bodies"] - 1.0) < 5 * np.sqrt(2.0 / m), v["reduced_chi2"]
+    assert v["rms"]["bodies"] == pytest.approx(NOISE_POSITION * np.sqrt(v["reduced_chi2"]["bodies"]))
+    assert result.verdict.exit_code == EXIT_OK and result.converged, result.verdict.warnings
+    se = result.uncertainty.standard_error
+    assert np.all(np.abs(result.fitted - _truth()) <= 3 * se), (result.fitted - _truth()) / se
+    text = format_table(result)
+    assert f"validation: held out the last {100 * v['fraction']:.3g} % (t > {v['start_time']:.4g} s)" in text and "held-out RMS residual, bodies" in text
+    files = write_outputs(result, tmp_path / "out")
+    summary = json.loads(Path(files["summary"]).read_text())
+    assert summary["validation"]["reduced_chi2"]["bodies"] == pytest.approx(v["reduced_chi2"]["bodies"])
+    assert summary["status"]["validation"]["start_time"] == pytest.approx(v["start_time"])
+    assert Path(files["plot"]).stat().st_size > 10_000
+
+
+def test_constants_that_do_not_predict_the_held_out_part_fail_validation(session):
+    """A wrong prior holds k far from the truth: the held-out end is not explained, it is said in
+    a warning of its own, and the exit code is 3."""
+    result = calibrate_session(session, params="k:shared", start={"k": 300.0}, noise_position=NOISE_POSITION,
+                               known_noise=True, optimization_level=0, validate=0.5, prior="k=500±1",
+                               window=[1.0 / 3.0], duration=0.6)
+    v = result.validation
+    assert v["reduced_chi2"]["bodies"] > 2.0
+    assert result.verdict.exit_code == EXIT_NOT_EXPLAINED and not result.converged
+    assert any("held-out data (--validate)" in w for w in result.verdict.warnings)
+    assert "**WARNING: the fit does not explain the held-out data" in format_table(result)
+    assert result_summary(result)["status"]["explains_data"] is False
+
+
+def test_a_failed_validation_alone_turns_a_good_fit_into_exit_code_3():
+    verdict = Verdict(solver_converged=True, reduced_chi2={"bodies": 1.0}, noise_ratio={"bodies": 1.0},
+                      explains_data=True, unidentifiable=[], null_directions=[], at_bound=[], converged=True,
+                      warnings=[], exit_code=EXIT_OK)
+    good = {"start_time": 0.9, "fraction": 0.25, "rms": {"bodies": 1e-4}, "reduced_chi2": {"bodies": 1.9},
+            "rows": {"bodies": 100}, "residuals": {}}
+    judge_validation(verdict, good, {"bodies": 1e-4})
+    assert verdict.exit_code == EXIT_OK and verdict.converged and not verdict.warnings
+    assert "residuals" not in verdict.validation
+    bad = {**good, "reduced_chi2": {"bodies": 2.1}}
+    judge_validation(verdict, bad, {"bodies": 1e-4})
+    assert verdict.exit_code == EXIT_NOT_EXPLAINED and not verdict.converged and not verdict.explains_data
+    assert len(verdict.warnings) == 1 and "reduced chi^2 2.1 > 2" in verdict.warnings[0]
+
+
+@pytest.mark.parametrize("fraction", [0.0, 1.0, -0.1, 0.99])
+def test_a_bad_validation_fraction_is_refused(session, fraction):
+    with pytest.raises(ValueError, match="--validate"):
+        calibrate_session(session, start=START, optimization_level=0, validate=fraction, duration=0.1)
+
+
+def test_command_refuses_a_bad_validation_fraction(session, capsys):
+    from dmarionette.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["calibrate", str(session), "--validate", "1", "--quiet"])
+    assert exit_info.value.code == 2
+    assert "--validate: got '1'; expected a fraction of the session held out, 0 < F < 1" in capsys.readouterr().err
