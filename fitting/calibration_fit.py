@@ -53,6 +53,8 @@ class CalibrationResult:
         validation: with ``validate``, the held-out end's residuals
             (:func:`fitting.calibration_validation.held_out_residuals`; ``data`` is then the part
             fitted), else None.
+        sessions: with several sessions, one dict per session: ``session`` (its path),
+            ``rms_before``, ``rms_after`` per target in its unit; else None.
     """
 
     data: CalibrationData
@@ -79,6 +81,7 @@ class CalibrationResult:
     priors: dict = dataclasses.field(default_factory=dict)
     string_constants: dict = dataclasses.field(default_factory=dict)
     validation: dict | None = None
+    sessions: list | None = None
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -100,6 +103,12 @@ def _unscaled(problem: CalibrationProblem, residuals: np.ndarray) -> dict[str, n
 def _rms(residuals: Mapping[str, np.ndarray]) -> dict[str, float]:
     """RMS over every coordinate of each target."""
     return {k: float(np.sqrt(np.mean(v**2))) for k, v in residuals.items()}
+
+
+def _rms_over(problem, residuals: np.ndarray) -> dict[str, float]:
+    """RMS per target in its unit over every session of a stacked problem."""
+    return {t: float(np.sqrt(np.mean(residuals[index] ** 2)) * problem.noise[t])
+            for t, index in problem.target_rows().items() if t != "prior"}
 
 
 #: The solvers' variable is ``u = (theta - theta_start) / STEP_UNIT``: one unit is a 1 % change of a
@@ -249,7 +258,8 @@ def window_steps_for(data: CalibrationData, window: float | None, solver: str) -
     return max(1, int(round(window / data.puppet_dt)))
 
 
-def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str | Sequence[str] = "k,k_d",
+def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str = "bodies",
+                      params: str | Sequence[str] = "k,k_d",
                       solver: str = "lm-fd", max_steps: int = 50, start: Mapping[str, Any] | None = None,
                       noise_position: float = 1e-3, noise_force: float = 1e-2, known_noise: bool = False,
                       duration: float | None = None, rows: int = 96, jacobian: str | None = None,
@@ -263,7 +273,10 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     """Fits string constants to a recorded session.
 
     Args:
-        path: the ``.mcap`` session.
+        path: the ``.mcap`` session, or a list of sessions fitted together with one shared set of
+            constants (:mod:`fitting.calibration_sessions`; same strings and rates, ``lm-fd``, no
+            ``validate``): their residuals are stacked; ``data``, the residuals and the plot are
+            then the first session's, ``rms_*`` over all, ``sessions`` per session.
         targets: ``"bodies"``, ``"feedback"`` or ``"both"`` (:func:`read_calibration_data`).
         params: the constants to fit (:func:`fitting.calibrate.parse_parameters`).
         solver: ``"lm-fd"``, ``"lm-bwd"`` or ``"bfgs"`` (module doc of :mod:`fitting.calibrate`).
@@ -297,7 +310,19 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
             above 2 there is a warning and exit code 3).
     """
     total = time.perf_counter()
-    data = read_calibration_data(path, targets, duration=duration) if data is None else data
+    paths = list(path) if isinstance(path, (list, tuple)) else [path]
+    if not paths:
+        raise ValueError("path: got no session; expected one .mcap session or more")
+    data = read_calibration_data(paths[0], targets, duration=duration) if data is None else data
+    others = [read_calibration_data(p, targets, duration=duration) for p in paths[1:]]
+    if others:
+        from .calibration_sessions import check_same_strings
+
+        check_same_strings([data, *others])
+        if solver != "lm-fd":
+            raise ValueError(f"several sessions are fitted with --solver lm-fd only (got {solver!r})")
+        if validate is not None:
+            raise ValueError("--validate with several sessions: not supported; validate one session at a time")
     whole = None
     if validate is not None:
         from .calibration_validation import split_for_validation
@@ -313,10 +338,17 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     if not windows:
         raise ValueError("window: got an empty list; expected seconds per window, or 0 for one rollout")
     schedule = [window_steps_for(data, w, solver) for w in windows]
-    problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
-                                 noise_force=noise_force, optimization_level=optimization_level,
-                                 checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior,
-                                 bounds=bounds)
+    problems = [CalibrationProblem(d, parameters, start=start, noise_position=noise_position,
+                                   noise_force=noise_force, optimization_level=optimization_level,
+                                   checkpoint_steps=checkpoint_steps, window_steps=schedule[-1],
+                                   priors=prior if i == 0 else None, bounds=bounds if i == 0 else None)
+                for i, d in enumerate([data, *others])]
+    if others:
+        from .calibration_sessions import StackedProblem
+
+        problem = StackedProblem(problems)
+    else:
+        problem = problems[0]
     stage = {"name": "start"}
     if progress is not None:
         problem.on_forward = lambda count: progress(stage["name"], count)
@@ -342,7 +374,9 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     residuals, jac, jac_cost = jacobian_at(problem, theta, method, used)
     slices = problem.target_slices()
     all_slices = {**slices, "prior": problem.prior_slice()}
-    if used is None:
+    if others:
+        rows_of = problem.target_rows()
+    elif used is None:
         rows_of = {t: np.arange(a, b) for t, (a, b) in all_slices.items() if b > a}
     else:
         rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
@@ -352,8 +386,9 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     r1 = problem.host_residuals(theta)
     at_bound = [label for label, t, lo, hi in zip(problem.labels, theta, *problem.log_bounds)
                 if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
-    verdict = judge_fit(r1, slices, problem.noise, problem.labels, uncertainty, fit["converged"], fit["message"],
-                        at_bound=at_bound)
+    judged, judged_slices = problem.by_target(r1) if others else (r1, slices)
+    verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
+                        fit["message"], at_bound=at_bound)
     validation = None
     if whole is not None:
         from .calibration_validation import held_out_residuals, judge_validation
@@ -369,9 +404,15 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     message = "converged" if verdict.converged else \
         ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
     before, after = _unscaled(problem, r0), _unscaled(problem, r1)
+    rms_before, rms_after, sessions = _rms(before), _rms(after), None
+    if others:
+        from .calibration_sessions import session_summaries
+
+        sessions = session_summaries(problem, r0, r1)
+        rms_before, rms_after = (_rms_over(problem, r) for r in (r0, r1))
     return CalibrationResult(
         data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
-        fitted=problem.values(theta), uncertainty=uncertainty, rms_before=_rms(before), rms_after=_rms(after),
+        fitted=problem.values(theta), uncertainty=uncertainty, rms_before=rms_before, rms_after=rms_after,
         residuals_before=before, residuals_after=after, solver=solver, solver_steps=fit["steps"],
         converged=verdict.converged, message=message, jacobian=jac_cost,
         cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
@@ -380,4 +421,4 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
         noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
         window_steps=schedule[-1], priors=dict(problem.priors),
         string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
-        validation=validation)
+        validation=validation, sessions=sessions)

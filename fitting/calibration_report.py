@@ -41,6 +41,10 @@ def format_table(result: CalibrationResult) -> str:
     if v is not None:
         for target, chi2 in v.reduced_chi2.items():
             lines.append(f"residual / given noise, {target:<8}: {v.noise_ratio[target]:.3g} (reduced chi^2 {chi2:.3g})")
+    for i, session in enumerate(result.sessions or []):
+        parts = ", ".join(f"{t} {session['rms_before'][t]:.4g} -> {session['rms_after'][t]:.4g} {_RMS_UNITS[t]}"
+                          for t in session["rms_after"])
+        lines.append(f"session {i + 1} of {len(result.sessions)}, {session['session']}: RMS residual {parts}")
     from .calibration_validation import validation_lines
 
     lines.extend(validation_lines(result.validation, _RMS_UNITS))
@@ -89,7 +93,8 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
     return _finite_or_text({
         "status": verdict, "window_steps": result.window_steps,
         "priors": {name: {"mean": m, "sd": sd} for name, (m, sd) in result.priors.items()},
-        "session": str(d.path), "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
+        "session": str(d.path), "sessions": result.sessions,
+        "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),
         "units": {label: _UNITS[label.split("[")[0]] for label in result.labels},
@@ -209,7 +214,8 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
         axes[1, c].axis("off")
     v = result.verdict
     status = "" if v is None else (" — converged" if v.exit_code == 0 else f" — exit code {v.exit_code}")
-    fig.suptitle(f"calibration of {d.path.name}: {result.solver}, {result.solver_steps} steps{status}")
+    together = "" if not result.sessions else f" (residuals: session 1 of {len(result.sessions)} fitted together)"
+    fig.suptitle(f"calibration of {d.path.name}{together}: {result.solver}, {result.solver_steps} steps{status}")
     fig.tight_layout()
     if v is not None and v.warnings:  # the warnings, in red, under the panels
         import textwrap

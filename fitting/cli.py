@@ -139,7 +139,10 @@ def add_calibrate_command(commands) -> None:
                     "or the fit does not explain the data; 4 some constants are not identifiable (their "
                     "intervals are infinite). Warnings are printed in bold (**WARNING: ...**) and written to "
                     "calibration.json's 'status'.")
-    calibrate.add_argument("session", type=Path, help="the .mcap session file")
+    calibrate.add_argument("session", type=Path, nargs="+",
+                           help="the .mcap session file; several: fitted together with one shared set of constants "
+                                "(their residuals stacked; same strings and rates; --solver lm-fd; per-session "
+                                "residual RMS in the output)")
     calibrate.add_argument("--targets", choices=["bodies", "feedback", "both"], default="bodies",
                            help="fit the recorded body centres (default), the bars' feedback (exact reaction), "
                                 "or both")
@@ -248,13 +251,14 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
                            "pip install 'dmarionette[fitting]'") from None
     start = args.start or None
-    default = Path("out") / "calibrate" / args.session.stem
+    default = Path("out") / "calibrate" / args.session[0].stem
     out = _outputs(args).folder("--out", args.out if args.out is not None else default)
     bar = None
     if not args.quiet:
         from tqdm import tqdm
 
-        print(f"calibrating {args.session} (the first run compiles the puppet kernels)", file=sys.stderr)
+        print(f"calibrating {', '.join(map(str, args.session))} (the first run compiles the puppet kernels)",
+              file=sys.stderr)
         bar = tqdm(unit=" rollouts", desc="start", file=sys.stderr)
 
     def progress(stage: str, count: int) -> None:
@@ -262,7 +266,8 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         bar.update(count - bar.n)
 
     try:
-        result = calibrate_session(args.session, targets=args.targets, params=args.params, solver=args.solver,
+        sessions = args.session if len(args.session) > 1 else args.session[0]
+        result = calibrate_session(sessions, targets=args.targets, params=args.params, solver=args.solver,
                                    max_steps=args.max_steps, start=start, noise_position=args.noise_position,
                                    noise_force=args.noise_force, known_noise=args.known_noise,
                                    duration=args.duration, rows=args.rows,
