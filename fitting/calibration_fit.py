@@ -55,6 +55,8 @@ class CalibrationResult:
             fitted), else None.
         sessions: with several sessions, one dict per session: ``session`` (its path),
             ``rms_before``, ``rms_after`` per target in its unit; else None.
+        loss: ``name`` (``"l2"``, ``"huber"``); for Huber also ``scale`` (``C``), ``rounds``
+            (IRLS rounds of the last stage), ``outliers`` (rows down-weighted at the end), ``rows``.
     """
 
     data: CalibrationData
@@ -82,6 +84,7 @@ class CalibrationResult:
     string_constants: dict = dataclasses.field(default_factory=dict)
     validation: dict | None = None
     sessions: list | None = None
+    loss: dict = dataclasses.field(default_factory=lambda: {"name": "l2"})
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -269,7 +272,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                       prior: str | Mapping[str, tuple[float, float]] | None = None,
                       bounds: str | Mapping[str, tuple[float, float]] | None = None,
                       freeze: str | Sequence[str] | None = None,
-                      validate: float | None = None) -> CalibrationResult:
+                      validate: float | None = None, loss: str = "l2",
+                      huber_scale: float | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -308,6 +312,9 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
             rest, then simulate the whole session with the fitted constants and judge the
             held-out residuals (:mod:`fitting.calibration_validation`; a reduced chi-squared
             above 2 there is a warning and exit code 3).
+        loss: ``"l2"`` (least squares) or ``"huber"`` (:mod:`fitting.calibration_robust`: IRLS,
+            ``lm-fd`` only).
+        huber_scale: Huber's ``C`` in noise scales (default 1.345; ``loss="huber"`` only).
     """
     total = time.perf_counter()
     paths = list(path) if isinstance(path, (list, tuple)) else [path]
@@ -323,6 +330,15 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
             raise ValueError(f"several sessions are fitted with --solver lm-fd only (got {solver!r})")
         if validate is not None:
             raise ValueError("--validate with several sessions: not supported; validate one session at a time")
+    from .calibration_robust import DEFAULT_HUBER_SCALE, LOSSES, irls_fit
+
+    if loss not in LOSSES:
+        raise ValueError(f"--loss: got {loss!r}; expected one of {list(LOSSES)}")
+    if loss != "huber" and huber_scale is not None:
+        raise ValueError(f"--huber-scale {huber_scale} given with --loss {loss}; it needs --loss huber")
+    if loss == "huber" and solver != "lm-fd":
+        raise ValueError(f"--loss huber runs with --solver lm-fd only (got {solver!r})")
+    huber_scale = DEFAULT_HUBER_SCALE if huber_scale is None else huber_scale
     whole = None
     if validate is not None:
         from .calibration_validation import split_for_validation
@@ -359,8 +375,12 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         last = index == len(schedule) - 1
         prefix = None if last or steps is None else max(1, int(round(STAGE_SECONDS / data.puppet_dt)))
         problem.use_windows(steps, prefix)
-        fit = fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta,
-                          atol=1e-3 if last else STAGE_ATOL)
+
+        def run(theta_start, atol=1e-3 if last else STAGE_ATOL):
+            return fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta_start,
+                               atol=atol)
+
+        fit = irls_fit(problem, run, theta, huber_scale) if loss == "huber" else run(theta)
         theta = fit["theta"]
         stages.append({"window_steps": steps, "puppet_steps": min(prefix or data.puppet_steps, data.puppet_steps),
                        "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
@@ -383,12 +403,16 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
                                            known=("prior",))
     stage["name"] = "residuals"
-    r1 = problem.host_residuals(theta)
+    r1 = problem.host_residuals(theta)  # Huber: the weighted rows
+    weights, problem.row_weights = problem.row_weights, None
+    plain = r1 if weights is None else problem.host_residuals(theta)
+    problem.row_weights = weights
     at_bound = [label for label, t, lo, hi in zip(problem.labels, theta, *problem.log_bounds)
                 if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
-    judged, judged_slices = problem.by_target(r1) if others else (r1, slices)
+    # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
+    judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
     verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
-                        fit["message"], at_bound=at_bound)
+                        fit["message"], at_bound=at_bound, robust=loss == "huber")
     validation = None
     if whole is not None:
         from .calibration_validation import held_out_residuals, judge_validation
@@ -403,13 +427,13 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         judge_validation(verdict, validation, problem.noise)
     message = "converged" if verdict.converged else \
         ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
-    before, after = _unscaled(problem, r0), _unscaled(problem, r1)
+    before, after = _unscaled(problem, r0), _unscaled(problem, plain)
     rms_before, rms_after, sessions = _rms(before), _rms(after), None
     if others:
         from .calibration_sessions import session_summaries
 
-        sessions = session_summaries(problem, r0, r1)
-        rms_before, rms_after = (_rms_over(problem, r) for r in (r0, r1))
+        sessions = session_summaries(problem, r0, plain)
+        rms_before, rms_after = (_rms_over(problem, r) for r in (r0, plain))
     return CalibrationResult(
         data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
         fitted=problem.values(theta), uncertainty=uncertainty, rms_before=rms_before, rms_after=rms_after,
@@ -421,4 +445,7 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
         window_steps=schedule[-1], priors=dict(problem.priors),
         string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
-        validation=validation, sessions=sessions)
+        validation=validation, sessions=sessions,
+        loss={"name": loss} if loss == "l2" else
+        {"name": loss, "scale": huber_scale, "rounds": fit["rounds"], "outliers": fit["outliers"],
+         "rows": int(len(r1))})

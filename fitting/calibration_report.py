@@ -45,6 +45,10 @@ def format_table(result: CalibrationResult) -> str:
         parts = ", ".join(f"{t} {session['rms_before'][t]:.4g} -> {session['rms_after'][t]:.4g} {_RMS_UNITS[t]}"
                           for t in session["rms_after"])
         lines.append(f"session {i + 1} of {len(result.sessions)}, {session['session']}: RMS residual {parts}")
+    if result.loss["name"] == "huber":
+        lines.append(f"loss: Huber, C = {result.loss['scale']:g} noise scales (IRLS, {result.loss['rounds']} rounds in "
+                     f"the last stage): {result.loss['outliers']} of {result.loss['rows']} residuals down-weighted "
+                     "as outliers; intervals of the weighted residuals, reduced chi^2 from the median |residual|")
     from .calibration_validation import validation_lines
 
     lines.extend(validation_lines(result.validation, _RMS_UNITS))
@@ -93,7 +97,7 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
     return _finite_or_text({
         "status": verdict, "window_steps": result.window_steps,
         "priors": {name: {"mean": m, "sd": sd} for name, (m, sd) in result.priors.items()},
-        "session": str(d.path), "sessions": result.sessions,
+        "session": str(d.path), "sessions": result.sessions, "loss": result.loss,
         "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),

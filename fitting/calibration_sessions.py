@@ -75,6 +75,7 @@ class StackedProblem(CalibrationProblem):
         self.data_residual_count = int(self.offsets[-1])
         self.residual_count = self.data_residual_count + len(self._prior_index)
         self.active_rows = None
+        self.row_weights = None
         self.windows = first.windows
         for p in self.problems:
             p.on_forward = self._forwarded
@@ -94,6 +95,7 @@ class StackedProblem(CalibrationProblem):
             p.use_windows(window_steps, prefix_steps)
         self.windows = self.problems[0].windows
         partial = any(p.active_rows is not None for p in self.problems)
+        self.row_weights = None
         self.active_rows = np.arange(len(self.host_residuals(self.theta_start))) if partial else None
 
     def host_residuals(self, theta: np.ndarray) -> np.ndarray:
@@ -106,7 +108,8 @@ class StackedProblem(CalibrationProblem):
             parts.append(r[:len(r) - (b - a)])
         if self._prior_index:
             parts.append(self.prior_residuals(theta))
-        return np.concatenate(parts)
+        out = np.concatenate(parts)
+        return out if self.row_weights is None else out * self.row_weights
 
     def session_rows(self) -> list[dict[str, np.ndarray]]:
         """Per session, each target's row indices in the stacked vector (all rows)."""

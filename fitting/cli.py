@@ -188,6 +188,12 @@ def add_calibrate_command(commands) -> None:
                                 "rest, then simulate the whole session with the fitted constants and report the "
                                 "held-out residuals (RMS, reduced chi^2); a held-out reduced chi^2 > 2 is a warning "
                                 "and exit code 3")
+    calibrate.add_argument("--loss", choices=["l2", "huber"], default="l2",
+                           help="l2: least squares (default); huber: Huber's robust loss by iteratively reweighted "
+                                "least squares (outliers beyond --huber-scale noise scales pull with a constant "
+                                "force; --solver lm-fd)")
+    calibrate.add_argument("--huber-scale", type=number(0.0, low_open=True), default=None, metavar="C",
+                           help="Huber's threshold in noise scales (default 1.345; with --loss huber)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
@@ -273,7 +279,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    duration=args.duration, rows=args.rows,
                                    window="default" if args.window is None else args.window,
                                    prior=args.prior, bounds=args.bounds, freeze=args.freeze,
-                                   validate=args.validate,
+                                   validate=args.validate, loss=args.loss, huber_scale=args.huber_scale,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None)
     finally:

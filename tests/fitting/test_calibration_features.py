@@ -6,6 +6,7 @@ per-string eq. 2 constants and Gaussian noise (0.1 mm, 0.01 N), every string tau
 from the scene's 300 N/m and 3 N s/m. Puppet kernels compile with ``optimization_level=0``.
 """
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -173,3 +174,60 @@ def test_sessions_with_other_strings_are_refused_naming_the_file(two_motions, tm
     assert "error: " in err and f"{other}: its strings" in err and "Traceback" not in err
     with pytest.raises(ValueError, match="--validate with several sessions"):
         calibrate_session(two_motions, start=START, optimization_level=0, validate=0.25)
+
+
+def _with_outliers(path: Path, count: int, size: float, seed: int):
+    """The session's data with ``count`` body coordinates moved by ``+-size`` [m] (gross outliers:
+    a marker swap, a tracking glitch)."""
+    data = read_calibration_data(path, duration=0.6)
+    rng = np.random.default_rng(seed)
+    body_pos = data.body_pos.copy()
+    frames = rng.choice(np.arange(1, data.puppet_steps + 1), count, replace=False)
+    bodies = rng.integers(0, len(data.bodies), count)
+    axes = rng.integers(0, 3, count)
+    body_pos[frames, bodies, axes] += size * rng.choice([-1.0, 1.0], count)
+    return dataclasses.replace(data, body_pos=body_pos)
+
+
+def test_huber_recovers_the_constants_despite_gross_outliers_where_least_squares_does_not(session):
+    data = _with_outliers(session, 4, 0.02, seed=5)  # 4 coordinates 2 cm (200 noise scales) off, in 0.6 s
+    common = {"params": "k,k_d", "start": START, "noise_position": NOISE_POSITION, "known_noise": True,
+              "optimization_level": 0, "data": data, "window": [1.0 / 3.0]}
+    plain = calibrate_session(session, **common)
+    robust = calibrate_session(session, loss="huber", **common)
+    truth = _truth()
+    z_plain = (plain.fitted - truth) / plain.uncertainty.standard_error
+    z_robust = (robust.fitted - truth) / robust.uncertainty.standard_error
+    print(f"\nplain: {np.round(z_plain, 2)} chi2 {plain.verdict.reduced_chi2}\nhuber: {np.round(z_robust, 2)} "
+          f"chi2 {robust.verdict.reduced_chi2} {robust.loss}")
+    assert np.max(np.abs(z_plain)) > 3.0  # least squares is pulled off by the outliers
+    assert np.all(np.abs(z_robust) <= 3.0)
+    # the worst constant of least squares is much closer to the truth with Huber (0.6 s of data:
+    # the intervals are wider than the 1.2 s session's, k[hand_left] ~1 %)
+    worst = np.argmax(np.abs(z_plain))
+    assert abs(robust.fitted[worst] - truth[worst]) < 0.5 * abs(plain.fitted[worst] - truth[worst])
+    assert plain.verdict.exit_code == EXIT_NOT_EXPLAINED  # and says the data are not explained
+    assert robust.loss["outliers"] >= 4 and robust.verdict.exit_code == EXIT_OK, robust.verdict.warnings
+    assert "loss: Huber, C = 1.345 noise scales" in format_table(robust)
+    assert result_summary(robust)["loss"]["name"] == "huber"
+
+
+def test_huber_options_are_checked(session, capsys):
+    with pytest.raises(ValueError, match="--huber-scale 2.0 given with --loss l2; it needs --loss huber"):
+        calibrate_session(session, start=START, optimization_level=0, huber_scale=2.0, duration=0.1)
+    with pytest.raises(ValueError, match="--loss huber runs with --solver lm-fd only"):
+        calibrate_session(session, start=START, optimization_level=0, loss="huber", solver="bfgs", duration=0.1)
+    with pytest.raises(ValueError, match="--loss: got 'cauchy'"):
+        calibrate_session(session, start=START, optimization_level=0, loss="cauchy", duration=0.1)
+    from dmarionette.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["calibrate", str(session), "--loss", "huber", "--huber-scale", "-1", "--quiet"])
+    assert exit_info.value.code == 2 and "--huber-scale" in capsys.readouterr().err
+
+
+def test_huber_weights():
+    from fitting.calibration_robust import huber_weights
+
+    np.testing.assert_allclose(huber_weights(np.array([0.0, 1.0, -1.345, 2.69, -13.45]), 1.345),
+                               [1.0, 1.0, 1.0, 0.5, 0.1])
