@@ -231,3 +231,19 @@ def test_huber_weights():
 
     np.testing.assert_allclose(huber_weights(np.array([0.0, 1.0, -1.345, 2.69, -13.45]), 1.345),
                                [1.0, 1.0, 1.0, 0.5, 0.1])
+
+
+def test_command_validates_with_the_huber_loss(session, tmp_path, capsys):
+    """The flags reach the fit: a 0.2 s fit of one shared k judged on the held-out 0.1 s."""
+    from dmarionette.cli import main
+
+    out = tmp_path / "out"
+    code = main(["calibrate", str(session), "--params", "k:shared", "--start", "k=300", "--duration", "0.3",
+                 "--validate", "0.3", "--loss", "huber", "--huber-scale", "2", "--window", "0.3333",
+                 "--noise-position", "1e-4", "--fast-compile", "--no-picture", "--quiet", "--out", str(out)])
+    text = capsys.readouterr().out
+    summary = json.loads((out / "calibration.json").read_text())
+    assert summary["loss"]["name"] == "huber" and summary["loss"]["scale"] == 2.0
+    assert summary["validation"]["fraction"] == pytest.approx(3 / 9)
+    assert "validation: held out the last" in text and "loss: Huber, C = 2 noise scales" in text
+    assert code == summary["status"]["exit_code"] and f"(exit code {code})" in text
