@@ -54,7 +54,8 @@ def test_validation_split_fits_the_start_and_predicts_the_held_out_end(session, 
     whole = read_calibration_data(session, duration=0.9).puppet_steps
     fit = int(np.floor(0.75 * whole))
     assert result.data.puppet_steps == fit and v["rows"]["bodies"] == (whole - fit) * len(result.data.bodies) * 3
-    assert v["start_time"] == pytest.approx(result.data.frame_time[-1]) and v["fraction"] == pytest.approx((whole - fit) / whole)
+    assert v["start_time"] == pytest.approx(result.data.frame_time[-1])
+    assert v["fraction"] == pytest.approx((whole - fit) / whole)
     # at the fitted constants the held-out residuals are the added noise: reduced chi^2 ~ 1 with a
     # sampling deviation sqrt(2 / m)
     m = v["rows"]["bodies"]
