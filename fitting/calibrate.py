@@ -251,7 +251,12 @@ class CalibrationProblem:
         self.residual_count += len(self._prior_index)
         self.windows = None
         self.active_rows = None
+        self.row_weights: np.ndarray | None = None
         self.use_windows(window_steps)
+
+    #: ``row_weights``: None, or a factor per returned residual row of :meth:`host_residuals` (IRLS:
+    #: the square roots of the Huber weights, :mod:`fitting.calibration_robust`); the forward-only
+    #: residuals and Jacobians are then of the weighted rows.
 
     def _name_of(self, index: int) -> str:
         offset = 0
@@ -275,8 +280,10 @@ class CalibrationProblem:
         """Multiple shooting with ``window_steps`` puppet steps per window from now on (None: one
         rollout over the session); the model and its compiled kernels are kept. ``prefix_steps``:
         only the first puppet steps of the session (windows over them; the forward-only residuals
-        and Jacobians then hold only their rows, ``active_rows``, and the prior's)."""
+        and Jacobians then hold only their rows, ``active_rows``, and the prior's). Clears
+        ``row_weights``."""
         self.active_rows = None
+        self.row_weights = None
         if window_steps is None:
             self.windows = None
             return
@@ -395,7 +402,8 @@ class CalibrationProblem:
         data = np.asarray(self.residuals_from_outputs(outputs))
         full = np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
             else data
-        return full if self.active_rows is None else full[self.active_rows]
+        out = full if self.active_rows is None else full[self.active_rows]
+        return out if self.row_weights is None else out * self.row_weights
 
     def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the

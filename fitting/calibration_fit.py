@@ -50,6 +50,13 @@ class CalibrationResult:
         cost: rollouts and seconds of the fit alone: ``forward_passes``, ``backward_passes``,
             ``seconds``; and of the whole run (``total_seconds``).
         noise: the noise scales used (``bodies`` [m], ``feedback`` [N]); ``known_noise``.
+        validation: with ``validate``, the held-out end's residuals
+            (:func:`fitting.calibration_validation.held_out_residuals`; ``data`` is then the part
+            fitted), else None.
+        sessions: with several sessions, one dict per session: ``session`` (its path),
+            ``rms_before``, ``rms_after`` per target in its unit; else None.
+        loss: ``name`` (``"l2"``, ``"huber"``); for Huber also ``scale`` (``C``), ``rounds``
+            (IRLS rounds of the last stage), ``outliers`` (rows down-weighted at the end), ``rows``.
     """
 
     data: CalibrationData
@@ -75,6 +82,9 @@ class CalibrationResult:
     window_steps: int | None = None
     priors: dict = dataclasses.field(default_factory=dict)
     string_constants: dict = dataclasses.field(default_factory=dict)
+    validation: dict | None = None
+    sessions: list | None = None
+    loss: dict = dataclasses.field(default_factory=lambda: {"name": "l2"})
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -96,6 +106,12 @@ def _unscaled(problem: CalibrationProblem, residuals: np.ndarray) -> dict[str, n
 def _rms(residuals: Mapping[str, np.ndarray]) -> dict[str, float]:
     """RMS over every coordinate of each target."""
     return {k: float(np.sqrt(np.mean(v**2))) for k, v in residuals.items()}
+
+
+def _rms_over(problem, residuals: np.ndarray) -> dict[str, float]:
+    """RMS per target in its unit over every session of a stacked problem."""
+    return {t: float(np.sqrt(np.mean(residuals[index] ** 2)) * problem.noise[t])
+            for t, index in problem.target_rows().items() if t != "prior"}
 
 
 #: The solvers' variable is ``u = (theta - theta_start) / STEP_UNIT``: one unit is a 1 % change of a
@@ -245,7 +261,8 @@ def window_steps_for(data: CalibrationData, window: float | None, solver: str) -
     return max(1, int(round(window / data.puppet_dt)))
 
 
-def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str | Sequence[str] = "k,k_d",
+def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str = "bodies",
+                      params: str | Sequence[str] = "k,k_d",
                       solver: str = "lm-fd", max_steps: int = 50, start: Mapping[str, Any] | None = None,
                       noise_position: float = 1e-3, noise_force: float = 1e-2, known_noise: bool = False,
                       duration: float | None = None, rows: int = 96, jacobian: str | None = None,
@@ -254,11 +271,16 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
                       window: float | Sequence[float] | None = "default",
                       prior: str | Mapping[str, tuple[float, float]] | None = None,
                       bounds: str | Mapping[str, tuple[float, float]] | None = None,
-                      freeze: str | Sequence[str] | None = None) -> CalibrationResult:
+                      freeze: str | Sequence[str] | None = None,
+                      validate: float | None = None, loss: str = "l2",
+                      huber_scale: float | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
-        path: the ``.mcap`` session.
+        path: the ``.mcap`` session, or a list of sessions fitted together with one shared set of
+            constants (:mod:`fitting.calibration_sessions`; same strings and rates, ``lm-fd``, no
+            ``validate``): their residuals are stacked; ``data``, the residuals and the plot are
+            then the first session's, ``rms_*`` over all, ``sessions`` per session.
         targets: ``"bodies"``, ``"feedback"`` or ``"both"`` (:func:`read_calibration_data`).
         params: the constants to fit (:func:`fitting.calibrate.parse_parameters`).
         solver: ``"lm-fd"``, ``"lm-bwd"`` or ``"bfgs"`` (module doc of :mod:`fitting.calibrate`).
@@ -286,9 +308,42 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
         bounds: per constant name, ``"k=100:1000"`` or ``{"k": (100, 1000)}``: the solver keeps the
             constants inside (projection); a constant that ends at a bound is warned about.
         freeze: per-string constants held at their start values, ``"k[head],k_d[back]"``.
+        validate: hold out this fraction of the session's end (``0 < validate < 1``): fit on the
+            rest, then simulate the whole session with the fitted constants and judge the
+            held-out residuals (:mod:`fitting.calibration_validation`; a reduced chi-squared
+            above 2 there is a warning and exit code 3).
+        loss: ``"l2"`` (least squares) or ``"huber"`` (:mod:`fitting.calibration_robust`: IRLS,
+            ``lm-fd`` only).
+        huber_scale: Huber's ``C`` in noise scales (default 1.345; ``loss="huber"`` only).
     """
     total = time.perf_counter()
-    data = read_calibration_data(path, targets, duration=duration) if data is None else data
+    paths = list(path) if isinstance(path, (list, tuple)) else [path]
+    if not paths:
+        raise ValueError("path: got no session; expected one .mcap session or more")
+    data = read_calibration_data(paths[0], targets, duration=duration) if data is None else data
+    others = [read_calibration_data(p, targets, duration=duration) for p in paths[1:]]
+    if others:
+        from .calibration_sessions import check_same_strings
+
+        check_same_strings([data, *others])
+        if solver != "lm-fd":
+            raise ValueError(f"several sessions are fitted with --solver lm-fd only (got {solver!r})")
+        if validate is not None:
+            raise ValueError("--validate with several sessions: not supported; validate one session at a time")
+    from .calibration_robust import DEFAULT_HUBER_SCALE, LOSSES, irls_fit
+
+    if loss not in LOSSES:
+        raise ValueError(f"--loss: got {loss!r}; expected one of {list(LOSSES)}")
+    if loss != "huber" and huber_scale is not None:
+        raise ValueError(f"--huber-scale {huber_scale} given with --loss {loss}; it needs --loss huber")
+    if loss == "huber" and solver != "lm-fd":
+        raise ValueError(f"--loss huber runs with --solver lm-fd only (got {solver!r})")
+    huber_scale = DEFAULT_HUBER_SCALE if huber_scale is None else huber_scale
+    whole = None
+    if validate is not None:
+        from .calibration_validation import split_for_validation
+
+        whole, data = data, split_for_validation(data, validate, targets)
     parameters = parse_parameters(params, data, freeze)
     if isinstance(window, str) and window == "default":
         from .calibration_windows import recorded_joint_q
@@ -299,10 +354,17 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     if not windows:
         raise ValueError("window: got an empty list; expected seconds per window, or 0 for one rollout")
     schedule = [window_steps_for(data, w, solver) for w in windows]
-    problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
-                                 noise_force=noise_force, optimization_level=optimization_level,
-                                 checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior,
-                                 bounds=bounds)
+    problems = [CalibrationProblem(d, parameters, start=start, noise_position=noise_position,
+                                   noise_force=noise_force, optimization_level=optimization_level,
+                                   checkpoint_steps=checkpoint_steps, window_steps=schedule[-1],
+                                   priors=prior if i == 0 else None, bounds=bounds if i == 0 else None)
+                for i, d in enumerate([data, *others])]
+    if others:
+        from .calibration_sessions import StackedProblem
+
+        problem = StackedProblem(problems)
+    else:
+        problem = problems[0]
     stage = {"name": "start"}
     if progress is not None:
         problem.on_forward = lambda count: progress(stage["name"], count)
@@ -313,8 +375,12 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
         last = index == len(schedule) - 1
         prefix = None if last or steps is None else max(1, int(round(STAGE_SECONDS / data.puppet_dt)))
         problem.use_windows(steps, prefix)
-        fit = fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta,
-                          atol=1e-3 if last else STAGE_ATOL)
+
+        def run(theta_start, atol=1e-3 if last else STAGE_ATOL):
+            return fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta_start,
+                               atol=atol)
+
+        fit = irls_fit(problem, run, theta, huber_scale) if loss == "huber" else run(theta)
         theta = fit["theta"]
         stages.append({"window_steps": steps, "puppet_steps": min(prefix or data.puppet_steps, data.puppet_steps),
                        "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
@@ -328,24 +394,49 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
     residuals, jac, jac_cost = jacobian_at(problem, theta, method, used)
     slices = problem.target_slices()
     all_slices = {**slices, "prior": problem.prior_slice()}
-    if used is None:
+    if others:
+        rows_of = problem.target_rows()
+    elif used is None:
         rows_of = {t: np.arange(a, b) for t, (a, b) in all_slices.items() if b > a}
     else:
         rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
     uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
                                            known=("prior",))
     stage["name"] = "residuals"
-    r1 = problem.host_residuals(theta)
+    r1 = problem.host_residuals(theta)  # Huber: the weighted rows
+    weights, problem.row_weights = problem.row_weights, None
+    plain = r1 if weights is None else problem.host_residuals(theta)
+    problem.row_weights = weights
     at_bound = [label for label, t, lo, hi in zip(problem.labels, theta, *problem.log_bounds)
                 if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
-    verdict = judge_fit(r1, slices, problem.noise, problem.labels, uncertainty, fit["converged"], fit["message"],
-                        at_bound=at_bound)
+    # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
+    judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
+    verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
+                        fit["message"], at_bound=at_bound, robust=loss == "huber")
+    validation = None
+    if whole is not None:
+        from .calibration_validation import held_out_residuals, judge_validation
+
+        stage["name"] = "validation"
+        full = CalibrationProblem(whole, parameters, start=start, noise_position=noise_position,
+                                  noise_force=noise_force, optimization_level=optimization_level,
+                                  checkpoint_steps=checkpoint_steps, window_steps=schedule[-1])
+        if progress is not None:
+            full.on_forward = lambda count: progress(stage["name"], count)
+        validation = held_out_residuals(full, theta, data)
+        judge_validation(verdict, validation, problem.noise)
     message = "converged" if verdict.converged else \
         ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
-    before, after = _unscaled(problem, r0), _unscaled(problem, r1)
+    before, after = _unscaled(problem, r0), _unscaled(problem, plain)
+    rms_before, rms_after, sessions = _rms(before), _rms(after), None
+    if others:
+        from .calibration_sessions import session_summaries
+
+        sessions = session_summaries(problem, r0, plain)
+        rms_before, rms_after = (_rms_over(problem, r) for r in (r0, plain))
     return CalibrationResult(
         data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
-        fitted=problem.values(theta), uncertainty=uncertainty, rms_before=_rms(before), rms_after=_rms(after),
+        fitted=problem.values(theta), uncertainty=uncertainty, rms_before=rms_before, rms_after=rms_after,
         residuals_before=before, residuals_after=after, solver=solver, solver_steps=fit["steps"],
         converged=verdict.converged, message=message, jacobian=jac_cost,
         cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
@@ -353,4 +444,8 @@ def calibrate_session(path: str | Path, *, targets: str = "bodies", params: str 
               "residual_count": problem.residual_count, "stages": stages},
         noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
         window_steps=schedule[-1], priors=dict(problem.priors),
-        string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters})
+        string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
+        validation=validation, sessions=sessions,
+        loss={"name": loss} if loss == "l2" else
+        {"name": loss, "scale": huber_scale, "rounds": fit["rounds"], "outliers": fit["outliers"],
+         "rows": int(len(r1))})

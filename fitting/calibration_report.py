@@ -41,6 +41,17 @@ def format_table(result: CalibrationResult) -> str:
     if v is not None:
         for target, chi2 in v.reduced_chi2.items():
             lines.append(f"residual / given noise, {target:<8}: {v.noise_ratio[target]:.3g} (reduced chi^2 {chi2:.3g})")
+    for i, session in enumerate(result.sessions or []):
+        parts = ", ".join(f"{t} {session['rms_before'][t]:.4g} -> {session['rms_after'][t]:.4g} {_RMS_UNITS[t]}"
+                          for t in session["rms_after"])
+        lines.append(f"session {i + 1} of {len(result.sessions)}, {session['session']}: RMS residual {parts}")
+    if result.loss["name"] == "huber":
+        lines.append(f"loss: Huber, C = {result.loss['scale']:g} noise scales (IRLS, {result.loss['rounds']} rounds in "
+                     f"the last stage): {result.loss['outliers']} of {result.loss['rows']} residuals down-weighted "
+                     "as outliers; intervals of the weighted residuals, reduced chi^2 from the median |residual|")
+    from .calibration_validation import validation_lines
+
+    lines.extend(validation_lines(result.validation, _RMS_UNITS))
     shooting = "one rollout" if result.window_steps is None else \
         f"windows of {result.window_steps} puppet steps ({result.window_steps * result.data.puppet_dt:.3g} s)"
     lines.append(f"solver {result.solver}, {shooting}: {result.solver_steps} steps, {result.message}; "
@@ -86,11 +97,14 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
     return _finite_or_text({
         "status": verdict, "window_steps": result.window_steps,
         "priors": {name: {"mean": m, "sd": sd} for name, (m, sd) in result.priors.items()},
-        "session": str(d.path), "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
+        "session": str(d.path), "sessions": result.sessions, "loss": result.loss,
+        "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),
         "units": {label: _UNITS[label.split("[")[0]] for label in result.labels},
         "rms_before": result.rms_before, "rms_after": result.rms_after, "rms_units": _RMS_UNITS,
+        "validation": None if result.validation is None else
+        {k: v for k, v in result.validation.items() if k != "residuals"},
         "solver": {"name": result.solver, "steps": result.solver_steps, "converged": result.converged,
                    "message": result.message, **result.cost},
         "uncertainty": {"jacobian": result.jacobian, "condition_number": u.condition_number,
@@ -167,6 +181,15 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
                                         ("after", result.residuals_after, "C0")):
             rms = np.sqrt(np.mean(residuals[target] ** 2, axis=(1, 2))) * scale
             ax.plot(times, rms, style, lw=1, label=f"{label} (RMS {getattr(result, f'rms_{label}')[target] * scale:.3g} {unit})")
+        if result.validation is not None:  # the whole session simulated with the fitted constants
+            val = result.validation
+            whole = np.sqrt(np.mean(val["residuals"][target] ** 2, axis=(1, 2))) * scale
+            step = d.frame_time[1] - d.frame_time[0] if target == "bodies" else d.step_time[1] - d.step_time[0]
+            first = (d.frame_time[1] if target == "bodies" else d.step_time[0])
+            ax.plot(first + step * np.arange(len(whole)), whole, "C2", lw=1, alpha=0.8,
+                    label=f"validation, held out t > {val['start_time']:.3g} s (RMS {val['rms'][target] * scale:.3g} "
+                          f"{unit}, chi^2 {val['reduced_chi2'][target]:.3g})")
+            ax.axvline(val["start_time"], color="k", ls="--", lw=0.8)
         ax.set_xlabel("time [s]")
         ax.set_ylabel(f"RMS residual [{unit}]")
         ax.set_yscale("log")
@@ -195,7 +218,8 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
         axes[1, c].axis("off")
     v = result.verdict
     status = "" if v is None else (" — converged" if v.exit_code == 0 else f" — exit code {v.exit_code}")
-    fig.suptitle(f"calibration of {d.path.name}: {result.solver}, {result.solver_steps} steps{status}")
+    together = "" if not result.sessions else f" (residuals: session 1 of {len(result.sessions)} fitted together)"
+    fig.suptitle(f"calibration of {d.path.name}{together}: {result.solver}, {result.solver_steps} steps{status}")
     fig.tight_layout()
     if v is not None and v.warnings:  # the warnings, in red, under the panels
         import textwrap

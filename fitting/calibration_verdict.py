@@ -34,6 +34,8 @@ __all__ = ["CHI2_LIMIT", "EXIT_CODES", "EXIT_NOT_EXPLAINED", "EXIT_OK", "EXIT_UN
            "judge_fit"]
 
 CHI2_LIMIT = 2.0
+#: The standard deviation of Gaussian noise over its median absolute value (``robust``).
+MAD_TO_SD = 1.482602218505602
 EXIT_OK, EXIT_NOT_EXPLAINED, EXIT_UNIDENTIFIABLE = 0, 3, 4
 EXIT_CODES = {EXIT_OK: "converged: the fit explains the data and every constant is identifiable",
               2: "bad input (error: ...)",
@@ -60,6 +62,8 @@ class Verdict:
         converged: ``solver_converged and explains_data``.
         warnings: plain sentences, one per problem.
         exit_code: :data:`EXIT_CODES`.
+        validation: the held-out part's summary (``--validate``,
+            :mod:`fitting.calibration_validation`), or None.
     """
 
     solver_converged: bool
@@ -72,6 +76,7 @@ class Verdict:
     converged: bool
     warnings: list[str]
     exit_code: int
+    validation: dict | None = None
 
     def summary(self) -> dict:
         """A JSON-ready dict."""
@@ -80,7 +85,7 @@ class Verdict:
 
 def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noise: Mapping[str, float],
               labels: Sequence[str], uncertainty: GaussNewtonUncertainty, solver_converged: bool,
-              solver_message: str, at_bound: Sequence[str] = ()) -> Verdict:
+              solver_message: str, at_bound: Sequence[str] = (), robust: bool = False) -> Verdict:
     """Judges a fit from its scaled residuals ``(m,)`` at the optimum.
 
     Args:
@@ -91,14 +96,19 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
         uncertainty: at the optimum.
         solver_converged, solver_message: the solver's own result.
         at_bound: labels of constants at a bound.
+        robust: (``--loss huber``) the residuals' scale per target from their median absolute
+            value, ``1.4826 median |r_c|`` (the standard deviation for Gaussian noise, unmoved by a
+            few gross outliers), instead of their RMS: ``chi2_c`` is its square times
+            ``m_c / dof_c``, ``noise_ratio`` the scale itself.
     """
     m, n = len(residuals), len(labels)
     chi2, ratio = {}, {}
     for target, (a, b) in targets.items():
         r = residuals[a:b]
         dof = (b - a) - n * (b - a) / m
-        chi2[target] = float(r @ r / dof) if dof > 0 else float("inf")
-        ratio[target] = float(np.sqrt(np.mean(r * r)))
+        square = (MAD_TO_SD * np.median(np.abs(r))) ** 2 if robust else np.mean(r * r)
+        chi2[target] = float(square * (b - a) / dof) if dof > 0 else float("inf")
+        ratio[target] = float(np.sqrt(square))
     explains = all(c <= CHI2_LIMIT for c in chi2.values())
     warnings = []
     if not solver_converged:

@@ -139,7 +139,10 @@ def add_calibrate_command(commands) -> None:
                     "or the fit does not explain the data; 4 some constants are not identifiable (their "
                     "intervals are infinite). Warnings are printed in bold (**WARNING: ...**) and written to "
                     "calibration.json's 'status'.")
-    calibrate.add_argument("session", type=Path, help="the .mcap session file")
+    calibrate.add_argument("session", type=Path, nargs="+",
+                           help="the .mcap session file; several: fitted together with one shared set of constants "
+                                "(their residuals stacked; same strings and rates; --solver lm-fd; per-session "
+                                "residual RMS in the output)")
     calibrate.add_argument("--targets", choices=["bodies", "feedback", "both"], default="bodies",
                            help="fit the recorded body centres (default), the bars' feedback (exact reaction), "
                                 "or both")
@@ -180,6 +183,17 @@ def add_calibrate_command(commands) -> None:
                                 "result (default 1/30 s then 1/3 s, the first stage on the first 2 s only, with "
                                 "--solver lm-fd when /puppet/state records joint_q; "
                                 "0: one rollout over the whole session)")
+    calibrate.add_argument("--validate", type=_fraction, default=None, metavar="F",
+                           help="hold out the last fraction F of the session (0 < F < 1, e.g. 0.25): fit on the "
+                                "rest, then simulate the whole session with the fitted constants and report the "
+                                "held-out residuals (RMS, reduced chi^2); a held-out reduced chi^2 > 2 is a warning "
+                                "and exit code 3")
+    calibrate.add_argument("--loss", choices=["l2", "huber"], default="l2",
+                           help="l2: least squares (default); huber: Huber's robust loss by iteratively reweighted "
+                                "least squares (outliers beyond --huber-scale noise scales pull with a constant "
+                                "force; --solver lm-fd)")
+    calibrate.add_argument("--huber-scale", type=number(0.0, low_open=True), default=None, metavar="C",
+                           help="Huber's threshold in noise scales (default 1.345; with --loss huber)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
@@ -218,6 +232,14 @@ def _labels(text: str) -> list[str]:
     return labels
 
 
+def _fraction(text: str) -> float:
+    """``--validate``: a fraction strictly between 0 and 1."""
+    value = number(0.0, 1.0, low_open=True)(text)
+    if value >= 1.0:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected a fraction of the session held out, 0 < F < 1")
+    return value
+
+
 def _windows(text: str) -> list[float]:
     """``--window``: seconds per window, comma-separated (``0``: one rollout)."""
     parse = number(0.0, 1e4, unit="s")
@@ -235,13 +257,14 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
                            "pip install 'dmarionette[fitting]'") from None
     start = args.start or None
-    default = Path("out") / "calibrate" / args.session.stem
+    default = Path("out") / "calibrate" / args.session[0].stem
     out = _outputs(args).folder("--out", args.out if args.out is not None else default)
     bar = None
     if not args.quiet:
         from tqdm import tqdm
 
-        print(f"calibrating {args.session} (the first run compiles the puppet kernels)", file=sys.stderr)
+        print(f"calibrating {', '.join(map(str, args.session))} (the first run compiles the puppet kernels)",
+              file=sys.stderr)
         bar = tqdm(unit=" rollouts", desc="start", file=sys.stderr)
 
     def progress(stage: str, count: int) -> None:
@@ -249,12 +272,14 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         bar.update(count - bar.n)
 
     try:
-        result = calibrate_session(args.session, targets=args.targets, params=args.params, solver=args.solver,
+        sessions = args.session if len(args.session) > 1 else args.session[0]
+        result = calibrate_session(sessions, targets=args.targets, params=args.params, solver=args.solver,
                                    max_steps=args.max_steps, start=start, noise_position=args.noise_position,
                                    noise_force=args.noise_force, known_noise=args.known_noise,
                                    duration=args.duration, rows=args.rows,
                                    window="default" if args.window is None else args.window,
                                    prior=args.prior, bounds=args.bounds, freeze=args.freeze,
+                                   validate=args.validate, loss=args.loss, huber_scale=args.huber_scale,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None)
     finally:

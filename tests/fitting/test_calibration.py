@@ -26,11 +26,9 @@ from fitting.calibration_data import read_calibration_data  # noqa: E402
 from fitting.calibration_fit import calibrate_session, jacobian_at  # noqa: E402
 from fitting.calibration_report import write_outputs  # noqa: E402
 from fitting.synthetic_session import record_synthetic_session, with_string_constants  # noqa: E402
+from tests.support.calibration_problem import NOISE_FORCE, NOISE_POSITION, SCENE, TRUTH  # noqa: E402
 
 wp.config.log_level = wp.LOG_WARNING
-SCENE = Path(__file__).resolve().parents[2] / "examples" / "calibration_scene.toml"
-TRUTH = {"k": [330.0, 280.0, 310.0, 260.0, 350.0, 240.0], "k_d": [3.4, 2.6, 3.1, 2.2, 3.8, 2.9]}
-NOISE_POSITION, NOISE_FORCE = 1e-4, 1e-2  # [m], [N]
 DURATION = 1.5
 
 
