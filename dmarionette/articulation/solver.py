@@ -96,7 +96,9 @@ class ArticulationModel:
         gravity: [m/s^2], shape (1,) of vec3d.
         spring_body, spring_point: body index and body-frame point [m] of each point
             spring-damper, shape (spring_count,).
-        spring_stiffness, spring_damping: ``k`` [N/m], ``k_d`` [N s/m], shape (spring_count,).
+        spring_stiffness, spring_damping: ``k`` [N/m], ``k_d`` [N s/m]: shape (spring_count,),
+            shared by all worlds, or (spring_worlds * spring_count,), world after world, one
+            set per world (a batched marionette's per-world eq. 2 constants).
         point_names, point_body, point_local: named attach points (from the puppet).
         contacts: compiled-in contact effects.
         q_rest: joint coordinates of the rest pose, shape (q_count,).
@@ -142,6 +144,11 @@ class ArticulationModel:
     @property
     def spring_count(self) -> int:
         return self.spring_body.shape[0]
+
+    @property
+    def spring_worlds(self) -> int:
+        """Worlds with a set of spring constants of their own (1: one set shared by all worlds)."""
+        return self.spring_stiffness.shape[0] // self.spring_count if self.spring_count else 1
 
     def state(self, world_count: int = 1, requires_grad: bool = False) -> "ArticulationState":
         """A state at the rest pose, at rest."""
@@ -268,6 +275,7 @@ def build_articulation_model(
     gravity: tuple[float, float, float] = GRAVITY,
     device: str = "cpu",
     requires_grad: bool = False,
+    spring_worlds: int = 1,
 ) -> ArticulationModel:
     """Builds the model of a puppet (and optional ball).
 
@@ -276,6 +284,9 @@ def build_articulation_model(
         ball: an extra free sphere, or None.
         springs: point spring-dampers as ``(point_name, k [N/m], k_d [N s/m])``; the
             point names are the puppet's attach points (``head``, ``hand_left`` ...).
+        spring_worlds: sets of spring constants (``spring_stiffness``, ``spring_damping``):
+            1 shared by all worlds, or one per world of the states stepped (each starting as
+            ``springs`` says; a batched marionette writes its worlds' own).
         contacts: which contacts to compile in (default: none).
         joint_limits: compile joint limits in.
         limit_stiffness, limit_damping: joint-limit penalty [N m/rad], [N m s/rad].
@@ -354,8 +365,8 @@ def build_articulation_model(
         gravity=_f64([gravity], dev, wp.vec3d),
         spring_body=wp.array(np.asarray(s_body or [0], dtype=np.int32), dtype=wp.int32, device=dev)[: len(s_body)],
         spring_point=_f64(np.reshape(s_point or [(0.0, 0.0, 0.0)], (-1, 3)), dev, wp.vec3d)[: len(s_body)],
-        spring_stiffness=_f64(s_k or [0.0], dev)[: len(s_body)],
-        spring_damping=_f64(s_kd or [0.0], dev)[: len(s_body)],
+        spring_stiffness=_f64(np.tile(s_k or [0.0], spring_worlds), dev)[: len(s_body) * spring_worlds],
+        spring_damping=_f64(np.tile(s_kd or [0.0], spring_worlds), dev)[: len(s_body) * spring_worlds],
         point_names=point_names,
         point_body=wp.array(np.asarray([names.index(p.body) for p in puppet.points] or [0], dtype=np.int32),
                             dtype=wp.int32, device=dev)[: len(point_names)],

@@ -77,8 +77,12 @@ def eval_body_point_springs(
     """
     w, s = wp.tid()
     b = spring_body[s]
-    k = spring_stiffness[s]
-    kd = spring_damping[s]
+    # One set of constants shared by all worlds, or one per world (world after world).
+    row = s
+    if spring_stiffness.shape[0] > spring_body.shape[0]:
+        row = w * spring_body.shape[0] + s
+    k = spring_stiffness[row]
+    kd = spring_damping[row]
     x, v = compute_point_state(body_pos[w, b], body_rot[w, b], body_w[w, b], body_v[w, b], spring_point[s])
     # Eq. 2 against the anchor, with the damping of the linearised backward-Euler step.
     f = compute_tie_force(x, v, spring_anchor_pos[w, s], spring_anchor_vel[w, s], k, kd + h * k)

@@ -103,6 +103,7 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         spring_body: wp.array(dtype=wp.int32),
         spring_point: wp.array(dtype=wp.vec3d),
         spring_string: wp.array(dtype=wp.int32),
+        strings_per_world: wp.int32,
         string_start: wp.array(dtype=wp.int32),
         string_stiffness: wp.array(dtype=scalar),
         string_rest_length: wp.array(dtype=scalar),
@@ -135,7 +136,7 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         """
         w, i = wp.tid()
         b = spring_body[i]
-        s = spring_string[i]
+        s = w * strings_per_world + spring_string[i]  # the strings of world w follow those of the worlds before
         x, v = compute_point_state(body_pos[w, b], body_rot[w, b], body_w[w, b], body_v[w, b], spring_point[i])
         first = string_start[s]
         last = string_start[s + 1] - 1
@@ -187,6 +188,7 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
 def eval_tie_path(
     # Model:
     string_point: wp.array(dtype=wp.int32),
+    strings_per_world: wp.int32,
     # State in:
     point_end: wp.array2d(dtype=wp.vec3d),
     tie_target: wp.array(dtype=wp.vec3d),
@@ -197,7 +199,8 @@ def eval_tie_path(
     tie_qd: wp.array2d(dtype=wp.vec3d),
     tie_target_out: wp.array(dtype=wp.vec3d),
 ):
-    """tie_q[j, s]: from tie_target[s] to the trial step's end point in n equal steps (zero if untied)."""
+    """tie_q[j, s]: from tie_target[s] to the trial step's end point in n equal steps (zero if untied);
+    string ``s`` belongs to world ``s // strings_per_world``."""
     j, s = wp.tid()
     p = string_point[s]
     if p < 0:
@@ -209,7 +212,7 @@ def eval_tie_path(
     n = tie_q.shape[0]
     horizon = wp.float64(n) * dt
     start = tie_target[s]
-    end = point_end[0, p]
+    end = point_end[s // strings_per_world, p]
     velocity = (end - start) / horizon
     tie_q[j, s] = start + (wp.float64(j + 1) * dt) * velocity
     tie_qd[j, s] = velocity
@@ -234,6 +237,7 @@ def apply_string_forces_to_anchors_kernel(substeps: int):
     def apply_string_forces_to_anchors(
         # Model:
         spring_string: wp.array(dtype=wp.int32),
+        strings_per_world: wp.int32,
         string_tie_stiffness: wp.array(dtype=wp.float64),
         # State in:
         tie_force: wp.array2d(dtype=wp.vec3d),
@@ -244,18 +248,18 @@ def apply_string_forces_to_anchors_kernel(substeps: int):
         spring_anchor_pos: wp.array2d(dtype=wp.vec3d),
         spring_anchor_vel: wp.array2d(dtype=wp.vec3d),
     ):
-        """Anchor of body spring ``i`` at t0: the predicted end point plus the mean tie force over
-        k, moved back along the path velocity by the puppet step ``H = n dt``."""
-        i = wp.tid()
-        s = spring_string[i]
+        """Anchor of body spring ``i`` of world ``w`` at t0: the predicted end point plus the mean tie
+        force over k, moved back along the path velocity by the puppet step ``H = n dt``."""
+        w, i = wp.tid()
+        s = w * strings_per_world + spring_string[i]
         mean = wp.vec3d()
         for j in range(wp.static(n)):
             mean += tie_force[j, s]
         count = wp.float64(wp.static(float(n)))
         mean = mean / count
         velocity = tie_qd[wp.static(last), s]
-        spring_anchor_pos[0, i] = (compute_tie_anchor(tie_q[wp.static(last), s], mean, string_tie_stiffness[s])
+        spring_anchor_pos[w, i] = (compute_tie_anchor(tie_q[wp.static(last), s], mean, string_tie_stiffness[s])
                                    - (count * dt) * velocity)
-        spring_anchor_vel[0, i] = velocity
+        spring_anchor_vel[w, i] = velocity
 
     return apply_string_forces_to_anchors

@@ -19,7 +19,7 @@ from tqdm import tqdm
 from dmarionette.capture import CapturedChunk, ping_pong
 from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, MarionetteState, SolverMarionette, bar_inputs
 
-__all__ = ["MarionetteRollout", "MarionetteTrajectory", "simulate_marionette"]
+__all__ = ["MarionetteRollout", "MarionetteTrajectory", "simulate_marionette", "simulate_worlds"]
 
 
 @dataclasses.dataclass
@@ -77,7 +77,7 @@ class MarionetteRollout:
         self._controls = [MarionetteControl(m) for _ in range(self.chunk_steps)]
         self._state = m.state()
         self._spare = m.state()
-        k, n, s, b = self.chunk_steps, m.substeps, m.strings.string_count, max(m.bar_count, 1)
+        k, n, s, b = self.chunk_steps, m.substeps, m.strings.string_count, m.bar_rows * m.world_count
         with wp.ScopedDevice(m.device):
             self._tie_force = wp.zeros((k, n, s), dtype=wp.vec3d)
             self._taut = wp.zeros((k, n, s), dtype=wp.int32)
@@ -133,15 +133,26 @@ class MarionetteRollout:
 
 
 def _frame(model: MarionetteModel, state: MarionetteState) -> tuple[np.ndarray, ...]:
+    """One frame of every world: particles ``(W P, 3)``, joint coordinates, body poses ``(W, ...)``."""
     model.puppet_solver.eval_kinematics(state.puppet)
     # String particles as float64 on the host whatever the strings' precision (a copy either way).
-    return (state.strings.particle_q.numpy().astype(np.float64), state.puppet.joint_q.numpy()[0].copy(),
-            state.puppet.body_pos.numpy()[0].copy(), state.puppet.body_rot.numpy()[0].copy())
+    return (state.strings.particle_q.numpy().astype(np.float64), state.puppet.joint_q.numpy().copy(),
+            state.puppet.body_pos.numpy().copy(), state.puppet.body_rot.numpy().copy())
 
 
 def simulate_marionette(model: MarionetteModel, duration: float, *, progress: bool = True,
                         frame_hz: float = 30.0) -> MarionetteTrajectory:
-    """Simulates ``duration`` seconds from the rest state, keeping frames at about ``frame_hz``."""
+    """Simulates ``duration`` seconds from the rest state, keeping frames at about ``frame_hz``
+    (one world; :func:`simulate_worlds` runs a batched model)."""
+    if model.world_count != 1:
+        raise ValueError(f"simulate_marionette: the model has {model.world_count} worlds; use simulate_worlds")
+    return simulate_worlds(model, duration, progress=progress, frame_hz=frame_hz)[0]
+
+
+def simulate_worlds(model: MarionetteModel, duration: float, *, progress: bool = True,
+                    frame_hz: float = 30.0) -> list[MarionetteTrajectory]:
+    """Simulates every world of ``model`` for ``duration`` seconds from its rest state in the same
+    launches; one trajectory per world (``wall_seconds``: the batch's, shared)."""
     if not duration > 0.0:
         raise ValueError(f"duration: got {duration}; expected a positive number of seconds")
     chunk = max(1, round(1.0 / (frame_hz * model.puppet_dt)))
@@ -150,7 +161,8 @@ def simulate_marionette(model: MarionetteModel, duration: float, *, progress: bo
     chunks = max(1, int(np.ceil(duration / (frame_steps * model.string_dt))))
     state = model.state()
     frames = [_frame(model, state)]
-    with tqdm(total=chunks * frame_steps, unit="step", disable=not progress, desc=model.scene.name) as bar:
+    name = model.scene.name if model.world_count == 1 else f"{model.scene.name} x {model.world_count} worlds"
+    with tqdm(total=chunks * frame_steps, unit="step", disable=not progress, desc=name) as bar:
         def record(c, s):
             frames.append(_frame(model, s))
             bar.update(frame_steps)
@@ -160,17 +172,27 @@ def simulate_marionette(model: MarionetteModel, duration: float, *, progress: bo
         wall = time.perf_counter() - start
     frame_time = frame_steps * model.string_dt * np.arange(chunks + 1)
     particle_q, joint_q, body_pos, body_rot = (np.stack(a) for a in zip(*frames))
-    bar_pos = np.zeros((len(frame_time), max(model.bar_count, 1), 3))
-    bar_rot = np.tile(np.eye(3), (len(frame_time), max(model.bar_count, 1), 1, 1))
-    for b, bar in enumerate(model.scene.bars):
-        bar_pos[:, b], _, bar_rot[:, b] = bar.trajectory.pose(frame_time)
     tops = bar_inputs(model, frame_time)[0]
     steps = chunks * frame_steps
-    return MarionetteTrajectory(
-        frame_time=frame_time, particle_q=particle_q, joint_q=joint_q, body_pos=body_pos, body_rot=body_rot,
-        bar_pos=bar_pos, bar_rot=bar_rot, top_q=tops, step_time=model.string_dt * np.arange(1, steps + 1),
-        string_names=list(model.strings.string_names), string_start=model.strings.string_start_np.copy(),
-        string_rest_length=model.strings.string_rest_length.numpy().astype(np.float64),
-        body_names=list(model.puppet.body_names), body_shape=list(model.puppet.body_shape),
-        bar_names=list(model.bar_names), string_dt=model.string_dt, puppet_dt=model.puppet_dt,
-        frame_steps=frame_steps, wall_seconds=wall, **outputs)
+    strings = model.strings
+    per_world, rows, particles = model.strings_per_world, model.bar_rows, strings.particle_count // model.world_count
+    rest_length = strings.string_rest_length.numpy().astype(np.float64)
+    trajectories = []
+    for w, scene in enumerate(model.world_scenes):
+        ss, bb, pp = (slice(w * x, (w + 1) * x) for x in (per_world, rows, particles))
+        bar_pos = np.zeros((len(frame_time), rows, 3))
+        bar_rot = np.tile(np.eye(3), (len(frame_time), rows, 1, 1))
+        for b, bar in enumerate(scene.bars):
+            bar_pos[:, b], _, bar_rot[:, b] = bar.trajectory.pose(frame_time)
+        trajectories.append(MarionetteTrajectory(
+            frame_time=frame_time, particle_q=particle_q[:, pp], joint_q=joint_q[:, w], body_pos=body_pos[:, w],
+            body_rot=body_rot[:, w], bar_pos=bar_pos, bar_rot=bar_rot, top_q=tops[:, ss],
+            step_time=model.string_dt * np.arange(1, steps + 1),
+            string_names=list(strings.string_names[ss]), string_start=strings.string_start_np[:per_world + 1].copy(),
+            string_rest_length=rest_length[ss].copy(),
+            body_names=list(model.puppet.body_names), body_shape=list(model.puppet.body_shape),
+            bar_names=list(model.bar_names), string_dt=model.string_dt, puppet_dt=model.puppet_dt,
+            frame_steps=frame_steps, wall_seconds=wall,
+            tie_force=outputs["tie_force"][:, ss], string_taut=outputs["string_taut"][:, ss],
+            bar_feedback=outputs["bar_feedback"][:, bb], bar_reaction=outputs["bar_reaction"][:, bb]))
+    return trajectories

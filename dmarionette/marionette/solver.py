@@ -57,34 +57,59 @@ __all__ = ["MarionetteControl", "MarionetteModel", "MarionetteState", "Marionett
 
 
 class MarionetteModel:
-    """Strings + puppet + bars built from a scene.
+    """Strings + puppet + bars built from a scene, for one world or ``W`` worlds at once.
+
+    A batched model (``world_count = W``, or :meth:`from_scenes` with one scene per world) steps
+    ``W`` independent marionettes in the same launches: its strings are the ``W`` worlds'
+    strings one world after another (``W S`` strings: a string step runs one thread per
+    (world, string)), the puppet states have ``W`` worlds (one thread per (world, body)), and
+    the bars are ``W B`` rows. Worlds differ in what lives in arrays: every string constant
+    (``k``, ``k_d``, ``k_s``, masses, lengths...), the bar motions and the initial pose;
+    everything compiled into the kernels or sized by them is shared and must be equal
+    (:func:`check_world_scenes`). ``W = 1`` is exactly the unbatched model.
 
     Attributes:
-        scene: the scene it was built from.
-        strings: the :class:`StringModel`, in the scene's ``[solver] precision``.
+        scene: the scene it was built from (world 0's).
+        world_scenes: one scene per world, ``(W,)``.
+        world_count: ``W``.
+        strings: the :class:`StringModel` of all worlds' strings, in the scene's ``[solver]
+            precision``; ``strings_per_world`` ``S`` of them per world.
         precision: ``"float64"`` or ``"float32"``: the strings' float type (the puppet is float64).
         string_tie_stiffness: eq. 2 ``k`` of each string as float64 for the puppet side (the
-            anchor offset ``F / k``) [N/m], ``(S,)``: the strings' own array in float64 (so
+            anchor offset ``F / k``) [N/m], ``(W S,)``: the strings' own array in float64 (so
             fitted values and gradients are shared), a float64 copy of it in float32.
-        puppet: the :class:`ArticulationModel` (springs: one per tied string, in string order).
+        puppet: the :class:`ArticulationModel` (springs: one per tied string, in string order;
+            one set of spring constants per world).
         substeps: string steps per puppet step ``n``; ``puppet_dt = n * string_dt``.
         string_dt, puppet_dt: [s].
-        bar_names: ``(B,)``; string_bar: bar index of each string (-1: none), ``(S,)``.
-        string_point: puppet point index each string is tied to (-1: none), ``(S,)``.
-        spring_string: string index of each body spring, ``(N,)``.
+        bar_names: ``(B,)``; string_bar: bar index of each string of a world (-1: none), ``(S,)``.
+        bar_rows: rows per world of the bar arrays, ``max(B, 1)``.
+        string_point: puppet point index each string of a world is tied to (-1: none), ``(S,)``.
+        spring_string: string index (within its world) of each body spring, ``(N,)``.
+        q_initial: world 0's start coordinates; q_initial_worlds: every world's, ``(W, q_count)``.
         puppet_mass: total puppet mass [kg] (eq. 4's ``m``).
         requires_grad: whether the strings' and puppet's fittable arrays (and the states
             made from them) carry gradients, for taped rollouts (``dmarionette.grad.engine``).
     """
 
-    def __init__(self, scene: Scene, *, optimization_level: int = 2, device=None, requires_grad: bool = False):
+    def __init__(self, scene: Scene, *, world_count: int = 1, optimization_level: int = 2, device=None,
+                 requires_grad: bool = False, world_scenes=None):
+        if world_scenes is None:
+            if not (isinstance(world_count, (int, np.integer)) and world_count >= 1):
+                raise ValueError(f"world_count: got {world_count!r}; expected an integer >= 1")
+            world_scenes = (scene,) * int(world_count)
+        world_scenes = tuple(world_scenes)
         if scene.puppet is None:
             raise ValueError(f"{scene.source}: a marionette needs a [puppet] table")
         if requires_grad and scene.precision != "float64":
             raise ValueError(f"{scene.source}: [solver] precision = {scene.precision!r}: gradients of a "
                              "marionette are float64 only; use precision = \"float64\" for fitting")
-        check_marionette_settings(scene)  # settings measured not to work are refused, with the reason
+        check_world_scenes(world_scenes)
+        for world in world_scenes:
+            check_marionette_settings(world)  # settings measured not to work are refused, with the reason
         self.scene = scene
+        self.world_scenes = world_scenes
+        self.world_count = len(world_scenes)
         self.requires_grad = bool(requires_grad)
         self.precision = scene.precision
         self.device = wp.get_device(device)
@@ -104,56 +129,92 @@ class MarionetteModel:
         self.puppet = build_articulation_model(
             scene.puppet, ball=ball, contacts=contacts, joint_limits=e["joint_limits"], gravity=scene.gravity,
             springs=tuple((p, scene.strings[i].tie_stiffness, scene.strings[i].tie_damping) for i, p in tied),
-            device=str(self.device), requires_grad=self.requires_grad)
+            device=str(self.device), requires_grad=self.requires_grad,
+            spring_worlds=self.world_count if self.world_count > 1 else 1)
         self.puppet_solver = SolverArticulation(self.puppet, optimization_level=optimization_level)
-        # Where the tied points are in the initial pose: the strings start straight from bar to point.
-        self.q_initial = initial_joint_q(self.puppet, scene)
-        point_q, point_qd = self.eval_points(self.initial_puppet_state())
+        # Where the tied points are in each world's initial pose: its strings start straight from bar to point.
+        self.q_initial_worlds = np.stack([initial_joint_q(self.puppet, world) for world in world_scenes])
+        self.q_initial = self.q_initial_worlds[0]
         point_names = self.puppet.point_names
         specs = []
-        for spec, body_point in zip(scene.strings, scene.string_body_points):
-            if body_point is not None:
-                bottom = tuple(float(v) for v in point_q[point_names.index(body_point)])
-                length = spec.length or float(np.linalg.norm(np.subtract(spec.top, bottom)))
-                spec = dataclasses.replace(spec, bottom=bottom, tie_point=bottom, length=length)
-            specs.append(spec)
+        for w, world in enumerate(world_scenes):
+            point_q = self._rest_points(w)
+            for spec, body_point in zip(world.strings, world.string_body_points):
+                if body_point is not None:
+                    bottom = tuple(float(v) for v in point_q[point_names.index(body_point)])
+                    length = spec.length or float(np.linalg.norm(np.subtract(spec.top, bottom)))
+                    spec = dataclasses.replace(spec, bottom=bottom, tie_point=bottom, length=length)
+                specs.append(spec)
         self.strings = StringModel(specs, effects=scene.effects, gravity=scene.gravity,
                                    ground_height=scene.ground_height, precision=self.precision, device=self.device,
                                    requires_grad=self.requires_grad)
+        self.strings_per_world = len(names)
         self.string_solver = SolverStringImplicit(self.strings)
         self.bar_names = [b.name for b in scene.bars]
+        self.bar_rows = max(len(self.bar_names), 1)
         bar_of = {s: i for i, b in enumerate(scene.bars) for s in b.attach}
         self.string_bar = np.array([bar_of.get(n, -1) for n in names], dtype=np.int32)
         self.string_point = np.array([point_names.index(p) if p else -1 for p in scene.string_body_points],
                                      dtype=np.int32)
         self.spring_string = np.array([i for i, _ in tied], dtype=np.int32)
         self.puppet_mass = float(sum(b.mass for b in scene.puppet.bodies))
+        # The kernels' view of all worlds: world w's strings and bar rows follow those of the worlds before.
+        worlds = np.arange(self.world_count)
+        string_bar = np.where(self.string_bar[None] >= 0, self.string_bar[None] + self.bar_rows * worlds[:, None], -1)
+        if len(self.spring_string):
+            k = np.array([[world.strings[i].tie_stiffness for i in self.spring_string] for world in world_scenes])
+            k_d = np.array([[world.strings[i].tie_damping for i in self.spring_string] for world in world_scenes])
+            upload_values(self.puppet.spring_stiffness, k.reshape(-1)[:self.puppet.spring_stiffness.shape[0]])
+            upload_values(self.puppet.spring_damping, k_d.reshape(-1)[:self.puppet.spring_damping.shape[0]])
         with wp.ScopedDevice(self.device):
-            self.string_bar_wp = wp.array(self.string_bar, dtype=wp.int32)
-            self.string_point_wp = wp.array(self.string_point, dtype=wp.int32)
+            self.string_bar_wp = wp.array(string_bar.reshape(-1).astype(np.int32), dtype=wp.int32)
+            self.string_point_wp = wp.array(np.tile(self.string_point, self.world_count), dtype=wp.int32)
             self.spring_string_wp = wp.array(self.spring_string, dtype=wp.int32)
             self.string_tie_stiffness = self.strings.string_tie_stiffness if self.precision == "float64" \
                 else wp.array([s.tie_stiffness for s in specs], dtype=wp.float64)
 
+    @classmethod
+    def from_scenes(cls, scenes, **kwargs) -> MarionetteModel:
+        """A batched model with one world per scene (``check_world_scenes`` says what may differ);
+        keyword arguments as for the constructor."""
+        scenes = tuple(scenes)
+        if not scenes:
+            raise ValueError("MarionetteModel.from_scenes: got no scenes; expected one per world")
+        return cls(scenes[0], world_scenes=scenes, **kwargs)
+
+    def _rest_points(self, world: int) -> np.ndarray:
+        """World ``world``'s puppet points at its start pose, ``(points, 3)``."""
+        state = self.puppet.state()
+        state.joint_q.assign(wp.array(self.q_initial_worlds[world][None], dtype=wp.float64, device=self.device))
+        return self.eval_world_points(state)[0][0]
+
     def initial_puppet_state(self, requires_grad: bool = False) -> ArticulationState:
-        """The puppet at its start pose (``q_initial``), at rest."""
-        state = self.puppet.state(requires_grad=requires_grad)
-        state.joint_q.assign(wp.array(self.q_initial[None], dtype=wp.float64, device=self.device))
+        """The puppet at its start pose (``q_initial_worlds``), at rest, all worlds."""
+        state = self.puppet.state(self.world_count, requires_grad=requires_grad)
+        state.joint_q.assign(wp.array(self.q_initial_worlds, dtype=wp.float64, device=self.device))
         return state
 
     @property
     def bar_count(self) -> int:
         return len(self.bar_names)
 
-    def eval_points(self, state: ArticulationState) -> tuple[np.ndarray, np.ndarray]:
-        """World positions [m] and velocities [m/s] of the puppet's named points, ``(points, 3)`` each
-        (fills ``state``'s body poses on the way: ``SolverArticulation.eval_kinematics``)."""
+    def eval_world_points(self, state: ArticulationState) -> tuple[np.ndarray, np.ndarray]:
+        """World positions [m] and velocities [m/s] of the puppet's named points in each world of
+        ``state``, ``(worlds, points, 3)`` each (fills ``state``'s body poses on the way:
+        ``SolverArticulation.eval_kinematics``)."""
         n = len(self.puppet.point_names)
-        q = wp.zeros((1, n), dtype=wp.vec3d, device=self.device)
-        qd = wp.zeros((1, n), dtype=wp.vec3d, device=self.device)
+        q = wp.zeros((state.world_count, n), dtype=wp.vec3d, device=self.device)
+        qd = wp.zeros((state.world_count, n), dtype=wp.vec3d, device=self.device)
         self.puppet_solver.eval_kinematics(state)
         self.puppet_solver.eval_points(state, q, qd)
-        return q.numpy()[0], qd.numpy()[0]
+        return q.numpy(), qd.numpy()
+
+    def eval_points(self, state: ArticulationState) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`eval_world_points` for a one-world ``state``: ``(points, 3)`` each."""
+        if state.world_count != 1:
+            raise ValueError(f"eval_points: a state of {state.world_count} worlds; use eval_world_points")
+        q, qd = self.eval_world_points(state)
+        return q[0], qd[0]
 
     def state(self, requires_grad: bool = False) -> MarionetteState:
         """The start state: puppet at its rest pose, strings straight from bar to body point, at rest
@@ -167,19 +228,59 @@ class MarionetteModel:
         return control
 
 
+# What every world of a batched marionette shares (compiled into its kernels or sizing them), by the
+# name a user knows it by.
+_SHARED = {
+    "[rates] string_hz": lambda s: s.string_hz,
+    "[rates] puppet_hz": lambda s: s.puppet_hz,
+    "[solver] precision": lambda s: s.precision,
+    "[effects] (strings)": lambda s: s.effects,
+    "[effects] (puppet)": lambda s: dict(s.body_effects),
+    "[contact]": lambda s: dict(s.contact),
+    "gravity": lambda s: tuple(s.gravity),
+    "ground height": lambda s: s.ground_height,
+    "[puppet]": lambda s: s.puppet,
+    "[chair]": lambda s: s.chair,
+    "[ball]": lambda s: s.ball,
+    "string names": lambda s: [x.name for x in s.strings],
+    "string particle counts": lambda s: [x.particle_count for x in s.strings],
+    "string body points": lambda s: tuple(s.string_body_points),
+    "bars and their strings": lambda s: [(b.name, tuple(b.attach)) for b in s.bars],
+    "[feedback] stiffness": lambda s: s.feedback_stiffness,
+    "[feedback] damping": lambda s: s.feedback_damping,
+}
+
+
+def check_world_scenes(scenes) -> None:
+    """Raises ``ValueError`` naming the first world and setting that differs from world 0's where
+    the worlds of a batched marionette must agree (the kernels and launch sizes are shared;
+    string constants, bar motions and the initial pose may differ)."""
+    first = scenes[0]
+    for w, scene in enumerate(scenes[1:], start=1):
+        for name, read in _SHARED.items():
+            if read(scene) != read(first):
+                raise ValueError(f"world {w} ({scene.source}): {name} = {read(scene)!r}; every world of a batched "
+                                 f"marionette needs world 0's ({first.source}) {read(first)!r} (the worlds share "
+                                 "their kernels; string constants, bar motions and the initial pose may differ)")
+
+
 class MarionetteState:
     """What evolves, and what one puppet step reports.
 
     Attributes:
+    Per-string and per-bar arrays hold all worlds, world after world (``W S`` strings, ``W``
+    times ``bar_rows`` bars; ``W = 1``: ``S`` and ``B``).
+
+    Attributes:
         strings: the string state at the end of the step.
-        puppet: the puppet state (one world).
+        puppet: the puppet state (``W`` worlds).
         tie_force: eq. 2 force of each tie on its body point after each string step [N],
-            ``(n, S)`` of vec3d; the next puppet step's trial step reads its mean (zero in
+            ``(n, W S)`` of vec3d; the next puppet step's trial step reads its mean (zero in
             the start state).
-        string_taut: taut flags after each string step, ``(n, S)``.
-        bar_feedback: eq. 4 feedback per bar after each string step [N], ``(n, B)``.
-        bar_reaction: exact reaction of the strings on each bar after each string step [N], ``(n, B)``.
-        tie_target: where each string's tie target is at the end of the step [m], ``(S,)``
+        string_taut: taut flags after each string step, ``(n, W S)``.
+        bar_feedback: eq. 4 feedback per bar after each string step [N], ``(n, W B)``.
+        bar_reaction: exact reaction of the strings on each bar after each string step [N], ``(n, W B)``.
+        tie_target: where each string's tie target is at the end of the step [m], ``(W S,)``
             (the start of the next step's path; see ``string_body_coupling``).
     """
 
@@ -187,7 +288,7 @@ class MarionetteState:
         rg = requires_grad
         self.strings: StringState = model.strings.state()
         self.puppet: ArticulationState = model.initial_puppet_state(rg)
-        n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
+        n, s, b = model.substeps, model.strings.string_count, model.bar_rows * model.world_count
         with wp.ScopedDevice(model.device):
             self.tie_force = wp.zeros((n, s), dtype=wp.vec3d, requires_grad=rg)
             self.string_taut = wp.zeros((n, s), dtype=wp.int32)
@@ -208,14 +309,14 @@ class MarionetteControl:
     """Inputs of one puppet step: the bars over its ``n`` string steps.
 
     Attributes:
-        top_q: attach point of each string's top at the end of each string step [m], ``(n, S)``.
+        top_q: attach point of each string's top at the end of each string step [m], ``(n, W S)``.
         bar_q, bar_qd: bar centre position [m] and velocity [m/s] (the device proxy of eq. 4),
-            ``(n, B)``.
+            ``(n, W B)`` (``B`` = ``model.bar_rows``).
         t0: time at the start of the step [s] (host side, used by :meth:`set_bars`).
     """
 
     def __init__(self, model: MarionetteModel, requires_grad: bool = False):
-        n, s, b = model.substeps, model.strings.string_count, max(model.bar_count, 1)
+        n, s, b = model.substeps, model.strings.string_count, model.bar_rows * model.world_count
         with wp.ScopedDevice(model.device):
             self.top_q = wp.zeros((n, s), dtype=wp.vec3d, requires_grad=requires_grad)
             self.bar_q = wp.zeros((n, b), dtype=wp.vec3d, requires_grad=requires_grad)
@@ -246,14 +347,20 @@ def initial_joint_q(puppet_model, scene: Scene) -> np.ndarray:
 
 
 def bar_inputs(model: MarionetteModel, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """String tops ``(T, S, 3)``, bar centres ``(T, B, 3)`` and their velocities at ``times``."""
-    scene = model.scene
-    tops = scene.top_positions(np.array([s.top for s in model.strings.specs]), times)
-    bar_q = np.zeros((len(times), max(model.bar_count, 1), 3))
-    bar_qd = np.zeros_like(bar_q)
-    for b, bar in enumerate(scene.bars):
-        bar_q[:, b], bar_qd[:, b], _ = bar.trajectory.pose(times)
-    return tops, bar_q, bar_qd
+    """String tops ``(T, W S, 3)``, bar centres ``(T, W B, 3)`` and their velocities at ``times``
+    (each world's from its own scene, world after world)."""
+    per_world = model.strings_per_world
+    specs = model.strings.specs
+    tops, bar_q, bar_qd = [], [], []
+    for w, scene in enumerate(model.world_scenes):
+        tops.append(scene.top_positions(np.array([s.top for s in specs[w * per_world:(w + 1) * per_world]]), times))
+        q = np.zeros((len(times), model.bar_rows, 3))
+        qd = np.zeros_like(q)
+        for b, bar in enumerate(scene.bars):
+            q[:, b], qd[:, b], _ = bar.trajectory.pose(times)
+        bar_q.append(q)
+        bar_qd.append(qd)
+    return tuple(np.concatenate(a, axis=1) if len(a) > 1 else a[0] for a in (tops, bar_q, bar_qd))
 
 
 class SolverMarionette:
@@ -408,7 +515,8 @@ class SolverMarionette:
         if len(m.spring_string) == 0:
             return
         wp.launch(self._response, dim=(tw.world_count, len(m.spring_string)),
-                  inputs=[m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp, s.string_start,
+                  inputs=[m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp,
+                          wp.int32(m.strings_per_world), s.string_start,
                           s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_taut_distance,
                           s.string_internal_friction,
                           tw.body_pos, tw.body_rot, tw.body_w, tw.body_v,
@@ -418,7 +526,8 @@ class SolverMarionette:
     def eval_tie_path(self, state_in: MarionetteState, state_out: MarionetteState, ws: MarionetteWorkspace) -> None:
         m = self.model
         wp.launch(eval_tie_path, dim=(m.substeps, m.strings.string_count),
-                  inputs=[m.string_point_wp, ws.trial_points.point_q, state_in.tie_target, wp.float64(m.string_dt)],
+                  inputs=[m.string_point_wp, wp.int32(m.strings_per_world), ws.trial_points.point_q,
+                          state_in.tie_target, wp.float64(m.string_dt)],
                   outputs=[ws.tie_q, ws.tie_qd, state_out.tie_target], device=m.device)
 
     def apply_tie_path_to_strings(self, ws: MarionetteWorkspace) -> None:
@@ -444,8 +553,9 @@ class SolverMarionette:
         m = self.model
         if len(m.spring_string) == 0:
             return
-        wp.launch(apply_string_forces_to_anchors_kernel(m.substeps), dim=len(m.spring_string),
-                  inputs=[m.spring_string_wp, m.string_tie_stiffness, state_out.tie_force,
+        wp.launch(apply_string_forces_to_anchors_kernel(m.substeps), dim=(m.world_count, len(m.spring_string)),
+                  inputs=[m.spring_string_wp, wp.int32(m.strings_per_world), m.string_tie_stiffness,
+                          state_out.tie_force,
                           ws.tie_q, ws.tie_qd, wp.float64(m.string_dt)],
                   outputs=[ws.puppet_control.spring_anchor_pos, ws.puppet_control.spring_anchor_vel],
                   device=m.device)

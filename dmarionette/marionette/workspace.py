@@ -48,9 +48,9 @@ class PuppetPoints:
     """Body kinematics of a puppet state and its named points there.
 
     Attributes:
-        kinematics: body poses and velocities (one world).
+        kinematics: body poses and velocities (``W`` worlds).
         point_q, point_qd: world positions [m] and velocities [m/s] of the puppet's named
-            points (``puppet.point_names`` order), ``(1, points)`` of vec3d.
+            points (``puppet.point_names`` order), ``(W, points)`` of vec3d.
     """
 
     kinematics: ArticulationKinematics
@@ -58,12 +58,12 @@ class PuppetPoints:
     point_qd: wp.array
 
     @classmethod
-    def allocate(cls, puppet_model, requires_grad: bool = False) -> PuppetPoints:
-        n = len(puppet_model.point_names)
+    def allocate(cls, puppet_model, requires_grad: bool = False, world_count: int = 1) -> PuppetPoints:
+        n, w = len(puppet_model.point_names), world_count
         with wp.ScopedDevice(puppet_model.device):
-            return cls(puppet_model.kinematics(1, requires_grad),
-                       wp.zeros((1, n), dtype=wp.vec3d, requires_grad=requires_grad),
-                       wp.zeros((1, n), dtype=wp.vec3d, requires_grad=requires_grad))
+            return cls(puppet_model.kinematics(w, requires_grad),
+                       wp.zeros((w, n), dtype=wp.vec3d, requires_grad=requires_grad),
+                       wp.zeros((w, n), dtype=wp.vec3d, requires_grad=requires_grad))
 
 
 @dataclasses.dataclass
@@ -75,7 +75,7 @@ class MarionetteWorkspace:
         trial_workspace: the trial puppet step's derived quantities (``string_body_coupling``).
         trial: the trial step's end state.
         trial_points: its body kinematics and points at ``t0 + H`` (the prediction).
-        tie_q, tie_qd: the tie path over the string steps [m], [m/s], ``(n, S)``.
+        tie_q, tie_qd: the tie path over the string steps [m], [m/s], ``(n, W S)``.
         string_states: the string states between string steps (two in turn for a plain
             run, ``n - 1`` for a taped one); :meth:`SolverMarionette.string_state_after`
             says which holds string step ``j``'s result.
@@ -101,22 +101,22 @@ class MarionetteWorkspace:
     def allocate(cls, model, *, taped: bool = False) -> MarionetteWorkspace:
         """A workspace for ``model``'s steps (``taped``: one step on a tape, with gradients)."""
         m, rg = model, taped
-        n, s = m.substeps, m.strings.string_count
+        n, s, w = m.substeps, m.strings.string_count, m.world_count
         pup = m.puppet
         with wp.ScopedDevice(m.device):
             narrow = None if m.precision == "float64" else SimpleNamespace(
                 top_q=wp.zeros((n, s), dtype=m.strings.vec3), tie_q=wp.zeros((n, s), dtype=m.strings.vec3),
                 tie_qd=wp.zeros((n, s), dtype=m.strings.vec3))
             return cls(
-                points=PuppetPoints.allocate(pup, rg),
-                trial_workspace=pup.workspace(1, rg),
-                trial=pup.state(requires_grad=rg),
-                trial_points=PuppetPoints.allocate(pup, rg),
+                points=PuppetPoints.allocate(pup, rg, w),
+                trial_workspace=pup.workspace(w, rg),
+                trial=pup.state(w, requires_grad=rg),
+                trial_points=PuppetPoints.allocate(pup, rg, w),
                 tie_q=wp.zeros((n, s), dtype=wp.vec3d, requires_grad=rg),
                 tie_qd=wp.zeros((n, s), dtype=wp.vec3d, requires_grad=rg),
                 string_states=[m.strings.state() for _ in range(n - 1 if taped else 2)],
                 string_workspaces=[m.string_solver.new_workspace(taped) for _ in range(n if taped else 1)],
                 narrow=narrow,
-                puppet_control=pup.control(requires_grad=rg),
-                puppet_workspace=pup.workspace(1, rg),
+                puppet_control=pup.control(w, requires_grad=rg),
+                puppet_workspace=pup.workspace(w, rg),
             )
