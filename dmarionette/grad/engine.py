@@ -31,6 +31,14 @@ What is differentiated, and the mapping to the kernels' constants:
   targets start at the scene's rest tie points, so a ``joint_q0`` away from the rest pose
   pulls the ties towards the new pose over the first puppet step.
 
+Worlds: a batched model (``MarionetteModel(..., world_count=W)`` or ``from_scenes``) runs ``W``
+rollouts in the same launches; :meth:`MarionetteGradient.forward` then takes a list of ``W``
+:class:`RolloutInputs` and returns a list of :class:`RolloutOutputs`, and
+:meth:`~MarionetteGradient.backward` takes a list of ``W`` cotangent dicts and returns each
+world's gradients (the worlds do not interact, so world ``w``'s gradient is that of its own
+rollout: ``tests/grad/test_world_gradients.py``). Inside, the inputs and outputs are laid out as
+the kernels hold them: strings and bars world after world, puppet arrays with a world axis.
+
 Not differentiable (discontinuous; keep the loss away from them): the taut flag of a
 string (eq. 4's feedback switches on and off with it), the slack clamp of a segment's
 geometric stiffness, string-ground contact and hard (non-smooth) body contact, and
@@ -153,13 +161,13 @@ class _PlainChunk:
         m = engine.model
         self.engine = engine
         self.steps = steps
-        n, s, b = m.substeps, m.strings.string_count, max(m.bar_count, 1)
+        n, s, b, w = m.substeps, m.strings.string_count, m.bar_rows * m.world_count, m.world_count
         self.controls = [MarionetteControl(m) for _ in range(steps)]
         with wp.ScopedDevice(m.device):
-            self.joint_q = wp.zeros((steps, m.puppet.q_count), dtype=wp.float64)
-            self.point_pos = wp.zeros((steps, len(m.puppet.point_names)), dtype=wp.vec3d)
-            self.body_pos = wp.zeros((steps, m.puppet.body_count), dtype=wp.vec3d)
-            self.body_rot = wp.zeros((steps, m.puppet.body_count), dtype=wp.quatd)
+            self.joint_q = wp.zeros((steps, w, m.puppet.q_count), dtype=wp.float64)
+            self.point_pos = wp.zeros((steps, w, len(m.puppet.point_names)), dtype=wp.vec3d)
+            self.body_pos = wp.zeros((steps, w, m.puppet.body_count), dtype=wp.vec3d)
+            self.body_rot = wp.zeros((steps, w, m.puppet.body_count), dtype=wp.quatd)
             self.tie_force = wp.zeros((steps, n, s), dtype=wp.vec3d)
             self.bar_feedback = wp.zeros((steps, n, b), dtype=wp.vec3d)
             self.bar_reaction = wp.zeros((steps, n, b), dtype=wp.vec3d)
@@ -179,10 +187,10 @@ class _PlainChunk:
         solver = self.engine.solver
         solver.step(state_in, state_out, self.controls[k])
         points = solver.workspace.points  # the input state's body poses and points (begin_step)
-        wp.copy(self.joint_q[k], state_in.puppet.joint_q[0])
-        wp.copy(self.point_pos[k], points.point_q[0])
-        wp.copy(self.body_pos[k], points.kinematics.body_pos[0])
-        wp.copy(self.body_rot[k], points.kinematics.body_rot[0])
+        wp.copy(self.joint_q[k], state_in.puppet.joint_q)
+        wp.copy(self.point_pos[k], points.point_q)
+        wp.copy(self.body_pos[k], points.kinematics.body_pos)
+        wp.copy(self.body_rot[k], points.kinematics.body_rot)
         wp.copy(self.tie_force[k], state_out.tie_force)
         wp.copy(self.bar_feedback[k], state_out.bar_feedback)
         wp.copy(self.bar_reaction[k], state_out.bar_reaction)
@@ -232,70 +240,100 @@ class MarionetteGradient:
         self.spare = m.state()
         self._rest = Checkpoint.of(self.state)
         s = m.strings
+        self.world_count = w = m.world_count
         self._segments_per_string = s.string_particle_count.astype(np.float64) - 1.0
         self._scene_constants = (s.string_tie_stiffness.numpy().copy(), s.string_tie_damping.numpy().copy(),
                                  s.string_stiffness.numpy() / self._segments_per_string)
-        b = max(m.bar_count, 1)
-        p, t = self.puppet_steps, self.string_steps
+        b, per_world, particles = m.bar_rows, m.strings_per_world, s.particle_count // w
+        p, t, q, qd = self.puppet_steps, self.string_steps, m.puppet.q_count, m.puppet.qd_count
+        points, bodies = len(m.puppet.point_names), m.puppet.body_count
+        # Each world's (the API's) shapes, and the kernels' layout of all worlds (_join / _split).
         self.input_shapes = {
-            "top_q": (t, s.string_count, 3), "bar_q": (t, b, 3), "bar_qd": (t, b, 3),
-            "tie_stiffness": (s.string_count,), "tie_damping": (s.string_count,),
-            "string_stiffness": (s.string_count,), "joint_q0": (m.puppet.q_count,),
-            "joint_qd0": (m.puppet.qd_count,), "particle_q0": (s.particle_count, 3),
-            "particle_qd0": (s.particle_count, 3),
+            "top_q": (t, per_world, 3), "bar_q": (t, b, 3), "bar_qd": (t, b, 3),
+            "tie_stiffness": (per_world,), "tie_damping": (per_world,), "string_stiffness": (per_world,),
+            "joint_q0": (q,), "joint_qd0": (qd,), "particle_q0": (particles, 3), "particle_qd0": (particles, 3),
         }
         self.output_shapes = {
-            "joint_q": (p + 1, m.puppet.q_count), "point_pos": (p + 1, len(m.puppet.point_names), 3),
-            "body_pos": (p + 1, m.puppet.body_count, 3), "body_rot": (p + 1, m.puppet.body_count, 4),
-            "tie_force": (t, s.string_count, 3), "bar_feedback": (t, b, 3), "bar_reaction": (t, b, 3),
+            "joint_q": (p + 1, q), "point_pos": (p + 1, points, 3), "body_pos": (p + 1, bodies, 3),
+            "body_rot": (p + 1, bodies, 4), "tie_force": (t, per_world, 3), "bar_feedback": (t, b, 3),
+            "bar_reaction": (t, b, 3),
         }
+        self._flat_outputs = {name: _joined_shape(shape, _WORLD_AXIS[name], w)
+                              for name, shape in self.output_shapes.items()}
         self._chunks = {}
         self._capture = bool(capture)
         self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), self.checkpoint_steps, capture=capture)
-        self._inputs: RolloutInputs | None = None
+        self._inputs: RolloutInputs | None = None  # the last forward's, all worlds in the kernels' layout
         self._checkpoints: list[Checkpoint] = []
 
     # ------------------------------------------------------------------ inputs
     @property
     def default_inputs(self) -> dict[str, np.ndarray]:
         """The values the optional inputs (``OPTIONAL_INPUT_FIELDS``) take when None: the
-        strings' rest state (straight from bar to body point, at rest)."""
-        return {"particle_q0": self._rest.particle_q.copy(), "particle_qd0": self._rest.particle_qd.copy()}
+        strings' rest state (straight from bar to body point, at rest); world 0's."""
+        return self._world_defaults(0)
 
-    def scene_inputs(self, t0: float = 0.0) -> RolloutInputs:
-        """The scene's own inputs: its bar trajectories from ``t0`` [s], its constants, its rest state."""
+    def _world_defaults(self, world: int) -> dict[str, np.ndarray]:
+        rows = slice(world * self.input_shapes["particle_q0"][0], (world + 1) * self.input_shapes["particle_q0"][0])
+        return {"particle_q0": self._rest.particle_q[rows].copy(), "particle_qd0": self._rest.particle_qd[rows].copy()}
+
+    def scene_inputs(self, t0: float = 0.0) -> RolloutInputs | list[RolloutInputs]:
+        """The scene's own inputs: its bar trajectories from ``t0`` [s], its constants, its rest state
+        (a batched model: a list, one per world, each from its own scene)."""
         m = self.model
         times = float(t0) + m.string_dt * np.arange(1, self.string_steps + 1)
         top_q, bar_q, bar_qd = bar_inputs(m, times)
-        k, k_d, k_s = (c.copy() for c in self._scene_constants)
-        return RolloutInputs(top_q=top_q, bar_q=bar_q, bar_qd=bar_qd, tie_stiffness=k, tie_damping=k_d,
-                             string_stiffness=k_s, joint_q0=m.q_initial.copy(),
-                             joint_qd0=np.zeros(m.puppet.qd_count), **self.default_inputs)
+        flat = RolloutInputs(top_q=top_q, bar_q=bar_q, bar_qd=bar_qd,
+                             tie_stiffness=self._scene_constants[0].copy(), tie_damping=self._scene_constants[1].copy(),
+                             string_stiffness=self._scene_constants[2].copy(), joint_q0=m.q_initial_worlds.copy(),
+                             joint_qd0=np.zeros((self.world_count, m.puppet.qd_count)),
+                             particle_q0=self._rest.particle_q.copy(), particle_qd0=self._rest.particle_qd.copy())
+        worlds = self._split_inputs(flat)
+        return worlds[0] if self.world_count == 1 else worlds
 
-    def check_inputs(self, inputs: RolloutInputs) -> RolloutInputs:
-        """Validated float64 copies of ``inputs`` (raises ``ValueError`` naming the field)."""
+    def check_inputs(self, inputs: RolloutInputs, world: int = 0) -> RolloutInputs:
+        """Validated float64 copies of world ``world``'s ``inputs`` (raises ``ValueError`` naming the field)."""
         if not isinstance(inputs, RolloutInputs):
             raise TypeError(f"inputs: got {type(inputs).__name__}; expected a RolloutInputs")
+        where = "RolloutInputs" if self.world_count == 1 else f"world {world}: RolloutInputs"
         values = {}
-        defaults = self.default_inputs
+        defaults = self._world_defaults(world)
         for name in INPUT_FIELDS:
             if name in defaults and getattr(inputs, name) is None:
                 values[name] = defaults[name]
                 continue
-            values[name] = _checked(f"RolloutInputs.{name}", getattr(inputs, name), self.input_shapes[name])
+            values[name] = _checked(f"{where}.{name}", getattr(inputs, name), self.input_shapes[name])
         tied = self.model.string_point >= 0
-        names = self.model.strings.string_names
-        for i, name in enumerate(names):
+        names = self.model.scene.strings
+        for i, spec in enumerate(names):
+            name = spec.name
             k, k_d, k_s = (float(values[f][i]) for f in ("tie_stiffness", "tie_damping", "string_stiffness"))
             if tied[i] and not k > 0.0:
-                raise ValueError(f"RolloutInputs.tie_stiffness[{i}] (string {name!r}): got {k}; expected > 0 N/m "
+                raise ValueError(f"{where}.tie_stiffness[{i}] (string {name!r}): got {k}; expected > 0 N/m "
                                  "for a string tied to a body point (the coupling divides by it)")
             if not k_d >= 0.0:
-                raise ValueError(f"RolloutInputs.tie_damping[{i}] (string {name!r}): got {k_d}; expected >= 0 N s/m")
+                raise ValueError(f"{where}.tie_damping[{i}] (string {name!r}): got {k_d}; expected >= 0 N s/m")
             if not k_s > 0.0:
-                raise ValueError(f"RolloutInputs.string_stiffness[{i}] (string {name!r}): got {k_s}; "
+                raise ValueError(f"{where}.string_stiffness[{i}] (string {name!r}): got {k_s}; "
                                  "expected > 0 N/m")
         return RolloutInputs(**values)
+
+    def _worlds(self, value, what: str) -> tuple[list, bool]:
+        """``value`` as one item per world, and whether it came as one world's (not a list)."""
+        if self.world_count == 1 and not isinstance(value, (list, tuple)):
+            return [value], True
+        if not isinstance(value, (list, tuple)) or len(value) != self.world_count:
+            got = f"a list of {len(value)}" if isinstance(value, (list, tuple)) else type(value).__name__
+            raise ValueError(f"{what}: got {got}; expected a list of {self.world_count} (one per world)")
+        return list(value), False
+
+    def _join_inputs(self, worlds: list[RolloutInputs]) -> RolloutInputs:
+        return RolloutInputs(**{name: _join([getattr(x, name) for x in worlds], _WORLD_AXIS[name])
+                                for name in INPUT_FIELDS})
+
+    def _split_inputs(self, flat: RolloutInputs) -> list[RolloutInputs]:
+        parts = {name: _split(getattr(flat, name), _WORLD_AXIS[name], self.world_count) for name in INPUT_FIELDS}
+        return [RolloutInputs(**{name: parts[name][w] for name in INPUT_FIELDS}) for w in range(self.world_count)]
 
     def _set_constants(self, inputs: RolloutInputs) -> None:
         m = self.model
@@ -304,18 +342,37 @@ class MarionetteGradient:
         upload_values(s.string_tie_damping, inputs.tie_damping)
         upload_values(s.string_stiffness, inputs.string_stiffness * self._segments_per_string)
         if len(m.spring_string):
-            upload_values(pup.spring_stiffness, inputs.tie_stiffness[m.spring_string])
-            upload_values(pup.spring_damping, inputs.tie_damping[m.spring_string])
+            springs = self._spring_strings()
+            upload_values(pup.spring_stiffness, inputs.tie_stiffness[springs])
+            upload_values(pup.spring_damping, inputs.tie_damping[springs])
 
-    def _start_state(self, inputs: RolloutInputs, tie_target0: np.ndarray | None = None,
-                     tie_force0: np.ndarray | None = None) -> Checkpoint:
+    def _spring_strings(self) -> np.ndarray:
+        """The string (all worlds' numbering) of each entry of the puppet's spring constants."""
+        m = self.model
+        if m.puppet.spring_worlds == 1:
+            return m.spring_string
+        return (m.spring_string[None] + m.strings_per_world * np.arange(self.world_count)[:, None]).reshape(-1)
+
+    def _start_state(self, inputs: RolloutInputs, tie_target0=None, tie_force0=None) -> Checkpoint:
         r = self._rest
-        tie_target = r.tie_target.copy() if tie_target0 is None else \
-            _checked("tie_target0", tie_target0, r.tie_target.shape)
-        tie_force = np.zeros_like(r.tie_force) if tie_force0 is None else \
-            _checked("tie_force0", tie_force0, r.tie_force.shape)
-        return Checkpoint(inputs.particle_q0.copy(), inputs.particle_qd0.copy(), inputs.joint_q0[None].copy(),
-                          inputs.joint_qd0[None].copy(), tie_target, tie_force)
+        tie_target = r.tie_target.copy() if tie_target0 is None else tie_target0
+        tie_force = np.zeros_like(r.tie_force) if tie_force0 is None else tie_force0
+        return Checkpoint(inputs.particle_q0.copy(), inputs.particle_qd0.copy(), inputs.joint_q0.copy(),
+                          inputs.joint_qd0.copy(), tie_target, tie_force)
+
+    def _start_arrays(self, tie_target0, tie_force0) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``forward``'s ``tie_target0`` and ``tie_force0`` (each world's, checked) in the kernels' layout."""
+        per_world, n = self.model.strings_per_world, self.model.substeps
+        joined = []
+        for name, value, shape, axis in (("tie_target0", tie_target0, (per_world, 3), 0),
+                                         ("tie_force0", tie_force0, (n, per_world, 3), 1)):
+            if value is None:
+                joined.append(None)
+                continue
+            worlds, _ = self._worlds(value, name)
+            label = (lambda w: name) if self.world_count == 1 else (lambda w: f"{name}[{w}]")
+            joined.append(_join([_checked(label(w), v, shape) for w, v in enumerate(worlds)], ("concat", axis)))
+        return joined[0], joined[1]
 
     # ------------------------------------------------------------------ forward
     def _chunk(self, steps: int) -> _PlainChunk:
@@ -323,9 +380,12 @@ class MarionetteGradient:
             self._chunks[steps] = _PlainChunk(self, steps, self._capture)
         return self._chunks[steps]
 
-    def forward(self, inputs: RolloutInputs, *, tie_target0: np.ndarray | None = None,
-                tie_force0: np.ndarray | None = None) -> RolloutOutputs:
+    def forward(self, inputs: RolloutInputs | list[RolloutInputs], *, tie_target0=None,
+                tie_force0=None) -> RolloutOutputs | list[RolloutOutputs]:
         """Runs the rollout without a tape, keeping the checkpoints; returns all outputs.
+
+        ``inputs``: a :class:`RolloutInputs`, or for a batched model a list of one per world
+        (then the outputs are a list too, and so are ``tie_target0`` and ``tie_force0``).
 
         ``tie_target0`` (the tie targets [m], ``(S, 3)``) and ``tie_force0`` (the previous puppet
         step's tie forces [N], ``(n, S, 3)``) complete a start state taken mid-motion (a
@@ -333,10 +393,12 @@ class MarionetteGradient:
         points and no force, as at the start of a session. They are constants: :meth:`backward`
         returns no gradient for them.
         """
-        inputs = self.check_inputs(inputs)
+        worlds, single = self._worlds(inputs, "inputs")
+        inputs = self._join_inputs([self.check_inputs(x, w) for w, x in enumerate(worlds)])
+        tie_target0, tie_force0 = self._start_arrays(tie_target0, tie_force0)
         m = self.model
         self._set_constants(inputs)
-        shapes = self.output_shapes
+        shapes = self._flat_outputs
         out = {name: np.zeros(shape) for name, shape in shapes.items()}
         n = m.substeps
         checkpoints = []
@@ -359,66 +421,84 @@ class MarionetteGradient:
                 out[name][a * n:b * n] = getattr(chunk, name).numpy().reshape(-1, *shapes[name][1:])
         # The last row: the final state's pose and points.
         p = self.puppet_steps
-        point_q, _ = m.eval_points(self.state.puppet)  # fills the body poses too
-        out["joint_q"][p] = self.state.puppet.joint_q.numpy()[0]
+        point_q, _ = m.eval_world_points(self.state.puppet)  # fills the body poses too
+        out["joint_q"][p] = self.state.puppet.joint_q.numpy()
         out["point_pos"][p] = point_q
-        out["body_pos"][p] = self.state.puppet.body_pos.numpy()[0]
-        out["body_rot"][p] = self.state.puppet.body_rot.numpy()[0]
+        out["body_pos"][p] = self.state.puppet.body_pos.numpy()
+        out["body_rot"][p] = self.state.puppet.body_rot.numpy()
         self._inputs = inputs
         self._checkpoints = checkpoints
-        return RolloutOutputs(**out)
+        parts = {name: _split(value, _WORLD_AXIS[name], self.world_count) for name, value in out.items()}
+        outputs = [RolloutOutputs(**{name: parts[name][w] for name in OUTPUT_FIELDS}) for w in range(self.world_count)]
+        return outputs[0] if single else outputs
 
     @property
-    def last_inputs(self) -> RolloutInputs | None:
-        """The inputs of the last :meth:`forward` (what :meth:`backward` differentiates), or None."""
-        return self._inputs
+    def last_inputs(self) -> RolloutInputs | list[RolloutInputs] | None:
+        """The inputs of the last :meth:`forward` (what :meth:`backward` differentiates), or None
+        (a batched model: one per world)."""
+        if self._inputs is None:
+            return None
+        worlds = self._split_inputs(self._inputs)
+        return worlds[0] if self.world_count == 1 else worlds
 
     # ------------------------------------------------------------------ backward
-    def backward(self, cotangents: dict[str, np.ndarray]) -> RolloutInputs:
+    def backward(self, cotangents: dict[str, np.ndarray] | list[dict[str, np.ndarray]]
+                 ) -> RolloutInputs | list[RolloutInputs]:
         """Gradients of ``L`` with respect to the inputs of the last :meth:`forward`.
 
         Args:
             cotangents: ``dL/d output`` for any subset of :class:`RolloutOutputs` field names,
-                each of that output's shape (missing outputs: zero).
+                each of that output's shape (missing outputs: zero); a batched model: a list
+                of one such dict per world.
 
         Returns:
-            ``dL/d input`` for every field, with :class:`RolloutInputs` shapes.
+            ``dL/d input`` for every field, with :class:`RolloutInputs` shapes (a batched
+            model: a list, one per world).
         """
         if self._inputs is None:
             raise RuntimeError("MarionetteGradient.backward: call forward(inputs) first")
-        if not isinstance(cotangents, dict):
-            raise TypeError(f"cotangents: got {type(cotangents).__name__}; expected a dict of output name -> array")
-        cot = {}
-        for name, value in cotangents.items():
-            if name not in self.output_shapes:
-                raise ValueError(f"cotangents: unknown output {name!r}; expected some of {list(OUTPUT_FIELDS)}")
-            cot[name] = _checked(f"cotangents[{name!r}]", value, self.output_shapes[name])
+        worlds, single = self._worlds(cotangents, "cotangents")
+        checked = []
+        for w, given in enumerate(worlds):
+            if not isinstance(given, dict):
+                raise TypeError(f"cotangents: got {type(given).__name__}; expected a dict of output name -> array")
+            where = "cotangents" if single else f"cotangents[{w}]"
+            for name in given:
+                if name not in self.output_shapes:
+                    raise ValueError(f"{where}: unknown output {name!r}; expected some of {list(OUTPUT_FIELDS)}")
+            checked.append({name: _checked(f"{where}[{name!r}]", value, self.output_shapes[name])
+                            for name, value in given.items()})
+        named = set().union(*checked)
+        cot = {name: _join([c.get(name, np.zeros(self.output_shapes[name])) for c in checked], _WORLD_AXIS[name])
+               for name in named}
         m = self.model
         self._set_constants(self._inputs)  # another engine on the same model may have run since
         params = self._parameter_arrays()
         for a in params:
             a.grad.zero_()
-        grads = {name: np.zeros(shape) for name, shape in self.input_shapes.items()}
+        grads = {name: np.zeros(np.shape(getattr(self._inputs, name))) for name in INPUT_FIELDS}
         adjoint = None
         for index in reversed(range(len(self.segments))):
             a, b = self.segments[index]
             adjoint = self._taped.backward(self._checkpoints[index], self._inputs, a, b,
                                            last=b == self.puppet_steps, cotangents=cot, adjoint_end=adjoint,
                                            grads=grads)
-        grads["joint_q0"] = adjoint.joint_q[0]
-        grads["joint_qd0"] = adjoint.joint_qd[0]
+        grads["joint_q0"] = adjoint.joint_q
+        grads["joint_qd0"] = adjoint.joint_qd
         grads["particle_q0"] = adjoint.particle_q
         grads["particle_qd0"] = adjoint.particle_qd
         s, pup = m.strings, m.puppet
         k_grad = s.string_tie_stiffness.grad.numpy().copy()
         kd_grad = s.string_tie_damping.grad.numpy().copy()
         if len(m.spring_string):
-            np.add.at(k_grad, m.spring_string, pup.spring_stiffness.grad.numpy())
-            np.add.at(kd_grad, m.spring_string, pup.spring_damping.grad.numpy())
+            springs = self._spring_strings()
+            np.add.at(k_grad, springs, pup.spring_stiffness.grad.numpy())
+            np.add.at(kd_grad, springs, pup.spring_damping.grad.numpy())
         grads["tie_stiffness"] = k_grad
         grads["tie_damping"] = kd_grad
         grads["string_stiffness"] = s.string_stiffness.grad.numpy() * self._segments_per_string
-        return RolloutInputs(**grads)
+        result = self._split_inputs(RolloutInputs(**grads))
+        return result[0] if single else result
 
     def memory(self) -> dict[str, int]:
         """Bytes the engine holds for gradients: ``checkpoints`` (host, one per segment),
@@ -446,6 +526,37 @@ class MarionetteGradient:
         if len(self.model.spring_string):
             arrays += [pup.spring_stiffness, pup.spring_damping]
         return arrays
+
+
+# How each world's input or output joins the others' in the kernels' layout: strings, particles and
+# bars world after world along an axis ("concat"), puppet arrays on a new world axis ("stack").
+_WORLD_AXIS = {
+    "top_q": ("concat", 1), "bar_q": ("concat", 1), "bar_qd": ("concat", 1),
+    "tie_stiffness": ("concat", 0), "tie_damping": ("concat", 0), "string_stiffness": ("concat", 0),
+    "particle_q0": ("concat", 0), "particle_qd0": ("concat", 0),
+    "joint_q0": ("stack", 0), "joint_qd0": ("stack", 0),
+    "joint_q": ("stack", 1), "point_pos": ("stack", 1), "body_pos": ("stack", 1), "body_rot": ("stack", 1),
+    "tie_force": ("concat", 1), "bar_feedback": ("concat", 1), "bar_reaction": ("concat", 1),
+}
+
+
+def _join(values: list[np.ndarray], how: tuple[str, int]) -> np.ndarray:
+    kind, axis = how
+    return np.stack(values, axis=axis) if kind == "stack" else np.concatenate(values, axis=axis)
+
+
+def _split(value: np.ndarray, how: tuple[str, int], worlds: int) -> list[np.ndarray]:
+    kind, axis = how
+    if kind == "stack":
+        return [np.take(value, w, axis=axis) for w in range(worlds)]
+    return [part.copy() for part in np.split(value, worlds, axis=axis)]
+
+
+def _joined_shape(shape: tuple[int, ...], how: tuple[str, int], worlds: int) -> tuple[int, ...]:
+    kind, axis = how
+    if kind == "stack":
+        return shape[:axis] + (worlds,) + shape[axis:]
+    return shape[:axis] + (shape[axis] * worlds,) + shape[axis + 1:]
 
 
 def _checked(name: str, value, shape: tuple[int, ...]) -> np.ndarray:

@@ -57,7 +57,7 @@ class _Plan:
         self.states = [model.state(requires_grad=True) for _ in range(steps + 1)]
         self.controls = [MarionetteControl(model, requires_grad=True) for _ in range(steps)]
         self.workspaces = [solver.new_workspace(taped=True) for _ in range(steps)]
-        self.final_points = PuppetPoints.allocate(model.puppet, requires_grad=True)
+        self.final_points = PuppetPoints.allocate(model.puppet, requires_grad=True, world_count=model.world_count)
         self.arrays = _arrays_in([self.states, self.controls, self.workspaces, self.final_points], set())
         self.grads = [a.grad for a in self.arrays if a.requires_grad]  # cleared before a reverse pass
 
