@@ -145,9 +145,11 @@ class BarWorkMeter:
     def reset(self) -> None:
         self.bar_work.zero_()
 
-    def total(self) -> float:
-        """Work of all bars since the last reset [J] (a copy, read on the host)."""
-        return float(np.sum(self.bar_work.numpy()))
+    def total(self, strings: range | None = None) -> float:
+        """Work of all bars since the last reset [J] (a copy, read on the host); ``strings``: on
+        these strings only (one world of a batched marionette)."""
+        work = self.bar_work.numpy()
+        return float(np.sum(work if strings is None else work[strings.start:strings.stop]))
 
     def step(self, state_in, state_out, control, dt: float, *, tape=None, workspace=None) -> None:
         """The wrapped solver's step, then the bar work of that step."""
@@ -231,19 +233,20 @@ def puppet_limit_violation(model, joint_q: np.ndarray) -> np.ndarray:
     return violation
 
 
-def puppet_energy(model, state) -> dict[str, float]:
+def puppet_energy(model, state, world: int = 0) -> dict[str, float]:
     """Kinetic, gravity and penalty (contact, joint limit) energy of the puppet [J].
 
     Args:
         model: a ``MarionetteModel``; state: its ``MarionetteState`` (the puppet's body
             fields are recomputed here from ``joint_q``, ``joint_qd``).
+        world: which world of a batched marionette.
     """
     puppet = model.puppet
     model.puppet_solver.eval_kinematics(state.puppet)
-    pos = state.puppet.body_pos.numpy()[0].copy()
-    rot = state.puppet.body_rot.numpy()[0].copy()
-    v = state.puppet.body_v.numpy()[0].copy()
-    w = state.puppet.body_w.numpy()[0].copy()
+    pos = state.puppet.body_pos.numpy()[world].copy()
+    rot = state.puppet.body_rot.numpy()[world].copy()
+    v = state.puppet.body_v.numpy()[world].copy()
+    w = state.puppet.body_w.numpy()[world].copy()
     mass = puppet.body_mass.numpy()
     inertia = puppet.body_inertia.numpy()
     r = quat_to_matrix(rot)
@@ -262,31 +265,33 @@ def puppet_energy(model, state) -> dict[str, float]:
             contact += 0.5 * k * float(np.sum(depths["chair"] ** 2))
     limit = 0.0
     if puppet.topology.joint_limits:
-        e = puppet_limit_violation(model, state.puppet.joint_q.numpy()[0])
+        e = puppet_limit_violation(model, state.puppet.joint_q.numpy()[world])
         limit = 0.5 * puppet.limit_stiffness * float(np.sum(e**2))
     return {"kinetic": kinetic, "gravity": gravity, "contact": contact, "limit": limit,
             "total": kinetic + gravity + contact + limit}
 
 
-def marionette_energy(model, state) -> dict[str, float]:
-    """Mechanical energy of a marionette state [J] (see the module doc for what is in it).
+def marionette_energy(model, state, world: int = 0) -> dict[str, float]:
+    """Mechanical energy of a marionette state [J] (see the module doc for what is in it), of
+    world ``world`` of a batched marionette.
 
     Returns the parts ``string_kinetic``, ``string_gravity``, ``string_spring``, ``string_ground``,
     ``tie``, ``puppet_kinetic``, ``puppet_gravity``, ``puppet_contact``, ``puppet_limit`` and
     ``total``.
     """
     strings = model.strings
+    first = world * model.strings_per_world
     q = state.strings.particle_q.numpy().astype(np.float64)
     qd = state.strings.particle_qd.numpy().astype(np.float64)
-    s = string_energy(strings, q, qd)
-    p = puppet_energy(model, state)
-    point_q, _ = model.eval_points(state.puppet)
+    s = string_energy(strings, q, qd, strings=range(first, first + model.strings_per_world))
+    p = puppet_energy(model, state, world)
+    point_q = model.eval_world_points(state.puppet)[0][world]
     tie = 0.0
     last = strings.string_start_np[1:] - 1
     for i, point in enumerate(model.string_point):
         if point >= 0:
-            k = model.scene.strings[i].tie_stiffness
-            tie += 0.5 * k * float(np.sum((point_q[point] - q[last[i]]) ** 2))
+            k = model.world_scenes[world].strings[i].tie_stiffness
+            tie += 0.5 * k * float(np.sum((point_q[point] - q[last[first + i]]) ** 2))
     parts = {
         "string_kinetic": s["kinetic"], "string_gravity": s["gravity"], "string_spring": s["spring"],
         "string_ground": s["ground"], "tie": tie, "puppet_kinetic": p["kinetic"],

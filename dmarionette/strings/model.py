@@ -227,20 +227,24 @@ def build_string_model(specs: Sequence[StringSpec], **kwargs) -> StringModel:
     return StringModel(specs, **kwargs)
 
 
-def string_energy(model: StringModel, q: np.ndarray, qd: np.ndarray, tie_q: np.ndarray | None = None
-                  ) -> dict[str, float]:
+def string_energy(model: StringModel, q: np.ndarray, qd: np.ndarray, tie_q: np.ndarray | None = None,
+                  strings: range | None = None) -> dict[str, float]:
     """Mechanical energy of the strings [J], from host arrays ``q``, ``qd`` of shape ``(P, 3)``.
 
     Kinetic energy excludes the kinematic top particles (their motion is imposed). Returns
     ``kinetic``, ``gravity`` (relative to ``y = 0``), ``spring``, ``ground`` (penalty spring
     energy of particles below the ground, when ground contact is on), ``tie`` (the eq. 2
     springs of tied strings, to ``tie_q`` or the model's tie points) and ``total``.
+    ``strings``: only these strings (one world of a batched marionette); default all.
     """
     q = np.asarray(q, dtype=np.float64)
     qd = np.asarray(qd, dtype=np.float64)
+    strings = range(model.string_count) if strings is None else strings
+    start = model.string_start_np
     mass = model.particle_mass.numpy().astype(np.float64)
-    free = np.ones(model.particle_count, dtype=bool)
-    free[model.string_start_np[:-1]] = False
+    free = np.zeros(model.particle_count, dtype=bool)
+    for s in strings:
+        free[start[s] + 1:start[s + 1]] = True
     kinetic = 0.5 * float(np.sum(mass[free] * np.sum(qd[free] ** 2, axis=1)))
     g = np.array(model.gravity, dtype=np.float64)
     gravity = -float(np.sum(mass[free] * (q[free] @ g))) if model.effects.gravity else 0.0
@@ -249,8 +253,8 @@ def string_energy(model: StringModel, q: np.ndarray, qd: np.ndarray, tie_q: np.n
     spring = 0.0
     ground = 0.0
     k_ground = model.string_ground_stiffness.numpy()
-    for s in range(model.string_count):
-        a, b = model.string_start_np[s], model.string_start_np[s + 1]
+    for s in strings:
+        a, b = start[s], start[s + 1]
         lengths = np.linalg.norm(np.diff(q[a:b], axis=0), axis=1)
         stretch = lengths - rest[s]
         if model.effects.tension_only:  # no energy while slack (``kernels/string_terms``)
@@ -259,10 +263,11 @@ def string_energy(model: StringModel, q: np.ndarray, qd: np.ndarray, tie_q: np.n
         if model.effects.ground_contact:
             depth = np.maximum(float(model.ground_height) - q[a + 1:b, 1], 0.0)
             ground += 0.5 * float(k_ground[s]) * float(np.sum(depth**2))
+    chosen = np.asarray(list(strings), dtype=np.int64)
     points = model.tie_points() if tie_q is None else np.asarray(tie_q, dtype=np.float64)
-    last = model.string_start_np[1:] - 1
-    stretch = np.sum((points - q[last]) ** 2, axis=1)
-    tie = 0.5 * float(np.sum(model.string_tied.numpy() * model.string_tie_stiffness.numpy() * stretch))
+    last = start[1:] - 1
+    stretch = np.sum((points[chosen] - q[last[chosen]]) ** 2, axis=1)
+    tie = 0.5 * float(np.sum((model.string_tied.numpy() * model.string_tie_stiffness.numpy())[chosen] * stretch))
     total = kinetic + gravity + spring + ground + tie
     return {"kinetic": kinetic, "gravity": gravity, "spring": spring, "ground": ground, "tie": tie,
             "total": total}

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -42,9 +43,10 @@ def add_sweep_command(sub) -> None:
     sweep.add_argument("--duration", type=number(0.0, low_open=True, unit="s"), default=None,
                        help="simulated seconds per variant (default: the scene's [scene] duration)")
     sweep.add_argument("--out", type=Path, default=None, help="output folder (default: out/sweep/<scene name>)")
-    sweep.add_argument("--worlds-per-batch", type=integer(1, 100_000), default=1,
-                       help="variants handed to a worker at a time (default 1); today they run one rollout "
-                            "each, in turn; with a world axis they will be the worlds of one model")
+    sweep.add_argument("--worlds-per-batch", type=integer(1, 100_000), default=None,
+                       help="variants handed to a worker at a time, run as the worlds of one batched model in the "
+                            f"same launches (default: the variants shared evenly by the workers, at most "
+                            f"{AUTO_WORLDS_PER_BATCH} a batch); 1: one rollout per variant")
     sweep.add_argument("--ray", default=None, metavar="local|off|ADDRESS",
                        help="where the variants run: local (the default when the 'scale' extra is installed: an "
                             "embedded Ray cluster on this machine, loopback only, one worker per core), off (this "
@@ -70,6 +72,23 @@ def _ray_mode(text: str | None) -> str:
     if mode not in ("off", "local"):
         check_ray_address(mode)
     return mode
+
+
+AUTO_WORLDS_PER_BATCH = 64
+"""The largest batch ``--worlds-per-batch`` picks by itself: past it a CPU core gains nothing more per
+world (``benchmarks/bench_worlds.py``) and a killed run loses more work in flight."""
+
+
+def worlds_per_batch(pending: int, mode: str, workers: int | None) -> int:
+    """The default ``--worlds-per-batch``: the pending variants shared evenly by the workers (one in
+    this process; on Ray ``--workers`` or the cluster's CPUs), at most :data:`AUTO_WORLDS_PER_BATCH`."""
+    if mode == "off":
+        count = 1
+    else:
+        import ray
+
+        count = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
+    return max(1, min(AUTO_WORLDS_PER_BATCH, math.ceil(pending / count)))
 
 
 def _rollout_bytes(scene, duration: float) -> float:
@@ -151,8 +170,9 @@ def _sweep(args, variants, pending, done, keys, summary, table, mode, level) -> 
     bar_names = [b.name for b in base.bars]
     if not args.quiet:
         where = "this process" if mode == "off" else ("a local Ray cluster" if mode == "local" else f"Ray at {mode}")
-        print(f"sweep: {len(variants)} variants ({len(done)} already in {table}), one rollout each, in {where}",
-              file=sys.stderr)
+        per_batch = args.worlds_per_batch or worlds_per_batch(len(pending), mode, args.workers)
+        print(f"sweep: {len(variants)} variants ({len(done)} already in {table}), up to {per_batch} worlds a "
+              f"batch, in {where}", file=sys.stderr)
     # The kernels compile here under a progress bar, once per kind of variant (precision, effects), before the
     # first row; the rollouts (and Ray's workers) then load them from the cache.
     kinds = {kernel_key(v.scene, level): v.scene for v in [variants[0], *pending]}
@@ -160,8 +180,8 @@ def _sweep(args, variants, pending, done, keys, summary, table, mode, level) -> 
         build_marionette(scene, optimization_level=level, quiet=args.quiet)
     writer = RowWriter(table, ["variant", *keys, *summary], append=bool(done))
     rows = list(done.values())
-    batches = [[(v.index, v.scene) for v in pending[i:i + args.worlds_per_batch]]
-               for i in range(0, len(pending), args.worlds_per_batch)]
+    per_batch = args.worlds_per_batch or worlds_per_batch(len(pending), mode, args.workers)
+    batches = [[(v.index, v.scene) for v in pending[i:i + per_batch]] for i in range(0, len(pending), per_batch)]
     settings = {v.index: v.settings for v in variants}
     run = functools.partial(_run_batch, duration=args.duration, optimization_level=level)
     try:
@@ -180,7 +200,7 @@ def _sweep(args, variants, pending, done, keys, summary, table, mode, level) -> 
     finally:
         writer.close()
     scene_text = base.name if Path(args.scene).suffix == "" else str(args.scene)
-    header = (f"# sweep of {scene_text}: {len(variants)} variant{'' if len(variants) == 1 else 's'}, one rollout each, "
+    header = (f"# sweep of {scene_text}: {len(variants)} variant{'' if len(variants) == 1 else 's'}, "
               f"{'the scene duration' if args.duration is None else f'{args.duration:g} s'} per variant")
     files = {"table": str(table), "markdown": str(write_markdown(out / "sweep.md", rows, keys, summary, header))}
     if not args.no_picture:

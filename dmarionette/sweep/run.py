@@ -1,11 +1,9 @@
 """Running the variants of a sweep: one rollout per variant, summarised into one row.
 
 :func:`run_variants` is the one function that runs a list of variants (scenes) and returns their
-rows. Today each variant is its own ``MarionetteModel`` and its own rollout, one after another
-(there is no world axis through the kernels yet); a batched model (W worlds per launch) can
-replace its body later without changing its callers, which hand it a batch of
-``--worlds-per-batch`` variants at a time (in this process or on a Ray worker,
-:func:`dmarionette.scale.map_variants`).
+rows. Its callers hand it a batch of ``--worlds-per-batch`` variants at a time (in this process or
+on a Ray worker, :func:`dmarionette.scale.map_variants`); the variants of a batch that can share
+one batched marionette run as its worlds, in the same launches (:func:`run_batch`).
 
 A row (:func:`run_variant`) holds, for the rollout of ``duration`` seconds from the rest state:
 
@@ -41,7 +39,7 @@ import numpy as np
 
 from dmarionette.scene.scene import Scene
 
-__all__ = ["FRAME_HZ", "kernel_key", "run_variant", "run_variants", "warm_up"]
+__all__ = ["FRAME_HZ", "kernel_key", "run_batch", "run_variant", "run_variants", "warm_up"]
 
 FRAME_HZ = 30.0
 """Frames per second at which the torso and the energy are read (``simulate_marionette``'s default)."""
@@ -88,23 +86,36 @@ def warm_up(scene: Scene, optimization_level: int = 2) -> None:
 
 
 def run_variant(scene: Scene, duration: float, optimization_level: int = 2) -> dict:
-    """One variant's row (see the module doc): builds the marionette, rolls it out, summarises it.
+    """One variant's row (see the module doc): :func:`run_batch` of that variant alone."""
+    return run_batch([scene], duration, optimization_level)[0]
+
+
+def run_batch(scenes: Sequence[Scene], duration: float, optimization_level: int = 2) -> list[dict]:
+    """The rows of variants that can share one batched marionette (one world each, the same launches).
+
+    Builds ``MarionetteModel.from_scenes(scenes)`` (the variants must agree in what the kernels
+    share: :func:`dmarionette.marionette.solver.check_world_scenes`), rolls every world out together
+    and summarises each world as :func:`run_variant` would alone (the worlds do not interact: each
+    world's numbers are bit for bit its own run's, ``tests/marionette/test_worlds.py``).
 
     Args:
-        scene: the variant's validated scene (a marionette).
+        scenes: the variants' validated scenes (marionettes).
         duration: simulated seconds [s] (> 0).
         optimization_level: Warp's optimisation level of the puppet kernels (0: ``--fast-compile``).
 
     Returns:
-        The row: column name -> number (``finite`` a bool).
+        One row per scene: column name -> number (``finite`` a bool). ``real_time_factor`` is the
+        batch's: simulated seconds per second of its rollout (every world advances together), and
+        ``wall_s`` the batch's wall time shared equally by its worlds.
     """
     from dmarionette.marionette.energy import install_bar_work_meter, marionette_energy
     from dmarionette.marionette.rollout import MarionetteRollout
     from dmarionette.marionette.solver import MarionetteModel, SolverMarionette
 
     start = time.perf_counter()
-    warm_up(scene, optimization_level)
-    model = MarionetteModel(scene, optimization_level=optimization_level)
+    warm_up(scenes[0], optimization_level)
+    model = MarionetteModel.from_scenes(scenes, optimization_level=optimization_level)
+    worlds, per_world = model.world_count, model.strings_per_world
     meter = install_bar_work_meter(model)  # before the solver and the capture: part of the graph
     chunk = max(1, round(1.0 / (FRAME_HZ * model.puppet_dt)))
     rollout = MarionetteRollout(SolverMarionette(model), chunk)
@@ -112,22 +123,27 @@ def run_variant(scene: Scene, duration: float, optimization_level: int = 2) -> d
     chunks = max(1, int(np.ceil(duration / (frame_steps * model.string_dt))))  # as simulate_marionette
     state = model.state()
     meter.reset()
-    torso, motion, work, finite = [], [], [], []
+    torso, motion, work, finite = ([[] for _ in range(worlds)] for _ in range(4))
+    particles = model.strings.particle_count // worlds
     reading = [0.0]  # seconds spent reading frames (not the simulator's)
 
     def read(s) -> None:
         begin = time.perf_counter()
-        ok = bool(np.all(np.isfinite(s.strings.particle_q.numpy())) and np.all(np.isfinite(s.strings.particle_qd.numpy()))
-                  and np.all(np.isfinite(s.puppet.joint_q.numpy())) and np.all(np.isfinite(s.puppet.joint_qd.numpy())))
-        if ok:
-            energy = marionette_energy(model, s)  # fills the body poses from the joints on the way
-            motion.append(energy["total"] - energy["puppet_contact"] - energy["puppet_limit"])
-            torso.append(float(s.puppet.body_pos.numpy()[0][0, 1]))
-        else:
-            motion.append(math.nan)
-            torso.append(math.nan)
-        work.append(meter.total())
-        finite.append(ok)
+        q, qd = s.strings.particle_q.numpy(), s.strings.particle_qd.numpy()
+        jq, jqd = s.puppet.joint_q.numpy(), s.puppet.joint_qd.numpy()
+        for w in range(worlds):
+            rows = slice(w * particles, (w + 1) * particles)
+            ok = bool(np.all(np.isfinite(q[rows])) and np.all(np.isfinite(qd[rows]))
+                      and np.all(np.isfinite(jq[w])) and np.all(np.isfinite(jqd[w])))
+            if ok:
+                energy = marionette_energy(model, s, w)  # fills the body poses from the joints on the way
+                motion[w].append(energy["total"] - energy["puppet_contact"] - energy["puppet_limit"])
+                torso[w].append(float(s.puppet.body_pos.numpy()[w][0, 1]))
+            else:
+                motion[w].append(math.nan)
+                torso[w].append(math.nan)
+            work[w].append(meter.total(range(w * per_world, (w + 1) * per_world)))
+            finite[w].append(ok)
         reading[0] += time.perf_counter() - begin
 
     read(state)
@@ -136,6 +152,20 @@ def run_variant(scene: Scene, duration: float, optimization_level: int = 2) -> d
     rollout_s = time.perf_counter() - run_start - reading[0]
     steps = chunks * frame_steps
     simulated = steps * model.string_dt
+    wall = time.perf_counter() - start
+    rows = []
+    for w in range(worlds):
+        ss, bb = slice(w * per_world, (w + 1) * per_world), slice(w * model.bar_rows, (w + 1) * model.bar_rows)
+        own = {name: value[:, bb if name.startswith("bar_") else ss] for name, value in outputs.items()}
+        rows.append(_summary(model, own, simulated, frame_steps, torso[w], motion[w], work[w], finite[w]))
+        rows[-1]["real_time_factor"] = simulated / rollout_s if rollout_s > 0.0 else math.nan
+        rows[-1]["wall_s"] = wall / worlds
+    return rows
+
+
+def _summary(model, outputs: dict, simulated: float, frame_steps: int, torso: list, motion: list, work: list,
+             finite: list) -> dict:
+    """One world's row from its per-step outputs and per-frame readings (the module doc's columns)."""
     outputs_finite = all(bool(np.all(np.isfinite(v))) for v in outputs.values())
     all_finite = all(finite) and outputs_finite
     motion_a, work_a = np.asarray(motion), np.asarray(work)
@@ -144,8 +174,8 @@ def run_variant(scene: Scene, duration: float, optimization_level: int = 2) -> d
     torso_a = np.asarray(torso)
     row["torso_min_m"] = float(np.min(torso_a)) if all_finite else math.nan
     row["torso_max_m"] = float(np.max(torso_a)) if all_finite else math.nan
-    for s, name in enumerate(model.strings.string_names):
-        row[f"taut_{name}"] = float(outputs["string_taut"][:, s].mean())
+    for s, spec in enumerate(model.scene.strings):
+        row[f"taut_{spec.name}"] = float(outputs["string_taut"][:, s].mean())
     for b, name in enumerate(model.bar_names):
         row[f"feedback_max_{name}_N"] = float(np.linalg.norm(outputs["bar_feedback"][:, b], axis=1).max())
         row[f"reaction_max_{name}_N"] = float(np.linalg.norm(outputs["bar_reaction"][:, b], axis=1).max())
@@ -158,16 +188,15 @@ def run_variant(scene: Scene, duration: float, optimization_level: int = 2) -> d
         row["first_non_finite_s"] = bad[0] * frame_steps * model.string_dt if bad else simulated
         for key in [k for k in row if k.startswith(("taut_", "feedback_max_", "reaction_max_"))]:
             row[key] = math.nan
-    row["real_time_factor"] = simulated / rollout_s if rollout_s > 0.0 else math.nan
-    row["wall_s"] = time.perf_counter() - start
     return row
 
 
 def run_variants(scenes: Sequence[Scene], duration: float | None, optimization_level: int = 2) -> list[dict]:
     """The rows of several variants (the unit of work a sweep hands a worker: one batch).
 
-    One rollout per variant, in turn (no world axis through the kernels yet: a batched model will
-    run a batch as the worlds of one launch, behind this same signature).
+    Consecutive variants that can share a batched marionette (the same kernels and sizes:
+    :func:`~dmarionette.marionette.solver.check_world_scenes`, and the same duration) run as the
+    worlds of one model (:func:`run_batch`); a variant alone runs as :func:`run_variant`.
 
     Args:
         scenes: the variants' validated scenes.
@@ -175,7 +204,26 @@ def run_variants(scenes: Sequence[Scene], duration: float | None, optimization_l
         optimization_level: Warp's optimisation level of the puppet kernels.
 
     Returns:
-        One row per scene (:func:`run_variant`), in order.
+        One row per scene, in order.
     """
-    return [run_variant(scene, scene.duration if duration is None else duration, optimization_level)
-            for scene in scenes]
+    from dmarionette.marionette.solver import check_world_scenes
+
+    groups: list[list[Scene]] = []
+    for scene in scenes:
+        if groups:
+            first = groups[-1][0]
+            try:
+                check_world_scenes([first, scene])
+                same = first.duration == scene.duration or duration is not None
+            except ValueError:
+                same = False
+            if same:
+                groups[-1].append(scene)
+                continue
+        groups.append([scene])
+    rows = []
+    for group in groups:
+        seconds = group[0].duration if duration is None else duration
+        rows += [run_variant(group[0], seconds, optimization_level)] if len(group) == 1 else \
+            run_batch(group, seconds, optimization_level)
+    return rows

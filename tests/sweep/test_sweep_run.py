@@ -100,7 +100,7 @@ def test_a_killed_run_keeps_its_rows_and_resume_runs_only_the_missing_variants(s
         return original(scene, duration, optimization_level)
 
     monkeypatch.setattr(dmarionette.sweep.run, "run_variant", counting)
-    assert main(sweep_argv(tmp_path, "--ray", "off", "--resume", "--no-picture")) == 0
+    assert main(sweep_argv(tmp_path, "--ray", "off", "--resume", "--no-picture", "--worlds-per-batch", "1")) == 0
     assert ran == [400.0, 400.0]  # variants 3 and 4 only
     again = read_rows(tmp_path / "sweep.csv", KEYS, summary_columns(STRINGS, BARS))
     assert [r["variant"] for r in again] == [1, 2, 3, 4]
@@ -131,7 +131,7 @@ def test_a_non_finite_variant_is_marked_in_its_row_and_the_sweep_exits_1(tmp_pat
 
     monkeypatch.setattr(dmarionette.sweep.run, "run_variant", diverging)
     argv = ["sweep", "hanging", "--set", f"strings.particle_count={PARTICLES}", "--set", "strings.k=200,400",
-            "--duration", "0.2", "--out", str(tmp_path), "--ray", "off", "--quiet"]
+            "--duration", "0.2", "--out", str(tmp_path), "--ray", "off", "--quiet", "--worlds-per-batch", "1"]
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert ("error: 1 of 2 variants produced a non-finite value: variant 2 (strings.particle_count=8, "
