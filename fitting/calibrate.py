@@ -205,6 +205,7 @@ class CalibrationProblem:
         self.data = data
         self.params = list(params)
         self.noise = {"bodies": float(noise_position), "feedback": float(noise_force)}
+        self._optimization_level = optimization_level
         try:
             self.model = MarionetteModel(data.scene, optimization_level=optimization_level, requires_grad=True)
         except ValueError as error:
@@ -399,15 +400,62 @@ class CalibrationProblem:
             if self.on_forward is not None:
                 self.on_forward(self.counts["forward"])
             outputs = self.windows.forward(inputs)
+        return self._residuals_at(theta, outputs)
+
+    def _residuals_at(self, theta: np.ndarray, outputs: dict) -> np.ndarray:
+        """What :meth:`host_residuals` returns, from the rollout's ``outputs`` at ``theta``."""
         data = np.asarray(self.residuals_from_outputs(outputs))
         full = np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
             else data
         out = full if self.active_rows is None else full[self.active_rows]
         return out if self.row_weights is None else out * self.row_weights
 
+    def batch_residuals(self, thetas: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """:meth:`host_residuals` at several ``thetas``, their rollouts run together as the worlds of
+        one batched marionette (one launch per pass for all of them: the per-launch and per-window
+        Python costs are paid once; each world's numbers are bit for bit its own rollout's)."""
+        thetas = [np.asarray(t, np.float64) for t in thetas]
+        if len(thetas) == 1:
+            return [self.host_residuals(thetas[0])]
+        runner = self._batched(len(thetas))
+        inputs = [dataclasses.replace(self.base, **self.constants(t)) for t in thetas]
+        self.counts["forward"] += len(thetas)
+        if self.on_forward is not None:
+            self.on_forward(self.counts["forward"])
+        if self.windows is None:
+            outputs = [dataclasses.asdict(out) for out in runner.forward(inputs)]
+        else:
+            outputs = runner.forward(inputs)
+        return [self._residuals_at(t, out) for t, out in zip(thetas, outputs)]
+
+    def _batched(self, worlds: int):
+        """The batched rollout of ``worlds`` worlds for the current windows (built once per count and
+        window layout; the batched model compiles nothing new: its kernels are the one-world model's)."""
+        from dmarionette.grad.engine import MarionetteGradient
+        from dmarionette.marionette.solver import MarionetteModel
+
+        layout = None if self.windows is None else (self.windows.window_steps, self.windows.puppet_steps)
+        key = (worlds, layout)
+        cache = self.__dict__.setdefault("_batched_runners", {})
+        if key not in cache:
+            cache.clear()  # one batched model at a time: they hold W times the one-world arrays
+            model = MarionetteModel(self.data.scene, world_count=worlds, optimization_level=self._optimization_level,
+                                    requires_grad=True)
+            if self.windows is None:
+                cache[key] = MarionetteGradient(model, self.data.puppet_steps,
+                                                checkpoint_steps=self.engine.checkpoint_steps)
+            else:
+                from .calibration_windows import WindowedRollout
+
+                cache[key] = WindowedRollout(model, self.data, self.windows.joint_q, self.windows.window_steps,
+                                             puppet_steps=self.windows.puppet_steps)
+        return cache[key]
+
     def fd_jacobian(self, theta: np.ndarray, *, central: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the
-        forward sensitivities by finite differences in log space, every residual at once).
+        forward sensitivities by finite differences in log space, every residual at once), the
+        ``n + 1`` (``2 n + 1``) rollouts run together as the worlds of one batched marionette
+        (:meth:`batch_residuals`).
 
         ``central``: ``(r(t + h e_j) - r(t - h e_j)) / 2h`` with ``h = 1e-5`` (``2 n + 1``
         rollouts; truncation ~1e-10, round-off ~1e-11 relative); else one-sided
@@ -415,18 +463,22 @@ class CalibrationProblem:
         relative, which moves the Gauss-Newton steps, not the optimum they converge to).
         """
         theta = np.asarray(theta, np.float64)
-        value = self.host_residuals(theta)
-        jacobian = np.empty((len(value), len(theta)))
+        n = len(theta)
         step = _FD_STEP if central else _FD_STEP_ONE_SIDED
-        for j in range(len(theta)):
-            up = theta.copy()
-            up[j] += step
+        shifted = [theta]
+        for j in range(n):
+            for sign in ((1.0, -1.0) if central else (1.0,)):
+                t = theta.copy()
+                t[j] += sign * step
+                shifted.append(t)
+        values = self.batch_residuals(shifted)
+        value = values[0]
+        jacobian = np.empty((len(value), n))
+        for j in range(n):
             if central:
-                down = theta.copy()
-                down[j] -= step
-                jacobian[:, j] = (self.host_residuals(up) - self.host_residuals(down)) / (2 * step)
+                jacobian[:, j] = (values[1 + 2 * j] - values[2 + 2 * j]) / (2 * step)
             else:
-                jacobian[:, j] = (self.host_residuals(up) - value) / step
+                jacobian[:, j] = (values[1 + j] - value) / step
         return value, jacobian
 
     def jax_residuals(self) -> tuple[Callable, dict]:

@@ -111,6 +111,23 @@ class StackedProblem(CalibrationProblem):
         out = np.concatenate(parts)
         return out if self.row_weights is None else out * self.row_weights
 
+    def batch_residuals(self, thetas) -> list[np.ndarray]:
+        """:meth:`host_residuals` at several ``thetas``: each session's rollouts batched
+        (:meth:`CalibrationProblem.batch_residuals`), stacked as :meth:`host_residuals` stacks them."""
+        thetas = [np.asarray(t, np.float64) for t in thetas]
+        per_session = [p.batch_residuals(thetas) for p in self.problems]
+        out = []
+        for i, theta in enumerate(thetas):
+            parts = []
+            for p, values in zip(self.problems, per_session):
+                a, b = p.prior_slice()
+                parts.append(values[i][:len(values[i]) - (b - a)])
+            if self._prior_index:
+                parts.append(self.prior_residuals(theta))
+            stacked = np.concatenate(parts)
+            out.append(stacked if self.row_weights is None else stacked * self.row_weights)
+        return out
+
     def session_rows(self) -> list[dict[str, np.ndarray]]:
         """Per session, each target's row indices in the stacked vector (all rows)."""
         return [{t: np.arange(a, b) + offset for t, (a, b) in p.target_slices().items()}

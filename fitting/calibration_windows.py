@@ -22,7 +22,8 @@ A window starting at puppet frame ``a > 0`` starts from:
 So the puppet, which carries the slow, chaotic swing, restarts from the recording in every
 window, while the strings, fast and damped, carry over. At the constants the session was
 recorded with, the windows reproduce one long rollout to round-off (tested). The windows run
-one after the other (the strings' hand-over), not in parallel.
+one after the other (the strings' hand-over), not in parallel; several rollouts of the session
+(a finite-difference Jacobian's columns) run together as the worlds of a batched model.
 
 The first window starts from the session's start state (the scene's rest state, as the
 simulator and the live loop start), exactly.
@@ -126,6 +127,9 @@ class WindowedRollout:
 
         self.model = model
         self.data = data
+        self.joint_q = joint_q
+        self.window_steps = int(window_steps)
+        self.puppet_steps = puppet_steps
         self.windows = window_bounds(data.puppet_steps if puppet_steps is None else int(puppet_steps), window_steps)
         self.engines = {}
         for a, b in self.windows:
@@ -147,7 +151,10 @@ class WindowedRollout:
             self._recorded_points[f] = self._points(state, joint_q[f], np.zeros(topology.qd_count))
         self._starts = {a: (joint_q[a].copy(), joint_velocity_between(topology, joint_q[a - 1], joint_q[a], h))
                         for a, _ in self.windows[1:]}
-        self._string_of = np.asarray(model.strings.particle_string.numpy())
+        # A batched model (one world per rollout, ``forward`` of a list): every world's strings are laid
+        # out as world 0's; these are world 0's.
+        self._particles = model.strings.particle_count // model.world_count
+        self._string_of = np.asarray(model.strings.particle_string.numpy())[:self._particles]
 
     def _points(self, state, joint_q: np.ndarray, joint_qd: np.ndarray) -> np.ndarray:
         """Tie points of the strings [m] ``(S, 3)`` at a puppet pose."""
@@ -183,30 +190,56 @@ class WindowedRollout:
         extra = {"tie_target0": end["tie_target"] + dq, "tie_force0": end["tie_force"]}
         return inputs, extra
 
-    def forward(self, inputs) -> dict[str, np.ndarray]:
+    def forward(self, inputs) -> dict[str, np.ndarray] | list[dict[str, np.ndarray]]:
         """Runs the windows in order with the constants of ``inputs`` (a ``RolloutInputs`` over
         the whole session); returns ``body_pos`` ``(P + 1, bodies, 3)`` (row 0 the session's
-        start) and ``bar_reaction`` ``(T, B, 3)``, stitched from the windows."""
+        start) and ``bar_reaction`` ``(T, B, 3)``, stitched from the windows.
+
+        On a batched model (``world_count`` ``W``), ``inputs`` is a list of ``W`` and so is the
+        result: ``W`` rollouts of the session (e.g. the finite-difference columns of a Jacobian)
+        in the same launches, each world bit for bit the one-world rollout."""
         from dmarionette.grad.carried import carried_arrays
 
+        worlds = list(inputs) if isinstance(inputs, (list, tuple)) else [inputs]
+        batched = isinstance(inputs, (list, tuple))
         n, p = self.data.substeps, self.data.puppet_steps
-        body_pos = np.zeros((p + 1, *next(iter(self.engines.values())).output_shapes["body_pos"][1:]))
-        bar_reaction = np.zeros((p * n, *inputs.bar_q.shape[1:]))
-        end = end_points = None
+        shape = next(iter(self.engines.values())).output_shapes["body_pos"][1:]
+        body_pos = [np.zeros((p + 1, *shape)) for _ in worlds]
+        bar_reaction = [np.zeros((p * n, *x.bar_q.shape[1:])) for x in worlds]
+        ends = None
         for a, b in self.windows:
             rows = slice(a * n, b * n)
-            window = dataclasses.replace(inputs, top_q=inputs.top_q[rows], bar_q=inputs.bar_q[rows],
-                                         bar_qd=inputs.bar_qd[rows])
-            extra = {}
-            if a > 0:
-                start, extra = self.handed_over(a, end, end_points)
-                window = dataclasses.replace(window, **start)
+            windows, extras = [], []
+            for w, x in enumerate(worlds):
+                window = dataclasses.replace(x, top_q=x.top_q[rows], bar_q=x.bar_q[rows], bar_qd=x.bar_qd[rows])
+                if a > 0:
+                    start, extra = self.handed_over(a, *ends[w])
+                    window = dataclasses.replace(window, **start)
+                    extras.append(extra)
+                windows.append(window)
             engine = self.engines[b - a]
-            out = engine.forward(window, **extra)
-            end = {name: array.numpy().copy() for name, array in carried_arrays(engine.state).items()}
-            end_points = out.point_pos[-2:, self._point]
-            if a == 0:
-                body_pos[0] = out.body_pos[0]
-            body_pos[a + 1:b + 1] = out.body_pos[1:]
-            bar_reaction[rows] = out.bar_reaction
-        return {"body_pos": body_pos, "bar_reaction": bar_reaction}
+            if batched:
+                extra = {name: [e[name] for e in extras] for name in ("tie_target0", "tie_force0")} if extras else {}
+                outs = engine.forward(windows, **extra)
+            else:
+                outs = [engine.forward(windows[0], **(extras[0] if extras else {}))]
+            carried = {name: array.numpy().copy() for name, array in carried_arrays(engine.state).items()}
+            ends = [(self._world_part(carried, w), out.point_pos[-2:, self._point]) for w, out in enumerate(outs)]
+            for w, out in enumerate(outs):
+                if a == 0:
+                    body_pos[w][0] = out.body_pos[0]
+                body_pos[w][a + 1:b + 1] = out.body_pos[1:]
+                bar_reaction[w][rows] = out.bar_reaction
+        results = [{"body_pos": q, "bar_reaction": r} for q, r in zip(body_pos, bar_reaction)]
+        return results if batched else results[0]
+
+    def _world_part(self, carried: dict[str, np.ndarray], world: int) -> dict[str, np.ndarray]:
+        """World ``world``'s share of a batched model's carried state (one world's layout)."""
+        if self.model.world_count == 1:
+            return carried
+        particles = slice(world * self._particles, (world + 1) * self._particles)
+        per_world = self.model.strings_per_world
+        strings = slice(world * per_world, (world + 1) * per_world)
+        return {"particle_q": carried["particle_q"][particles], "particle_qd": carried["particle_qd"][particles],
+                "joint_q": carried["joint_q"][world:world + 1], "joint_qd": carried["joint_qd"][world:world + 1],
+                "tie_target": carried["tie_target"][strings], "tie_force": carried["tie_force"][:, strings]}
