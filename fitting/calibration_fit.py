@@ -154,15 +154,11 @@ def fit_problem(problem: CalibrationProblem, *, solver: str = "lm-fd", max_steps
         return jnp.clip(theta0 + STEP_UNIT * u, low, high)
 
     chosen = None
-    if solver == "lm-fd":
-        residuals = problem.jax_fd_residuals()
+    if solver == "lm-fd":  # forward rollouts only: secant-updated, batched finite differences
+        from .calibration_lm import fit_lm_fd
 
-        def fn(u, args):
-            return residuals(theta_of(u))
-
-        solution = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0,
-                                      options={"jac": "fwd"}, max_steps=int(max_steps), throw=False)
-    elif solver == "lm-bwd":
+        return fit_lm_fd(problem, np.asarray(theta0), max_steps=max_steps, atol=atol, step_unit=STEP_UNIT)
+    if solver == "lm-bwd":
         chosen = problem.subsample_rows(rows)
         full, base = problem.jax_residuals()
         index = jnp.asarray(chosen)

@@ -6,9 +6,10 @@ the step fits the trust region ``|dx|_inf <= max_step``, evaluates the trial poi
 and accepts it when the cost ``0.5 |r|^2`` drops and the caller's ``feasible`` test passes;
 ``lam`` follows Nielsen's update (Madsen, Nielsen & Tingleff, "Methods for non-linear least
 squares problems", 2004, sec. 3.2). The solver stops when the caller's ``done`` says the
-answer is right, at a stationary point (``|J^T r|_inf <= gtol (1 + cost)``), when steps no
-longer change ``x`` or the cost (``xtol``, ``ftol``), or when the step or time budget runs
-out; :class:`LMResult` says which, in ``status``.
+answer is right, at a stationary point (``|J^T r|_inf <= gtol (1 + cost)``), when an accepted
+step changed every ``x`` and every residual by less than ``step_tol`` (the caller's "converged"),
+when steps no longer change ``x`` or the cost (``xtol``, ``ftol``), or when the step or time
+budget runs out; :class:`LMResult` says which, in ``status``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ __all__ = ["LMResult", "levenberg_marquardt"]
 # coordinate that barely moves the residuals (only a weak regulariser pulls on it) is damped
 # like the others instead of taking huge, cheap steps.
 DIAGONAL_FLOOR = 1e-2
-STATUSES = ("done", "stationary", "no_progress", "max_steps", "max_seconds")
+STATUSES = ("done", "stationary", "small_step", "no_progress", "max_steps", "max_seconds")
 
 
 @dataclasses.dataclass
@@ -36,7 +37,8 @@ class LMResult:
         x: the last accepted point ``(n,)``; residuals: its residuals ``(m,)``; cost: ``0.5 |r|^2``.
         jacobian: the Jacobian at ``x`` ``(m, n)`` (the last one computed).
         status: ``"done"`` (the caller's test passed), ``"stationary"`` (gradient ~ 0),
-            ``"no_progress"`` (steps stopped changing x or the cost), ``"max_steps"``, ``"max_seconds"``.
+            ``"small_step"`` (a step within ``step_tol``), ``"no_progress"`` (steps stopped changing
+            x or the cost), ``"max_steps"``, ``"max_seconds"``.
         steps: iterations run (Jacobians computed); history: one dict per iteration.
     """
 
@@ -57,7 +59,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
                         gtol: float = 1e-10, xtol: float = 1e-10, ftol: float = 1e-12,
                         lam0: float = 1e-3, max_step: float | None = None,
                         secant_rows: int = 0, exact_rows: Callable[[np.ndarray], np.ndarray] | None = None,
-                        stall_steps: int | None = None, stall_rtol: float = 1e-2,
+                        stall_steps: int | None = None, stall_rtol: float = 1e-2, step_tol: float | None = None,
                         on_step: Callable[[dict], None] | None = None) -> LMResult:
     """Minimises ``0.5 |r(x)|^2``.
 
@@ -82,6 +84,9 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
         stall_steps: with ``N``, the run stops as ``"no_progress"`` when the last ``N`` accepted
             steps lowered the cost by less than ``stall_rtol`` of it (after a fresh Jacobian,
             with ``secant_rows``): a crawl along a valley that would eat the whole budget.
+        step_tol: with ``t``, the run stops as ``"small_step"`` after an accepted step that changed
+            every ``x`` and every residual by at most ``t`` (a Cauchy test, as optimistix's;
+            with ``secant_rows`` the step must have been taken with a fresh Jacobian).
         on_step: receives each iteration's history entry.
     """
     x = np.asarray(x0, dtype=np.float64).copy()
@@ -136,6 +141,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
         cost_trial = 0.5 * float(r_trial @ r_trial) if ok else np.inf
         predicted = -(grad @ dx) - 0.5 * dx @ jtj @ dx
         rho = (cost - cost_trial) / predicted if predicted > 0 else -1.0
+        was_fresh = fresh  # the Jacobian this step was taken with
         if secant_rows and finite:
             k = secant_rows
             jac[:k] += np.outer(r_trial[:k] - r[:k] - jac[:k] @ dx, dx) / float(dx @ dx)
@@ -146,6 +152,9 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
             nu, failures = 2.0, 0
             small_x = np.linalg.norm(dx) <= xtol * (np.linalg.norm(x) + xtol)
             small_f = cost - cost_trial <= ftol * cost
+            cauchy = step_tol is not None and np.max(np.abs(dx), initial=0.0) <= step_tol \
+                and np.max(np.abs(r_trial - r), initial=0.0) <= step_tol
+            taken_fresh = was_fresh or not secant_rows
             x, r, cost = trial, r_trial, cost_trial
         else:
             lam, nu, failures = lam * nu, nu * 2.0, failures + 1
@@ -159,6 +168,12 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
             if done is not None and done(x, r):
                 status = "done"
                 break
+            if cauchy:
+                if taken_fresh:
+                    status = "small_step"
+                    break
+                refresh()
+                continue
             if stall_steps and len(costs) > stall_steps and costs[-1 - stall_steps] - cost < stall_rtol * cost:
                 if len(costs) == stall_steps + 1 or not secant_rows:  # the window began with a fresh J
                     status = "no_progress"

@@ -1,0 +1,87 @@
+"""The ``lm-fd`` calibration solver: Levenberg-Marquardt on forward rollouts alone, with secant
+updates of a batched finite-difference Jacobian (docs/calibration.md, "Solvers").
+
+The residuals of a session are ~10^5 rows in ~10 constants, and each evaluation is a rollout of
+the session. A forward-difference Jacobian costs ``n + 1`` rollouts (run together as the worlds of
+one batched marionette, :meth:`fitting.calibrate.CalibrationProblem.fd_jacobian`). Recomputing it
+at every step (optimistix's ``LevenbergMarquardt`` with ``jac="fwd"``, the solver before) made
+each step cost ``n + 2`` rollouts, 13 or 14 for 12 constants. Here (:func:`fitting.least_squares.
+levenberg_marquardt` with ``secant_rows``) the Jacobian is computed once and then updated from
+each step by Broyden's rank-one secant update, so a step costs one rollout; a fresh Jacobian is
+computed when two trials in a row fail, and before the run may stop. The prior rows (``--prior``)
+are exact (cheap) rows.
+
+Convergence is the test the optimistix solver used, a Cauchy test on the solver variable
+``u = (theta - theta_start) / STEP_UNIT`` (one unit is a 1 % change of a constant) and on the
+scaled residuals: a step taken with a fresh Jacobian changed every ``u`` and every residual by
+less than ``atol``. Bounds (``--bounds``) by projection, as before: outside them a constant stays
+at its bound.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .least_squares import levenberg_marquardt
+
+__all__ = ["fit_lm_fd"]
+
+#: Steps (trial points) of the secant solver per step budget of the solver it replaced: it takes
+#: about as many steps but each costs one rollout, not n + 2 (``--max-steps`` keeps its meaning:
+#: Jacobians, roughly).
+SECANT_STEPS_PER_STEP = 4
+
+
+def fit_lm_fd(problem, theta_start: np.ndarray, *, max_steps: int, atol: float, step_unit: float) -> dict:
+    """Minimises ``0.5 |r(theta)|^2`` from ``theta_start`` with forward rollouts only; returns the
+    dict :func:`fitting.calibration_fit.fit_problem` returns (``theta``, ``steps``, ``converged``,
+    ``message``, ``rows``, ``forward_passes``, ``backward_passes``, ``seconds``)."""
+    before = dict(problem.counts)
+    start = time.perf_counter()
+    theta0 = np.asarray(theta_start, dtype=np.float64)
+    low, high = (np.asarray(b, dtype=np.float64) for b in getattr(problem, "log_bounds", (-np.inf, np.inf)))
+    low, high = np.broadcast_to(low, theta0.shape), np.broadcast_to(high, theta0.shape)
+
+    def theta_of(u):
+        return np.clip(theta0 + step_unit * u, low, high)
+
+    def residuals(u):
+        return problem.host_residuals(theta_of(u))
+
+    def jacobian(u, r):
+        theta = theta_of(u)
+        _, jac = problem.fd_jacobian(theta, central=False)
+        jac = jac * step_unit
+        free = (theta0 + step_unit * u > low) & (theta0 + step_unit * u < high)
+        jac[:, ~free] = 0.0  # held at a bound by the projection: no derivative
+        return jac
+
+    # The returned rows: the data rows (secant-updated), then the prior rows (exact, cheap).
+    count = problem.residual_count if problem.active_rows is None else len(problem.active_rows)
+    a, b = problem.prior_slice()
+    priors = b - a
+    index = np.asarray(problem._prior_index, dtype=int)
+
+    def prior_rows(u):
+        theta = theta_of(u)
+        rows = np.zeros((priors, len(theta)))
+        rows[np.arange(priors), index] = np.exp(theta[index]) / problem._prior_sd * step_unit
+        if problem.row_weights is not None:  # Huber's weights (IRLS) scale these rows too
+            rows *= problem.row_weights[count - priors:, None]
+        return rows
+
+    result = levenberg_marquardt(residuals, jacobian, np.zeros_like(theta0),
+                                 max_steps=int(max_steps) * SECANT_STEPS_PER_STEP, step_tol=atol, xtol=0.0,
+                                 ftol=0.0, gtol=0.0, secant_rows=count - priors,
+                                 exact_rows=prior_rows if priors else None)
+    converged = result.status in ("small_step", "stationary")
+    message = "converged" if converged else {
+        "no_progress": "not converged: the steps stopped lowering the cost before they became small",
+        "max_steps": "not converged: the step budget ran out",
+    }.get(result.status, f"not converged: {result.status}")
+    return {"theta": theta_of(result.x), "steps": result.steps, "converged": converged, "message": message,
+            "rows": None, "forward_passes": problem.counts["forward"] - before["forward"],
+            "backward_passes": problem.counts["backward"] - before["backward"],
+            "seconds": time.perf_counter() - start}
