@@ -7,7 +7,8 @@ and accepts it when the cost ``0.5 |r|^2`` drops and the caller's ``feasible`` t
 ``lam`` follows Nielsen's update (Madsen, Nielsen & Tingleff, "Methods for non-linear least
 squares problems", 2004, sec. 3.2). The solver stops when the caller's ``done`` says the
 answer is right, at a stationary point (``|J^T r|_inf <= gtol (1 + cost)``), when an accepted
-step changed every ``x`` and every residual by less than ``step_tol`` (the caller's "converged"),
+step changed every ``x`` by less than ``step_tol`` (and every residual by less than
+``residual_tol``: the caller's "converged"),
 when steps no longer change ``x`` or the cost (``xtol``, ``ftol``), or when the step or time
 budget runs out; :class:`LMResult` says which, in ``status``.
 """
@@ -59,7 +60,9 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
                         gtol: float = 1e-10, xtol: float = 1e-10, ftol: float = 1e-12,
                         lam0: float = 1e-3, max_step: float | None = None,
                         secant_rows: int = 0, exact_rows: Callable[[np.ndarray], np.ndarray] | None = None,
-                        stall_steps: int | None = None, stall_rtol: float = 1e-2, step_tol: float | None = None,
+                        stall_steps: int | None = None, stall_rtol: float = 1e-2,
+                        step_tol: float | Callable[[np.ndarray], np.ndarray] | None = None,
+                        residual_tol: float | None = None,
                         on_step: Callable[[dict], None] | None = None) -> LMResult:
     """Minimises ``0.5 |r(x)|^2``.
 
@@ -84,9 +87,11 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
         stall_steps: with ``N``, the run stops as ``"no_progress"`` when the last ``N`` accepted
             steps lowered the cost by less than ``stall_rtol`` of it (after a fresh Jacobian,
             with ``secant_rows``): a crawl along a valley that would eat the whole budget.
-        step_tol: with ``t``, the run stops as ``"small_step"`` after an accepted step that changed
-            every ``x`` and every residual by at most ``t`` (a Cauchy test, as optimistix's;
-            with ``secant_rows`` the step must have been taken with a fresh Jacobian).
+        step_tol: with ``t`` (a number, or ``J -> (n,)`` tolerances per coordinate, evaluated on
+            each fresh Jacobian), the run stops as ``"small_step"`` after an accepted step that
+            changed every ``x_i`` by at most ``t_i`` and every residual by at most
+            ``residual_tol`` (when given): a Cauchy test, as optimistix's; with ``secant_rows``
+            the step must have been taken with a fresh Jacobian.
         on_step: receives each iteration's history entry.
     """
     x = np.asarray(x0, dtype=np.float64).copy()
@@ -102,11 +107,17 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
     lam, nu, failures = lam0, 2.0, 0
     status = "max_steps"
 
+    def tolerance():
+        return None if step_tol is None else (step_tol(jac) if callable(step_tol) else step_tol)
+
+    tol = tolerance()
+
     def refresh():
-        nonlocal jac, fresh, jacobians, failures, costs
+        nonlocal jac, fresh, jacobians, failures, costs, tol
         jac, fresh, failures = np.asarray(jacobian(x, r), dtype=np.float64), True, 0
         jacobians += 1
         costs = [cost]
+        tol = tolerance()
 
     step = 0
     costs = [cost]  # at the accepted points since the last fresh Jacobian
@@ -152,8 +163,8 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
             nu, failures = 2.0, 0
             small_x = np.linalg.norm(dx) <= xtol * (np.linalg.norm(x) + xtol)
             small_f = cost - cost_trial <= ftol * cost
-            cauchy = step_tol is not None and np.max(np.abs(dx), initial=0.0) <= step_tol \
-                and np.max(np.abs(r_trial - r), initial=0.0) <= step_tol
+            cauchy = tol is not None and bool(np.all(np.abs(dx) <= tol)) and \
+                (residual_tol is None or np.max(np.abs(r_trial - r), initial=0.0) <= residual_tol)
             taken_fresh = was_fresh or not secant_rows
             x, r, cost = trial, r_trial, cost_trial
         else:
