@@ -57,7 +57,7 @@ def format_table(result: CalibrationResult) -> str:
     lines.append(f"solver {result.solver}, {shooting}: {result.solver_steps} steps, {result.message}; "
                  f"{result.cost['forward_passes']} forward and {result.cost['backward_passes']} backward rollouts, "
                  f"{result.cost['seconds']:.1f} s")
-    lines.append(f"uncertainty: Jacobian by {'central differences' if result.jacobian['method'] == 'fd' else 'reverse mode'}"
+    lines.append(f"uncertainty: Jacobian by {'forward differences' if result.jacobian['method'] == 'fd' else 'reverse mode'}"
                  f" ({result.jacobian['rows']} residuals, {result.jacobian['forward_passes']} forward and "
                  f"{result.jacobian['backward_passes']} backward rollouts), cond(J^T J) = {u.condition_number:.3g}")
     if v is not None:

@@ -153,8 +153,8 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--max-steps", type=integer(1, 100_000), default=50,
                            help="solver steps at most (default: 50)")
     calibrate.add_argument("--solver", choices=["lm-fd", "lm-bwd", "bfgs"], default="lm-fd",
-                           help="lm-fd: Levenberg-Marquardt, Jacobian by central differences of the rollout "
-                                "(default, cheapest); lm-bwd: reverse-mode Jacobian on --rows residuals; bfgs: "
+                           help="lm-fd: Levenberg-Marquardt, Jacobian by forward differences of the rollout (one "
+                                "batched rollout of n + 1 worlds) updated by secant steps (default, cheapest); lm-bwd: reverse-mode Jacobian on --rows residuals; bfgs: "
                                 "BFGS on the loss with its reverse-mode gradient")
     calibrate.add_argument("--start", type=start_values, default=None,
                            help="start values, e.g. 'k=250,k_d=2.5' (default: the session scene's constants)")

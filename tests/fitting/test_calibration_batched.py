@@ -64,3 +64,25 @@ def test_several_sessions_stack_their_batches(data):
     column = (stacked.host_residuals(theta + 1e-5 * np.eye(len(theta))[4])
               - stacked.host_residuals(theta - 1e-5 * np.eye(len(theta))[4])) / 2e-5
     assert np.array_equal(jacobian[:, 4], column)
+
+
+def test_the_secant_solver_says_when_its_budget_ran_out_and_converges_when_given_one(data):
+    """``lm-fd`` (``fitting.calibration_lm``): one Jacobian (13 rollouts), then one rollout per step.
+    From the scene's constants (truths 0.4x-1.9x away) one step's budget (4 trial points) is not
+    enough, and it says so; with the default budget it converges to the least-squares optimum,
+    where the Gauss-Newton step from a fresh Jacobian is below a tenth of every standard error."""
+    from fitting.calibration_fit import fit_problem
+
+    problem = CalibrationProblem(data, parse_parameters("k,k_d", data), optimization_level=0, window_steps=10,
+                                 noise_position=SUITE_NOISE[0], noise_force=SUITE_NOISE[1])
+    short = fit_problem(problem, solver="lm-fd", max_steps=1)
+    assert not short["converged"] and short["message"] == "not converged: the step budget ran out"
+    assert short["steps"] == 4
+    fit = fit_problem(problem, solver="lm-fd")
+    assert fit["converged"], fit["message"]
+    value, jacobian = problem.fd_jacobian(fit["theta"], central=True)
+    step = np.linalg.lstsq(jacobian, -value, rcond=None)[0]  # Gauss-Newton step, log space
+    sd = np.sqrt(np.diag(np.linalg.inv(jacobian.T @ jacobian)))
+    print(f"\n{fit['steps']} steps, {fit['forward_passes']} rollouts; largest remaining step "
+          f"{np.max(np.abs(step) / sd):.3f} standard errors")
+    assert np.all(np.abs(step) <= 0.1 * sd)
