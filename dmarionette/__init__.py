@@ -25,6 +25,7 @@ from .marionette.solver import SolverMarionette as SolverMarionette
 from .marionette.rollout import MarionetteRollout as MarionetteRollout
 from .marionette.rollout import MarionetteTrajectory as MarionetteTrajectory
 from .marionette.rollout import simulate_marionette as simulate_marionette
+from .marionette.rollout import simulate_worlds as simulate_worlds
 from .scene.scene import Scene as Scene
 from .scene.scene import builtin_scenes as builtin_scenes
 from .scene.scene import load_scene as load_scene
@@ -69,6 +70,7 @@ __all__ = [
     "read_marionette_trajectory",
     "read_trajectory",
     "simulate_marionette",
+    "simulate_worlds",
     "simulate_strings",
     "string_energy",
     "write_trajectory",
