@@ -94,10 +94,12 @@ class MarionetteModel:
 
     def __init__(self, scene: Scene, *, world_count: int = 1, optimization_level: int = 2, device=None,
                  requires_grad: bool = False, world_scenes=None):
+        if not (isinstance(world_count, (int, np.integer)) and world_count >= 1):
+            raise ValueError(f"world_count: got {world_count!r}; expected an integer >= 1")
         if world_scenes is None:
-            if not (isinstance(world_count, (int, np.integer)) and world_count >= 1):
-                raise ValueError(f"world_count: got {world_count!r}; expected an integer >= 1")
             world_scenes = (scene,) * int(world_count)
+        elif world_count != 1:
+            raise ValueError("MarionetteModel: give world_count (copies of scene) or world_scenes, not both")
         world_scenes = tuple(world_scenes)
         if scene.puppet is None:
             raise ValueError(f"{scene.source}: a marionette needs a [puppet] table")
@@ -164,8 +166,8 @@ class MarionetteModel:
         if len(self.spring_string):
             k = np.array([[world.strings[i].tie_stiffness for i in self.spring_string] for world in world_scenes])
             k_d = np.array([[world.strings[i].tie_damping for i in self.spring_string] for world in world_scenes])
-            upload_values(self.puppet.spring_stiffness, k.reshape(-1)[:self.puppet.spring_stiffness.shape[0]])
-            upload_values(self.puppet.spring_damping, k_d.reshape(-1)[:self.puppet.spring_damping.shape[0]])
+            upload_values(self.puppet.spring_stiffness, k.reshape(-1))  # one set per world (W = 1: the set)
+            upload_values(self.puppet.spring_damping, k_d.reshape(-1))
         with wp.ScopedDevice(self.device):
             self.string_bar_wp = wp.array(string_bar.reshape(-1).astype(np.int32), dtype=wp.int32)
             self.string_point_wp = wp.array(np.tile(self.string_point, self.world_count), dtype=wp.int32)
