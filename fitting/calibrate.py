@@ -415,19 +415,27 @@ class CalibrationProblem:
         relative, which moves the Gauss-Newton steps, not the optimum they converge to).
         """
         theta = np.asarray(theta, np.float64)
-        value = self.host_residuals(theta)
-        jacobian = np.empty((len(value), len(theta)))
         step = _FD_STEP if central else _FD_STEP_ONE_SIDED
+        points = [theta]
         for j in range(len(theta)):
-            up = theta.copy()
-            up[j] += step
+            for sign in ((1.0, -1.0) if central else (1.0,)):
+                moved = theta.copy()
+                moved[j] += sign * step
+                points.append(moved)
+        values = self.residuals_at(points)  # [r(theta), r(up_0), (r(down_0)), r(up_1), ...]
+        value = values[0]
+        jacobian = np.empty((len(value), len(theta)))
+        for j in range(len(theta)):
             if central:
-                down = theta.copy()
-                down[j] -= step
-                jacobian[:, j] = (self.host_residuals(up) - self.host_residuals(down)) / (2 * step)
+                jacobian[:, j] = (values[1 + 2 * j] - values[2 + 2 * j]) / (2 * step)
             else:
-                jacobian[:, j] = (self.host_residuals(up) - value) / step
+                jacobian[:, j] = (values[1 + j] - value) / step
         return value, jacobian
+
+    def residuals_at(self, points: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """:meth:`host_residuals` at each of ``points`` (log-constants ``(n,)`` each), one rollout each;
+        the finite differences' rollouts (a stacked problem runs its sessions' in parallel)."""
+        return [self.host_residuals(theta) for theta in points]
 
     def jax_residuals(self) -> tuple[Callable, dict]:
         """``(r, base)``: ``r(theta, base)`` in JAX through the reverse-mode rollout wrapper

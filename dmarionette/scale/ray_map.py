@@ -26,11 +26,13 @@ retried: it is raised here, as raised.
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
-__all__ = ["DEFAULT_RETRIES", "WorkerLostError", "check_ray_address", "connect_ray", "default_ray_mode", "imap_variants", "map_variants",
-           "ray_available", "shutdown_ray", "start_local_ray"]
+__all__ = ["DEFAULT_RETRIES", "WorkerLostError", "check_ray_address", "connect_ray", "default_ray_mode",
+           "imap_variants", "init_worker_warp", "map_variants", "ray_available", "ray_error", "ray_mode", "shutdown_ray",
+           "start_local_ray"]
 
 DEFAULT_RETRIES = 3
 """How many times a dead worker is restarted and its item retried before :class:`WorkerLostError`."""
@@ -86,8 +88,11 @@ def start_local_ray(workers: int | None = None) -> bool:
         return False
     cpus = workers if workers is not None else (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                                                 else os.cpu_count() or 1)
-    ray.init(num_cpus=cpus, include_dashboard=False, _node_ip_address="127.0.0.1", _temp_dir=RAY_TEMP_DIR,
-             log_to_driver=False, configure_logging=False)
+    with warnings.catch_warnings():
+        # JAX, when imported, warns of every fork; Ray's services are started by fork + exec (no deadlock)
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        ray.init(num_cpus=cpus, include_dashboard=False, _node_ip_address="127.0.0.1", _temp_dir=RAY_TEMP_DIR,
+                 log_to_driver=False, configure_logging=False)
     address = ray.get_runtime_context().gcs_address
     if not (address.startswith("127.") or address.startswith("localhost")):
         ray.shutdown()
@@ -163,6 +168,44 @@ def check_ray_address(mode: str, timeout: float = 5.0) -> None:
                          f"({getattr(error, 'strerror', None) or error}); expected {expected}") from None
 
 
+def ray_error(error: BaseException, retries: int) -> BaseException:
+    """What to raise for an error Ray reported: the exception ``fn`` itself raised (a ``RayTaskError``'s
+    cause, not retried), or :class:`WorkerLostError` for a worker that died more than ``retries`` times."""
+    from ray.exceptions import RayTaskError
+
+    if isinstance(error, RayTaskError):  # fn raised: its own exception, not a lost worker
+        cause = getattr(error, "cause", None)
+        return cause if isinstance(cause, BaseException) else RuntimeError(str(error))
+    return WorkerLostError(f"a Ray worker died more than {retries} times (restarted and its item retried each "
+                           f"time); the results that arrived before stand: {error}")
+
+
+def init_worker_warp() -> None:
+    """Warp started in this process as the command line starts it (no banner, no CUDA-driver notice); a
+    worker's ``setup``. Does nothing more once Warp runs."""
+    import warp as wp
+
+    from dmarionette.first_run import init_warp
+
+    wp.config.log_level = wp.LOG_WARNING
+    init_warp()
+
+
+def ray_mode(text: str | None, default: str | None = None) -> str:
+    """The mode a ``--ray`` value names: ``"off"``, ``"local"`` or a cluster address, which is checked
+    here (:func:`check_ray_address`); None: ``default``, else :func:`default_ray_mode`.
+
+    Raises:
+        ValueError: a malformed address or one where nothing answers (names ``--ray``).
+    """
+    if text is None:
+        return default if default is not None else default_ray_mode()
+    mode = text.strip()
+    if mode not in ("off", "local"):
+        check_ray_address(mode)
+    return mode
+
+
 def _worker_class(retries: int):
     import ray
 
@@ -232,14 +275,8 @@ def imap_variants(fn: Callable[[Any], Any], items: Iterable[Any], *, ray: str = 
         while pool.has_next():
             try:
                 yield pool.get_next_unordered()
-            except RayTaskError as error:  # fn raised: its own exception, not a lost worker
-                cause = getattr(error, "cause", None)
-                if isinstance(cause, BaseException):
-                    raise cause from None
-                raise RuntimeError(str(error)) from None
-            except RayActorError as error:
-                raise WorkerLostError(f"a Ray worker died more than {retries} times (restarted and its item retried "
-                                      f"each time); the results that arrived before stand: {error}") from None
+            except (RayTaskError, RayActorError) as error:
+                raise ray_error(error, retries) from None
     finally:
         for actor in actors:
             try:

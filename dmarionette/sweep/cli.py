@@ -60,18 +60,6 @@ def add_sweep_command(sub) -> None:
     sweep.set_defaults(handler=run_sweep_command)
 
 
-def _ray_mode(text: str | None) -> str:
-    """``--ray``'s mode; an address is checked here (something must accept a connection there)."""
-    from dmarionette.scale.ray_map import check_ray_address, default_ray_mode
-
-    if text is None:
-        return default_ray_mode()
-    mode = text.strip()
-    if mode not in ("off", "local"):
-        check_ray_address(mode)
-    return mode
-
-
 def _rollout_bytes(scene, duration: float) -> float:
     """The memory [bytes] of one rollout's per-step outputs (tie forces, taut flags, feedback, reaction),
     kept twice while they are joined."""
@@ -91,12 +79,12 @@ def _run_batch(batch: list, duration: float | None, optimization_level: int) -> 
 def run_sweep_command(args: argparse.Namespace) -> int:
     """Runs ``dmarionette sweep`` (see the module doc for the exit codes)."""
     from dmarionette.cli_checks import check_trajectory_fits
-    from dmarionette.scale.ray_map import connect_ray, shutdown_ray
+    from dmarionette.scale.ray_map import connect_ray, ray_mode, shutdown_ray
     from dmarionette.sweep.grid import parse_set, sweep_variants
     from dmarionette.sweep.run import FRAME_HZ
     from dmarionette.sweep.table import read_rows, summary_columns
 
-    mode = _ray_mode(args.ray)
+    mode = ray_mode(args.ray)
     axes = [parse_set(flag) for flag in args.sets]
     variants = sweep_variants(args.scene, axes)
     base = variants[0].scene
