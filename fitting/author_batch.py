@@ -5,10 +5,11 @@ Every file is loaded and checked, and every output folder (``OUT/<file name>``, 
 ``out/<file name>``) proven writable, before any job starts. The jobs then run on Ray workers
 (``--ray local`` or a cluster address; :func:`dmarionette.scale.imap_variants`: warm workers, a dead
 worker restarted and its job retried) or one after another in this process (``--ray off``). A job
-runs :func:`fitting.author.author` into a temporary folder where it runs and hands back its files
-(the same files :func:`author` writes for one file) and summary; this process writes them to the
-job's folder as the job finishes, so a killed run loses only the jobs in flight, and a cluster's
-workers need no shared file system. ``summary.json``'s ``files`` name the job's folder.
+runs :func:`fitting.author.author` with the file's options and writes the job's folder where it
+runs, as it finishes, so a killed run loses only the jobs in flight. A worker on a cluster node
+that does not see the folder (no shared file system) writes into a temporary folder and hands its
+files back; this process then writes them to the job's folder (``summary.json``'s ``files`` name
+it; ``trajectory.npz``'s ``scene_source`` keeps the temporary folder's name).
 
 At the end a table (file, verdict, worst keyframe errors, exit code, folder) and the same as JSON;
 the command's exit code is the worst job's (:data:`SEVERITY`). A job whose file turns out bad only
@@ -39,9 +40,11 @@ EXIT_WORKER_LOST = 6
 
 @dataclasses.dataclass(frozen=True)
 class AuthorJob:
-    """One keyframes file's authoring: its validated spec and :func:`fitting.author.author`'s options."""
+    """One keyframes file's authoring: its validated spec, its output folder (absolute, created by the
+    command) and :func:`fitting.author.author`'s options."""
 
     spec: Any
+    out: str
     options: dict
 
 
@@ -61,26 +64,31 @@ def start_author_worker() -> None:
 
 
 def run_author_job(job: AuthorJob) -> dict:
-    """Authors one file into a temporary folder where it runs (a worker).
+    """Authors one file (where a worker runs): into its output folder when that folder is there (this
+    machine, or a cluster node sharing the file system), else into a temporary folder whose files come back.
 
     Returns:
-        ``{"summary": ..., "folder": the temporary folder, "files": {relative path: bytes}}``, or
-        ``{"error": message}`` for a bad input found while it ran (``ValueError``, ``RuntimeError``).
+        ``{"summary": ...}`` (written in place), ``{"summary": ..., "folder": the temporary folder, "files":
+        {relative path: bytes}}``, or ``{"error": message}`` for a bad input found while it ran
+        (``ValueError``, ``RuntimeError``).
     """
     from .author import author
 
-    with tempfile.TemporaryDirectory(prefix="dmarionette-author-") as folder:
-        try:
+    try:
+        if Path(job.out).is_dir():
+            return {"summary": author(job.spec, job.out, progress=False, **job.options)}
+        with tempfile.TemporaryDirectory(prefix="dmarionette-author-") as folder:
             summary = author(job.spec, folder, progress=False, **job.options)
-        except (ValueError, RuntimeError) as error:
-            return {"error": str(error)}
-        root = Path(folder)
-        files = {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+            root = Path(folder)
+            files = {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    except (ValueError, RuntimeError) as error:
+        return {"error": str(error)}
     return {"summary": summary, "folder": folder, "files": files}
 
 
 def _write_job(result: dict, out: Path) -> dict:
-    """Writes a job's files to ``out``; its summary's ``files`` then name ``out`` (also in summary.json)."""
+    """Writes the files of a job that ran away from ``out`` there; its summary's ``files`` then name ``out``
+    (also in summary.json; trajectory.npz's ``scene_source`` still names the folder where it ran)."""
     for name, data in result["files"].items():
         path = out / name
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -139,7 +147,7 @@ def run_author_batch(args: argparse.Namespace, mode: str, verdict_text: Callable
                "continuation": args.continuation, "jacobian": args.jacobian, "animation": not args.no_animation,
                "exports": not args.no_export, "optimization_level": 0 if args.fast_compile else 2,
                "checkpoint_steps": args.checkpoint_steps, "fps": args.fps}
-    jobs = [AuthorJob(spec, options) for spec in specs]
+    jobs = [AuthorJob(spec, str(folder.resolve()), options) for spec, folder in zip(specs, folders)]
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if not args.quiet else (lambda text: None)
     where = "this process" if mode == "off" else ("a local Ray cluster" if mode == "local" else f"Ray at {mode}")
     say(f"author: {len(jobs)} keyframes files, one job each, in {where}")
@@ -148,7 +156,7 @@ def run_author_batch(args: argparse.Namespace, mode: str, verdict_text: Callable
     try:
         for index, result in imap_variants(run_author_job, jobs, ray=mode, workers=args.workers,
                                            setup=start_author_worker):
-            if "error" not in result:
+            if "files" in result:
                 result = {**result, "summary": _write_job(result, folders[index])}
             rows[index] = _row(args.keyframes[index], folders[index], result)
             say(f"[{len(rows)}/{len(jobs)}] {args.keyframes[index]}: {rows[index]['status']}, exit code "
