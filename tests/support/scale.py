@@ -97,3 +97,16 @@ def without(value, keys: set):
     if isinstance(value, list):
         return [without(v, keys) for v in value]
     return value
+
+
+def build_counter(item: int) -> dict:
+    """A state for :class:`dmarionette.scale.WarmStates`: its item and the calls it has had."""
+    if item < 0:
+        raise ValueError(f"item {item} cannot be built")
+    return {"item": item, "calls": 0}
+
+
+def count_call(state: dict, request: int) -> tuple[int, int, int]:
+    """``(item * request, calls of this state so far, the worker's pid)``."""
+    state["calls"] += 1
+    return state["item"] * request, state["calls"], os.getpid()
