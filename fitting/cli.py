@@ -37,7 +37,8 @@ def add_author_command(commands) -> None:
                     "within the tolerances and the device limits held; 3 not converged (a keyframe that is "
                     "reachable, or not shown unreachable, was missed: the solver stopped or ran out of steps "
                     "or time); 4 some keyframe unreachable (named; the others reached); 5 a device limit "
-                    "exceeded; 2 bad input.")
+                    "exceeded; 2 bad input. Several files: one job each, the exit code the worst job's (0, 4, 3, "
+                    "5, 2 from best to worst), 6 a Ray worker died more often than the retries allow.")
     author.add_argument("keyframes", type=Path, nargs="+",
                         help="the keyframes TOML file; several: one authoring job each (on Ray workers with --ray), "
                              "each written to its own folder as it finishes, a table of them at the end, exit code "
