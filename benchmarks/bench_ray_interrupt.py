@@ -7,7 +7,8 @@ Run:  python benchmarks/bench_ray_interrupt.py [--repeats 3]
   signal to the process's exit (as ``tests/scale/test_ray_cli.py`` does it).
 - **ray.shutdown**: a local cluster of 1 CPU with one actor, killed; then ``ray.shutdown()`` timed,
   and each of the cluster's processes' stop inside it (``ray._private.node.Node._kill_process_type``
-  wrapped: Ray's internals, for this diagnosis only).
+  wrapped: Ray's internals, for this diagnosis only); and the same with
+  ``dmarionette.scale.shutdown_ray()``, which ends Ray's autoscaler monitor first.
 - **Interpreter exit**: ``python -c 'import warp, ray'`` (and each alone): the time from the last
   line of the script to the process's exit (Python's finalisation of what those imported).
 
@@ -45,7 +46,8 @@ start_local_ray(1)
 class Probe:
     def pid(self): return os.getpid()
 probe = Probe.remote(); ray.get(probe.pid.remote()); ray.kill(probe)
-start = time.monotonic(); ray.shutdown(); total = time.monotonic() - start
+from dmarionette.scale import shutdown_ray
+start = time.monotonic(); (shutdown_ray if sys.argv[1:] == ["ours"] else ray.shutdown)(); total = time.monotonic() - start
 print(total, *[f"{k}={v:.3f}" for k, v in parts.items()])
 """
 
@@ -85,19 +87,22 @@ def main() -> None:
     folder = Path(tempfile.mkdtemp(prefix="bench-ray-interrupt-")) / "sweep"
     load = os.getloadavg()[0]
     stop = [interrupt_once(folder) for _ in range(args.repeats)]
-    shutdowns = []
+    runs: dict = {"ray.shutdown()": [], "dmarionette.scale.shutdown_ray()": []}
     for _ in range(args.repeats):
-        line = subprocess.run([sys.executable, "-c", SHUTDOWN], env=env(), capture_output=True, text=True,
-                              check=True).stdout.split()
-        shutdowns.append((float(line[0]), dict(part.split("=") for part in line[1:])))
+        for name, extra in zip(runs, ([], ["ours"])):
+            line = subprocess.run([sys.executable, "-c", SHUTDOWN, *extra], env=env(), capture_output=True,
+                                  text=True, check=True).stdout.split()
+            runs[name].append((float(line[0]), dict(part.split("=") for part in line[1:])))
     exits = {what: statistics.median(exit_after(what) for _ in range(args.repeats))
              for what in ("import warp, ray", "import warp", "import ray", "pass")}
-    parts = {k: statistics.median(float(s[1][k]) for s in shutdowns) for k in shutdowns[0][1]}
+
     print(f"# Ctrl-C of sweep --ray local (load {load:.1f} before, {os.getloadavg()[0]:.1f} after; medians of "
           f"{args.repeats})\n")
     print(f"SIGINT -> exit: {statistics.median(stop):.2f} s (runs: {', '.join(f'{s:.2f}' for s in stop)})")
-    print(f"ray.shutdown() of a 1-CPU local cluster: {statistics.median(s[0] for s in shutdowns):.2f} s; its "
-          f"processes' stops: {', '.join(f'{k} {v:.2f} s' for k, v in parts.items())}")
+    for name, shutdowns in runs.items():
+        parts = {k: statistics.median(float(s[1][k]) for s in shutdowns) for k in shutdowns[0][1]}
+        print(f"{name} of a 1-CPU local cluster: {statistics.median(s[0] for s in shutdowns):.2f} s; its "
+              f"processes' stops: {', '.join(f'{k} {v:.2f} s' for k, v in parts.items())}")
     print("interpreter exit after the last line: " + ", ".join(f"{k!r} {v:.2f} s" for k, v in exits.items()))
 
 

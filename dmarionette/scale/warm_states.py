@@ -25,7 +25,7 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from .ray_map import DEFAULT_RETRIES, connect_ray, ray_error
+from .ray_map import DEFAULT_RETRIES, connect_ray, ray_error, shutdown_ray
 
 __all__ = ["WarmStates"]
 
@@ -164,7 +164,7 @@ class WarmStates:
         self._actors, self._refs = [], []
         if self._started:
             self._started = False
-            ray_module.shutdown()
+            shutdown_ray()
 
     def __enter__(self) -> WarmStates:
         return self
