@@ -117,7 +117,7 @@ def _run_author(args: argparse.Namespace) -> int:
     if len(args.keyframes) > 1:
         from .author_batch import run_author_batch
 
-        return run_author_batch(args, mode, verdict_text)
+        return run_author_batch(args, mode, lambda summary: verdict_text(summary, bold=sys.stderr.isatty()))
     keyframes = args.keyframes[0]
     spec = load_keyframes(keyframes)
     out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / keyframes.stem)
