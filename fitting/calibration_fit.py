@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -261,6 +262,22 @@ def window_steps_for(data: CalibrationData, window: float | None, solver: str) -
     return max(1, int(round(window / data.puppet_dt)))
 
 
+def _closing(fn):
+    """``fn`` with a list ``_opened`` of what it opens (a stacked problem's Ray workers), closed when it
+    returns or raises."""
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        opened: list = []
+        try:
+            return fn(*args, **kwargs, _opened=opened)
+        finally:
+            for problem in opened:
+                problem.close()
+
+    return call
+
+
+@_closing
 def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str = "bodies",
                       params: str | Sequence[str] = "k,k_d",
                       solver: str = "lm-fd", max_steps: int = 50, start: Mapping[str, Any] | None = None,
@@ -273,8 +290,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                       bounds: str | Mapping[str, tuple[float, float]] | None = None,
                       freeze: str | Sequence[str] | None = None,
                       validate: float | None = None, loss: str = "l2",
-                      huber_scale: float | None = None, ray: str = "off",
-                      workers: int | None = None) -> CalibrationResult:
+                      huber_scale: float | None = None, ray: str = "off", workers: int | None = None,
+                      _opened: list | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -367,97 +384,94 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                                               checkpoint_steps, schedule[-1], prior if i == 0 else None,
                                               bounds if i == 0 else None)
                                   for i, d in enumerate([data, *others])], ray=ray, workers=workers)
+        _opened.append(problem)  # closed (its Ray workers stopped) by _closing, also if this raises
     else:
         problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
                                      noise_force=noise_force, optimization_level=optimization_level,
                                      checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior,
                                      bounds=bounds)
-    try:
-        stage = {"name": "start"}
+    stage = {"name": "start"}
+    if progress is not None:
+        problem.on_forward = lambda count: progress(stage["name"], count)
+    r0 = problem.host_residuals(problem.theta_start)  # as the last stage measures them
+    theta, stages = problem.theta_start, []
+    for index, steps in enumerate(schedule):
+        stage["name"] = "fit" if len(schedule) == 1 else f"fit {index + 1}/{len(schedule)}"
+        last = index == len(schedule) - 1
+        prefix = None if last or steps is None else max(1, int(round(STAGE_SECONDS / data.puppet_dt)))
+        problem.use_windows(steps, prefix)
+
+        def run(theta_start, atol=1e-3 if last else STAGE_ATOL):
+            return fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta_start,
+                               atol=atol)
+
+        fit = irls_fit(problem, run, theta, huber_scale) if loss == "huber" else run(theta)
+        theta = fit["theta"]
+        stages.append({"window_steps": steps, "puppet_steps": min(prefix or data.puppet_steps, data.puppet_steps),
+                       "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
+                       "forward_passes": fit["forward_passes"], "seconds": fit["seconds"]})
+    fit = {**fit, "steps": sum(st["steps"] for st in stages),
+           "forward_passes": sum(st["forward_passes"] for st in stages),
+           "backward_passes": fit["backward_passes"], "seconds": sum(st["seconds"] for st in stages)}
+    stage["name"] = "uncertainty"
+    method = jacobian or ("bwd" if solver == "lm-bwd" else "fd")
+    used = fit["rows"] if solver == "lm-bwd" else None
+    residuals, jac, jac_cost = jacobian_at(problem, theta, method, used)
+    slices = problem.target_slices()
+    all_slices = {**slices, "prior": problem.prior_slice()}
+    if others:
+        rows_of = problem.target_rows()
+    elif used is None:
+        rows_of = {t: np.arange(a, b) for t, (a, b) in all_slices.items() if b > a}
+    else:
+        rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
+    uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
+                                           known=("prior",))
+    stage["name"] = "residuals"
+    r1 = problem.host_residuals(theta)  # Huber: the weighted rows
+    weights, problem.row_weights = problem.row_weights, None
+    plain = r1 if weights is None else problem.host_residuals(theta)
+    problem.row_weights = weights
+    at_bound = [label for label, t, lo, hi in zip(problem.labels, theta, *problem.log_bounds)
+                if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
+    # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
+    judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
+    verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
+                        fit["message"], at_bound=at_bound, robust=loss == "huber")
+    validation = None
+    if whole is not None:
+        from .calibration_validation import held_out_residuals, judge_validation
+
+        stage["name"] = "validation"
+        full = CalibrationProblem(whole, parameters, start=start, noise_position=noise_position,
+                                  noise_force=noise_force, optimization_level=optimization_level,
+                                  checkpoint_steps=checkpoint_steps, window_steps=schedule[-1])
         if progress is not None:
-            problem.on_forward = lambda count: progress(stage["name"], count)
-        r0 = problem.host_residuals(problem.theta_start)  # as the last stage measures them
-        theta, stages = problem.theta_start, []
-        for index, steps in enumerate(schedule):
-            stage["name"] = "fit" if len(schedule) == 1 else f"fit {index + 1}/{len(schedule)}"
-            last = index == len(schedule) - 1
-            prefix = None if last or steps is None else max(1, int(round(STAGE_SECONDS / data.puppet_dt)))
-            problem.use_windows(steps, prefix)
+            full.on_forward = lambda count: progress(stage["name"], count)
+        validation = held_out_residuals(full, theta, data)
+        judge_validation(verdict, validation, problem.noise)
+    message = "converged" if verdict.converged else \
+        ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
+    before, after = _unscaled(problem, r0), _unscaled(problem, plain)
+    rms_before, rms_after, sessions = _rms(before), _rms(after), None
+    if others:
+        from .calibration_sessions import session_summaries
 
-            def run(theta_start, atol=1e-3 if last else STAGE_ATOL):
-                return fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta_start,
-                                   atol=atol)
-
-            fit = irls_fit(problem, run, theta, huber_scale) if loss == "huber" else run(theta)
-            theta = fit["theta"]
-            stages.append({"window_steps": steps, "puppet_steps": min(prefix or data.puppet_steps, data.puppet_steps),
-                           "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
-                           "forward_passes": fit["forward_passes"], "seconds": fit["seconds"]})
-        fit = {**fit, "steps": sum(st["steps"] for st in stages),
-               "forward_passes": sum(st["forward_passes"] for st in stages),
-               "backward_passes": fit["backward_passes"], "seconds": sum(st["seconds"] for st in stages)}
-        stage["name"] = "uncertainty"
-        method = jacobian or ("bwd" if solver == "lm-bwd" else "fd")
-        used = fit["rows"] if solver == "lm-bwd" else None
-        residuals, jac, jac_cost = jacobian_at(problem, theta, method, used)
-        slices = problem.target_slices()
-        all_slices = {**slices, "prior": problem.prior_slice()}
-        if others:
-            rows_of = problem.target_rows()
-        elif used is None:
-            rows_of = {t: np.arange(a, b) for t, (a, b) in all_slices.items() if b > a}
-        else:
-            rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
-        uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
-                                               known=("prior",))
-        stage["name"] = "residuals"
-        r1 = problem.host_residuals(theta)  # Huber: the weighted rows
-        weights, problem.row_weights = problem.row_weights, None
-        plain = r1 if weights is None else problem.host_residuals(theta)
-        problem.row_weights = weights
-        at_bound = [label for label, t, lo, hi in zip(problem.labels, theta, *problem.log_bounds)
-                    if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
-        # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
-        judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
-        verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
-                            fit["message"], at_bound=at_bound, robust=loss == "huber")
-        validation = None
-        if whole is not None:
-            from .calibration_validation import held_out_residuals, judge_validation
-
-            stage["name"] = "validation"
-            full = CalibrationProblem(whole, parameters, start=start, noise_position=noise_position,
-                                      noise_force=noise_force, optimization_level=optimization_level,
-                                      checkpoint_steps=checkpoint_steps, window_steps=schedule[-1])
-            if progress is not None:
-                full.on_forward = lambda count: progress(stage["name"], count)
-            validation = held_out_residuals(full, theta, data)
-            judge_validation(verdict, validation, problem.noise)
-        message = "converged" if verdict.converged else \
-            ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
-        before, after = _unscaled(problem, r0), _unscaled(problem, plain)
-        rms_before, rms_after, sessions = _rms(before), _rms(after), None
-        if others:
-            from .calibration_sessions import session_summaries
-
-            sessions = session_summaries(problem, r0, plain)
-            rms_before, rms_after = (_rms_over(problem, r) for r in (r0, plain))
-        return CalibrationResult(
-            data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
-            fitted=problem.values(theta), uncertainty=uncertainty, rms_before=rms_before, rms_after=rms_after,
-            residuals_before=before, residuals_after=after, solver=solver, solver_steps=fit["steps"],
-            converged=verdict.converged, message=message, jacobian=jac_cost,
-            cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
-                  "seconds": fit["seconds"], "total_seconds": time.perf_counter() - total,
-                  "residual_count": problem.residual_count, "stages": stages,
-                  "ray_workers": problem.states.worker_count if others else 0},
-            noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
-            window_steps=schedule[-1], priors=dict(problem.priors),
-            string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
-            validation=validation, sessions=sessions,
-            loss={"name": loss} if loss == "l2" else
-            {"name": loss, "scale": huber_scale, "rounds": fit["rounds"], "outliers": fit["outliers"],
-             "rows": int(len(r1))})
-    finally:
-        if others:
-            problem.close()  # its Ray workers
+        sessions = session_summaries(problem, r0, plain)
+        rms_before, rms_after = (_rms_over(problem, r) for r in (r0, plain))
+    return CalibrationResult(
+        data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
+        fitted=problem.values(theta), uncertainty=uncertainty, rms_before=rms_before, rms_after=rms_after,
+        residuals_before=before, residuals_after=after, solver=solver, solver_steps=fit["steps"],
+        converged=verdict.converged, message=message, jacobian=jac_cost,
+        cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
+              "seconds": fit["seconds"], "total_seconds": time.perf_counter() - total,
+              "residual_count": problem.residual_count, "stages": stages,
+              "ray_workers": problem.states.worker_count if others else 0},
+        noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
+        window_steps=schedule[-1], priors=dict(problem.priors),
+        string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
+        validation=validation, sessions=sessions,
+        loss={"name": loss} if loss == "l2" else
+        {"name": loss, "scale": huber_scale, "rounds": fit["rounds"], "outliers": fit["outliers"],
+         "rows": int(len(r1))})
