@@ -47,7 +47,8 @@ class Probe:
     def pid(self): return os.getpid()
 probe = Probe.remote(); ray.get(probe.pid.remote()); ray.kill(probe)
 from dmarionette.scale import shutdown_ray
-start = time.monotonic(); (shutdown_ray if sys.argv[1:] == ["ours"] else ray.shutdown)(); total = time.monotonic() - start
+stop = shutdown_ray if sys.argv[1:] == ["ours"] else ray.shutdown
+start = time.monotonic(); stop(); total = time.monotonic() - start
 print(total, *[f"{k}={v:.3f}" for k, v in parts.items()])
 """
 

@@ -31,8 +31,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 __all__ = ["DEFAULT_RETRIES", "WorkerLostError", "check_ray_address", "connect_ray", "default_ray_mode",
-           "imap_variants", "init_worker_warp", "map_variants", "ray_available", "ray_error", "ray_mode", "shutdown_ray",
-           "start_local_ray"]
+           "imap_variants", "init_worker_warp", "map_variants", "ray_available", "ray_error", "ray_mode",
+           "shutdown_ray", "start_local_ray"]
 
 DEFAULT_RETRIES = 3
 """How many times a dead worker is restarted and its item retried before :class:`WorkerLostError`."""
@@ -223,15 +223,15 @@ def init_worker_warp() -> None:
     init_warp()
 
 
-def ray_mode(text: str | None, default: str | None = None) -> str:
+def ray_mode(text: str | None) -> str:
     """The mode a ``--ray`` value names: ``"off"``, ``"local"`` or a cluster address, which is checked
-    here (:func:`check_ray_address`); None: ``default``, else :func:`default_ray_mode`.
+    here (:func:`check_ray_address`); None: :func:`default_ray_mode`.
 
     Raises:
         ValueError: a malformed address or one where nothing answers (names ``--ray``).
     """
     if text is None:
-        return default if default is not None else default_ray_mode()
+        return default_ray_mode()
     mode = text.strip()
     if mode not in ("off", "local"):
         check_ray_address(mode)

@@ -115,7 +115,8 @@ AUTHOR = ["--no-animation", "--no-export", "--fast-compile", "--quiet"]
 def test_a_batch_author_on_two_ray_workers_writes_what_single_runs_write(tmp_path, capsys):
     near = keyframes(tmp_path, "near", [0.11, 0.3437, 0.05], 20)  # ~1.3 cm from where the hand is: reached
     far = keyframes(tmp_path, "far", [0.1, 0.45, 0.1], 3)  # 12 cm: not in 3 steps
-    single = {p.stem: main(["author", str(p), "--out", str(tmp_path / "single" / p.stem), *AUTHOR]) for p in (near, far)}
+    single = {p.stem: main(["author", str(p), "--out", str(tmp_path / "single" / p.stem), *AUTHOR])
+              for p in (near, far)}
     assert single == {"near": 0, "far": 3}
     capsys.readouterr()
     code = main(["author", str(near), str(far), "--ray", "local", "--out", str(tmp_path / "batch"), *AUTHOR])
