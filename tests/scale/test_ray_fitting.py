@@ -67,9 +67,9 @@ def test_a_two_session_calibration_on_two_ray_workers_gives_the_in_process_numbe
 
 
 def test_a_worker_killed_mid_calibration_is_replaced_and_the_numbers_stay(sessions, in_process, tmp_path):
-    # past the first tasks (building the problems, choosing the windows): the restarted worker rebuilds its
-    # session's problem and is put back in the windows by the retried request
-    with KillWorkerMidTask(b"ray::StateWorker.run", skip=3) as killer:
+    # past the first tasks (each worker's: building its problem, choosing the windows): the restarted worker
+    # rebuilds its session's problem and is put back in the windows by the retried rollout request
+    with KillWorkerMidTask(b"ray::StateWorker.run", skip=4) as killer:
         on_ray = calibrate(sessions, tmp_path, "--ray", "local")
     assert killer.killed is not None
     assert without(on_ray, TIMINGS | {"ray_workers"}) == without(in_process[0], TIMINGS | {"ray_workers"})
