@@ -99,12 +99,12 @@ def command_extras(args: argparse.Namespace) -> list[tuple[str, str]]:
     elif command == "sweep":
         if not get("no_picture", False):
             needs.append((command, "viz"))  # sweep.png
-        if get("ray") not in (None, "off"):
-            needs.append((f"{command} --ray {get('ray')}", "scale"))
     elif command in ("author", "calibrate"):
         needs.append((command, "fitting"))
         if command == "author":
             needs.append((command, "viz"))  # animations and convergence.png
+    if command in ("sweep", "author", "calibrate") and get("ray") not in (None, "off"):
+        needs.append((f"{command} --ray {get('ray')}", "scale"))
     return [(what, extra) for what, extra in needs if extra in EXTRAS]
 
 

@@ -410,11 +410,13 @@ class CalibrationProblem:
         out = full if self.active_rows is None else full[self.active_rows]
         return out if self.row_weights is None else out * self.row_weights
 
-    def batch_residuals(self, thetas: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """:meth:`host_residuals` at several ``thetas``, their rollouts run together as the worlds of
-        one batched marionette (one launch per pass for all of them: the per-launch and per-window
-        Python costs are paid once; each world's numbers are bit for bit its own rollout's)."""
-        thetas = [np.asarray(t, np.float64) for t in thetas]
+    def residuals_at(self, points: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """:meth:`host_residuals` at each of ``points`` (log-constants ``(n,)`` each), their rollouts run
+        together as the worlds of one batched marionette (one launch per pass for all of them: the
+        per-launch and per-window Python costs are paid once; each world's numbers are bit for bit its
+        own rollout's); the finite differences' rollouts (a stacked problem runs its sessions' in
+        parallel)."""
+        thetas = [np.asarray(t, np.float64) for t in points]
         if len(thetas) == 1:
             return [self.host_residuals(thetas[0])]
         runner = self._batched(len(thetas))
@@ -455,7 +457,7 @@ class CalibrationProblem:
         """Residuals ``(m,)`` and their Jacobian ``(m, n)`` from forward rollouts alone (the
         forward sensitivities by finite differences in log space, every residual at once), the
         ``n + 1`` (``2 n + 1``) rollouts run together as the worlds of one batched marionette
-        (:meth:`batch_residuals`).
+        (:meth:`residuals_at`).
 
         ``central``: ``(r(t + h e_j) - r(t - h e_j)) / 2h`` with ``h = 1e-5`` (``2 n + 1``
         rollouts; truncation ~1e-10, round-off ~1e-11 relative); else one-sided
@@ -463,18 +465,17 @@ class CalibrationProblem:
         relative, which moves the Gauss-Newton steps, not the optimum they converge to).
         """
         theta = np.asarray(theta, np.float64)
-        n = len(theta)
         step = _FD_STEP if central else _FD_STEP_ONE_SIDED
-        shifted = [theta]
-        for j in range(n):
+        points = [theta]
+        for j in range(len(theta)):
             for sign in ((1.0, -1.0) if central else (1.0,)):
-                t = theta.copy()
-                t[j] += sign * step
-                shifted.append(t)
-        values = self.batch_residuals(shifted)
+                moved = theta.copy()
+                moved[j] += sign * step
+                points.append(moved)
+        values = self.residuals_at(points)  # [r(theta), r(up_0), (r(down_0)), r(up_1), ...]
         value = values[0]
-        jacobian = np.empty((len(value), n))
-        for j in range(n):
+        jacobian = np.empty((len(value), len(theta)))
+        for j in range(len(theta)):
             if central:
                 jacobian[:, j] = (values[1 + 2 * j] - values[2 + 2 * j]) / (2 * step)
             else:

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -259,6 +260,22 @@ def window_steps_for(data: CalibrationData, window: float | None, solver: str) -
     return max(1, int(round(window / data.puppet_dt)))
 
 
+def _closing(fn):
+    """``fn`` with a list ``_opened`` of what it opens (a stacked problem's Ray workers), closed when it
+    returns or raises."""
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        opened: list = []
+        try:
+            return fn(*args, **kwargs, _opened=opened)
+        finally:
+            for problem in opened:
+                problem.close()
+
+    return call
+
+
+@_closing
 def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str = "bodies",
                       params: str | Sequence[str] = "k,k_d",
                       solver: str = "lm-fd", max_steps: int = 50, start: Mapping[str, Any] | None = None,
@@ -271,7 +288,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                       bounds: str | Mapping[str, tuple[float, float]] | None = None,
                       freeze: str | Sequence[str] | None = None,
                       validate: float | None = None, loss: str = "l2",
-                      huber_scale: float | None = None) -> CalibrationResult:
+                      huber_scale: float | None = None, ray: str = "off", workers: int | None = None,
+                      _opened: list | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -313,6 +331,11 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         loss: ``"l2"`` (least squares) or ``"huber"`` (:mod:`fitting.calibration_robust`: IRLS,
             ``lm-fd`` only).
         huber_scale: Huber's ``C`` in noise scales (default 1.345; ``loss="huber"`` only).
+        ray: with several sessions, where their problems are kept and rolled out
+            (:mod:`fitting.calibration_sessions`): ``"off"`` (this process), ``"local"`` or a Ray
+            cluster address, a worker per session at most (``workers``: fewer); the same numbers
+            in both. One session runs here whatever it says (Ray is not started).
+        workers: Ray workers at most (default: one per CPU of the cluster).
     """
     total = time.perf_counter()
     paths = list(path) if isinstance(path, (list, tuple)) else [path]
@@ -352,17 +375,19 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     if not windows:
         raise ValueError("window: got an empty list; expected seconds per window, or 0 for one rollout")
     schedule = [window_steps_for(data, w, solver) for w in windows]
-    problems = [CalibrationProblem(d, parameters, start=start, noise_position=noise_position,
-                                   noise_force=noise_force, optimization_level=optimization_level,
-                                   checkpoint_steps=checkpoint_steps, window_steps=schedule[-1],
-                                   priors=prior if i == 0 else None, bounds=bounds if i == 0 else None)
-                for i, d in enumerate([data, *others])]
     if others:
-        from .calibration_sessions import StackedProblem
+        from .calibration_sessions import SessionSpec, StackedProblem
 
-        problem = StackedProblem(problems)
+        problem = StackedProblem([SessionSpec(d, parameters, start, noise_position, noise_force, optimization_level,
+                                              checkpoint_steps, schedule[-1], prior if i == 0 else None,
+                                              bounds if i == 0 else None)
+                                  for i, d in enumerate([data, *others])], ray=ray, workers=workers)
+        _opened.append(problem)  # closed (its Ray workers stopped) by _closing, also if this raises
     else:
-        problem = problems[0]
+        problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
+                                     noise_force=noise_force, optimization_level=optimization_level,
+                                     checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior,
+                                     bounds=bounds)
     stage = {"name": "start"}
     if progress is not None:
         problem.on_forward = lambda count: progress(stage["name"], count)
@@ -439,7 +464,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         converged=verdict.converged, message=message, jacobian=jac_cost,
         cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
               "seconds": fit["seconds"], "total_seconds": time.perf_counter() - total,
-              "residual_count": problem.residual_count, "stages": stages},
+              "residual_count": problem.residual_count, "stages": stages,
+              "ray_workers": problem.states.worker_count if others else 0},
         noise=dict(problem.noise), known_noise=known_noise, theta=theta, verdict=verdict,
         window_steps=schedule[-1], priors=dict(problem.priors),
         string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},

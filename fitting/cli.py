@@ -37,9 +37,14 @@ def add_author_command(commands) -> None:
                     "within the tolerances and the device limits held; 3 not converged (a keyframe that is "
                     "reachable, or not shown unreachable, was missed: the solver stopped or ran out of steps "
                     "or time); 4 some keyframe unreachable (named; the others reached); 5 a device limit "
-                    "exceeded; 2 bad input.")
-    author.add_argument("keyframes", type=Path, help="the keyframes TOML file")
-    author.add_argument("--out", type=Path, default=None, help="output folder (default: out/<keyframes file name>)")
+                    "exceeded; 2 bad input. Several files: one job each, the exit code the worst job's (0, 4, 3, "
+                    "5, 2 from best to worst), 6 a Ray worker died more often than the retries allow.")
+    author.add_argument("keyframes", type=Path, nargs="+",
+                        help="the keyframes TOML file; several: one authoring job each (on Ray workers with --ray), "
+                             "each written to its own folder as it finishes, a table of them at the end, exit code "
+                             "the worst job's (docs/authoring.md, 'Several files')")
+    author.add_argument("--out", type=Path, default=None,
+                        help="output folder (default: out/<keyframes file name>); several files: OUT/<file name> each")
     author.add_argument("--max-steps", type=integer(1, 100_000), default=None,
                         help="solver steps at most (default: the file's [solver] max_steps, else 60)")
     author.add_argument("--method", choices=["lm_fd", "bfgs", "lm", "gauss_newton"], default=None,
@@ -67,7 +72,32 @@ def add_author_command(commands) -> None:
                         help="animation frames per second (default: 15)")
     author.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     author.add_argument("--quiet", action="store_true", help="no progress lines")
+    _add_ray_flags(author, "with several files, where the jobs run")
     author.set_defaults(handler=_run_author)
+
+
+def _ray_mode(args: argparse.Namespace, count: int) -> str:
+    """Where ``count`` sessions or files run: ``--ray``'s mode (checked also for one), ``"off"`` for one.
+    With Ray, Ctrl-C raises in the command and waits for its workers' and cluster's shutdown."""
+    from dmarionette.scale.ray_map import ray_mode
+
+    mode = ray_mode(args.ray)
+    if count < 2:
+        mode = "off"
+    if mode != "off" and getattr(args, "interrupt", None) is not None:
+        args.interrupt.disarm()
+    return mode
+
+
+def _add_ray_flags(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--ray`` and ``--workers``, as ``dmarionette sweep`` has them (docs/sweep.md, "Ray")."""
+    parser.add_argument("--ray", default=None, metavar="local|off|ADDRESS",
+                        help=f"{what}: local (the default when the 'scale' extra is installed: an embedded Ray "
+                             "cluster on this machine, loopback only, one worker per core), off (this process; the "
+                             "default without Ray), or the address of a running Ray cluster (host:port, or auto); "
+                             "a single one always runs in this process, without Ray")
+    parser.add_argument("--workers", type=integer(1, 100_000), default=None,
+                        help="Ray workers (default: one per CPU of the cluster)")
 
 
 def _run_author(args: argparse.Namespace) -> int:
@@ -80,10 +110,17 @@ def _run_author(args: argparse.Namespace) -> int:
         raise RuntimeError(f"'dmarionette author' needs the fitting extra ({error.name} is missing): "
                            "pip install 'dmarionette[fitting]'") from None
     from .author import author, enable_compilation_cache
+    from .author_batch import worst_keyframe_errors
     from .keyframes import load_keyframes
 
-    spec = load_keyframes(args.keyframes)
-    out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / args.keyframes.stem)
+    mode = _ray_mode(args, len(args.keyframes))
+    if len(args.keyframes) > 1:
+        from .author_batch import run_author_batch
+
+        return run_author_batch(args, mode, lambda summary: verdict_text(summary, bold=sys.stderr.isatty()))
+    keyframes = args.keyframes[0]
+    spec = load_keyframes(keyframes)
+    out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / keyframes.stem)
     enable_compilation_cache()
     summary = author(spec, out, max_steps=args.max_steps, method=args.method, max_seconds=args.max_seconds,
                      continuation=args.continuation, jacobian=args.jacobian, progress=not args.quiet,
@@ -92,11 +129,7 @@ def _run_author(args: argparse.Namespace) -> int:
                      fps=args.fps)
     keys = ("status", "exit_code", "loss_before", "loss_after", "steps", "converged", "replay_gap", "seconds",
             "files")
-    print(json.dumps({k: summary[k] for k in keys}
-                     | {"max_keyframe_error_m": max(e["max_position_error_m"] for e in summary["keyframes_after"]),
-                        "max_keyframe_error_deg": max(max(e["max_joint_error_deg"], e["max_orientation_error_deg"])
-                                                      for e in summary["keyframes_after"])},
-                     indent=2))
+    print(json.dumps({k: summary[k] for k in keys} | worst_keyframe_errors(summary), indent=2))
     print(verdict_text(summary, bold=sys.stderr.isatty()), file=sys.stderr)
     return summary["exit_code"]
 
@@ -142,7 +175,7 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("session", type=Path, nargs="+",
                            help="the .mcap session file; several: fitted together with one shared set of constants "
                                 "(their residuals stacked; same strings and rates; --solver lm-fd; per-session "
-                                "residual RMS in the output)")
+                                "residual RMS in the output; their rollouts on Ray workers with --ray)")
     calibrate.add_argument("--targets", choices=["bodies", "feedback", "both"], default="bodies",
                            help="fit the recorded body centres (default), the bars' feedback (exact reaction), "
                                 "or both")
@@ -197,6 +230,8 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
+    _add_ray_flags(calibrate, "with several sessions, where their rollouts run (a worker keeps a session's model warm; "
+                              "the solver step stays in this process)")
     calibrate.set_defaults(handler=_run_calibrate)
 
 
@@ -256,6 +291,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     except ImportError as error:
         raise RuntimeError(f"dmarionette calibrate needs the 'fitting' extra ({error}); install it with "
                            "pip install 'dmarionette[fitting]'") from None
+    mode = _ray_mode(args, len(args.session))
     start = args.start or None
     default = Path("out") / "calibrate" / args.session[0].stem
     out = _outputs(args).folder("--out", args.out if args.out is not None else default)
@@ -281,7 +317,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    prior=args.prior, bounds=args.bounds, freeze=args.freeze,
                                    validate=args.validate, loss=args.loss, huber_scale=args.huber_scale,
                                    optimization_level=0 if args.fast_compile else 2,
-                                   progress=progress if bar is not None else None)
+                                   progress=progress if bar is not None else None, ray=mode, workers=args.workers)
     finally:
         if bar is not None:
             bar.close()

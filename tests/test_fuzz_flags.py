@@ -52,6 +52,8 @@ NUMERIC_FLAGS = [
     (["author", "k.toml"], "--max-steps", ("int", 1, 100_000, True)),
     (["author", "k.toml"], "--checkpoint-steps", ("int", 1, 1_000_000, True)),
     (["author", "k.toml"], "--fps", ("float", 0.1, 1000.0, True)),
+    (["calibrate", "a.mcap", "b.mcap"], "--workers", ("int", 1, 100_000, True)),
+    (["author", "a.toml", "b.toml"], "--workers", ("int", 1, 100_000, True)),
 ]
 
 

@@ -62,18 +62,6 @@ def add_sweep_command(sub) -> None:
     sweep.set_defaults(handler=run_sweep_command)
 
 
-def _ray_mode(text: str | None) -> str:
-    """``--ray``'s mode; an address is checked here (something must accept a connection there)."""
-    from dmarionette.scale.ray_map import check_ray_address, default_ray_mode
-
-    if text is None:
-        return default_ray_mode()
-    mode = text.strip()
-    if mode not in ("off", "local"):
-        check_ray_address(mode)
-    return mode
-
-
 AUTO_WORLDS_PER_BATCH = 64
 """The largest batch ``--worlds-per-batch`` picks by itself: past it a CPU core gains nothing more per
 world (``benchmarks/bench_worlds.py``) and a killed run loses more work in flight."""
@@ -110,12 +98,12 @@ def _run_batch(batch: list, duration: float | None, optimization_level: int) -> 
 def run_sweep_command(args: argparse.Namespace) -> int:
     """Runs ``dmarionette sweep`` (see the module doc for the exit codes)."""
     from dmarionette.cli_checks import check_trajectory_fits
-    from dmarionette.scale.ray_map import connect_ray, shutdown_ray
+    from dmarionette.scale.ray_map import connect_ray, ray_mode, shutdown_ray
     from dmarionette.sweep.grid import parse_set, sweep_variants
     from dmarionette.sweep.run import FRAME_HZ
     from dmarionette.sweep.table import read_rows, summary_columns
 
-    mode = _ray_mode(args.ray)
+    mode = ray_mode(args.ray)
     axes = [parse_set(flag) for flag in args.sets]
     variants = sweep_variants(args.scene, axes)
     base = variants[0].scene

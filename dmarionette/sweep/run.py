@@ -49,15 +49,12 @@ _WARP_STARTED: list = []  # [True] once this process has started Warp here
 
 
 def _init_process() -> None:
-    """Warp started in this process as the command line starts it (no banner, no CUDA-driver notice), once."""
+    """Warp started in this process as the command line starts it, once."""
     if _WARP_STARTED:
         return
-    import warp as wp
+    from dmarionette.scale.ray_map import init_worker_warp
 
-    from dmarionette.first_run import init_warp
-
-    wp.config.log_level = wp.LOG_WARNING
-    init_warp()  # does nothing more if Warp is already running
+    init_worker_warp()
     _WARP_STARTED.append(True)
 
 

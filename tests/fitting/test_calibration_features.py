@@ -23,10 +23,10 @@ from fitting.calibration_fit import calibrate_session  # noqa: E402
 from fitting.calibration_report import format_table, result_summary, write_outputs  # noqa: E402
 from fitting.calibration_validation import judge_validation  # noqa: E402
 from fitting.calibration_verdict import EXIT_NOT_EXPLAINED, EXIT_OK, Verdict  # noqa: E402
-from fitting.synthetic_scenes import motion_scene_text  # noqa: E402
 from fitting.synthetic_session import record_synthetic_session  # noqa: E402
 
-from tests.support.calibration_problem import NOISE_FORCE, NOISE_POSITION, SCENE, TRUTH  # noqa: E402
+from tests.support.calibration_problem import (  # noqa: E402
+    NOISE_FORCE, NOISE_POSITION, SCENE, TRUTH, record_motion)
 
 wp.config.log_level = wp.LOG_WARNING
 DURATION = 1.2
@@ -118,23 +118,10 @@ def test_command_refuses_a_bad_validation_fraction(session, capsys):
     assert "--validate: got '1'; expected a fraction of the session held out, 0 < F < 1" in capsys.readouterr().err
 
 
-def _record_motion(folder: Path, motion: str, duration: float, seed: int, rename: dict | None = None) -> Path:
-    """A session of ``motion`` (fitting.synthetic_scenes) with the constants ``TRUTH``."""
-    text = motion_scene_text(motion, duration)
-    for old, new in (rename or {}).items():
-        text = text.replace(f'name = "{old}"', f'name = "{new}"').replace(f"\n{old} = [", f"\n{new} = [")
-    scene_path = folder / f"{motion}_{seed}.toml"
-    scene_path.write_text(text)
-    _, path = record_synthetic_session(dm.load_scene(scene_path), text, TRUTH, duration,
-                                       folder / f"{motion}_{seed}.mcap", noise_position=NOISE_POSITION,
-                                       noise_force=NOISE_FORCE, seed=seed, optimization_level=0)
-    return path
-
-
 @pytest.fixture(scope="module")
 def two_motions(tmp_path_factory):
     folder = tmp_path_factory.mktemp("sessions")
-    return [_record_motion(folder, "sway", 0.6, 21), _record_motion(folder, "roll_yaw", 0.6, 22)]
+    return [record_motion(folder, "sway", 0.6, 21), record_motion(folder, "roll_yaw", 0.6, 22)]
 
 
 def test_two_sessions_share_one_set_of_constants(two_motions, tmp_path):
@@ -165,7 +152,7 @@ def test_two_sessions_share_one_set_of_constants(two_motions, tmp_path):
 
 
 def test_sessions_with_other_strings_are_refused_naming_the_file(two_motions, tmp_path, capsys):
-    other = _record_motion(tmp_path, "sway", 0.2, 23, rename={"hand_right": "hand_r"})
+    other = record_motion(tmp_path, "sway", 0.2, 23, rename={"hand_right": "hand_r"})
     with pytest.raises(ValueError, match=f"{other}: its strings .* expected those of {two_motions[0]}"):
         calibrate_session([two_motions[0], other], start=START, optimization_level=0)
     from dmarionette.cli import main

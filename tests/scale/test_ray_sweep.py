@@ -11,9 +11,10 @@ import os
 import pytest
 
 from dmarionette.cli import main
-from dmarionette.scale import WorkerLostError, default_ray_mode, map_variants, start_local_ray
+from dmarionette.scale import WarmStates, WorkerLostError, default_ray_mode, map_variants, start_local_ray
 from dmarionette.sweep.table import read_rows, summary_columns
-from tests.support.scale import KillWorkerMidTask, always_die, die_once, refuse_three, square_and_pid
+from tests.support.scale import (KillWorkerMidTask, always_die, build_counter, count_call, die_once, refuse_three,
+                                 square_and_pid)
 from tests.support.sweep import comparable
 
 KEYS = ["strings.particle_count", "strings.tie_stiffness", "strings.tie_damping"]
@@ -78,6 +79,23 @@ def test_a_worker_dying_past_its_retries_is_an_error_and_fn_errors_are_raised_as
         map_variants(always_die, [1], ray="local", retries=1)
     with pytest.raises(ValueError, match="item 3 is refused"):
         map_variants(refuse_three, list(range(5)), ray="local")
+
+
+def test_warm_states_stay_built_on_their_workers_between_calls(ray):
+    with WarmStates(build_counter, [1, 2, 3], ray="local") as states:
+        assert states.worker_count == 2  # one per CPU, never more
+        first = states.map(count_call, [10, 10, 10])
+        second = states.map(count_call, [5, 6, 7])
+        pids = states.pids()
+    assert [r[0] for r in first] == [10, 20, 30] and [r[0] for r in second] == [5, 12, 21]
+    assert [r[1] for r in second] == [2, 2, 2]  # the states built for the first call are the ones called again
+    assert {r[2] for r in first + second} == set(pids) and os.getpid() not in pids
+    assert first[0][2] == first[2][2] != first[1][2]  # item i on worker i % 2
+    with WarmStates(build_counter, [1, 2, 3], ray="off") as here:
+        assert here.map(count_call, [5, 6, 7]) == [(5, 1, os.getpid()), (12, 1, os.getpid()), (21, 1, os.getpid())]
+    with WarmStates(build_counter, [1, -1], ray="local") as states, pytest.raises(ValueError, match="item -1 cannot"):
+        states.map(count_call, [1, 1])  # an error in build: raised as itself
+    assert ray.is_initialized()  # a cluster it did not start is left running
 
 
 def test_a_sweep_on_two_ray_workers_writes_the_in_process_numbers(in_process, tmp_path):

@@ -48,11 +48,13 @@ def _title(pid: int) -> bytes:
 
 class KillWorkerMidTask:
     """A thread that SIGKILLs the first of this process's Ray workers (a grandchild: driver -> raylet ->
-    worker) seen running a task whose title starts with ``title``, once, within ``timeout`` seconds."""
+    worker) seen running a task whose title starts with ``title``, once, within ``timeout`` seconds; the
+    first ``skip`` tasks seen starting (polled every 10 ms) are let run."""
 
-    def __init__(self, title: bytes = b"ray::VariantWorker.run", timeout: float = 120.0):
+    def __init__(self, title: bytes = b"ray::VariantWorker.run", timeout: float = 120.0, skip: int = 0):
         self.title = title
         self.timeout = timeout
+        self.skip = skip
         self.killed: int | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._watch, daemon=True)
@@ -64,18 +66,47 @@ class KillWorkerMidTask:
     def _watch(self) -> None:
         me = os.getpid()
         end = time.monotonic() + self.timeout
+        running: set[int] = set()  # workers seen running a task at the last poll
+        started = 0
         while not self._stop.is_set() and time.monotonic() < end:
+            now = set()
             for entry in Path("/proc").iterdir():
                 if not entry.name.isdigit():
                     continue
                 pid = int(entry.name)
                 if _title(pid).startswith(self.title) and _ppid(_ppid(pid)) == me:
-                    os.kill(pid, signal.SIGKILL)
-                    self.killed = pid
-                    return
+                    now.add(pid)
+                    started += pid not in running
+                    if started > self.skip:
+                        os.kill(pid, signal.SIGKILL)
+                        self.killed = pid
+                        return
+            running = now
             time.sleep(0.01)
 
     def __exit__(self, *exc):
         self._stop.set()
         self._thread.join()
         return False
+
+
+def without(value, keys: set):
+    """``value`` (JSON: dicts, lists) with every dict entry named in ``keys`` removed, at any depth."""
+    if isinstance(value, dict):
+        return {k: without(v, keys) for k, v in value.items() if k not in keys}
+    if isinstance(value, list):
+        return [without(v, keys) for v in value]
+    return value
+
+
+def build_counter(item: int) -> dict:
+    """A state for :class:`dmarionette.scale.WarmStates`: its item and the calls it has had."""
+    if item < 0:
+        raise ValueError(f"item {item} cannot be built")
+    return {"item": item, "calls": 0}
+
+
+def count_call(state: dict, request: int) -> tuple[int, int, int]:
+    """``(item * request, calls of this state so far, the worker's pid)``."""
+    state["calls"] += 1
+    return state["item"] * request, state["calls"], os.getpid()
