@@ -103,6 +103,22 @@ def _unscaled(problem: CalibrationProblem, residuals: np.ndarray) -> dict[str, n
     return out
 
 
+def _time_series(problem: CalibrationProblem, residuals: np.ndarray) -> dict[str, list[np.ndarray]]:
+    """Per target, the scaled residuals in the recording's time order, one ``(steps, channels)``
+    array per session (the whiteness test of :func:`fitting.calibration_verdict.judge_fit`)."""
+    def steps(d: CalibrationData, target: str) -> int:
+        return d.puppet_steps if target == "bodies" else d.step_count
+
+    if not hasattr(problem, "problems"):
+        return {t: [residuals[a:b].reshape(steps(problem.data, t), -1)]
+                for t, (a, b) in problem.target_slices().items()}
+    out: dict[str, list[np.ndarray]] = {}
+    for p, rows in zip(problem.problems, problem.session_rows()):
+        for t, index in rows.items():
+            out.setdefault(t, []).append(residuals[index].reshape(steps(p.data, t), -1))
+    return out
+
+
 def _rms(residuals: Mapping[str, np.ndarray]) -> dict[str, float]:
     """RMS over every coordinate of each target."""
     return {k: float(np.sqrt(np.mean(v**2))) for k, v in residuals.items()}
@@ -412,7 +428,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
     judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
     verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
-                        fit["message"], at_bound=at_bound, robust=loss == "huber")
+                        fit["message"], at_bound=at_bound, robust=loss == "huber",
+                        series=_time_series(problem, plain))
     validation = None
     if whole is not None:
         from .calibration_validation import held_out_residuals, judge_validation

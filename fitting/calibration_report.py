@@ -41,6 +41,11 @@ def format_table(result: CalibrationResult) -> str:
     if v is not None:
         for target, chi2 in v.reduced_chi2.items():
             lines.append(f"residual / given noise, {target:<8}: {v.noise_ratio[target]:.3g} (reduced chi^2 {chi2:.3g})")
+        for target, w in v.whiteness.items():
+            lines.append(f"residual lag-1 autocorrelation, {target:<8}: " +
+                         ("not tested (too few samples per channel)" if w is None else
+                          f"{w['lag1']:.3g} ({w['z']:.3g} standard deviations of white noise's 0, "
+                          f"{w['channels']} channels)"))
     for i, session in enumerate(result.sessions or []):
         parts = ", ".join(f"{t} {session['rms_before'][t]:.4g} -> {session['rms_after'][t]:.4g} {_RMS_UNITS[t]}"
                           for t in session["rms_after"])
