@@ -189,13 +189,19 @@ class CalibrationProblem:
             whole session (single shooting). Needs ``joint_q`` in ``/puppet/state`` at every
             frame; the forward-only residuals (:meth:`host_residuals`, :meth:`fd_jacobian`)
             use the windows, the reverse-mode ones (:meth:`jax_residuals`) do not.
+        delay: the targets lag the bar inputs by this many seconds (:mod:`fitting.calibration_delay`:
+            the inputs are shifted); with ``fit_delay`` its start value.
+        fit_delay: fit the delay too: one more parameter, ``"delay"``, after the constants, in
+            milliseconds in ``theta`` (:data:`fitting.calibration_delay.DELAY_UNIT`; not a logarithm),
+            inside ``[-MAX_DELAY, MAX_DELAY]``. Forward-only residuals.
     """
 
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
                  start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
                  noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None,
                  window_steps: int | None = None, priors: Mapping[str, tuple[float, float]] | None = None,
-                 bounds: Mapping[str, tuple[float, float]] | None = None):
+                 bounds: Mapping[str, tuple[float, float]] | None = None, delay: float = 0.0,
+                 fit_delay: bool = False):
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.grad.engine import MarionetteGradient
 
@@ -247,6 +253,8 @@ class CalibrationProblem:
         if outside:
             raise ValueError(f"--bounds: start values {outside} lie outside their bounds {self.bounds}; give "
                              "--start values inside")
+        self.constant_count = len(self.theta_start)  # the log-constants; then the linear unknowns
+        self._set_delay(delay, fit_delay)
         self.data_residual_count = self.residual_count
         self.residual_count += len(self._prior_index)
         self.windows = None
@@ -257,6 +265,51 @@ class CalibrationProblem:
     #: ``row_weights``: None, or a factor per returned residual row of :meth:`host_residuals` (IRLS:
     #: the square roots of the Huber weights, :mod:`fitting.calibration_robust`); the forward-only
     #: residuals and Jacobians are then of the weighted rows.
+
+    def _set_delay(self, delay: float, fit_delay: bool) -> None:
+        """The recording delay: known (``delay``), or fitted from it (one more, linear, parameter)."""
+        from .calibration_delay import DELAY_UNIT, MAX_DELAY
+
+        if not (np.isfinite(delay) and abs(delay) <= MAX_DELAY):
+            raise ValueError(f"--delay: got {delay!r} s; expected a delay of the targets behind the bar inputs "
+                             f"within +-{MAX_DELAY:g} s")
+        from .calibration_delay import delayed
+
+        self.delay = float(delay)
+        self.delay_index = None
+        self._recorded_inputs = (self.base.top_q, self.base.bar_q, self.base.bar_qd)
+        if not fit_delay:  # a known delay: the inputs shifted once, for every solver
+            self.base.top_q, self.base.bar_q, self.base.bar_qd = (delayed(x, self.delay, self.data.string_dt)
+                                                                  for x in self._recorded_inputs)
+        else:
+            self.delay_index = len(self.theta_start)
+            self.labels = [*self.labels, "delay"]
+            self.theta_start = np.append(self.theta_start, self.delay / DELAY_UNIT)
+            self.log_bounds = (np.append(self.log_bounds[0], -MAX_DELAY / DELAY_UNIT),
+                               np.append(self.log_bounds[1], MAX_DELAY / DELAY_UNIT))
+
+    def delay_of(self, theta) -> float:
+        """The delay [s] at ``theta``: fitted, or the known one."""
+        from .calibration_delay import DELAY_UNIT
+
+        return self.delay if self.delay_index is None else float(theta[self.delay_index]) * DELAY_UNIT
+
+    def inputs_at(self, theta: np.ndarray):
+        """The rollout's inputs at ``theta``: the constants, and the bar inputs delayed (if any)."""
+        from .calibration_delay import delayed
+
+        inputs = dataclasses.replace(self.base, **self.constants(theta))
+        if self.delay_index is None:
+            return inputs  # self.base holds the known delay's inputs
+        top_q, bar_q, bar_qd = (delayed(x, self.delay_of(theta), self.data.string_dt) for x in self._recorded_inputs)
+        return dataclasses.replace(inputs, top_q=top_q, bar_q=bar_q, bar_qd=bar_qd)
+
+    def linear(self) -> np.ndarray:
+        """Per parameter, 0 where ``theta`` is a log-constant, else the unit of ``theta`` (the delay:
+        its value is ``DELAY_UNIT * theta``) ``(n,)``."""
+        from .calibration_delay import DELAY_UNIT
+
+        return np.where(np.arange(len(self.theta_start)) >= self.constant_count, DELAY_UNIT, 0.0)
 
     def _name_of(self, index: int) -> str:
         offset = 0
@@ -353,8 +406,10 @@ class CalibrationProblem:
         return out
 
     def values(self, theta) -> np.ndarray:
-        """The fitted constants themselves, ``exp(theta)`` [N/m or N s/m]."""
-        return np.exp(np.asarray(theta, dtype=np.float64))
+        """The fitted constants themselves, ``exp(theta)`` [N/m or N s/m], and the linear unknowns
+        (the delay [s]) as they are."""
+        theta, unit = np.asarray(theta, dtype=np.float64), self.linear()
+        return np.where(unit > 0, unit * theta, np.exp(np.where(unit > 0, 0.0, theta)))
 
     # ------------------------------------------------------------------ residuals
     def _target_layout(self) -> dict[str, tuple[int, int]]:
@@ -391,7 +446,7 @@ class CalibrationProblem:
 
     def host_residuals(self, theta: np.ndarray) -> np.ndarray:
         """Residuals ``(m,)`` at ``theta`` from one forward rollout (numpy, no JAX)."""
-        inputs = dataclasses.replace(self.base, **self.constants(np.asarray(theta, np.float64)))
+        inputs = self.inputs_at(np.asarray(theta, np.float64))
         if self.windows is None:
             outputs = dataclasses.asdict(self.engine.forward(inputs))
         else:

@@ -55,6 +55,8 @@ class CalibrationResult:
             fitted), else None.
         sessions: with several sessions, one dict per session: ``session`` (its path),
             ``rms_before``, ``rms_after`` per target in its unit; else None.
+        delay: the recording delay of the targets behind the bar inputs: ``seconds``, ``fitted``
+            (``--fit-delay``) and its ``standard_error`` [s] (None when given).
         loss: ``name`` (``"l2"``, ``"huber"``); for Huber also ``scale`` (``C``), ``rounds``
             (IRLS rounds of the last stage), ``outliers`` (rows down-weighted at the end), ``rows``.
     """
@@ -85,6 +87,7 @@ class CalibrationResult:
     validation: dict | None = None
     sessions: list | None = None
     loss: dict = dataclasses.field(default_factory=lambda: {"name": "l2"})
+    delay: dict = dataclasses.field(default_factory=lambda: {"seconds": 0.0, "fitted": False, "standard_error": None})
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -289,7 +292,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                       bounds: str | Mapping[str, tuple[float, float]] | None = None,
                       freeze: str | Sequence[str] | None = None,
                       validate: float | None = None, loss: str = "l2",
-                      huber_scale: float | None = None) -> CalibrationResult:
+                      huber_scale: float | None = None, delay: float = 0.0,
+                      fit_delay: bool = False) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
     Args:
@@ -331,6 +335,10 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         loss: ``"l2"`` (least squares) or ``"huber"`` (:mod:`fitting.calibration_robust`: IRLS,
             ``lm-fd`` only).
         huber_scale: Huber's ``C`` in noise scales (default 1.345; ``loss="huber"`` only).
+        delay: the recorded targets lag the bar inputs by this many seconds
+            (:mod:`fitting.calibration_delay`); with ``fit_delay`` the start value.
+        fit_delay: fit the delay too (``lm-fd`` only): a parameter ``"delay"`` [s] after the
+            constants, with its standard error; shared by several sessions.
     """
     total = time.perf_counter()
     paths = list(path) if isinstance(path, (list, tuple)) else [path]
@@ -355,6 +363,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     if loss == "huber" and solver != "lm-fd":
         raise ValueError(f"--loss huber runs with --solver lm-fd only (got {solver!r})")
     huber_scale = DEFAULT_HUBER_SCALE if huber_scale is None else huber_scale
+    if fit_delay and solver != "lm-fd":
+        raise ValueError(f"--fit-delay runs with --solver lm-fd only (got {solver!r}); give a known --delay instead")
     whole = None
     if validate is not None:
         from .calibration_validation import split_for_validation
@@ -373,7 +383,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     problems = [CalibrationProblem(d, parameters, start=start, noise_position=noise_position,
                                    noise_force=noise_force, optimization_level=optimization_level,
                                    checkpoint_steps=checkpoint_steps, window_steps=schedule[-1],
-                                   priors=prior if i == 0 else None, bounds=bounds if i == 0 else None)
+                                   priors=prior if i == 0 else None, bounds=bounds if i == 0 else None,
+                                   delay=delay, fit_delay=fit_delay)
                 for i, d in enumerate([data, *others])]
     if others:
         from .calibration_sessions import StackedProblem
@@ -417,7 +428,7 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     else:
         rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
     uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
-                                           known=("prior",))
+                                           known=("prior",), linear=problem.linear())
     stage["name"] = "residuals"
     r1 = problem.host_residuals(theta)  # Huber: the weighted rows
     weights, problem.row_weights = problem.row_weights, None
@@ -437,7 +448,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         stage["name"] = "validation"
         full = CalibrationProblem(whole, parameters, start=start, noise_position=noise_position,
                                   noise_force=noise_force, optimization_level=optimization_level,
-                                  checkpoint_steps=checkpoint_steps, window_steps=schedule[-1])
+                                  checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], delay=delay,
+                                  fit_delay=fit_delay)
         if progress is not None:
             full.on_forward = lambda count: progress(stage["name"], count)
         validation = held_out_residuals(full, theta, data)
@@ -463,6 +475,9 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         window_steps=schedule[-1], priors=dict(problem.priors),
         string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
         validation=validation, sessions=sessions,
+        delay={"seconds": problem.delay_of(theta), "fitted": problem.delay_index is not None,
+               "standard_error": None if problem.delay_index is None else
+               float(uncertainty.standard_error[problem.delay_index])},
         loss={"name": loss} if loss == "l2" else
         {"name": loss, "scale": huber_scale, "rounds": fit["rounds"], "outliers": fit["outliers"],
          "rows": int(len(r1))})

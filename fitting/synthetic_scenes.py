@@ -118,7 +118,7 @@ def _motion(name: str, t: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]
 
 
 def motion_scene_text(motion: str, duration: float, *, particles: int = 10, string_hz: float = 1000.0,
-                      puppet_hz: float = 30.0, keyframe_hz: float = 20.0) -> str:
+                      puppet_hz: float = 30.0, keyframe_hz: float = 20.0, hold: float = 0.0) -> str:
     """TOML text of a calibration scene whose bars follow ``motion`` for ``duration`` [s].
 
     Args:
@@ -127,16 +127,21 @@ def motion_scene_text(motion: str, duration: float, *, particles: int = 10, stri
         particles: per string.
         string_hz, puppet_hz: the rates.
         keyframe_hz: keyframes per second (a C1 spline through them).
+        hold: the bars stay still for this long [s] before the motion starts (ramping in as
+            usual). With two keyframe intervals or more, the spline (zero tangent at the first
+            keyframe, Catmull-Rom inside) is exactly still over the first ``hold - 1 / keyframe_hz``:
+            a session recorded with a delay up to that long starts as the delay model assumes
+            (:mod:`fitting.calibration_delay`).
     """
     if not duration > 0.0:
         raise ValueError(f"duration: got {duration}; expected a positive number of seconds")
     t = np.arange(0.0, duration + 1e-9, 1.0 / keyframe_hz)
-    ramp = np.clip(t / 0.25, 0.0, 1.0)[:, None]
+    ramp = np.clip((t - hold) / 0.25, 0.0, 1.0)[:, None]
     ground = motion == "dip"
     text = _HEADER.format(motion=motion, duration=float(duration), string_hz=float(string_hz),
                           puppet_hz=float(puppet_hz), particles=int(particles), ground=str(ground).lower(),
                           contact="\n[contact]\nsmooth = true\n" if ground else "")
-    for bar, (offset, angles) in _motion(motion, t).items():
+    for bar, (offset, angles) in _motion(motion, t - hold).items():
         centre = _MAIN if bar == "main" else _HAND
         for ti, p, a in zip(t, centre + ramp * offset, ramp * angles):
             text += (f"\n[[bars.{bar}.keyframes]]\nt = {ti:.6f}\nposition = [{p[0]:.6f}, {p[1]:.6f}, {p[2]:.6f}]\n"
