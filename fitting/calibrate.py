@@ -194,6 +194,10 @@ class CalibrationProblem:
         fit_delay: fit the delay too: one more parameter, ``"delay"``, after the constants, in
             milliseconds in ``theta`` (:data:`fitting.calibration_delay.DELAY_UNIT`; not a logarithm),
             inside ``[-MAX_DELAY, MAX_DELAY]``. Forward-only residuals.
+        fit_initial_state: refine the start state of every window but the first in the full-session
+            stage (:mod:`fitting.calibration_initial_state`): ``2 qd_count`` unknowns per window,
+            after the constants and the delay, added by :meth:`use_windows`; ``noise_joint``: the
+            recorded ``joint_q``'s noise, their prior (rad, m).
     """
 
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
@@ -201,7 +205,7 @@ class CalibrationProblem:
                  noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None,
                  window_steps: int | None = None, priors: Mapping[str, tuple[float, float]] | None = None,
                  bounds: Mapping[str, tuple[float, float]] | None = None, delay: float = 0.0,
-                 fit_delay: bool = False):
+                 fit_delay: bool = False, fit_initial_state: bool = False, noise_joint: float = 1e-3):
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.grad.engine import MarionetteGradient
 
@@ -260,6 +264,8 @@ class CalibrationProblem:
         self.windows = None
         self.active_rows = None
         self.row_weights: np.ndarray | None = None
+        self.fit_initial_state, self.noise_joint = bool(fit_initial_state), float(noise_joint)
+        self.initial_state = None
         self.use_windows(window_steps)
 
     #: ``row_weights``: None, or a factor per returned residual row of :meth:`host_residuals` (IRLS:
@@ -309,7 +315,10 @@ class CalibrationProblem:
         its value is ``DELAY_UNIT * theta``) ``(n,)``."""
         from .calibration_delay import DELAY_UNIT
 
-        return np.where(np.arange(len(self.theta_start)) >= self.constant_count, DELAY_UNIT, 0.0)
+        unit = np.where(np.arange(len(self.theta_start)) >= self.constant_count, DELAY_UNIT, 0.0)
+        if self.initial_state is not None:
+            unit[self.initial_state.offset:] = self.initial_state.units()
+        return unit
 
     def _name_of(self, index: int) -> str:
         offset = 0
@@ -337,7 +346,12 @@ class CalibrationProblem:
         ``row_weights``."""
         self.active_rows = None
         self.row_weights = None
+        self._drop_initial_state()
         if window_steps is None:
+            if self.fit_initial_state:
+                raise ValueError("--fit-initial-state refines the start states of the shooting windows, taken from "
+                                 "the recording; one rollout (--window 0) starts from the scene's rest state only: "
+                                 "use windows (the default)")
             self.windows = None
             return
         if prefix_steps is not None and prefix_steps < self.data.puppet_steps:
@@ -358,6 +372,33 @@ class CalibrationProblem:
                              "puppet state, but channel /puppet/state does not hold 'joint_q' at every puppet "
                              "frame; calibrate with one rollout (windows off) instead")
         self.windows = WindowedRollout(self.model, self.data, joint_q, int(window_steps), puppet_steps=prefix_steps)
+        if self.fit_initial_state and prefix_steps is None:
+            self._add_initial_state()
+
+    def _add_initial_state(self) -> None:
+        """The start states of the windows but the first as unknowns (after the other parameters)."""
+        from .calibration_initial_state import InitialStateUnknowns
+
+        d = self.data
+        per_step = {"bodies": 3 * len(d.bodies), "feedback": 3 * len(d.bars)}
+        unknowns = InitialStateUnknowns(self.windows.windows, self.model.puppet.topology.qd_count, self.noise_joint,
+                                        d.puppet_dt, len(self.theta_start), self._rows_of, per_step, d.substeps,
+                                        self.residual_count)
+        self.initial_state = unknowns
+        self.labels = [*self.labels, *unknowns.labels()]
+        self.theta_start = np.concatenate([self.theta_start, np.zeros(unknowns.count)])
+        self.log_bounds = tuple(np.concatenate([b, np.full(unknowns.count, sign * np.inf)])
+                                for b, sign in zip(self.log_bounds, (-1.0, 1.0)))
+        self.residual_count += unknowns.count
+
+    def _drop_initial_state(self) -> None:
+        unknowns, self.initial_state = getattr(self, "initial_state", None), None
+        if unknowns is None:
+            return
+        keep = unknowns.offset
+        self.labels, self.theta_start = self.labels[:keep], self.theta_start[:keep]
+        self.log_bounds = tuple(b[:keep] for b in self.log_bounds)
+        self.residual_count -= unknowns.count
 
     # ------------------------------------------------------------------ parameters
     def _wrap_engine(self) -> None:
@@ -453,10 +494,15 @@ class CalibrationProblem:
             self.counts["forward"] += 1  # one pass over every window: one rollout of the session
             if self.on_forward is not None:
                 self.on_forward(self.counts["forward"])
-            outputs = self.windows.forward(inputs)
+            refine = None if self.initial_state is None else self.initial_state.refine(np.asarray(theta, np.float64))
+            outputs = self.windows.forward(inputs, refine)
         data = np.asarray(self.residuals_from_outputs(outputs))
-        full = np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
-            else data
+        parts = [data]
+        if self._prior_index:
+            parts.append(self.prior_residuals(np.asarray(theta, np.float64)))
+        if self.initial_state is not None:
+            parts.append(self.initial_state.prior_rows(theta))
+        full = np.concatenate(parts) if len(parts) > 1 else data
         out = full if self.active_rows is None else full[self.active_rows]
         return out if self.row_weights is None else out * self.row_weights
 
@@ -473,7 +519,11 @@ class CalibrationProblem:
         value = self.host_residuals(theta)
         jacobian = np.empty((len(value), len(theta)))
         step = _FD_STEP if central else _FD_STEP_ONE_SIDED
-        for j in range(len(theta)):
+        columns = len(theta)
+        if self.initial_state is not None:  # its block by colouring (calibration_initial_state)
+            columns = self.initial_state.offset
+            jacobian[:, columns:] = self.initial_state.colored_columns(self.host_residuals, theta, value, step, central)
+        for j in range(columns):
             up = theta.copy()
             up[j] += step
             if central:

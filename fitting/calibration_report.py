@@ -57,6 +57,12 @@ def format_table(result: CalibrationResult) -> str:
         lines.append(f"loss: Huber, C = {result.loss['scale']:g} noise scales (IRLS, {result.loss['rounds']} rounds in "
                      f"the last stage): {result.loss['outliers']} of {result.loss['rows']} residuals down-weighted "
                      "as outliers; intervals of the weighted residuals, reduced chi^2 from the median |residual|")
+    if result.initial_state is not None:
+        st = result.initial_state
+        lines.append(f"initial states refined at {len(st['windows'])} window starts ({st['unknowns']} unknowns; prior "
+                     f"{st['sigma_q']:.3g} rad|m, {st['sigma_qd']:.3g} rad/s|m/s): corrections RMS {st['rms_dq']:.3g} "
+                     f"(positions) and {st['rms_dqd']:.3g} (velocities) prior deviations, largest "
+                     f"{max(st['max_dq'], st['max_dqd']):.3g}")
     from .calibration_validation import validation_lines
 
     lines.extend(validation_lines(result.validation, _RMS_UNITS))
@@ -106,6 +112,7 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
         "status": verdict, "window_steps": result.window_steps,
         "priors": {name: {"mean": m, "sd": sd} for name, (m, sd) in result.priors.items()},
         "session": str(d.path), "sessions": result.sessions, "loss": result.loss, "delay": result.delay,
+        "initial_state": result.initial_state,
         "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),

@@ -101,7 +101,7 @@ class Verdict:
 def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noise: Mapping[str, float],
               labels: Sequence[str], uncertainty: GaussNewtonUncertainty, solver_converged: bool,
               solver_message: str, at_bound: Sequence[str] = (), robust: bool = False,
-              series: Mapping[str, Sequence[np.ndarray]] | None = None) -> Verdict:
+              series: Mapping[str, Sequence[np.ndarray]] | None = None, nuisance: int = 0) -> Verdict:
     """Judges a fit from its scaled residuals ``(m,)`` at the optimum.
 
     Args:
@@ -116,6 +116,12 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
             value, ``1.4826 median |r_c|`` (the standard deviation for Gaussian noise, unmoved by a
             few gross outliers), instead of their RMS: ``chi2_c`` is its square times
             ``m_c / dof_c``, ``noise_ratio`` the scale itself.
+        series: per target, its scaled residuals in time order, one ``(T, channels)`` array per
+            session (multiple shooting or not: the recording's time order), for the whiteness
+            test (:func:`fitting.residual_whiteness.lag1_whiteness`); None: not tested.
+        nuisance: the last ``nuisance`` parameters are nuisance unknowns with a prior (the windows'
+            initial states): not judged for identifiability; a direction is reported only when it
+            involves a judged parameter.
     """
     m, n = len(residuals), len(labels)
     chi2, ratio = {}, {}
@@ -148,14 +154,17 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
                         "that cannot reproduce the session; the constants and intervals are not to be trusted")
     u = uncertainty
     directions = []
+    judged = len(labels) - nuisance
     for i in u.unidentifiable_directions:
         vector = u.directions[i]
+        if not np.any(np.abs(vector[:judged]) > COMPONENT_LIMIT):
+            continue
         components = {labels[j]: float(vector[j]) for j in np.argsort(-np.abs(vector))
                       if abs(vector[j]) > COMPONENT_LIMIT}
         ratio_i = float(u.singular_values[i] / u.singular_values[0]) if u.singular_values[0] > 0 else 0.0
         directions.append({"singular_ratio": ratio_i, "log_error": float(u.direction_error[i]),
                            "components": components})
-    unidentifiable = [label for label, ok in zip(labels, u.identifiable) if not ok]
+    unidentifiable = [label for label, ok in zip(labels[:judged], u.identifiable) if not ok]
     if unidentifiable:
         warnings.append(f"not identifiable from this session: {', '.join(unidentifiable)} (cond(J^T J) = "
                         f"{u.condition_number:.3g}; {len(directions)} combination(s) of the constants the data do "

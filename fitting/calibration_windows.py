@@ -159,7 +159,8 @@ class WindowedRollout:
         q, _ = self.model.eval_points(state)
         return q[self._point]
 
-    def handed_over(self, a: int, end: dict[str, np.ndarray], end_points: np.ndarray) -> tuple[dict, dict]:
+    def handed_over(self, a: int, end: dict[str, np.ndarray], end_points: np.ndarray,
+                    refine: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, dict]:
         """The start of the window at frame ``a > 0`` from the carried state ``end`` the previous
         window ended in (``dmarionette.grad.carried`` names, host arrays) and its simulated tie
         points at frames ``a - 1`` and ``a`` ``(2, S, 3)``: the recorded puppet state; the
@@ -169,12 +170,28 @@ class WindowedRollout:
         ``(d_a - d_{a-1}) / H`` (velocities). At the constants the session was recorded with,
         ``d = 0`` and the windows reproduce one long rollout.
 
+        ``refine``: ``(dq, dqd)`` ``(qd_count,)`` each, a correction of the recorded start state
+        (``--fit-initial-state``, :mod:`fitting.calibration_initial_state`): the puppet starts from
+        ``q_a (+) dq`` with velocity ``qd_a + dqd``, and the strings follow its tie points (at
+        frame ``a``, and one step back along the refined velocity for frame ``a - 1``).
+
         Returns:
             ``(inputs, extra)``: ``RolloutInputs`` fields (``joint_q0``, ``joint_qd0``,
             ``particle_q0``, ``particle_qd0``) and the engine's ``tie_target0``, ``tie_force0``.
         """
         joint_q, joint_qd = self._starts[a]
-        difference = np.where(self._tied[None, :, None], self._recorded_points[a - 1:a + 1] - end_points, 0.0)
+        recorded = self._recorded_points[a - 1:a + 1]
+        if refine is not None:
+            from .calibration_initial_state import retract
+
+            topology, h = self.model.puppet.topology, self.data.puppet_dt
+            joint_q = retract(topology, joint_q, refine[0])
+            joint_qd = joint_qd + refine[1]
+            state = self.model.puppet.state()
+            zero = np.zeros(topology.qd_count)
+            recorded = np.stack([self._points(state, retract(topology, joint_q, -h * joint_qd), zero),
+                                 self._points(state, joint_q, zero)])
+        difference = np.where(self._tied[None, :, None], recorded - end_points, 0.0)
         dq = difference[1]
         dqd = (difference[1] - difference[0]) / self.data.puppet_dt
         inputs = {"joint_q0": joint_q, "joint_qd0": joint_qd,
@@ -183,9 +200,10 @@ class WindowedRollout:
         extra = {"tie_target0": end["tie_target"] + dq, "tie_force0": end["tie_force"]}
         return inputs, extra
 
-    def forward(self, inputs) -> dict[str, np.ndarray]:
+    def forward(self, inputs, refine: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, np.ndarray]:
         """Runs the windows in order with the constants of ``inputs`` (a ``RolloutInputs`` over
-        the whole session); returns ``body_pos`` ``(P + 1, bodies, 3)`` (row 0 the session's
+        the whole session), the start states of windows ``a`` in ``refine`` corrected
+        (:meth:`handed_over`); returns ``body_pos`` ``(P + 1, bodies, 3)`` (row 0 the session's
         start) and ``bar_reaction`` ``(T, B, 3)``, stitched from the windows."""
         from dmarionette.grad.carried import carried_arrays
 
@@ -199,7 +217,7 @@ class WindowedRollout:
                                          bar_qd=inputs.bar_qd[rows])
             extra = {}
             if a > 0:
-                start, extra = self.handed_over(a, end, end_points)
+                start, extra = self.handed_over(a, end, end_points, (refine or {}).get(a))
                 window = dataclasses.replace(window, **start)
             engine = self.engines[b - a]
             out = engine.forward(window, **extra)

@@ -200,6 +200,13 @@ def add_calibrate_command(commands) -> None:
                                 "(the bar inputs are shifted; default 0); with --fit-delay the start value")
     calibrate.add_argument("--fit-delay", action="store_true",
                            help="fit that delay too (within +-0.1 s, with its standard error; --solver lm-fd)")
+    calibrate.add_argument("--fit-initial-state", action="store_true",
+                           help="refine the puppet state each shooting window starts from (every window but the "
+                                "first, in the last stage; taken from the recording) as unknowns with the prior "
+                                "--noise-joint (one session, --solver lm-fd, windows)")
+    calibrate.add_argument("--noise-joint", type=number(0.0, low_open=True), default=1e-3, metavar="R",
+                           help="noise of the recorded joint_q, the initial states' prior: rad for rotations, m for "
+                                "the root's translation (default 1e-3; velocities sqrt(2) R / H)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
@@ -287,6 +294,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    prior=args.prior, bounds=args.bounds, freeze=args.freeze,
                                    validate=args.validate, loss=args.loss, huber_scale=args.huber_scale,
                                    delay=args.delay, fit_delay=args.fit_delay,
+                                   fit_initial_state=args.fit_initial_state, noise_joint=args.noise_joint,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None)
     finally:
