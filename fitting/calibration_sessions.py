@@ -67,6 +67,7 @@ class StackedProblem(CalibrationProblem):
         self.params, self.labels, self.string_names = first.params, first.labels, first.string_names
         self.theta_start, self.log_bounds = first.theta_start, first.log_bounds
         self.constant_count, self.delay_index, self.delay = first.constant_count, first.delay_index, first.delay
+        self.initial_state = None  # not with several sessions (refused by calibrate_session)
         self.priors, self.bounds, self.noise = first.priors, first.bounds, first.noise
         self.base, self._prior_index = first.base, first._prior_index
         self._prior_mean, self._prior_sd = first._prior_mean, first._prior_sd
