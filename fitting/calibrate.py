@@ -274,13 +274,11 @@ class CalibrationProblem:
 
     def _set_delay(self, delay: float, fit_delay: bool) -> None:
         """The recording delay: known (``delay``), or fitted from it (one more, linear, parameter)."""
-        from .calibration_delay import DELAY_UNIT, MAX_DELAY
+        from .calibration_delay import DELAY_UNIT, MAX_DELAY, delayed
 
         if not (np.isfinite(delay) and abs(delay) <= MAX_DELAY):
             raise ValueError(f"--delay: got {delay!r} s; expected a delay of the targets behind the bar inputs "
                              f"within +-{MAX_DELAY:g} s")
-        from .calibration_delay import delayed
-
         self.delay = float(delay)
         self.delay_index = None
         self._recorded_inputs = (self.base.top_q, self.base.bar_q, self.base.bar_qd)

@@ -152,9 +152,9 @@ def motion_scene_text(motion: str, duration: float, *, particles: int = 10, stri
 #: The hard cases of issue #14 (tests/fitting/test_calibration_windows.py, benchmarks/bench_calibrate.py
 #: ``--suite``): per session, the motion, its length [s] and the true constants per string (head, back,
 #: knee_left, knee_right, hand_left, hand_right), 0.3x-3x the scene's 300 N/m and 3 N s/m. One
-#: rollout from the scene's constants fails on three of them and misses k_d by 7 % on a fourth;
-#: "extremes" is 1.3 s long so that it fails there too (at 1.0 s and 1.15 s one rollout recovered it;
-#: measured: ``bench_calibrate.py --suite``, docs/calibration.md).
+#: rollout from the scene's constants fails on all five by issue #14's criteria: four in a wrong basin
+#: (exit code 3), and k_d 7.4 % off on the sway. "extremes" is 1.3 s long so that it fails too (at 1.0 s
+#: and 1.15 s one rollout recovered it). Measured: ``bench_calibrate.py --suite``, docs/calibration.md.
 SUITE = {
     "bob_yaw": ("bob_yaw", 1.2, {"k": [307.9, 807.2, 137.3, 804.0, 198.4, 253.5],
                                  "k_d": [5.59, 2.34, 3.14, 1.06, 4.79, 3.06]}),
