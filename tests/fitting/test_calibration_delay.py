@@ -74,7 +74,7 @@ def test_fit_delay_recovers_the_delay_and_the_constants(session, tmp_path, capsy
     out = tmp_path / "out"
     code = main(["calibrate", str(session), "--targets", "both", "--fit-delay", "--noise-position",
                  str(SUITE_NOISE[0]), "--noise-force", str(SUITE_NOISE[1]), "--fast-compile", "--quiet",
-                 "--no-picture", "--out", str(out)])
+                 "--out", str(out)])
     printed = capsys.readouterr().out
     summary = json.loads((out / "calibration.json").read_text())
     rows = {row["label"]: row for row in summary["constants"]}
@@ -84,6 +84,7 @@ def test_fit_delay_recovers_the_delay_and_the_constants(session, tmp_path, capsy
     assert summary["delay"]["fitted"] and summary["delay"]["seconds"] == delay["fitted"]
     assert 0 < delay["standard_error"] < 1e-3 and abs(delay["fitted"] - DELAY) <= 3 * delay["standard_error"], delay
     assert summary["units"]["delay"] == "s" and "delay " in printed
+    assert (out / "calibration.png").stat().st_size > 10_000  # the picture with a delay row in the table
     for name in (r["label"] for r in summary["constants"] if r["label"] != "delay"):
         row = rows[name]
         kind, string = name.split("[")

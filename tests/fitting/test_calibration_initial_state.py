@@ -8,6 +8,7 @@ from two noisy frames, 0.043 rad/s off), and drifts from the data whatever the c
 """
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -86,6 +87,10 @@ def test_refined_initial_states_explain_noisy_window_starts(noisy, tmp_path):
     assert 0.2 < refined.initial_state["rms_dq"] < 2.0 and 0.2 < refined.initial_state["rms_dqd"] < 2.0
     assert "initial states refined at 1 window starts" in format_table(refined)
     assert result_summary(refined)["initial_state"]["windows"] == pytest.approx([10 * data.puppet_dt])
+    from fitting.calibration_report import write_outputs
+
+    files = write_outputs(refined, tmp_path / "out")  # the picture and JSON with nuisance unknowns
+    assert Path(files["plot"]).stat().st_size > 10_000 and Path(files["summary"]).stat().st_size > 1_000
 
 
 def test_initial_state_options_are_checked(noisy):
