@@ -18,8 +18,8 @@ median is reported.
 ``--suite`` calibrates the five fast sessions of ``fitting.synthetic_scenes.SUITE`` (issue #14's
 hard cases, the test suite's) twice, with one rollout (``window=0``, the method before the issue)
 and with the default multiple shooting, from the scene's constants, and prints per session the
-exit code, steps, rollouts, seconds, the largest error in standard errors and the largest
-relative errors of ``k`` and ``k_d``.
+exit code, steps, rollouts, seconds, the largest error in standard errors, the largest
+relative errors of ``k`` and ``k_d``, the reduced chi-squared and the whiteness test's ``z`` per target.
 
 ``--compare`` times the pieces on the session instead: one forward rollout and one backward
 pass (median of repeats), and each solver: ``lm-fd`` and ``bfgs`` to convergence, ``lm-bwd``
@@ -160,7 +160,10 @@ def suite(level: int) -> list[dict]:
                              "max_error_in_se": float(np.max(np.abs(result.fitted - truth) / se)),
                              "max_rel_error_k": float(np.abs(error[:6]).max()),
                              "max_rel_error_k_d": float(np.abs(error[6:]).max()),
-                             "reduced_chi2": result.verdict.reduced_chi2, "load_average": os.getloadavg()})
+                             "reduced_chi2": result.verdict.reduced_chi2,
+                             "whiteness_z": {t: None if w is None else round(w["z"], 2)
+                                             for t, w in result.verdict.whiteness.items()},
+                             "load_average": os.getloadavg()})
                 print(json.dumps(rows[-1]), file=sys.stderr)
     return rows
 

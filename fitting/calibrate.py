@@ -189,13 +189,23 @@ class CalibrationProblem:
             whole session (single shooting). Needs ``joint_q`` in ``/puppet/state`` at every
             frame; the forward-only residuals (:meth:`host_residuals`, :meth:`fd_jacobian`)
             use the windows, the reverse-mode ones (:meth:`jax_residuals`) do not.
+        delay: the targets lag the bar inputs by this many seconds (:mod:`fitting.calibration_delay`:
+            the inputs are shifted); with ``fit_delay`` its start value.
+        fit_delay: fit the delay too: one more parameter, ``"delay"``, after the constants, in
+            milliseconds in ``theta`` (:data:`fitting.calibration_delay.DELAY_UNIT`; not a logarithm),
+            inside ``[-MAX_DELAY, MAX_DELAY]``. Forward-only residuals.
+        fit_initial_state: refine the start state of every window but the first in the full-session
+            stage (:mod:`fitting.calibration_initial_state`): ``2 qd_count`` unknowns per window,
+            after the constants and the delay, added by :meth:`use_windows`; ``noise_joint``: the
+            recorded ``joint_q``'s noise, their prior (rad, m).
     """
 
     def __init__(self, data: CalibrationData, params: Sequence[Parameter], *,
                  start: Mapping[str, float | Sequence[float]] | None = None, noise_position: float = 1e-3,
                  noise_force: float = 1e-2, optimization_level: int = 2, checkpoint_steps: int | None = None,
                  window_steps: int | None = None, priors: Mapping[str, tuple[float, float]] | None = None,
-                 bounds: Mapping[str, tuple[float, float]] | None = None):
+                 bounds: Mapping[str, tuple[float, float]] | None = None, delay: float = 0.0,
+                 fit_delay: bool = False, fit_initial_state: bool = False, noise_joint: float = 1e-3):
         from dmarionette.marionette.solver import MarionetteModel
         from dmarionette.grad.engine import MarionetteGradient
 
@@ -248,16 +258,66 @@ class CalibrationProblem:
         if outside:
             raise ValueError(f"--bounds: start values {outside} lie outside their bounds {self.bounds}; give "
                              "--start values inside")
+        self.constant_count = len(self.theta_start)  # the log-constants; then the linear unknowns
+        self._set_delay(delay, fit_delay)
         self.data_residual_count = self.residual_count
         self.residual_count += len(self._prior_index)
         self.windows = None
         self.active_rows = None
         self.row_weights: np.ndarray | None = None
+        self.fit_initial_state, self.noise_joint = bool(fit_initial_state), float(noise_joint)
+        self.initial_state = None
         self.use_windows(window_steps)
 
     #: ``row_weights``: None, or a factor per returned residual row of :meth:`host_residuals` (IRLS:
     #: the square roots of the Huber weights, :mod:`fitting.calibration_robust`); the forward-only
     #: residuals and Jacobians are then of the weighted rows.
+
+    def _set_delay(self, delay: float, fit_delay: bool) -> None:
+        """The recording delay: known (``delay``), or fitted from it (one more, linear, parameter)."""
+        from .calibration_delay import DELAY_UNIT, MAX_DELAY, delayed
+
+        if not (np.isfinite(delay) and abs(delay) <= MAX_DELAY):
+            raise ValueError(f"--delay: got {delay!r} s; expected a delay of the targets behind the bar inputs "
+                             f"within +-{MAX_DELAY:g} s")
+        self.delay = float(delay)
+        self.delay_index = None
+        self._recorded_inputs = (self.base.top_q, self.base.bar_q, self.base.bar_qd)
+        if not fit_delay:  # a known delay: the inputs shifted once, for every solver
+            self.base.top_q, self.base.bar_q, self.base.bar_qd = (delayed(x, self.delay, self.data.string_dt)
+                                                                  for x in self._recorded_inputs)
+        else:
+            self.delay_index = len(self.theta_start)
+            self.labels = [*self.labels, "delay"]
+            self.theta_start = np.append(self.theta_start, self.delay / DELAY_UNIT)
+            self.log_bounds = (np.append(self.log_bounds[0], -MAX_DELAY / DELAY_UNIT),
+                               np.append(self.log_bounds[1], MAX_DELAY / DELAY_UNIT))
+
+    def delay_of(self, theta) -> float:
+        """The delay [s] at ``theta``: fitted, or the known one."""
+        from .calibration_delay import DELAY_UNIT
+
+        return self.delay if self.delay_index is None else float(theta[self.delay_index]) * DELAY_UNIT
+
+    def inputs_at(self, theta: np.ndarray):
+        """The rollout's inputs at ``theta``: the constants, and the bar inputs delayed (if any)."""
+        from .calibration_delay import delayed
+
+        inputs = dataclasses.replace(self.base, **self.constants(theta))
+        if self.delay_index is None:
+            return inputs  # self.base holds the known delay's inputs
+        top_q, bar_q, bar_qd = (delayed(x, self.delay_of(theta), self.data.string_dt) for x in self._recorded_inputs)
+        return dataclasses.replace(inputs, top_q=top_q, bar_q=bar_q, bar_qd=bar_qd)
+
+    def linear(self) -> np.ndarray:
+        """Per parameter, 0 where ``theta`` is a log-constant, else the unit of ``theta`` (the delay:
+        its value is ``DELAY_UNIT * theta``) ``(n,)``."""
+        from .calibration_delay import DELAY_UNIT
+
+        unit = np.where(np.arange(len(self.theta_start)) >= self.constant_count, DELAY_UNIT, 0.0)
+        if self.initial_state is not None:
+            unit[self.initial_state.offset:] = self.initial_state.units()
+        return unit
 
     def _name_of(self, index: int) -> str:
         offset = 0
@@ -285,7 +345,12 @@ class CalibrationProblem:
         ``row_weights``."""
         self.active_rows = None
         self.row_weights = None
+        self._drop_initial_state()
         if window_steps is None:
+            if self.fit_initial_state:
+                raise ValueError("--fit-initial-state refines the start states of the shooting windows, taken from "
+                                 "the recording; one rollout (--window 0) starts from the scene's rest state only: "
+                                 "use windows (the default)")
             self.windows = None
             return
         if prefix_steps is not None and prefix_steps < self.data.puppet_steps:
@@ -306,6 +371,33 @@ class CalibrationProblem:
                              "puppet state, but channel /puppet/state does not hold 'joint_q' at every puppet "
                              "frame; calibrate with one rollout (windows off) instead")
         self.windows = WindowedRollout(self.model, self.data, joint_q, int(window_steps), puppet_steps=prefix_steps)
+        if self.fit_initial_state and prefix_steps is None:
+            self._add_initial_state()
+
+    def _add_initial_state(self) -> None:
+        """The start states of the windows but the first as unknowns (after the other parameters)."""
+        from .calibration_initial_state import InitialStateUnknowns
+
+        d = self.data
+        per_step = {"bodies": 3 * len(d.bodies), "feedback": 3 * len(d.bars)}
+        unknowns = InitialStateUnknowns(self.windows.windows, self.model.puppet.topology.qd_count, self.noise_joint,
+                                        d.puppet_dt, len(self.theta_start), self._rows_of, per_step, d.substeps,
+                                        self.residual_count)
+        self.initial_state = unknowns
+        self.labels = [*self.labels, *unknowns.labels()]
+        self.theta_start = np.concatenate([self.theta_start, np.zeros(unknowns.count)])
+        self.log_bounds = tuple(np.concatenate([b, np.full(unknowns.count, sign * np.inf)])
+                                for b, sign in zip(self.log_bounds, (-1.0, 1.0)))
+        self.residual_count += unknowns.count
+
+    def _drop_initial_state(self) -> None:
+        unknowns, self.initial_state = getattr(self, "initial_state", None), None
+        if unknowns is None:
+            return
+        keep = unknowns.offset
+        self.labels, self.theta_start = self.labels[:keep], self.theta_start[:keep]
+        self.log_bounds = tuple(b[:keep] for b in self.log_bounds)
+        self.residual_count -= unknowns.count
 
     # ------------------------------------------------------------------ parameters
     def _wrap_engine(self) -> None:
@@ -354,8 +446,10 @@ class CalibrationProblem:
         return out
 
     def values(self, theta) -> np.ndarray:
-        """The fitted constants themselves, ``exp(theta)`` [N/m or N s/m]."""
-        return np.exp(np.asarray(theta, dtype=np.float64))
+        """The fitted constants themselves, ``exp(theta)`` [N/m or N s/m], and the linear unknowns
+        (the delay [s]) as they are."""
+        theta, unit = np.asarray(theta, dtype=np.float64), self.linear()
+        return np.where(unit > 0, unit * theta, np.exp(np.where(unit > 0, 0.0, theta)))
 
     # ------------------------------------------------------------------ residuals
     def _target_layout(self) -> dict[str, tuple[int, int]]:
@@ -392,21 +486,26 @@ class CalibrationProblem:
 
     def host_residuals(self, theta: np.ndarray) -> np.ndarray:
         """Residuals ``(m,)`` at ``theta`` from one forward rollout (numpy, no JAX)."""
-        inputs = dataclasses.replace(self.base, **self.constants(np.asarray(theta, np.float64)))
+        inputs = self.inputs_at(np.asarray(theta, np.float64))
         if self.windows is None:
             outputs = dataclasses.asdict(self.engine.forward(inputs))
         else:
             self.counts["forward"] += 1  # one pass over every window: one rollout of the session
             if self.on_forward is not None:
                 self.on_forward(self.counts["forward"])
-            outputs = self.windows.forward(inputs)
+            refine = None if self.initial_state is None else self.initial_state.refine(np.asarray(theta, np.float64))
+            outputs = self.windows.forward(inputs, refine)
         return self._residuals_at(theta, outputs)
 
     def _residuals_at(self, theta: np.ndarray, outputs: dict) -> np.ndarray:
         """What :meth:`host_residuals` returns, from the rollout's ``outputs`` at ``theta``."""
         data = np.asarray(self.residuals_from_outputs(outputs))
-        full = np.concatenate([data, self.prior_residuals(np.asarray(theta, np.float64))]) if self._prior_index \
-            else data
+        parts = [data]
+        if self._prior_index:
+            parts.append(self.prior_residuals(np.asarray(theta, np.float64)))
+        if self.initial_state is not None:
+            parts.append(self.initial_state.prior_rows(theta))
+        full = np.concatenate(parts) if len(parts) > 1 else data
         out = full if self.active_rows is None else full[self.active_rows]
         return out if self.row_weights is None else out * self.row_weights
 
@@ -420,14 +519,15 @@ class CalibrationProblem:
         if len(thetas) == 1:
             return [self.host_residuals(thetas[0])]
         runner = self._batched(len(thetas))
-        inputs = [dataclasses.replace(self.base, **self.constants(t)) for t in thetas]
+        inputs = [self.inputs_at(t) for t in thetas]
         self.counts["forward"] += len(thetas)
         if self.on_forward is not None:
             self.on_forward(self.counts["forward"])
         if self.windows is None:
             outputs = [dataclasses.asdict(out) for out in runner.forward(inputs)]
         else:
-            outputs = runner.forward(inputs)
+            refine = None if self.initial_state is None else [self.initial_state.refine(t) for t in thetas]
+            outputs = runner.forward(inputs, refine)
         return [self._residuals_at(t, out) for t, out in zip(thetas, outputs)]
 
     def _batched(self, worlds: int):
@@ -466,8 +566,10 @@ class CalibrationProblem:
         """
         theta = np.asarray(theta, np.float64)
         step = _FD_STEP if central else _FD_STEP_ONE_SIDED
+        # The initial states' block by colouring (calibration_initial_state), the rest batched as worlds.
+        columns = len(theta) if self.initial_state is None else self.initial_state.offset
         points = [theta]
-        for j in range(len(theta)):
+        for j in range(columns):
             for sign in ((1.0, -1.0) if central else (1.0,)):
                 moved = theta.copy()
                 moved[j] += sign * step
@@ -475,7 +577,9 @@ class CalibrationProblem:
         values = self.residuals_at(points)  # [r(theta), r(up_0), (r(down_0)), r(up_1), ...]
         value = values[0]
         jacobian = np.empty((len(value), len(theta)))
-        for j in range(len(theta)):
+        if self.initial_state is not None:
+            jacobian[:, columns:] = self.initial_state.colored_columns(self.host_residuals, theta, value, step, central)
+        for j in range(columns):
             if central:
                 jacobian[:, j] = (values[1 + 2 * j] - values[2 + 2 * j]) / (2 * step)
             else:

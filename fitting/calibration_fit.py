@@ -56,6 +56,11 @@ class CalibrationResult:
             fitted), else None.
         sessions: with several sessions, one dict per session: ``session`` (its path),
             ``rms_before``, ``rms_after`` per target in its unit; else None.
+        delay: the recording delay of the targets behind the bar inputs: ``seconds``, ``fitted``
+            (``--fit-delay``) and its ``standard_error`` [s] (None when given).
+        initial_state: with ``fit_initial_state``, the refined window starts
+            (:func:`_initial_state_summary`), else None. ``labels``, ``start``, ``fitted`` and
+            :meth:`table` hold the constants (and the delay) only; ``uncertainty`` every unknown.
         loss: ``name`` (``"l2"``, ``"huber"``); for Huber also ``scale`` (``C``), ``rounds``
             (IRLS rounds of the last stage), ``outliers`` (rows down-weighted at the end), ``rows``.
     """
@@ -86,6 +91,8 @@ class CalibrationResult:
     validation: dict | None = None
     sessions: list | None = None
     loss: dict = dataclasses.field(default_factory=lambda: {"name": "l2"})
+    delay: dict = dataclasses.field(default_factory=lambda: {"seconds": 0.0, "fitted": False, "standard_error": None})
+    initial_state: dict | None = None
 
     def table(self) -> list[dict[str, Any]]:
         """One row per constant: ``label``, ``start``, ``fitted``, ``standard_error``, ``relative_error``."""
@@ -102,6 +109,33 @@ def _unscaled(problem: CalibrationProblem, residuals: np.ndarray) -> dict[str, n
         shape = (d.puppet_steps, len(d.bodies), 3) if target == "bodies" else (d.step_count, len(d.bars), 3)
         out[target] = residuals[a:b].reshape(shape) * problem.noise[target]
     return out
+
+
+def _time_series(problem: CalibrationProblem, residuals: np.ndarray) -> dict[str, list[np.ndarray]]:
+    """Per target, the scaled residuals in the recording's time order, one ``(steps, channels)``
+    array per session (the whiteness test of :func:`fitting.calibration_verdict.judge_fit`)."""
+    def steps(d: CalibrationData, target: str) -> int:
+        return d.puppet_steps if target == "bodies" else d.step_count
+
+    if not hasattr(problem, "session_data"):
+        return {t: [residuals[a:b].reshape(steps(problem.data, t), -1)]
+                for t, (a, b) in problem.target_slices().items()}
+    out: dict[str, list[np.ndarray]] = {}
+    for data, rows in zip(problem.session_data, problem.session_rows()):
+        for t, index in rows.items():
+            out.setdefault(t, []).append(residuals[index].reshape(steps(data, t), -1))
+    return out
+
+
+def _initial_state_summary(states, theta: np.ndarray) -> dict[str, Any]:
+    """The refined window starts: ``windows`` (their start times [s]), ``unknowns``, the priors
+    ``sigma_q`` (rad, m) and ``sigma_qd`` (rad/s, m/s), and the corrections' RMS and largest size in
+    prior deviations, positions ``dq`` and velocities ``dqd`` apart."""
+    block = np.asarray(theta[states.offset:states.offset + states.count]).reshape(len(states.starts), 2, -1)
+    return {"windows": [a * states.puppet_dt for a in states.starts], "unknowns": states.count,
+            "sigma_q": states.sigma_q, "sigma_qd": states.sigma_qd,
+            "rms_dq": float(np.sqrt(np.mean(block[:, 0] ** 2))), "rms_dqd": float(np.sqrt(np.mean(block[:, 1] ** 2))),
+            "max_dq": float(np.abs(block[:, 0]).max()), "max_dqd": float(np.abs(block[:, 1]).max())}
 
 
 def _rms(residuals: Mapping[str, np.ndarray]) -> dict[str, float]:
@@ -288,7 +322,9 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                       bounds: str | Mapping[str, tuple[float, float]] | None = None,
                       freeze: str | Sequence[str] | None = None,
                       validate: float | None = None, loss: str = "l2",
-                      huber_scale: float | None = None, ray: str = "off", workers: int | None = None,
+                      huber_scale: float | None = None, delay: float = 0.0,
+                      fit_delay: bool = False, fit_initial_state: bool = False,
+                      noise_joint: float = 1e-3, ray: str = "off", workers: int | None = None,
                       _opened: list | None = None) -> CalibrationResult:
     """Fits string constants to a recorded session.
 
@@ -331,6 +367,13 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         loss: ``"l2"`` (least squares) or ``"huber"`` (:mod:`fitting.calibration_robust`: IRLS,
             ``lm-fd`` only).
         huber_scale: Huber's ``C`` in noise scales (default 1.345; ``loss="huber"`` only).
+        delay: the recorded targets lag the bar inputs by this many seconds
+            (:mod:`fitting.calibration_delay`); with ``fit_delay`` the start value.
+        fit_delay: fit the delay too (``lm-fd`` only): a parameter ``"delay"`` [s] after the
+            constants, with its standard error; shared by several sessions.
+        fit_initial_state: refine the start state of every shooting window but the first in the last
+            stage (:mod:`fitting.calibration_initial_state`; ``lm-fd``, one session, windows), with
+            the prior ``noise_joint`` (the recorded ``joint_q``'s noise, rad and m).
         ray: with several sessions, where their problems are kept and rolled out
             (:mod:`fitting.calibration_sessions`): ``"off"`` (this process), ``"local"`` or a Ray
             cluster address, a worker per session at most (``workers``: fewer); the same numbers
@@ -360,6 +403,11 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     if loss == "huber" and solver != "lm-fd":
         raise ValueError(f"--loss huber runs with --solver lm-fd only (got {solver!r})")
     huber_scale = DEFAULT_HUBER_SCALE if huber_scale is None else huber_scale
+    if fit_initial_state and (solver != "lm-fd" or others):
+        raise ValueError("--fit-initial-state runs with --solver lm-fd and one session only (got "
+                         f"{solver!r}, {len(paths)} sessions)")
+    if fit_delay and solver != "lm-fd":
+        raise ValueError(f"--fit-delay runs with --solver lm-fd only (got {solver!r}); give a known --delay instead")
     whole = None
     if validate is not None:
         from .calibration_validation import split_for_validation
@@ -380,14 +428,15 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
 
         problem = StackedProblem([SessionSpec(d, parameters, start, noise_position, noise_force, optimization_level,
                                               checkpoint_steps, schedule[-1], prior if i == 0 else None,
-                                              bounds if i == 0 else None)
+                                              bounds if i == 0 else None, delay, fit_delay)
                                   for i, d in enumerate([data, *others])], ray=ray, workers=workers)
         _opened.append(problem)  # closed (its Ray workers stopped) by _closing, also if this raises
     else:
         problem = CalibrationProblem(data, parameters, start=start, noise_position=noise_position,
                                      noise_force=noise_force, optimization_level=optimization_level,
                                      checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], priors=prior,
-                                     bounds=bounds)
+                                     bounds=bounds, delay=delay, fit_delay=fit_delay,
+                                     fit_initial_state=fit_initial_state, noise_joint=noise_joint)
     stage = {"name": "start"}
     if progress is not None:
         problem.on_forward = lambda count: progress(stage["name"], count)
@@ -398,6 +447,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         last = index == len(schedule) - 1
         prefix = None if last or steps is None else max(1, int(round(STAGE_SECONDS / data.puppet_dt)))
         problem.use_windows(steps, prefix)
+        n = len(problem.theta_start)  # the initial states are unknowns of the last stage only, from 0
+        theta = np.concatenate([theta[:n], np.zeros(max(0, n - len(theta)))])
 
         def run(theta_start, atol=1e-3 if last else STAGE_ATOL):
             return fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta_start,
@@ -424,7 +475,7 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     else:
         rows_of = {t: np.nonzero((used >= a) & (used < b))[0] for t, (a, b) in all_slices.items() if b > a}
     uncertainty = gauss_newton_uncertainty(jac, residuals, problem.values(theta), rows_of, known_noise=known_noise,
-                                           known=("prior",))
+                                           known=("prior",), linear=problem.linear())
     stage["name"] = "residuals"
     r1 = problem.host_residuals(theta)  # Huber: the weighted rows
     weights, problem.row_weights = problem.row_weights, None
@@ -434,8 +485,11 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                 if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
     # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
     judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
+    states = getattr(problem, "initial_state", None)
     verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
-                        fit["message"], at_bound=at_bound, robust=loss == "huber")
+                        fit["message"], at_bound=at_bound, robust=loss == "huber",
+                        series=_time_series(problem, plain), nuisance=0 if states is None else states.count)
+    shown = len(problem.labels) if states is None else states.offset  # the initial states: a summary only
     validation = None
     if whole is not None:
         from .calibration_validation import held_out_residuals, judge_validation
@@ -443,10 +497,11 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         stage["name"] = "validation"
         full = CalibrationProblem(whole, parameters, start=start, noise_position=noise_position,
                                   noise_force=noise_force, optimization_level=optimization_level,
-                                  checkpoint_steps=checkpoint_steps, window_steps=schedule[-1])
+                                  checkpoint_steps=checkpoint_steps, window_steps=schedule[-1], delay=delay,
+                                  fit_delay=fit_delay)  # the held-out end from the recorded window starts
         if progress is not None:
             full.on_forward = lambda count: progress(stage["name"], count)
-        validation = held_out_residuals(full, theta, data)
+        validation = held_out_residuals(full, theta[:shown], data)
         judge_validation(verdict, validation, problem.noise)
     message = "converged" if verdict.converged else \
         ("solver converged, but the fit does not explain the data" if fit["converged"] else fit["message"])
@@ -458,8 +513,9 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         sessions = session_summaries(problem, r0, plain)
         rms_before, rms_after = (_rms_over(problem, r) for r in (r0, plain))
     return CalibrationResult(
-        data=data, parameters=parameters, labels=problem.labels, start=problem.values(problem.theta_start),
-        fitted=problem.values(theta), uncertainty=uncertainty, rms_before=rms_before, rms_after=rms_after,
+        data=data, parameters=parameters, labels=problem.labels[:shown],
+        start=problem.values(problem.theta_start)[:shown], fitted=problem.values(theta)[:shown],
+        uncertainty=uncertainty, rms_before=rms_before, rms_after=rms_after,
         residuals_before=before, residuals_after=after, solver=solver, solver_steps=fit["steps"],
         converged=verdict.converged, message=message, jacobian=jac_cost,
         cost={"forward_passes": fit["forward_passes"], "backward_passes": fit["backward_passes"],
@@ -470,6 +526,10 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         window_steps=schedule[-1], priors=dict(problem.priors),
         string_constants={p.name: problem.constants(theta)[ENGINE_FIELDS[p.name]].tolist() for p in parameters},
         validation=validation, sessions=sessions,
+        delay={"seconds": problem.delay_of(theta), "fitted": problem.delay_index is not None,
+               "standard_error": None if problem.delay_index is None else
+               float(uncertainty.standard_error[problem.delay_index])},
+        initial_state=None if states is None else _initial_state_summary(states, theta),
         loss={"name": loss} if loss == "l2" else
         {"name": loss, "scale": huber_scale, "rounds": fit["rounds"], "outliers": fit["outliers"],
          "rows": int(len(r1))})

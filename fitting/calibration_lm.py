@@ -7,9 +7,8 @@ one batched marionette, :meth:`fitting.calibrate.CalibrationProblem.fd_jacobian`
 at every step (optimistix's ``LevenbergMarquardt`` with ``jac="fwd"``, the solver before) made
 each step cost ``n + 2`` rollouts, 13 or 14 for 12 constants. Here (:func:`fitting.least_squares.
 levenberg_marquardt` with ``secant_rows``) the Jacobian is computed once and then updated from
-each step by Broyden's rank-one secant update, so a step costs one rollout; a fresh Jacobian is
-computed when two trials in a row fail, and before the run may stop. The prior rows (``--prior``)
-are exact (cheap) rows.
+each step by Broyden's rank-one secant update (every row, the prior's too), so a step costs one
+rollout; a fresh Jacobian is computed when two trials in a row fail, and before the run may stop.
 
 Convergence is a Cauchy test on the solver variable ``u = (theta - theta_start) / STEP_UNIT``
 (one unit is a 1 % change of a constant): a step taken with a fresh Jacobian moved every constant
@@ -64,20 +63,6 @@ def fit_lm_fd(problem, theta_start: np.ndarray, *, max_steps: int, atol: float, 
         jac[:, ~free] = 0.0  # held at a bound by the projection: no derivative
         return jac
 
-    # The returned rows: the data rows (secant-updated), then the prior rows (exact, cheap).
-    count = problem.residual_count if problem.active_rows is None else len(problem.active_rows)
-    a, b = problem.prior_slice()
-    priors = b - a
-    index = np.asarray(problem._prior_index, dtype=int)
-
-    def prior_rows(u):
-        theta = theta_of(u)
-        rows = np.zeros((priors, len(theta)))
-        rows[np.arange(priors), index] = np.exp(theta[index]) / problem._prior_sd * step_unit
-        if problem.row_weights is not None:  # Huber's weights (IRLS) scale these rows too
-            rows *= problem.row_weights[count - priors:, None]
-        return rows
-
     def step_tolerance(jac):
         # A tenth of each constant's standard error under the given noise (the residuals are scaled
         # by it), in u units; never below atol (the old test) nor above one unit (1 %).
@@ -88,10 +73,10 @@ def fit_lm_fd(problem, theta_start: np.ndarray, *, max_steps: int, atol: float, 
             sd = np.zeros(len(jtj))
         return np.clip(STEP_FRACTION * sd, atol, 1.0)
 
+    count = problem.residual_count if problem.active_rows is None else len(problem.active_rows)
     result = levenberg_marquardt(residuals, jacobian, np.zeros_like(theta0),
                                  max_steps=int(max_steps) * SECANT_STEPS_PER_STEP, step_tol=step_tolerance,
-                                 xtol=0.0, ftol=0.0, gtol=0.0, secant_rows=count - priors,
-                                 exact_rows=prior_rows if priors else None)
+                                 xtol=0.0, ftol=0.0, gtol=0.0, secant_rows=count)
     converged = result.status in ("small_step", "stationary")
     message = "converged" if converged else {
         "no_progress": "not converged: the steps stopped lowering the cost before they became small",

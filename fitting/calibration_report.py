@@ -15,7 +15,7 @@ from .synthetic_session import SPEC_FIELDS
 
 __all__ = ["calibrated_scene_table", "format_table", "result_summary", "write_calibrated_scene", "write_outputs"]
 
-_UNITS = {"k": "N/m", "k_d": "N s/m", "k_s": "N/m"}
+_UNITS = {"k": "N/m", "k_d": "N s/m", "k_s": "N/m", "delay": "s"}
 _RMS_UNITS = {"bodies": "m", "feedback": "N"}
 # StringSpec fields a [[strings]] table may hold (docs/scenes.md): the recorded constants go back in.
 _STRING_KEYS = ("particle_count", "mass", "load_mass", "stiffness", "internal_friction", "air_drag",
@@ -28,8 +28,11 @@ def format_table(result: CalibrationResult) -> str:
     lines = [f"{'constant':<22} {'start':>12} {'fitted':>12} {'std. error':>12} {'rel.':>9}  unit"]
     for row in result.table():
         unit = _UNITS[row["label"].split("[")[0]]
+        relative = f"{'-':>9}" if row["label"] == "delay" else f"{100 * row['relative_error']:>8.3f}%"
         lines.append(f"{row['label']:<22} {row['start']:>12.5g} {row['fitted']:>12.6g} "
-                     f"{row['standard_error']:>12.3g} {100 * row['relative_error']:>8.3f}%  {unit}")
+                     f"{row['standard_error']:>12.3g} {relative}  {unit}")
+    if result.delay["seconds"] and not result.delay["fitted"]:
+        lines.append(f"delay of the targets behind the bar inputs: {result.delay['seconds']:.6g} s (given)")
     for name, (mean, sd) in result.priors.items():
         lines.append(f"prior on {name}: {mean:.6g} ± {sd:.3g} {_UNITS[name]} (Gaussian)")
     lines.append("")
@@ -41,6 +44,11 @@ def format_table(result: CalibrationResult) -> str:
     if v is not None:
         for target, chi2 in v.reduced_chi2.items():
             lines.append(f"residual / given noise, {target:<8}: {v.noise_ratio[target]:.3g} (reduced chi^2 {chi2:.3g})")
+        for target, w in v.whiteness.items():
+            lines.append(f"residual lag-1 autocorrelation, {target:<8}: " +
+                         ("not tested (too few samples per channel)" if w is None else
+                          f"{w['lag1']:.3g} ({w['z']:.3g} standard deviations of white noise's 0, "
+                          f"{w['channels']} channels)"))
     for i, session in enumerate(result.sessions or []):
         parts = ", ".join(f"{t} {session['rms_before'][t]:.4g} -> {session['rms_after'][t]:.4g} {_RMS_UNITS[t]}"
                           for t in session["rms_after"])
@@ -49,6 +57,12 @@ def format_table(result: CalibrationResult) -> str:
         lines.append(f"loss: Huber, C = {result.loss['scale']:g} noise scales (IRLS, {result.loss['rounds']} rounds in "
                      f"the last stage): {result.loss['outliers']} of {result.loss['rows']} residuals down-weighted "
                      "as outliers; intervals of the weighted residuals, reduced chi^2 from the median |residual|")
+    if result.initial_state is not None:
+        st = result.initial_state
+        lines.append(f"initial states refined at {len(st['windows'])} window starts ({st['unknowns']} unknowns; prior "
+                     f"{st['sigma_q']:.3g} rad|m, {st['sigma_qd']:.3g} rad/s|m/s): corrections RMS {st['rms_dq']:.3g} "
+                     f"(positions) and {st['rms_dqd']:.3g} (velocities) prior deviations, largest "
+                     f"{max(st['max_dq'], st['max_dqd']):.3g}")
     from .calibration_validation import validation_lines
 
     lines.extend(validation_lines(result.validation, _RMS_UNITS))
@@ -97,7 +111,8 @@ def result_summary(result: CalibrationResult) -> dict[str, Any]:
     return _finite_or_text({
         "status": verdict, "window_steps": result.window_steps,
         "priors": {name: {"mean": m, "sd": sd} for name, (m, sd) in result.priors.items()},
-        "session": str(d.path), "sessions": result.sessions, "loss": result.loss,
+        "session": str(d.path), "sessions": result.sessions, "loss": result.loss, "delay": result.delay,
+        "initial_state": result.initial_state,
         "scene": d.scene.name, "targets": list(d.targets), "inputs": d.input_source,
         "duration": float(d.frame_time[-1]), "puppet_steps": d.puppet_steps, "string_steps": d.step_count,
         "constants": result.table(),
@@ -169,7 +184,7 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     d = result.data
-    names = sorted({label.split("[")[0] for label in result.labels}, key=["k", "k_d", "k_s"].index)
+    names = [name for name in ("k", "k_d", "k_s") if any(label.split("[")[0] == name for label in result.labels)]
     targets = list(result.rms_before)
     fig, axes = plt.subplots(2, max(len(targets), len(names)), figsize=(6 * max(len(targets), len(names)), 7),
                              squeeze=False)

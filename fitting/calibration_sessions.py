@@ -72,6 +72,8 @@ class SessionSpec:
     window_steps: int | None = None
     priors: Mapping | None = None
     bounds: Mapping | None = None
+    delay: float = 0.0
+    fit_delay: bool = False
 
 
 @dataclasses.dataclass
@@ -88,7 +90,7 @@ def build_session(spec: SessionSpec) -> SessionState:
     problem = CalibrationProblem(spec.data, spec.params, start=spec.start, noise_position=spec.noise_position,
                                  noise_force=spec.noise_force, optimization_level=spec.optimization_level,
                                  checkpoint_steps=spec.checkpoint_steps, window_steps=spec.window_steps,
-                                 priors=spec.priors, bounds=spec.bounds)
+                                 priors=spec.priors, bounds=spec.bounds, delay=spec.delay, fit_delay=spec.fit_delay)
     return SessionState(problem, (spec.window_steps, None))
 
 
@@ -97,6 +99,7 @@ def session_header(state: SessionState, _request=None) -> dict:
     priors, noise scales, the engine's fixed inputs (``base``) and the row layout."""
     p = state.problem
     return {"params": p.params, "labels": p.labels, "string_names": p.string_names, "theta_start": p.theta_start,
+            "constant_count": p.constant_count, "delay_index": p.delay_index, "delay": p.delay,
             "log_bounds": p.log_bounds, "priors": p.priors, "bounds": p.bounds, "noise": p.noise, "base": p.base,
             "prior_index": p._prior_index, "prior_mean": p._prior_mean, "prior_sd": p._prior_sd,
             "data_residual_count": p.data_residual_count, "target_slices": p.target_slices(),
@@ -162,6 +165,8 @@ class StackedProblem(CalibrationProblem):
         self.data = specs[0].data
         self.params, self.labels, self.string_names = first["params"], first["labels"], first["string_names"]
         self.theta_start, self.log_bounds = first["theta_start"], first["log_bounds"]
+        self.constant_count, self.delay_index, self.delay = first["constant_count"], first["delay_index"], first["delay"]
+        self.initial_state = None  # not with several sessions (refused by calibrate_session)
         self.priors, self.bounds, self.noise = first["priors"], first["bounds"], first["noise"]
         self.base = first["base"]
         self._prior_index, self._prior_mean = first["prior_index"], first["prior_mean"]

@@ -166,7 +166,8 @@ class WindowedRollout:
         q, _ = self.model.eval_points(state)
         return q[self._point]
 
-    def handed_over(self, a: int, end: dict[str, np.ndarray], end_points: np.ndarray) -> tuple[dict, dict]:
+    def handed_over(self, a: int, end: dict[str, np.ndarray], end_points: np.ndarray,
+                    refine: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, dict]:
         """The start of the window at frame ``a > 0`` from the carried state ``end`` the previous
         window ended in (``dmarionette.grad.carried`` names, host arrays) and its simulated tie
         points at frames ``a - 1`` and ``a`` ``(2, S, 3)``: the recorded puppet state; the
@@ -176,12 +177,28 @@ class WindowedRollout:
         ``(d_a - d_{a-1}) / H`` (velocities). At the constants the session was recorded with,
         ``d = 0`` and the windows reproduce one long rollout.
 
+        ``refine``: ``(dq, dqd)`` ``(qd_count,)`` each, a correction of the recorded start state
+        (``--fit-initial-state``, :mod:`fitting.calibration_initial_state`): the puppet starts from
+        ``q_a (+) dq`` with velocity ``qd_a + dqd``, and the strings follow its tie points (at
+        frame ``a``, and one step back along the refined velocity for frame ``a - 1``).
+
         Returns:
             ``(inputs, extra)``: ``RolloutInputs`` fields (``joint_q0``, ``joint_qd0``,
             ``particle_q0``, ``particle_qd0``) and the engine's ``tie_target0``, ``tie_force0``.
         """
         joint_q, joint_qd = self._starts[a]
-        difference = np.where(self._tied[None, :, None], self._recorded_points[a - 1:a + 1] - end_points, 0.0)
+        recorded = self._recorded_points[a - 1:a + 1]
+        if refine is not None:
+            from .calibration_initial_state import retract
+
+            topology, h = self.model.puppet.topology, self.data.puppet_dt
+            joint_q = retract(topology, joint_q, refine[0])
+            joint_qd = joint_qd + refine[1]
+            state = self.model.puppet.state()
+            zero = np.zeros(topology.qd_count)
+            recorded = np.stack([self._points(state, retract(topology, joint_q, -h * joint_qd), zero),
+                                 self._points(state, joint_q, zero)])
+        difference = np.where(self._tied[None, :, None], recorded - end_points, 0.0)
         dq = difference[1]
         dqd = (difference[1] - difference[0]) / self.data.puppet_dt
         inputs = {"joint_q0": joint_q, "joint_qd0": joint_qd,
@@ -190,18 +207,22 @@ class WindowedRollout:
         extra = {"tie_target0": end["tie_target"] + dq, "tie_force0": end["tie_force"]}
         return inputs, extra
 
-    def forward(self, inputs) -> dict[str, np.ndarray] | list[dict[str, np.ndarray]]:
+    def forward(self, inputs, refine: dict[int, tuple[np.ndarray, np.ndarray]] | list | None = None
+                ) -> dict[str, np.ndarray] | list[dict[str, np.ndarray]]:
         """Runs the windows in order with the constants of ``inputs`` (a ``RolloutInputs`` over
-        the whole session); returns ``body_pos`` ``(P + 1, bodies, 3)`` (row 0 the session's
+        the whole session), the start states of windows ``a`` in ``refine`` corrected
+        (:meth:`handed_over`); returns ``body_pos`` ``(P + 1, bodies, 3)`` (row 0 the session's
         start) and ``bar_reaction`` ``(T, B, 3)``, stitched from the windows.
 
-        On a batched model (``world_count`` ``W``), ``inputs`` is a list of ``W`` and so is the
-        result: ``W`` rollouts of the session (e.g. the finite-difference columns of a Jacobian)
-        in the same launches, each world bit for bit the one-world rollout."""
+        On a batched model (``world_count`` ``W``), ``inputs`` is a list of ``W`` (and ``refine``
+        None or a list of ``W``) and so is the result: ``W`` rollouts of the session (e.g. the
+        finite-difference columns of a Jacobian) in the same launches, each world bit for bit the
+        one-world rollout."""
         from dmarionette.grad.carried import carried_arrays
 
         worlds = list(inputs) if isinstance(inputs, (list, tuple)) else [inputs]
         batched = isinstance(inputs, (list, tuple))
+        refines = (list(refine) if refine is not None else [None] * len(worlds)) if batched else [refine]
         n, p = self.data.substeps, self.data.puppet_steps
         shape = next(iter(self.engines.values())).output_shapes["body_pos"][1:]
         body_pos = [np.zeros((p + 1, *shape)) for _ in worlds]
@@ -213,7 +234,7 @@ class WindowedRollout:
             for w, x in enumerate(worlds):
                 window = dataclasses.replace(x, top_q=x.top_q[rows], bar_q=x.bar_q[rows], bar_qd=x.bar_qd[rows])
                 if a > 0:
-                    start, extra = self.handed_over(a, *ends[w])
+                    start, extra = self.handed_over(a, *ends[w], (refines[w] or {}).get(a))
                     window = dataclasses.replace(window, **start)
                     extras.append(extra)
                 windows.append(window)

@@ -168,8 +168,9 @@ def add_calibrate_command(commands) -> None:
                     "after; writes OUT/calibration.json, OUT/calibration.png and OUT/calibrated.toml (a scene "
                     "with the fitted constants, for 'dmarionette simulate'). Needs the 'fitting' extra. "
                     "Exit codes: 0 converged, the fit explains the data (reduced chi^2 <= 2 against the given "
-                    "noise scales) and every constant is identifiable; 2 bad input; 3 the solver did not converge "
-                    "or the fit does not explain the data; 4 some constants are not identifiable (their "
+                    "noise scales, residuals white in time) and every constant is identifiable; 2 bad input; 3 the "
+                    "solver did not converge or the fit does not explain the data (reduced chi^2 > 2, or residuals "
+                    "structured in time); 4 some constants are not identifiable (their "
                     "intervals are infinite). Warnings are printed in bold (**WARNING: ...**) and written to "
                     "calibration.json's 'status'.")
     calibrate.add_argument("session", type=Path, nargs="+",
@@ -227,6 +228,18 @@ def add_calibrate_command(commands) -> None:
                                 "force; --solver lm-fd)")
     calibrate.add_argument("--huber-scale", type=number(0.0, low_open=True), default=None, metavar="C",
                            help="Huber's threshold in noise scales (default 1.345; with --loss huber)")
+    calibrate.add_argument("--delay", type=number(-0.1, 0.1, unit="s"), default=0.0, metavar="S",
+                           help="the recorded targets lag the bar inputs by S seconds, measured(t) = simulated(t - S) "
+                                "(the bar inputs are shifted; default 0); with --fit-delay the start value")
+    calibrate.add_argument("--fit-delay", action="store_true",
+                           help="fit that delay too (within +-0.1 s, with its standard error; --solver lm-fd)")
+    calibrate.add_argument("--fit-initial-state", action="store_true",
+                           help="refine the puppet state each shooting window starts from (every window but the "
+                                "first, in the last stage; taken from the recording) as unknowns with the prior "
+                                "--noise-joint (one session, --solver lm-fd, windows)")
+    calibrate.add_argument("--noise-joint", type=number(0.0, low_open=True), default=1e-3, metavar="R",
+                           help="noise of the recorded joint_q, the initial states' prior: rad for rotations, m for "
+                                "the root's translation (default 1e-3; velocities sqrt(2) R / H)")
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
@@ -316,6 +329,8 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    window="default" if args.window is None else args.window,
                                    prior=args.prior, bounds=args.bounds, freeze=args.freeze,
                                    validate=args.validate, loss=args.loss, huber_scale=args.huber_scale,
+                                   delay=args.delay, fit_delay=args.fit_delay,
+                                   fit_initial_state=args.fit_initial_state, noise_joint=args.noise_joint,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None, ray=mode, workers=args.workers)
     finally:

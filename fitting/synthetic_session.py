@@ -41,7 +41,7 @@ def with_string_constants(scene: Scene, constants: Mapping[str, Sequence[float] 
 def record_synthetic_session(scene: Scene, scene_text: str, truth: Mapping[str, Sequence[float] | float],
                              duration: float, path: str | Path, *, noise_position: float = 0.0,
                              noise_force: float = 0.0, seed: int = 0, optimization_level: int = 2,
-                             progress: bool = False) -> tuple[MarionetteTrajectory, Path]:
+                             progress: bool = False, delay: float = 0.0) -> tuple[MarionetteTrajectory, Path]:
     """Simulates ``scene`` with the ``truth`` constants and writes a session with noisy targets.
 
     Args:
@@ -56,6 +56,11 @@ def record_synthetic_session(scene: Scene, scene_text: str, truth: Mapping[str, 
         seed: of the noise.
         optimization_level: Warp optimisation of the puppet kernels.
         progress: progress bar while simulating.
+        delay: the targets lag the recorded bar inputs by this many seconds
+            (:mod:`fitting.calibration_delay`): the bar poses written at ``t`` are those of ``t +
+            delay`` (the targets and puppet states at ``t`` are the simulation's at ``t``). Exact
+            for the delay model when the bars are still over the first ``delay`` seconds
+            (:func:`fitting.synthetic_scenes.motion_scene_text` ``hold``).
 
     Returns:
         The noise-free simulated trajectory and the path written.
@@ -67,7 +72,8 @@ def record_synthetic_session(scene: Scene, scene_text: str, truth: Mapping[str, 
     reaction = trajectory.bar_reaction + noise_force * rng.standard_normal(trajectory.bar_reaction.shape)
     eq4 = trajectory.bar_feedback + noise_force * rng.standard_normal(trajectory.bar_feedback.shape)
     times = np.concatenate([[0.0], trajectory.step_time])
-    poses = [(bar.name, bar.trajectory.pose(times)[0], bar.trajectory.angles(times)) for bar in scene.bars]
+    poses = [(bar.name, bar.trajectory.pose(times + delay)[0], bar.trajectory.angles(times + delay))
+             for bar in scene.bars]
     path = Path(path)
     with SessionWriter(path, scene, scene_text, recorder="simulation") as writer:
         for k, t in enumerate(times):
@@ -86,5 +92,5 @@ def record_synthetic_session(scene: Scene, scene_text: str, truth: Mapping[str, 
         writer.write_metadata("synthetic", {"truth": {k: np.broadcast_to(np.asarray(v, float), (len(scene.strings),))
                                                       .tolist() for k, v in truth.items()},
                                             "noise_position": noise_position, "noise_force": noise_force,
-                                            "seed": seed})
+                                            "seed": seed, "delay": delay})
     return trajectory, path

@@ -44,7 +44,7 @@ class GaussNewtonUncertainty:
     """The Gauss-Newton covariance at an optimum.
 
     Attributes:
-        covariance: of the log-parameters, ``(n, n)``.
+        covariance: of the log-parameters (and linear ones, ``linear``), ``(n, n)``.
         standard_error: of the constants themselves (delta method), ``(n,)``.
         relative_error: ``se(c) / c`` = the log-parameters' standard errors, ``(n,)``.
         correlation: ``(n, n)``.
@@ -76,7 +76,8 @@ class GaussNewtonUncertainty:
 
 def gauss_newton_uncertainty(jacobian: np.ndarray, residuals: np.ndarray, values: np.ndarray,
                              targets: Mapping[str, np.ndarray] | None = None, *,
-                             known_noise: bool = False, known: tuple[str, ...] = ()) -> GaussNewtonUncertainty:
+                             known_noise: bool = False, known: tuple[str, ...] = (),
+                             linear: np.ndarray | None = None) -> GaussNewtonUncertainty:
     """Covariance and standard errors from the Jacobian at the optimum.
 
     Args:
@@ -86,6 +87,9 @@ def gauss_newton_uncertainty(jacobian: np.ndarray, residuals: np.ndarray, values
         targets: target name -> the indices of its rows (default: one target, every row).
         known_noise: the noise scales were the true standard deviations (``s_c = 1``).
         known: targets whose rows have unit variance whatever ``known_noise`` (a prior's rows).
+        linear: per parameter, 0 where ``theta`` is a log-constant, else the unit ``u`` of a
+            parameter fitted as such (a delay, ``value = u theta``): its standard error is ``u``
+            times that of ``theta``, its relative error that over ``|value|``.
 
     Returns:
         The covariance on the identifiable directions; unidentifiable constants get infinite
@@ -133,7 +137,12 @@ def gauss_newton_uncertainty(jacobian: np.ndarray, residuals: np.ndarray, values
     with np.errstate(divide="ignore", invalid="ignore"):
         correlation = covariance / np.outer(relative, relative)
     correlation[~np.isfinite(correlation)] = np.nan
-    return GaussNewtonUncertainty(covariance=covariance, standard_error=np.asarray(values) * relative,
+    values = np.asarray(values, dtype=np.float64)
+    unit = np.zeros(n) if linear is None else np.asarray(linear, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):  # 0 * inf where unused: discarded by where
+        standard_error = np.where(unit > 0, unit * relative, values * relative)
+        relative = np.where(unit > 0, standard_error / np.abs(values), relative)
+    return GaussNewtonUncertainty(covariance=covariance, standard_error=standard_error,
                                   relative_error=relative, correlation=correlation, condition_number=condition,
                                   noise_variance=variance, residual_count=m, parameter_count=n,
                                   singular_values=singular, directions=directions, direction_error=direction_error,

@@ -49,6 +49,8 @@ NUMERIC_FLAGS = [
     (["calibrate", "s.mcap"], "--duration", POSITIVE),
     (["calibrate", "s.mcap"], "--noise-position", POSITIVE),
     (["calibrate", "s.mcap"], "--noise-force", POSITIVE),
+    (["calibrate", "s.mcap"], "--delay", ("float", -0.1, 0.1, True)),
+    (["calibrate", "s.mcap"], "--noise-joint", POSITIVE),
     (["author", "k.toml"], "--max-steps", ("int", 1, 100_000, True)),
     (["author", "k.toml"], "--checkpoint-steps", ("int", 1, 1_000_000, True)),
     (["author", "k.toml"], "--fps", ("float", 0.1, 1000.0, True)),

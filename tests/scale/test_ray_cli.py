@@ -19,8 +19,9 @@ from tests.support.sweep import comparable
 ROOT = Path(__file__).resolve().parents[2]
 KEYS = ["strings.particle_count", "strings.tie_stiffness"]
 SUMMARY = summary_columns(["head", "back", "knee_left", "knee_right", "hand_left", "hand_right"], ["main", "hand"])
+# One variant per task (--worlds-per-batch 1), so that the interrupt lands between rows.
 ARGV = ["sweep", "hanging", "--set", "strings.particle_count=6", "--set", "strings.k=250,300,350,400,450,500",
-        "--duration", "1.0", "--quiet", "--no-picture"]
+        "--duration", "1.0", "--quiet", "--no-picture", "--worlds-per-batch", "1"]
 
 
 def ray_processes() -> set[int]:
