@@ -23,7 +23,7 @@ continuation over keyframes, and an honest verdict per keyframe.
   solved alone from there, the farthest first (with a budget of ``max_steps`` more steps, and
   ``max_steps`` again for the final solve without the unreachable ones): if
   it is reached alone, it conflicts with the others (*not converged*); if that solve stops at a
-  stationary point or stalls short of it, it is *unreachable*: such targets are left out and all
+  stationary point, stalls short of it or crawls through its whole budget, it is *unreachable*: such targets are left out and all
   the keyframes solved again without them, so they cannot degrade the others. Anything else
   missed: *not converged*.
 """
@@ -49,6 +49,17 @@ EXIT_CODES = {"reached": 0, "not_converged": 3, "unreachable": 4, "limit_exceede
 MAX_STEP = 0.5  # the largest change of one coordinate of z in a step (2.5 cm, 0.05 rad, a bound's half)
 STALL_STEPS = 10  # a stage stops when 10 accepted steps lower the cost by less than STALL_RTOL of it
 STALL_RTOL = 0.03
+
+
+def _crawled(result) -> bool:
+    """Whether a solve that used up its step budget crawled: over all its steps it lowered the cost
+    by less than the stall rule allows per ``STALL_STEPS`` (``STALL_RTOL`` of it per 10 steps, on
+    average). The stall rule looks at windows of accepted steps, which a solve that keeps having
+    trials rejected may never fill before its budget ends; on average the two say the same."""
+    if result.status != "max_steps" or len(result.history) < STALL_STEPS:
+        return False
+    first, last = result.history[0]["cost"], result.cost
+    return first - last < STALL_RTOL * last * len(result.history) / STALL_STEPS
 REST = "end at rest"  # the target name of [author] end_at_rest (the last keyframe's)
 FD_STEP = 1e-6  # forward-difference step in z (about 5e-8 m or 1e-7 rad of a knot)
 
@@ -401,7 +412,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
             best[k][name] = res.target_errors(alone.x)[k][name]
             if res.reached({name: best[k][name]}):
                 conflict.append((k, name))
-            elif alone.status in ("stationary", "no_progress"):
+            elif alone.status in ("stationary", "no_progress") or _crawled(alone):
                 found[(k, name)] = (
                     "it stopped at a stationary point (no small change of the bars brings it closer)"
                     if alone.status == "stationary" else

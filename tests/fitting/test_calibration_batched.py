@@ -16,7 +16,7 @@ import warp as wp
 
 from fitting.calibrate import CalibrationProblem, parse_parameters
 from fitting.calibration_data import read_calibration_data
-from fitting.calibration_sessions import StackedProblem
+from fitting.calibration_sessions import SessionSpec, StackedProblem
 from fitting.synthetic_scenes import SUITE_NOISE, record_suite_session
 
 wp.config.log_level = wp.LOG_WARNING
@@ -54,9 +54,9 @@ def test_the_batched_jacobian_is_the_one_at_a_time_jacobian(data, window):
 
 def test_several_sessions_stack_their_batches(data):
     params = parse_parameters("k,k_d", data)
-    problems = [CalibrationProblem(data, params, optimization_level=0, window_steps=3,
-                                   noise_position=SUITE_NOISE[0], noise_force=SUITE_NOISE[1]) for _ in range(2)]
-    stacked = StackedProblem(problems)
+    specs = [SessionSpec(data, params, noise_position=SUITE_NOISE[0], noise_force=SUITE_NOISE[1],
+                         optimization_level=0, window_steps=3) for _ in range(2)]
+    stacked = StackedProblem(specs)  # in this process
     theta = stacked.theta_start - 0.03
     value, jacobian = stacked.fd_jacobian(theta)  # central
     want_value = stacked.host_residuals(theta)

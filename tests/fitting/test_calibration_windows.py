@@ -137,12 +137,15 @@ def test_one_rollout_lands_in_a_wrong_basin_and_says_so(sessions):
 
 
 def test_a_wrong_basin_below_the_chi2_limit_is_caught_by_its_structured_residuals(sessions):
-    """One rollout on the rolls-and-yaws session ends 37 standard errors off with a reduced chi^2
-    of only 1.70 / 1.39 (below the limit of 2 that leaves room for rough noise scales). Its
-    residuals are slow, not noise: the lag-1 autocorrelation test (no noise scale involved) says
-    so, in bold, in calibration.json, with exit code 3. (Measured: z 9.9 bodies, 15.2 feedback.)"""
+    """One rollout on the rolls-and-yaws session ends in a wrong basin, tens of standard errors
+    off. Judged with noise scales given roughly, 1.5 times the true ones (what the chi^2 limit of
+    2 leaves room for), its reduced chi^2 is below 2 (measured 1.31 / 0.95; with the true scales
+    2.95 / 2.13): the chi^2 test alone passes it. Its residuals are slow, not noise: the lag-1
+    autocorrelation test (no noise scale involved) says so, in bold, in calibration.json, with exit
+    code 3. (Measured: z 22 and more.)"""
     _, _, path = sessions["roll_yaw"]
-    result = calibrate_session(path, targets="both", params="k,k_d", optimization_level=0, window=0, **NOISE)
+    rough = {key: 1.5 * value for key, value in NOISE.items()}
+    result = calibrate_session(path, targets="both", params="k,k_d", optimization_level=0, window=0, **rough)
     v = result.verdict
     truth = np.concatenate([SUITE["roll_yaw"][2]["k"], SUITE["roll_yaw"][2]["k_d"]])
     assert np.max(np.abs(result.fitted - truth) / result.uncertainty.standard_error) > 10  # a wrong basin
