@@ -605,33 +605,6 @@ class CalibrationProblem:
 
         return residuals, base
 
-    def jax_fd_residuals(self) -> Callable:
-        """``r(theta, args)`` with a custom JVP ``J v``, ``J`` from :meth:`fd_jacobian` (one-sided,
-        computed once per linearisation): forward-mode Jacobians of it (``jax.linearize``,
-        ``jacfwd``) cost ``n + 1`` rollouts and no backward pass, and never build an ``(m, m)``
-        basis (a reverse-mode Jacobian would: one vector-Jacobian product per residual)."""
-        import jax
-        import jax.numpy as jnp
-
-        m = self.residual_count if self.active_rows is None else len(self.active_rows)
-        n = len(self.theta_start)
-        value_shape = jax.ShapeDtypeStruct((m,), jnp.float64)
-        both = (value_shape, jax.ShapeDtypeStruct((m, n), jnp.float64))
-
-        @jax.custom_jvp
-        def residuals(theta):
-            return jax.pure_callback(lambda t: self.host_residuals(np.asarray(t)), value_shape, theta,
-                                     vmap_method="sequential")
-
-        @residuals.defjvp
-        def residuals_jvp(primals, tangents):
-            (theta,), (direction,) = primals, tangents
-            value, jacobian = jax.pure_callback(lambda t: self.fd_jacobian(np.asarray(t), central=False), both,
-                                                theta, vmap_method="sequential")
-            return value, jacobian @ direction
-
-        return lambda theta, args=None: residuals(theta)
-
     def subsample_rows(self, rows: int) -> np.ndarray:
         """About ``rows`` residual indices spread evenly over time for each target (in proportion
         to its size), every coordinate of a chosen frame or step kept together."""

@@ -137,7 +137,7 @@ class StackedProblem(CalibrationProblem):
     """The residuals of several sessions as one function of one parameter vector.
 
     It has :class:`CalibrationProblem`'s interface for the forward-only path (``lm-fd``:
-    :meth:`host_residuals`, ``fd_jacobian``, ``jax_fd_residuals``, :meth:`use_windows`); the
+    :meth:`host_residuals`, ``fd_jacobian``, ``residuals_at``, :meth:`use_windows`); the
     reverse-mode residuals (``jax_residuals``) are not stacked. Call :meth:`close` at the end
     (it stops the Ray workers).
 
