@@ -445,7 +445,14 @@ def test_two_devices_each_get_their_own_drag_handle_and_force_arrow(model):
             np.testing.assert_allclose(last.bar_pos[idx[k]], targets[k], atol=1e-6)
             sent = devices[k].force_log()[1]
             assert any(np.array_equal(last.forces_sent()[k], f) for f in sent), k
-        assert not np.array_equal(last.forces_sent()[0], last.forces_sent()[1])
+        if np.any(last.forces_sent()):
+            assert not np.array_equal(last.forces_sent()[0], last.forces_sent()[1])
+        else:  # zero to both: only the watchdog may do that (a loaded machine stalled the physics)
+            assert stats.watchdog_trips > 0
+        # Over the session each device got its own forces, not a copy of the other's.
+        logs = [d.force_log()[1] for d in devices]
+        n = min(len(x) for x in logs)
+        assert any(np.any(logs[0][i]) and not np.array_equal(logs[0][i], logs[1][i]) for i in range(n))
         # The browser's arrows: a reaction per bar, then each device's force sent, on its own bar.
         _wait(lambda: view.last_sent is last, 10, "the view to send the last snapshot")
         n_bar = len(geometry.bar_names)
