@@ -28,9 +28,9 @@ def add_sweep_command(sub) -> None:
     sweep = sub.add_parser(
         "sweep", help="simulate a grid of scene variants (--set KEY=V1,V2,...) and tabulate their summaries",
         description="Simulate every combination of the --set values on SCENE (the cartesian product), each "
-                    "variant validated by the scene loader before any work, one rollout per variant (no "
-                    "world axis through the kernels yet). Writes OUT/sweep.csv (a row per variant, written as "
-                    "each finishes), OUT/sweep.md and OUT/sweep.png: torso height range, taut fraction per "
+                    "variant validated by the scene loader before any work; compatible variants run together as "
+                    "the worlds of one model (--worlds-per-batch). Writes OUT/sweep.csv (a row per variant, "
+                    "written as each batch finishes), OUT/sweep.md and OUT/sweep.png: torso height range, taut fraction per "
                     "string, peak feedback per bar, energy excess over the bars' work, real-time factor. "
                     "Exit codes: 0 done; 1 a variant went non-finite; 2 bad input; 3 a Ray worker died "
                     "more often than the retries allow (finished rows kept); 130 Ctrl-C. docs/sweep.md.")

@@ -1,4 +1,4 @@
-"""Running the variants of a sweep: one rollout per variant, summarised into one row.
+"""Running the variants of a sweep (as the worlds of batched rollouts), each summarised into one row.
 
 :func:`run_variants` is the one function that runs a list of variants (scenes) and returns their
 rows. Its callers hand it a batch of ``--worlds-per-batch`` variants at a time (in this process or
