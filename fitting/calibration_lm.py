@@ -52,8 +52,19 @@ def fit_lm_fd(problem, theta_start: np.ndarray, *, max_steps: int, atol: float, 
     def theta_of(u):
         return np.clip(theta0 + step_unit * u, low, high)
 
+    rows = []  # the residual count, from the first evaluation
+
     def residuals(u):
-        return problem.host_residuals(theta_of(u))
+        # A trial whose constants overflow (a long step along a flat direction: theta > ~709) is
+        # not simulated: non-finite residuals make the solver reject it and shrink its step.
+        theta = theta_of(u)
+        with np.errstate(over="ignore"):
+            finite = bool(np.all(np.isfinite(np.exp(theta))))
+        if not finite and rows:
+            return np.full(rows[0], np.nan)
+        r = problem.host_residuals(theta)
+        rows[:] = [len(r)]
+        return r
 
     def jacobian(u, r):
         theta = theta_of(u)
