@@ -29,7 +29,9 @@ def assert_the_loop_ran(model, stats, summary, duration):
     assert fresh >= 1, stats.summary()
     assert fresh <= summary["string_steps"] <= stats.tick_count, (summary, stats.summary())
     assert summary["puppet_steps"] == summary["string_steps"] // model.substeps
-    assert 0.0 < summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+    assert summary["peak_force_sent_N"] <= summary["max_force_N"] + 1e-12
+    # Zero throughout only when the watchdog held the force there (a loaded machine stalled the physics).
+    assert summary["peak_force_sent_N"] > 0.0 or stats.watchdog_trips > 0, stats.summary()
 
 
 def assert_device_frame_samples(model, session, duration):

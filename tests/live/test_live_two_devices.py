@@ -1,6 +1,7 @@
 """Two devices drive the two bars (paper §3: two Omnis), each with its own mapping, force and limits."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -304,7 +305,9 @@ def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
     assert main(["live", "--device", "sim", "--bar", "main", "--device", "sim", "--bar", "hand",
                  "--workspace-scale", "1", "--workspace-scale", "2", "--duration", "1.0", "--record", str(session),
                  "--fast-compile"]) == 0
-    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    stats_line, summary = capsys.readouterr().out.split("\n", 1)
+    summary = json.loads(summary)
+    trips = int(re.search(r"watchdog trips (\d+)", stats_line).group(1))
     assert summary["device"] == ["simulated", "simulated"] and summary["bar"] == BARS
     assert summary["physics_mode"] == "thread" and summary["workspace_scale"] == [1.0, 2.0]
     recorded = read_session(session)
@@ -314,7 +317,10 @@ def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
         for kind in ("sample", "force"):
             assert len(recorded.channels[f"/device/{bar}/{kind}"]["t"]) > 100, (bar, kind)
         forces = np.linalg.norm(recorded.channels[f"/device/{bar}/force"]["force"], axis=1)
-        assert 0.0 < forces.max() <= 3.3 + 1e-12
+        assert forces.max() <= 3.3 + 1e-12
+        # A bar's forces may be zero throughout only when the watchdog held them there (a loaded machine
+        # stalls the physics past the watchdog; each trip ramps the forces in again over 0.2 s).
+        assert forces.max() > 0.0 or trips > 0, (bar, stats_line)
     # Each bar pose driven by a device is one of that device's samples mapped to the world by the
     # recorded S W, which is the mapping run_live uses (origin at the bar's start).
     for bar, scale, meta in zip(BARS, (1.0, 2.0), live_meta):
