@@ -6,6 +6,7 @@ import sys
 
 import pytest
 
+import dmarionette
 from dmarionette import extras
 from dmarionette.cli import main
 
@@ -27,6 +28,24 @@ CASES = [
     (["author", "{tmp}/keyframes.toml", "--out", "{tmp}/author"], "jax", "fitting"),
     (["calibrate", "{tmp}/take.mcap", "--out", "{tmp}/calibrate"], "optimistix", "fitting"),
 ]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _every_module_imported_before_any_patch():
+    """Import every module of the package before a test patches ``load_scene`` or hides an extra:
+    a module first imported under the patch (``from ... import load_scene``) would keep the patched
+    function, or its fallback for a missing extra, for the rest of the test session."""
+    import importlib
+    import pkgutil
+
+    import fitting
+
+    for package in (dmarionette, fitting):
+        for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+            try:
+                importlib.import_module(info.name)
+            except ImportError:  # an optional extra not installed here: nothing of it to keep
+                pass
 
 
 @pytest.mark.parametrize("argv, module, extra", CASES, ids=lambda v: v if isinstance(v, str) else " ".join(v)[:40])
