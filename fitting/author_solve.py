@@ -121,6 +121,7 @@ class KeyframeResiduals:
         self.spec = spec = problem.spec
         self.bounds = BoundedKnots(problem.param, objective.boxes if objective.limits is not None else None)
         self.fd_step = fd_step
+        self.columns = None  # the coordinates of z the Jacobian is computed for (None: all; the others 0)
         param = problem.param
         self._y = jax.jit(self.bounds.y)
         smooth = lambda z: spec.weights.smoothness * param.acceleration_residuals(self.bounds.y(z))  # noqa: E731
@@ -195,7 +196,7 @@ class KeyframeResiduals:
         base = self.errors(self.outputs(z))
         jac = np.zeros((len(r), len(z)))
         weights = self.row_weights()
-        for j in range(len(z)):
+        for j in range(len(z)) if self.columns is None else self.columns:
             trial = z.copy()
             trial[j] += self.fd_step
             jac[:count, j] = weights * (self.errors(self._rollout(trial)) - base) / self.fd_step
@@ -213,6 +214,20 @@ class KeyframeResiduals:
             self.active = saved
         weights = self.entry_weight * self.keyframe_weight[self.entry_keyframe]
         return jac / np.where(weights > 0, weights, 1.0)[:, None]
+
+    def later_columns(self, z, keyframe: int) -> np.ndarray:
+        """The coordinates of ``z`` that cannot move ``keyframe``: the bar motion up to one puppet step
+        after its time does not depend on them (exactly: the spline's Jacobian there is zero), so by
+        causality nor does the puppet's pose at the keyframe."""
+        jac = jax.jacfwd(lambda zz: self.problem.param.rollout_inputs(self.bounds.y(zz)))(
+            np.asarray(z, dtype=np.float64))
+        sub = int(round(self.problem.model.puppet_dt / self.problem.model.string_dt))
+        last = (int(self.problem.objective.steps[keyframe]) + 1) * sub  # string steps up to here feed the keyframe
+        moved = np.zeros(len(z), dtype=bool)
+        for value in jac.values():
+            value = np.asarray(value)[:last + 1]
+            moved |= np.abs(value.reshape(-1, len(z))).max(axis=0) > 0.0
+        return np.nonzero(~moved)[0]
 
     def peak_force(self, z) -> dict[str, float]:
         """Per authored bar: the largest force the device would be sent over the motion [N]."""
@@ -377,8 +392,10 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
 
     stage_now = ["start"]
 
-    def run(stage: str, active: np.ndarray, z_start: np.ndarray, target: tuple[int, str] | None = None) -> LMResult:
-        """One LM stage on the ``active`` keyframes (or on the single ``target``)."""
+    def run(stage: str, active: np.ndarray, z_start: np.ndarray, target: tuple[int, str] | None = None,
+            columns: np.ndarray | None = None) -> LMResult:
+        """One LM stage on the ``active`` keyframes (or on the single ``target``), moving the
+        coordinates ``columns`` of ``z`` (default: all)."""
         stage_now[0] = stage
         res.active = active.astype(np.float64)
         on = [k for k in range(count) if active[k] > 0]
@@ -392,11 +409,23 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                 return res.reached({target[1]: errors[target[0]][target[1]]}, scale=0.5)
             return all(res.reached(errors[k], skip[k], scale=0.5) for k in on)
 
-        result = levenberg_marquardt(residuals, res.jacobian, z_start, max_steps=max(steps_left[0], 0),
-                                     deadline=deadline, done=done, feasible=feasible, max_step=MAX_STEP,
+        cols = np.arange(len(z_start)) if columns is None else np.asarray(columns)
+
+        def embed(x):
+            full = np.array(z_start, dtype=np.float64)
+            full[cols] = x
+            return full
+
+        res.columns = cols
+        result = levenberg_marquardt(lambda x: residuals(embed(x)), lambda x, r: res.jacobian(embed(x), r)[:, cols],
+                                     np.asarray(z_start, dtype=np.float64)[cols], max_steps=max(steps_left[0], 0),
+                                     deadline=deadline, done=lambda x, r: done(embed(x), r), feasible=lambda x: feasible(
+                                         embed(x)), max_step=MAX_STEP,
                                      secant_rows=len(res.entry_keyframe) if secant else 0,
-                                     exact_rows=res.smoothness_jacobian, stall_steps=STALL_STEPS, stall_rtol=STALL_RTOL,
-                                     on_step=record(stage))
+                                     exact_rows=lambda x: res.smoothness_jacobian(embed(x))[:, cols],
+                                     stall_steps=STALL_STEPS, stall_rtol=STALL_RTOL, on_step=record(stage))
+        result.x = embed(result.x)
+        res.columns = None
         steps_left[0] -= result.steps
         res.entry_mask = saved_mask
         lm_status.append(f"{stage}: {result.status} after {result.steps} steps")
@@ -464,6 +493,18 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                     if alone.status == "stationary" else
                     f"it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
                     "reach within the device limits as far as this solver can tell")
+        if conflict and not found:
+            # Targets each reached alone but not together: the keyframes in time order, each stage moving
+            # only the coordinates that cannot move the earlier keyframes (by causality: the bar motion up
+            # to them does not depend on these), so what an earlier stage reached stays reached.
+            z_order = z_all
+            for k in range(count):
+                columns = None if k == 0 else res.later_columns(z_order, k - 1)
+                if steps_left[0] <= 0 or (columns is not None and len(columns) == 0) or (
+                        deadline is not None and time.perf_counter() >= deadline):
+                    break
+                z_order = run(f"keyframe {k + 1} in time order", np.where(np.arange(count) <= k, 1.0, 0.0), z_order,
+                              columns=columns).x
         z_seen = best_seen(z_all, "after the analysis")  # a solve for one target may have passed by a better point
         if found and shortfall(res.target_errors(z_seen))[0] > 0:
             steps_left[0] = max_steps  # the final solve without them has a budget of its own too
