@@ -17,15 +17,26 @@ continuation over keyframes, and an honest verdict per keyframe.
   result says the limit is not met).
 - **Continuation.** Keyframes are switched on in time order: stage ``k`` fits keyframes
   ``1..k`` from where stage ``k - 1`` ended.
+- **Stalls at contacts.** Where a hard contact starts or ends between ``z`` and a probe
+  ``FD_STEP`` away, the rollout jumps and that difference is no slope (the ball kick: the end
+  pose jumped by 1 mm and 0.8 deg for 50 nm of a knot), so every trial step fails. A stage that
+  stalls short of half the tolerances goes on with differences over ``FD_STEP_COARSE``, which
+  span such jumps.
+- **The best point seen.** Every point a stage evaluates (not the probes) is kept with its
+  errors; where the solve's own point misses a target, an evaluated point that reaches every
+  target (a trial of another stage, a per-target solve's step) is the result instead.
 - **Verdict.** A keyframe is *reached* when every target is within the position and angle
   tolerances. Targets the reachability pre-check (:mod:`fitting.reachability`) rules out are
   left out from the start. When the solve ends with targets missed, each missed target is
   solved alone from there, the farthest first (with a budget of ``max_steps`` more steps, and
   ``max_steps`` again for the final solve without the unreachable ones): if
-  it is reached alone, it conflicts with the others (*not converged*); if that solve stops at a
+  it is reached alone, it conflicts with the others; if that solve stops at a
   stationary point, stalls short of it or crawls through its whole budget, it is *unreachable*: such targets are left out and all
-  the keyframes solved again without them, so they cannot degrade the others. Anything else
-  missed: *not converged*.
+  the keyframes solved again without them, so they cannot degrade the others. Conflicts alone
+  (nothing unreachable) are solved once more, in time order: keyframe 1 from there, then each
+  next keyframe moving only the knot coordinates that cannot move the earlier ones (the bar
+  motion up to them does not depend on these: causality), so an earlier keyframe, once reached,
+  stays reached. What is still missed: *not converged*.
 """
 
 from __future__ import annotations
