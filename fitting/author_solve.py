@@ -430,8 +430,8 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         res.columns = cols
         result = levenberg_marquardt(lambda x: residuals(embed(x)), lambda x, r: res.jacobian(embed(x), r)[:, cols],
                                      np.asarray(z_start, dtype=np.float64)[cols], max_steps=max(steps_left[0], 0),
-                                     deadline=deadline, done=lambda x, r: done(embed(x), r), feasible=lambda x: feasible(
-                                         embed(x)), max_step=MAX_STEP,
+                                     deadline=deadline, done=lambda x, r: done(embed(x), r),
+                                     feasible=lambda x: feasible(embed(x)), max_step=MAX_STEP,
                                      secant_rows=len(res.entry_keyframe) if secant else 0,
                                      exact_rows=lambda x: res.smoothness_jacobian(embed(x))[:, cols],
                                      stall_steps=STALL_STEPS, stall_rtol=STALL_RTOL, on_step=record(stage))
