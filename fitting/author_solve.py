@@ -308,8 +308,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     """
     started = time.perf_counter()
     deadline = None if max_seconds is None else started + max_seconds
-    res = KeyframeResiduals(problem, fd_step=getattr(problem.spec, "fd_step", FD_STEP),
-                            position_tolerance=position_tolerance, angle_tolerance=angle_tolerance)
+    res = KeyframeResiduals(problem, position_tolerance=position_tolerance, angle_tolerance=angle_tolerance)
     spec = problem.spec
     count = len(spec.keyframes)
     z = res.bounds.z0() if z0 is None else np.asarray(z0, dtype=np.float64)
@@ -348,7 +347,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         # blends z + a (z_warm - z), a = 1/2, 1/4, that does not: a smaller move pulls less.
         use, line = None, ""
         for a in WARM_BLENDS:
-            trial = z + a * (warm.z - z)
+            trial = warm.z if a == 1.0 else z + a * (warm.z - z)
             cost = 0.5 * float(np.sum(res.residuals(trial) ** 2))
             if not cost < cost_scene:
                 line = line or f"cost {cost:.4g}: no better"

@@ -142,7 +142,6 @@ class AuthorSpec:
             puppet step within ``rest_tolerance`` [m/s].
         warm_start: ``lm_fd``'s start: ``"scene"`` (the scene's own bar motion) or
             ``"quasi_static"`` (each keyframe's quasi-static pose, :mod:`fitting.quasi_static`).
-        fd_step: ``lm_fd``'s forward-difference step in the bounded knot variables ``z``.
     """
 
     source: str
@@ -169,7 +168,6 @@ class AuthorSpec:
     end_at_rest: bool = False
     rest_tolerance: float = 0.01
     warm_start: str = "scene"
-    fd_step: float = 1e-6
 
 
 #: ``[solver] warm_start`` choices; the first is the default.
@@ -228,7 +226,7 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     solver = read_table(table, "solver", f"{source}: top level", {})
     where = f"{source}: [solver]"
     check_keys(solver, ["method", "max_steps", "rtol", "atol", "position_tolerance", "angle_tolerance",
-                        "max_seconds", "continuation", "jacobian", "rest_tolerance", "warm_start", "fd_step"], where)
+                        "max_seconds", "continuation", "jacobian", "rest_tolerance", "warm_start"], where)
     method = read_choice(solver, "method", where, list(METHODS), "lm_fd")
     max_steps = read_int(solver, "max_steps", where, 60, minimum=1, maximum=100_000)
     rtol = read_float(solver, "rtol", where, 1e-6, positive=True)
@@ -241,7 +239,6 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
         raise KeyframeError(where, "continuation", continuation, "true or false")
     jacobian = read_choice(solver, "jacobian", where, ["secant", "fd"], "secant")
     warm_start = read_choice(solver, "warm_start", where, list(WARM_STARTS), WARM_STARTS[0])
-    fd_step = read_float(solver, "fd_step", where, 1e-6, positive=True, maximum=0.1)
     rest_tolerance = read_float(solver, "rest_tolerance", where, 0.01, positive=True, maximum=10.0)
     return AuthorSpec(source=source, scene=scene, scene_table=scene_table, duration=duration, bars=bars,
                       keyframes=keyframes, weights=weights, device=device, workspace_scale=workspace_scale,
@@ -249,7 +246,7 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
                       rtol=rtol, atol=atol, method=method, position_tolerance=position_tolerance,
                       angle_tolerance=angle_tolerance, max_seconds=max_seconds, continuation=continuation,
                       jacobian=jacobian, end_at_rest=end_at_rest, rest_tolerance=rest_tolerance,
-                      warm_start=warm_start, fd_step=fd_step)
+                      warm_start=warm_start)
 
 
 def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scene, dict[str, Any]]:

@@ -27,7 +27,7 @@ equilibria first, the dynamics second).
   pose are settled, and the best is refined by Levenberg-Marquardt
   (:func:`fitting.least_squares.levenberg_marquardt`) on the keyframe's weighted residuals of the
   settled state (as the main solve weighs them), forward-difference Jacobians (one settle per
-  coordinate, the main solve's step ``[solver] fd_step``), ``MAX_STEPS`` trial points at most. The look is needed: with contacts the scene's
+  coordinate, step ``FD_STEP``), ``MAX_STEPS`` trial points at most. The look is needed: with contacts the scene's
   own pose is a local minimum of the static map too (the chair: raising the bar a little lifts
   the knees and rocks the puppet back on the seat; standing needs the bar 15 cm up and pitched
   ~50-60 deg).
@@ -56,6 +56,7 @@ SAMPLES_PER_COORDINATE = 16  # random poses settled per free coordinate before t
 ANGLE_RANGE_DEG = 90.0       # sampled bar angles within +-90 deg of the start's (a hand turns a bar that far)
 UNBOUNDED_RANGE = 4.0        # sampled unbounded positions within +-4 units of z (20 cm) of the start's
 SEED = 15
+FD_STEP = 1e-6       # forward-difference step in u (as the main solve's)
 MAX_STEP = 0.5       # the largest change of one coordinate of u in a step
 
 
@@ -199,7 +200,6 @@ def quasi_static_start(problem, residuals, *, max_steps: int = MAX_STEPS, deadli
         say: receives one line per keyframe.
     """
     started = time.perf_counter()
-    fd_step = problem.spec.fd_step  # the main solve's forward-difference step ([solver] fd_step)
     current = {a["name"]: a["initial"].copy() for a in problem.param.authored}  # (K, 6) knots [m, deg]
     posed = {a["name"]: {0} for a in problem.param.authored}
     poses = []
@@ -220,8 +220,8 @@ def quasi_static_start(problem, residuals, *, max_steps: int = MAX_STEPS, deadli
             out = np.zeros((len(r0), len(u)))
             for j in range(len(u)):
                 trial = u.copy()
-                trial[j] += fd_step
-                out[:, j] = (r(trial) - r0) / fd_step
+                trial[j] += FD_STEP
+                out[:, j] = (r(trial) - r0) / FD_STEP
             return out
 
         u0 = settle.u0()
