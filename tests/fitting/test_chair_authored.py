@@ -102,3 +102,5 @@ def test_the_keyframes_file_is_solved(tmp_path, capsys):
             unit = verdict["units"][name]
             assert error <= (tolerance["position_m"] if unit == "m" else tolerance["angle_deg"]), (name, error)
     assert summary["warm_start"]["kind"] == "quasi_static" and summary["warm_start"]["used"]
+    # the settles of the chair's quasi-static poses are at rest (feet and seat damp the puppet)
+    assert all(pose["at_rest"] for pose in summary["warm_start"]["poses"]), summary["warm_start"]["poses"]
