@@ -4,10 +4,11 @@ in front of the chair, and the keyframes file is solved (exit 0, every keyframe 
 stated accuracy).
 
 The bounds come from the puppet's geometry (dmarionette/scene/builtin/puppet.toml):
-- standing torso centre 0.39 m above the ground (tests/fitting/test_scene_keyframes.py derives it);
-  a hip flexed by 20 deg lowers it by 0.14 m (1 - cos 20 deg) = 8.4 mm, a knee by 5 deg by 0.5 mm,
-  so the torso within 1 cm below that height means hips within ~20 deg and the legs straight;
-  it cannot be higher with the feet on the ground (a few mm of contact give);
+- standing torso centre 0.39 m above the ground (tests/fitting/test_scene_keyframes.py derives it),
+  within 1 cm below it (a knee bent 5 deg lowers it by 0.5 mm) and not above it by more than a few
+  mm of contact give. The hips are NOT bounded here (the keyframes do not target them): the
+  authored puppet stands with its hips flexed ~30 deg, the torso leaning forward, and its feet
+  tilted onto an edge (foot centres ~18 mm up instead of 10), which keeps the torso at 0.39 m;
 - knees within 5 deg of straight (the file asks 1 deg at two instants; the puppet sways a little in
   between);
 - feet on the ground: the lowest corner of each foot box within 3 mm of the ground (the penalty
@@ -24,7 +25,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 KEYFRAMES = ROOT / "examples" / "keyframes_chair_stand.toml"
 STANDING_TORSO = 0.39   # [m] above the ground (test_scene_keyframes derives it from puppet.toml)
-TORSO_BELOW = 0.010     # [m] hips within ~20 deg (see the module)
+TORSO_BELOW = 0.010     # [m] (see the module)
 TORSO_ABOVE = 0.003     # [m] contact give
 KNEE_MAX_DEG = 5.0
 FOOT_GAP = 0.003        # [m] the lowest foot corner's distance from the ground
