@@ -272,11 +272,11 @@ def _export(trajectory, scene, out: Path) -> dict:
 def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, method: str | None = None,
            max_seconds: float | None = None, continuation: bool | None = None, jacobian: str | None = None,
            progress: bool = True, animation: bool = True, exports: bool = True, optimization_level: int = 2,
-           checkpoint_steps: int | None = None, fps: float = 15.0) -> dict:
+           checkpoint_steps: int | None = None, fps: float = 15.0, warm_start: str | None = None) -> dict:
     """Solves ``spec`` and writes its outputs to ``out``; returns the summary (also ``summary.json``).
 
-    ``method``, ``max_steps``, ``max_seconds``, ``continuation`` and ``jacobian`` override the file's
-    ``[solver]``. The summary's ``status`` is ``"reached"``, ``"not_converged"``,
+    ``method``, ``max_steps``, ``max_seconds``, ``continuation``, ``jacobian`` and ``warm_start``
+    override the file's ``[solver]``. The summary's ``status`` is ``"reached"``, ``"not_converged"``,
     ``"unreachable"`` or ``"limit_exceeded"`` and ``exit_code`` the command's exit code for it
     (:data:`fitting.author_solve.EXIT_CODES`); ``verdicts`` says, per keyframe, why.
     """
@@ -301,11 +301,13 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
         outcome = solve_keyframes(problem, max_steps=max_steps, max_seconds=max_seconds,
                                   continuation=spec.continuation if continuation is None else continuation,
                                   position_tolerance=spec.position_tolerance, angle_tolerance=spec.angle_tolerance,
-                                  say=say, secant=(jacobian or spec.jacobian) == "secant")
+                                  say=say, secant=(jacobian or spec.jacobian) == "secant",
+                                  warm_start=warm_start or spec.warm_start)
         y_final = {k: jnp.asarray(v) for k, v in outcome.y.items()}
         history, solve_seconds, solver_result = outcome.history, outcome.seconds, "; ".join(outcome.lm_status)
         verdicts = [dataclasses.asdict(v) for v in outcome.verdicts]
         messages = list(outcome.messages)
+        warm = outcome.warm_start
     else:
         result: SolveResult = solve(objective, y0, method=method, max_steps=max_steps, rtol=spec.rtol,
                                     atol=spec.atol, progress=progress, counter=problem.counter,
@@ -315,6 +317,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
                                    "met its termination test there" if result.converged
                                    else "ran out of steps or time")
         messages = []
+        warm = None
     after = problem.forward(y_final)
     loss_before, terms_before = objective.loss_terms_of(y0, before)
     loss_after, terms_after = objective.loss_terms_of(y_final, after)
@@ -383,6 +386,7 @@ def author(spec: AuthorSpec, out: str | Path, *, max_steps: int | None = None, m
         "seconds": {"build": built - started, "solve": solve_seconds, "total": time.perf_counter() - started},
         "knots": {name: {"t": tr.times.tolist(), "position": tr.positions.tolist(), "rotation": tr.rotations.tolist()}
                   for name, tr in param.trajectories(y_final).items()},
+        "warm_start": {"kind": (warm_start or spec.warm_start) if method == "lm_fd" else None, **(warm or {})},
         "history": history, "files": files,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

@@ -144,7 +144,8 @@ def run_author_batch(args: argparse.Namespace, mode: str, verdict_text: Callable
         seen[path.stem] = Path(given)
     folders = [args.outputs.folder("--out", base / p.stem) for p in paths]
     options = {"max_steps": args.max_steps, "method": args.method, "max_seconds": args.max_seconds,
-               "continuation": args.continuation, "jacobian": args.jacobian, "animation": not args.no_animation,
+               "continuation": args.continuation, "jacobian": args.jacobian, "warm_start": args.warm_start,
+               "animation": not args.no_animation,
                "exports": not args.no_export, "optimization_level": 0 if args.fast_compile else 2,
                "checkpoint_steps": args.checkpoint_steps, "fps": args.fps}
     jobs = [AuthorJob(spec, str(folder.resolve()), options) for spec, folder in zip(specs, folders)]

@@ -72,6 +72,7 @@ def _crawled(result) -> bool:
     first, last = result.history[0]["cost"], result.cost
     return first - last < STALL_RTOL * last * len(result.history) / STALL_STEPS
 REST = "end at rest"  # the target name of [author] end_at_rest (the last keyframe's)
+WARM_BLENDS = (1.0, 0.5, 0.25)  # how far towards the quasi-static warm start the solve may start (force limit)
 FD_STEP = 1e-6  # forward-difference step in z (about 5e-8 m or 1e-7 rad of a knot)
 FD_STEP_COARSE = 1e-3  # after a stall: about 5e-5 m or 1e-4 rad of a knot
 
@@ -112,6 +113,7 @@ class KeyframeSolve:
     messages: list[str]
     peak_force: dict
     seconds: float
+    warm_start: dict | None = None  # the quasi-static warm start (QuasiStaticStart.summary()), if run
 
     @property
     def converged(self) -> bool:
@@ -313,7 +315,7 @@ class KeyframeResiduals:
 def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None, continuation: bool = False,
                     position_tolerance: float = 1e-3, angle_tolerance: float = 0.5,
                     say: Callable[[str], None] = lambda line: None, z0: np.ndarray | None = None,
-                    secant: bool = True) -> KeyframeSolve:
+                    secant: bool = True, warm_start: str = "scene") -> KeyframeSolve:
     """Levenberg-Marquardt on the keyframes of ``problem`` with hard device limits and a verdict.
 
     Args:
@@ -323,10 +325,13 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         continuation: switch keyframes on in time order (else all at once).
         position_tolerance: [m], angle_tolerance: [deg]: a keyframe is reached within them.
         say: receives progress lines.
-        z0: start (default: the scene's own bar motion).
+        z0: start (default: the scene's own bar motion, or the quasi-static warm start).
         secant: update the keyframe rows of the Jacobian by Broyden's secant formula between
             forward-difference Jacobians (one rollout a step instead of ``n + 1``; see
             :func:`fitting.least_squares.levenberg_marquardt`).
+        warm_start: ``"scene"`` (start from the scene's own bar motion) or ``"quasi_static"``
+            (:mod:`fitting.quasi_static`: the knots from each keyframe's quasi-static pose, used when
+            it lowers the cost and respects the force limit; else the scene's, and a message says why).
     """
     started = time.perf_counter()
     deadline = None if max_seconds is None else started + max_seconds
@@ -358,6 +363,35 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
 
     def feasible(zt) -> bool:
         return allowed is None or all(p <= allowed[n] for n, p in res.peak_force(zt).items())
+
+    warm = None
+    if warm_start == "quasi_static" and z0 is None:
+        from .quasi_static import quasi_static_start
+
+        warm = quasi_static_start(problem, res, deadline=deadline, say=say)
+        cost_scene = 0.5 * float(np.sum(res.residuals(z) ** 2))
+        # The warm start, or (when it would send a device more than its peak force) the first of the
+        # blends z + a (z_warm - z), a = 1/2, 1/4, that does not: a smaller move pulls less.
+        use, line = None, ""
+        for a in WARM_BLENDS:
+            trial = warm.z if a == 1.0 else z + a * (warm.z - z)
+            cost = 0.5 * float(np.sum(res.residuals(trial) ** 2))
+            if not cost < cost_scene:
+                line = line or f"cost {cost:.4g}: no better"
+                break
+            if feasible(trial):
+                use = trial
+                line = f"cost {cost:.4g}" + ("" if a == 1.0 else f" (the knots {a:g} of the way from the scene's "
+                                                                  "to the warm start's: all the way sends a device "
+                                                                  "more than its peak force)")
+                break
+            line = line or "it sends a device more than its peak force"
+        line = (f"quasi-static warm start ({warm.seconds:.1f} s): " + line + f", against {cost_scene:.4g} from the "
+                "scene's own bar motion; " + ("starting from it" if use is not None else "NOT used"))
+        say(line)
+        messages.append(line)
+        if use is not None:
+            z = use
 
     history: list[dict] = []
     lm_status: list[str] = []
@@ -442,6 +476,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         lm_status.append(f"{stage}: {result.status} after {result.steps} steps")
         return result
 
+    z_start = z
     ones = np.ones(count)
     res.active = ones
     r0 = res.residuals(z)
@@ -603,4 +638,6 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     y = {k: np.asarray(v) for k, v in res._y(z).items()}
     return KeyframeSolve(y=y, z=z, verdicts=verdicts, status=status, exit_code=EXIT_CODES[status], history=history,
                          lm_status=lm_status, messages=messages, peak_force=peak,
-                         seconds=time.perf_counter() - started)
+                         seconds=time.perf_counter() - started,
+                         warm_start=None if warm is None else {**warm.summary(), "used": bool(not np.array_equal(
+                             z_start, res.bounds.z0()))})

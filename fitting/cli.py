@@ -64,6 +64,11 @@ def add_author_command(commands) -> None:
     author.add_argument("--continuation", action="store_true", default=None,
                         help="lm_fd: switch the keyframes on in time order (default: the file's [solver] "
                              "continuation, else all at once)")
+    author.add_argument("--warm-start", choices=["scene", "quasi_static"], default=None,
+                        help="lm_fd: start from the scene's own bar motion (scene) or from each keyframe's "
+                             "quasi-static pose, the bar pose whose settled puppet is nearest the keyframe "
+                             "(quasi_static; used only when it lowers the cost) (default: the file's [solver] "
+                             "warm_start, else scene)")
     author.add_argument("--checkpoint-steps", type=integer(1, 1_000_000), default=None,
                         help="puppet steps per taped gradient segment (default: sqrt of the rollout's steps)")
     author.add_argument("--no-animation", action="store_true", help="skip the before/after animations")
@@ -123,7 +128,8 @@ def _run_author(args: argparse.Namespace) -> int:
     out = _outputs(args).folder("--out", args.out if args.out is not None else Path("out") / keyframes.stem)
     enable_compilation_cache()
     summary = author(spec, out, max_steps=args.max_steps, method=args.method, max_seconds=args.max_seconds,
-                     continuation=args.continuation, jacobian=args.jacobian, progress=not args.quiet,
+                     continuation=args.continuation, jacobian=args.jacobian, warm_start=args.warm_start,
+                     progress=not args.quiet,
                      animation=not args.no_animation, exports=not args.no_export,
                      optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
                      fps=args.fps)

@@ -25,7 +25,7 @@ from dmarionette.scene.fields import (SceneError, check_keys, read_choice, read_
                                       read_toml_file, read_vec3)
 
 __all__ = ["AuthorSpec", "BarFreedom", "KeyframeError", "KeyframePose", "METHODS", "Weights", "auto_knots",
-           "keyframes_from_table", "load_keyframes", "BAR_DOFS", "DEVICES"]
+           "keyframes_from_table", "load_keyframes", "BAR_DOFS", "DEVICES", "WARM_STARTS"]
 
 BAR_DOFS = ("x", "y", "z", "rx", "ry", "rz")
 """A bar's six degrees of freedom: centre position [m] and XYZ Euler angles [deg]."""
@@ -140,6 +140,8 @@ class AuthorSpec:
             (Broyden updates) or ``"fd"`` (a forward-difference Jacobian every step).
         end_at_rest: the puppet must end at rest: every body centre's speed over the last
             puppet step within ``rest_tolerance`` [m/s].
+        warm_start: ``lm_fd``'s start: ``"scene"`` (the scene's own bar motion) or
+            ``"quasi_static"`` (each keyframe's quasi-static pose, :mod:`fitting.quasi_static`).
     """
 
     source: str
@@ -165,7 +167,11 @@ class AuthorSpec:
     jacobian: str = "secant"
     end_at_rest: bool = False
     rest_tolerance: float = 0.01
+    warm_start: str = "scene"
 
+
+#: ``[solver] warm_start`` choices; the first is the default.
+WARM_STARTS = ("scene", "quasi_static")
 
 _TOP_KEYS = ["author", "bars", "weights", "solver", "keyframes"]
 _AUTHOR_KEYS = ["scene", "duration", "end_at_rest", "particle_count", "string_hz", "puppet_hz", "device",
@@ -220,7 +226,7 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     solver = read_table(table, "solver", f"{source}: top level", {})
     where = f"{source}: [solver]"
     check_keys(solver, ["method", "max_steps", "rtol", "atol", "position_tolerance", "angle_tolerance",
-                        "max_seconds", "continuation", "jacobian", "rest_tolerance"], where)
+                        "max_seconds", "continuation", "jacobian", "rest_tolerance", "warm_start"], where)
     method = read_choice(solver, "method", where, list(METHODS), "lm_fd")
     max_steps = read_int(solver, "max_steps", where, 60, minimum=1, maximum=100_000)
     rtol = read_float(solver, "rtol", where, 1e-6, positive=True)
@@ -232,13 +238,15 @@ def _keyframes_from_table(table: Mapping[str, Any], source: str) -> AuthorSpec:
     if not isinstance(continuation, bool):
         raise KeyframeError(where, "continuation", continuation, "true or false")
     jacobian = read_choice(solver, "jacobian", where, ["secant", "fd"], "secant")
+    warm_start = read_choice(solver, "warm_start", where, list(WARM_STARTS), WARM_STARTS[0])
     rest_tolerance = read_float(solver, "rest_tolerance", where, 0.01, positive=True, maximum=10.0)
     return AuthorSpec(source=source, scene=scene, scene_table=scene_table, duration=duration, bars=bars,
                       keyframes=keyframes, weights=weights, device=device, workspace_scale=workspace_scale,
                       force_scale=force_scale, feedback=feedback, max_force=max_force, max_steps=max_steps,
                       rtol=rtol, atol=atol, method=method, position_tolerance=position_tolerance,
                       angle_tolerance=angle_tolerance, max_seconds=max_seconds, continuation=continuation,
-                      jacobian=jacobian, end_at_rest=end_at_rest, rest_tolerance=rest_tolerance)
+                      jacobian=jacobian, end_at_rest=end_at_rest, rest_tolerance=rest_tolerance,
+                      warm_start=warm_start)
 
 
 def _read_scene(head: Mapping[str, Any], where: str, folder: Path) -> tuple[Scene, dict[str, Any]]:

@@ -2,9 +2,10 @@
 examples/keyframes_ball_kick.toml): valid input for ``dmarionette author`` on the scenes as
 shipped, and targets a standing puppet really has, derived from the puppet's dimensions.
 
-The files are not yet solved by the tool (docs/authoring.md, "The paper's scenes"), so no
-authored scene is tested here; these checks keep the files consistent with the puppet and the
-scenes so that they stay the right problems to solve.
+The chair's file is solved by the tool (its authored scene is tested in
+tests/fitting/test_chair_authored.py), the ball's not yet (docs/authoring.md, "The paper's
+scenes"); these checks keep the files consistent with the puppet and the scenes so that they stay
+the right problems to solve.
 """
 
 from pathlib import Path
@@ -16,6 +17,7 @@ pytest.importorskip("jax")
 pytest.importorskip("optimistix")
 
 from fitting import load_keyframes  # noqa: E402
+from fitting.keyframes import puppet_step as puppet_dt  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 CHAIR = ROOT / "examples" / "keyframes_chair_stand.toml"
@@ -38,24 +40,25 @@ def _straight(pose, names):
 
 
 def test_chair_keyframes_end_standing_in_front_of_the_shipped_chair():
+    """Every keyframe of the chair file is standing: knees straight and the torso at the standing
+    height, clear of the chair (the file no longer targets hips, nor a lift off the seat: issue 15
+    does not ask for them, and the authored scene is checked standing, hips and feet included, by
+    tests/fitting/test_chair_authored.py)."""
     spec = load_keyframes(CHAIR)
     scene = spec.scene
     assert scene.name == "chair" and scene.chair is not None  # the chair, as shipped
     assert all(scene.body_effects[k] for k in ("chair", "body_ground", "joint_limits"))
     standing = _standing_torso_height(scene.puppet)
     assert standing == pytest.approx(0.39, abs=1e-9)  # 0.01 + 0.01 + 0.14 + 0.14 + 0.09 (docs/puppet.md)
-    seated = scene.puppet.root_position[1]
-    first, *last = spec.keyframes
-    assert first.bodies["torso"][1] > seated + 0.1  # lifted off the seat
     centre, half = (np.array(v) for v in scene.chair)
     front = centre[2] + half[2]
     legs = {b.name: b for b in scene.puppet.bodies}["upper_leg_left"].size[2] / 2
-    for pose in last:  # standing: knees and hips straight, torso at the standing height, clear of the chair
-        assert _straight(pose, ("knee_left", "knee_right", "hip_left", "hip_right"))
+    for pose in spec.keyframes:  # standing: knees straight, torso at the standing height, clear of the chair
+        assert _straight(pose, ("knee_left", "knee_right"))
         torso = np.array(pose.bodies["torso"])
         assert torso[1] == pytest.approx(standing, abs=1e-9)
         assert torso[2] - legs > front
-    assert last[-1].t == pytest.approx(spec.duration)  # and it is still standing at the end
+    assert spec.keyframes[-1].t == pytest.approx(spec.duration, abs=puppet_dt(scene))  # still standing at the end
 
 
 def test_ball_keyframes_swing_the_right_foot_into_the_shipped_ball():
