@@ -4,7 +4,7 @@
 
 Draws what ``dmarionette.render.marionette`` draws in its side view (strings, bodies, bars, the
 chair and the ground) at the given times. Used for docs/img/chair_authored.png:
-``python tools/frames_strip.py dmarionette/scene/builtin/chair_authored.toml docs/img/chair_authored.png``.
+``python tools/frames_strip.py dmarionette/scene/builtin/chair.toml docs/img/chair_authored.png``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The paper's ball scene, authored (issue 15 item 5): the built-in ``ball_authored`` scene, whose
+"""The paper's ball scene, authored (issue 15 item 5): the built-in ``ball`` scene, whose
 bars ``dmarionette author examples/keyframes_ball_kick.toml`` found, kicks the ball with the right
 foot and the puppet follows it; and the keyframes file it came from is solved (exit 0).
 
@@ -28,7 +28,7 @@ POSITION_TOLERANCE, ANGLE_TOLERANCE = 1e-3, 0.5  # [m], [deg]: the file's accura
 
 @pytest.fixture(scope="module")
 def replay():
-    scene = load_scene("ball_authored")
+    scene = load_scene("ball")
     return scene, simulate_marionette(MarionetteModel(scene), scene.duration, progress=False)
 
 
@@ -51,7 +51,7 @@ def _lowest(trajectory, scene, body: str, f: int) -> float:
 
 
 def test_ball_authored_is_the_ball_scene_with_authored_bars():
-    authored, scripted = load_scene("ball_authored"), load_scene("ball")
+    authored, scripted = load_scene("ball"), load_scene("ball_scripted")
     assert authored.ball == scripted.ball and authored.body_effects == scripted.body_effects
     assert np.allclose(authored.puppet.root_position, scripted.puppet.root_position)
     assert [s.name for s in authored.strings] == [s.name for s in scripted.strings]

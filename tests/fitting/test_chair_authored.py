@@ -1,4 +1,4 @@
-"""The paper's chair scene, authored (issue 15 item 5): the built-in ``chair_authored`` scene (the
+"""The paper's chair scene, authored (issue 15 item 5): the built-in ``chair`` scene (the
 bars ``dmarionette author examples/keyframes_chair_stand.toml`` wrote) ends with the puppet standing
 in front of the chair, and the keyframes file is solved (exit 0, every keyframe within the file's
 stated accuracy).
@@ -45,13 +45,13 @@ def replay():
     from dmarionette.marionette.solver import MarionetteModel
     from dmarionette.scene.scene import load_scene
 
-    scene = load_scene("chair_authored")
+    scene = load_scene("chair")
     return scene, simulate_marionette(MarionetteModel(scene), scene.duration, progress=False)
 
 
 def test_the_authored_chair_is_the_shipped_chair_with_authored_bars(replay):
     scene, _ = replay
-    assert scene.name == "chair_authored" and scene.chair is not None
+    assert scene.name == "chair" and scene.chair is not None
     assert all(scene.body_effects[k] for k in ("chair", "body_ground", "joint_limits"))
     assert scene.puppet.root_position[1] == pytest.approx(0.262)  # it starts seated, as `chair` does
 

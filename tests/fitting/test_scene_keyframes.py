@@ -46,7 +46,7 @@ def test_chair_keyframes_end_standing_in_front_of_the_shipped_chair():
     tests/fitting/test_chair_authored.py)."""
     spec = load_keyframes(CHAIR)
     scene = spec.scene
-    assert scene.name == "chair" and scene.chair is not None  # the chair, as shipped
+    assert scene.name == "chair_scripted" and scene.chair is not None  # the chair, scripted start
     assert all(scene.body_effects[k] for k in ("chair", "body_ground", "joint_limits"))
     standing = _standing_torso_height(scene.puppet)
     assert standing == pytest.approx(0.39, abs=1e-9)  # 0.01 + 0.01 + 0.14 + 0.14 + 0.09 (docs/puppet.md)
@@ -64,7 +64,7 @@ def test_chair_keyframes_end_standing_in_front_of_the_shipped_chair():
 def test_ball_keyframes_swing_the_right_foot_into_the_shipped_ball():
     spec = load_keyframes(BALL)
     scene = spec.scene
-    assert scene.name == "ball" and scene.ball is not None
+    assert scene.name == "ball_scripted" and scene.ball is not None
     assert all(scene.body_effects[k] for k in ("ball", "body_ground", "joint_limits"))
     bodies = {b.name: b for b in scene.puppet.bodies}
     kick, follow = spec.keyframes

@@ -149,7 +149,7 @@ def test_dropped_onto_the_chair():
     (69 mm). Measured: chair 47.3 mm, ground 13.9 mm, limit 0.136 rad; it ends on the seat
     (pelvis above the seat top).
     """
-    chair = dm.load_scene("chair")
+    chair = dm.load_scene("chair_scripted")
     root = np.array(chair.puppet.root_position) + [0.0, 0.2, 0.0]
     puppet = dataclasses.replace(chair.puppet, root_position=tuple(root))
     bars = tuple(still_bar(b) for b in chair.bars)

@@ -132,7 +132,7 @@ def test_configurations_near_gimbal_lock(hanging):
 
 def _thrown_ball(speed, puppet_hz):
     """The ``ball`` scene, bars still, the ball thrown at the torso from 0.4 m in front."""
-    scene = dm.load_scene("ball")
+    scene = dm.load_scene("ball_scripted")
     scene = dataclasses.replace(scene, bars=tuple(still_bar(b) for b in scene.bars), puppet_hz=puppet_hz,
                                 ball=dataclasses.replace(scene.ball, position=(0.0, 0.39, 0.4)))
     model = fast_model(scene)
