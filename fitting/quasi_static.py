@@ -108,11 +108,11 @@ class QuasiStaticStart:
             {**dataclasses.asdict(p), "values": {n: v.tolist() for n, v in p.values.items()}} for p in self.poses]}
 
 
-class _Settle:
+class Settle:
     """The settle of one keyframe: its rollout, pose variables and residuals."""
 
     def __init__(self, problem, residuals, k: int, current: dict, posed: dict, hold_s: float = HOLD_S):
-        from .author import build_problem
+        from .author_problem import build_problem
 
         spec, pose = problem.spec, problem.spec.keyframes[k]
         dt = problem.model.puppet_dt
@@ -212,7 +212,7 @@ def quasi_static_start(problem, residuals, *, max_steps: int = MAX_STEPS, deadli
         if deadline is not None and time.perf_counter() >= deadline:
             break
         t0 = time.perf_counter()
-        settle = _Settle(problem, residuals, k, current, posed, hold_s)
+        settle = Settle(problem, residuals, k, current, posed, hold_s)
         if not np.any(settle.weights > 0) or not settle.coordinates:
             continue  # every target of this keyframe left out, or nothing to pose
         count = [0]
@@ -267,7 +267,7 @@ def quasi_static_start(problem, residuals, *, max_steps: int = MAX_STEPS, deadli
     return QuasiStaticStart(z=residuals.bounds.z_of_y(y), poses=poses, seconds=time.perf_counter() - started)
 
 
-def _errors(settle: _Settle, outputs: dict) -> dict[str, float]:
+def _errors(settle: Settle, outputs: dict) -> dict[str, float]:
     """Target name -> error of the settled state: positions [m] (key ``name`` or ``name (body)``),
     joints and orientations [deg] (keys ending in `` deg``)."""
     key = settle.problem.objective.keyframe_residuals(outputs)

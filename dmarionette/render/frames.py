@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .marionette import _bar_polyline, _polyline, frame_extent
+from .marionette import bar_polyline, body_polyline, frame_extent
 
 __all__ = ["render_marionette_frames"]
 
@@ -63,9 +63,9 @@ def render_marionette_frames(path: str | Path, trajectory, times, *, title: str 
             taut = trajectory.string_taut[step, s] or f == 0
             ax.plot(trajectory.particle_q[f, a:b, axis], trajectory.particle_q[f, a:b, 1], lw=0.9,
                     color="0.15" if taut else "darkorange")
-        body = _polyline(trajectory, f)
+        body = body_polyline(trajectory, f)
         ax.plot(body[:, axis], body[:, 1], color="steelblue", lw=1.0)
-        bars = _bar_polyline(trajectory, f)
+        bars = bar_polyline(trajectory, f)
         ax.plot(bars[:, axis], bars[:, 1], color="saddlebrown", lw=4, solid_capstyle="butt")
         if ball_radius is not None:
             centre = trajectory.body_pos[f, -1]

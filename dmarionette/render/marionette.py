@@ -37,7 +37,7 @@ def gif_delays_ms(count: int, fps: float) -> list[int]:
     return [10 * int(d) for d in np.diff(edges)]
 
 
-def _polyline(trajectory: MarionetteTrajectory, f: int) -> np.ndarray:
+def body_polyline(trajectory: MarionetteTrajectory, f: int) -> np.ndarray:
     """The puppet's bodies at frame ``f`` as one polyline, pieces separated by NaN rows: box edges, sphere rings."""
     pieces = []
     for b, (shape, size) in enumerate(trajectory.body_shape):
@@ -55,7 +55,7 @@ def _polyline(trajectory: MarionetteTrajectory, f: int) -> np.ndarray:
     return np.concatenate(pieces)
 
 
-def _bar_polyline(trajectory: MarionetteTrajectory, f: int) -> np.ndarray:
+def bar_polyline(trajectory: MarionetteTrajectory, f: int) -> np.ndarray:
     ends = np.array([[-_BAR_HALF_LENGTH, 0, 0], [_BAR_HALF_LENGTH, 0, 0]])
     pieces = []
     for b in range(len(trajectory.bar_names)):
@@ -196,7 +196,7 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
     def draw(f: int) -> np.ndarray:
         fig.canvas.restore_region(background)
         step = min(len(trajectory.string_taut) - 1, max(0, f * trajectory.frame_steps - 1))
-        body_line, bar_line = _polyline(trajectory, f), _bar_polyline(trajectory, f)
+        body_line, bar_line = body_polyline(trajectory, f), bar_polyline(trajectory, f)
         for axis, strings, bodies, bars, ball, away in view_artists:
             for s, line in enumerate(strings):
                 a, b = trajectory.string_start[s], trajectory.string_start[s + 1]

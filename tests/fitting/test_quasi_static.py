@@ -14,7 +14,7 @@ pytest.importorskip("optimistix")
 from fitting.author import build_problem  # noqa: E402
 from fitting.author_solve import KeyframeResiduals, solve_keyframes  # noqa: E402
 from fitting.keyframes import KeyframeError, keyframes_from_table  # noqa: E402
-from fitting.quasi_static import HOLD_S, REST_SPEED, _Settle, quasi_static_start  # noqa: E402
+from fitting.quasi_static import HOLD_S, REST_SPEED, Settle, quasi_static_start  # noqa: E402
 
 HOLD = HOLD_S
 KNOWN = np.array([0.03, -0.02, 0.015])  # [m] the hand bar's known offset from its start (inside the Omni's box)
@@ -42,7 +42,7 @@ def known():
     problem = build_problem(spec)
     res = KeyframeResiduals(problem)
     current = {a["name"]: a["initial"].copy() for a in problem.param.authored}
-    settle = _Settle(problem, res, 0, current, {"hand": {0}}, HOLD)
+    settle = Settle(problem, res, 0, current, {"hand": {0}}, HOLD)
     start = problem.param.authored[0]["initial"][0, :3]
     bounds = np.array([c[3] for c in settle.coordinates])
     u = np.arcsin(KNOWN / bounds)
