@@ -446,8 +446,10 @@ def _run_demo(args: argparse.Namespace) -> int:
 def _run_scenes(args: argparse.Namespace) -> int:
     from .scene.scene import builtin_scenes, load_scene
 
-    for name in builtin_scenes():
-        print(f"{name:12s} {load_scene(name).description}")
+    names = builtin_scenes()
+    width = max(len(name) for name in names)
+    for name in names:
+        print(f"{name:{width}s}  {load_scene(name).description}")
     return 0
 
 
