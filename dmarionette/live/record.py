@@ -11,12 +11,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from dmarionette.live.physics import LiveMarionette, LiveTick
 
 if TYPE_CHECKING:  # imported when a session is recorded: the MCAP writer's imports take seconds
     from dmarionette.io.session import SessionWriter
 
-__all__ = ["open_session_writer", "record_tick"]
+__all__ = ["open_session_writer", "record_start", "record_tick"]
 
 
 def open_session_writer(path: str | Path, scene, live_metadata: dict[str, Any] | None = None) -> SessionWriter:
@@ -33,6 +35,25 @@ def open_session_writer(path: str | Path, scene, live_metadata: dict[str, Any] |
     if live_metadata is not None:
         writer.write_metadata("live", live_metadata)
     return writer
+
+
+def record_start(writer: SessionWriter, live: LiveMarionette) -> None:
+    """Writes the state a live session starts from, at t = 0: every bar's pose (the scene's, where a
+    device's mapping puts its origin) and the puppet's rest state.
+
+    A replay starts its strings from the first recorded bar pose. Without this record that
+    would be the pose after the first tick, which a device has already moved away from the
+    start (the more, the longer the first tick waited), and the replay would start from a
+    different string state than the live session did.
+    """
+    model = live.model
+    for bar in model.scene.bars:
+        position = bar.trajectory.pose(np.zeros(1))[0][0]
+        writer.write_bar_pose(bar.name, 0.0, position, bar.trajectory.angles(np.zeros(1))[0])
+    puppet = live.state.puppet
+    model.puppet_solver.eval_kinematics(puppet)
+    writer.write_puppet_state(0.0, puppet.joint_q.numpy()[0].copy(), puppet.body_pos.numpy()[0].copy(),
+                              puppet.body_rot.numpy()[0].copy())
 
 
 def record_tick(writer: SessionWriter, live: LiveMarionette, tick: LiveTick, poses: dict) -> None:

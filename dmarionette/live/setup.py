@@ -29,7 +29,7 @@ import numpy as np
 from dmarionette import hw
 from dmarionette.hw.device import AbstractHapticDevice, HapticDeviceError, HapticDeviceSpec, HapticSample
 from dmarionette.live.physics import LiveMarionette, LiveTick, make_physics_step
-from dmarionette.live.record import open_session_writer, record_tick
+from dmarionette.live.record import open_session_writer, record_start, record_tick
 from dmarionette.live.view import LiveViewPublisher
 from dmarionette.marionette.solver import MarionetteModel
 
@@ -380,6 +380,8 @@ class LivePhysics:
         self.live = LiveMarionette(model)
         self.bars = list(bar) if several else [bar]
         self.writer = None if record is None else open_session_writer(record, model.scene, live_metadata)
+        if self.writer is not None:
+            record_start(self.writer, self.live)
         self._lock = threading.Lock()  # the servo thread records devices, the physics thread ticks
         world_step = make_physics_step(self.live, bar, duration, feedback=feedback, force_scale=force_scale,
                                        on_tick=self._record_tick if self.writer is not None else None, view=view)

@@ -297,7 +297,7 @@ def test_two_devices_refuse_child_process_physics_and_mismatched_options(model):
 def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
     """`live --device sim --bar main --device sim --bar hand --record` records both devices (samples
     and forces sent, each within its limit); `replay` re-simulates it (every bar pose exact, the
-    puppet to 1e-6 m as for one device, tests/live/test_live.py), and two `--device replay` play it back."""
+    puppet exactly, as for one device, tests/live/test_live.py), and two `--device replay` play it back."""
     from dmarionette.cli import main
     from dmarionette.io.session import read_session, session_bar_trajectories
 
@@ -327,13 +327,15 @@ def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
         mapping = DeviceMapping(np.array(meta["S"]), np.array(meta["W"]))
         np.testing.assert_array_equal(mapping.matrix, bar_mapping(model, bar, scale).matrix)
         world = mapping.position_to_world(recorded.channels[f"/device/{bar}/sample"]["position"])
-        pose = recorded.channels[f"/bar/{bar}/pose"]["position"]
+        channel = recorded.channels[f"/bar/{bar}/pose"]
+        pose = channel["position"][channel["t"] > 0]  # at t = 0 the scene's start, before any sample
         gap = np.abs(pose[:, None, :] - world[None, :, :]).max(axis=2).min(axis=1)
         assert len(pose) > 100 and gap.max() < 1e-12, gap.max()
 
     assert main(["replay", str(session), "--fast-compile"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["frames_compared"] >= 3 and report["max_body_gap"] < 1e-6, report
+    # Exactly the recorded puppet, as for one device (tests/live/test_live.py says why).
+    assert report["frames_compared"] >= 3 and report["max_body_gap"] == 0.0, report
     trajectories = session_bar_trajectories(recorded)
     for bar in BARS:
         pose = recorded.channels[f"/bar/{bar}/pose"]

@@ -127,9 +127,17 @@ def scene_for_replay(session: Session) -> Scene:
 
 
 def _at(times: np.ndarray, sim_times: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """``values`` (sampled at ``sim_times``) linearly interpolated at ``times``, any trailing shape."""
+    """``values`` (sampled at ``sim_times``) at ``times``, any trailing shape: the sample itself where
+    a time is one of ``sim_times`` up to rounding (1e-9 s; the two sides add up step times
+    differently), linearly interpolated elsewhere (interpolating between two samples at a
+    time off by rounding would itself add a rounding-level gap)."""
     flat = values.reshape(len(sim_times), -1)
     out = np.stack([np.interp(times, sim_times, flat[:, j]) for j in range(flat.shape[1])], axis=1)
+    nearest = np.clip(np.searchsorted(sim_times, times), 1, max(len(sim_times) - 1, 1))
+    nearest = np.where(np.abs(sim_times[nearest - 1] - times) <= np.abs(sim_times[nearest] - times), nearest - 1, nearest) \
+        if len(sim_times) > 1 else np.zeros(len(times), dtype=int)
+    same = np.abs(sim_times[nearest] - times) < 1e-9
+    out[same] = flat[nearest[same]]
     return out.reshape((len(times),) + values.shape[1:])
 
 
