@@ -203,7 +203,12 @@ def test_a_stalled_or_nonfinite_physics_gets_zero_force_within_5ms(kind, onset, 
     # time; a physics thread held up before handing it over is a stall: <= 4 ticks again). The
     # tick-exact NaN case is tests/hw/test_hw_servo.py::test_nonfinite_force_goes_to_zero.
     first_zero, _ = assert_zero_within(times, forces, start, 4, stats)
-    held = forces[(times >= first_zero) & (times < start + length)]  # nothing finite is answered before
+    # Nothing finite is answered before the fault ends. For a stall, an answer to the request
+    # before it, late past the watchdog on a loaded machine, may still arrive just after the first
+    # zero and rearm for a tick (tests/hw/test_hw_servo.py::test_watchdog_zero_force_within_5ms_of_stall);
+    # from 10 ms into the stall on, only zero.
+    quiet_from = first_zero if kind in ("nan", "inf") else max(first_zero, start + 0.01)
+    held = forces[(times >= quiet_from) & (times < start + length)]
     np.testing.assert_array_equal(held, np.zeros_like(held))  # zero for as long as it lasts
     assert stats.watchdog_trips >= 1 and np.all(np.isfinite(forces))
 
