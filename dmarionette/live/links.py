@@ -75,12 +75,9 @@ class LiveLink:
 def thread_link(model: MarionetteModel, devices: LiveDevices, options: LiveOptions,
                 view: LiveViewPublisher | None) -> LiveLink:
     """``model`` itself, stepped in the servo loop's worker thread (any number of devices, a view)."""
-    metadata = None
-    if options.record is not None:
-        metadata = {"devices": devices.metadata(), "feedback": options.feedback,
-                    "force_scale": float(options.force_scale)}
     physics = LivePhysics(model, devices.bar, devices.mapping, options.duration, feedback=options.feedback,
-                          force_scale=options.force_scale, record=options.record, live_metadata=metadata, view=view)
+                          force_scale=options.force_scale, record=options.record,
+                          live_metadata=_live_metadata(devices, options), view=view)
 
     def on_device(i: int, kind: str, value) -> None:
         if kind == "force" and view is not None:
@@ -88,6 +85,14 @@ def thread_link(model: MarionetteModel, devices: LiveDevices, options: LiveOptio
         physics.record_device(i, kind, value)
 
     return LiveLink(physics.step, on_device, os.getpid(), physics.close)
+
+
+def _live_metadata(devices: LiveDevices, options: LiveOptions) -> dict[str, Any] | None:
+    """The recording's ``"live"`` record (``docs/session.md``), whichever process writes it; None
+    when nothing is recorded."""
+    if options.record is None:
+        return None
+    return {"devices": devices.metadata(), "feedback": options.feedback, "force_scale": float(options.force_scale)}
 
 
 def _record_path(options: LiveOptions) -> str | None:
@@ -109,7 +114,8 @@ def process_link(model: MarionetteModel, devices: LiveDevices, options: LiveOpti
     """A child process over a pipe; device frame both ways (the child maps and records)."""
     physics = PhysicsProcess(model.scene.source, devices.bars[0], options.duration, devices.mappings[0],
                              feedback=options.feedback, force_scale=options.force_scale,
-                             optimization_level=options.optimization_level, record_path=_record_path(options))
+                             optimization_level=options.optimization_level, record_path=_record_path(options),
+                             live_metadata=_live_metadata(devices, options))
     return LiveLink(physics.step, _send_force_with_next_sample(physics), physics.pid, physics.close)
 
 
@@ -125,7 +131,8 @@ def shm_link(model: MarionetteModel, devices: LiveDevices, options: LiveOptions,
     servo_cpu, physics_cpu = (cpus[0], cpus[1]) if pin else (None, None)
     factory = LivePhysicsFactory(model.scene.source, devices.bars[0], options.duration, devices.mappings[0],
                                  feedback=options.feedback, force_scale=options.force_scale,
-                                 optimization_level=options.optimization_level, record_path=_record_path(options))
+                                 optimization_level=options.optimization_level, record_path=_record_path(options),
+                                 live_metadata=_live_metadata(devices, options))
     link = SharedMemoryPhysics(factory, rate_hz=model.scene.string_hz, cpu=physics_cpu,
                                realtime_priority=priority)
     return LiveLink(link, _send_force_with_next_sample(link), link.pid, link.close,

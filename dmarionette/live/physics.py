@@ -165,7 +165,9 @@ def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], dur
     driven = [model.bar_names.index(name) for name in driven_names]
     carried = [[i for i, n in enumerate(names) if n in bar.attach] for bar in bars]
     local = [np.array([bar.attach[names[i]] for i in idx]).reshape(-1, 3) for bar, idx in zip(bars, carried)]
-    previous: list[np.ndarray | None] = [None] * len(driven)
+    # A device's previous position, for the bar velocity (eq. 4's proxy) as a backward difference:
+    # at first the bar's start, where the device's mapping puts its origin and the strings start.
+    previous = [np.asarray(bars[b].trajectory.pose(np.zeros(1))[0][0], dtype=np.float64) for b in driven]
     ticks = int(np.ceil(duration / model.string_dt)) + 2
     tick_times = model.string_dt * np.arange(1, ticks + 1)  # the end of each string step
     scripted = bar_inputs(model, tick_times)
@@ -177,7 +179,7 @@ def make_physics_step(live: LiveMarionette, driven_bar: str | Sequence[str], dur
         rotations = []
         for i, (b, sample) in enumerate(zip(driven, samples, strict=True)):
             position = np.asarray(sample.position, dtype=np.float64)
-            velocity = np.zeros(3) if previous[i] is None else (position - previous[i]) / model.string_dt
+            velocity = (position - previous[i]) / model.string_dt
             previous[i] = position
             # The rotation as the session records it (XYZ Euler angles), so that a replay drives the
             # bar with the very matrix the live step used (the round trip changes it by rounding only).

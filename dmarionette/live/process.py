@@ -61,6 +61,7 @@ class LivePhysicsFactory:
         mapping: Device-to-world mapping of the driven bar.
         optimization_level: Puppet kernel optimisation (compiled kernels are cached on disk).
         record_path: Write the session (MCAP) from the child, or None.
+        live_metadata: The recording's ``"live"`` record (devices, mappings, feedback), or None.
     """
 
     scene_ref: str
@@ -71,6 +72,7 @@ class LivePhysicsFactory:
     force_scale: float = 1.0
     optimization_level: int = 2
     record_path: str | None = None
+    live_metadata: dict[str, Any] | None = None
 
     def build(self) -> LivePhysics:
         """Loads the scene and sets the marionette up: kernels compile and graphs are captured
@@ -86,7 +88,7 @@ class LivePhysicsFactory:
 
         model = MarionetteModel(load_scene(self.scene_ref), optimization_level=self.optimization_level)
         return LivePhysics(model, self.bar, self.mapping, self.duration, feedback=self.feedback,
-                           force_scale=self.force_scale, record=self.record_path)
+                           force_scale=self.force_scale, record=self.record_path, live_metadata=self.live_metadata)
 
     def __call__(self) -> _SharedMemoryChild:
         return _SharedMemoryChild(self.build())
@@ -158,16 +160,18 @@ class PhysicsProcess:
             :class:`~dmarionette.hw.DeviceMapping`); the child maps samples and forces with it.
         optimization_level: puppet kernel optimisation (compiled kernels are cached on disk).
         record_path: write the session (MCAP) from the child, or None.
+        live_metadata: the recording's ``"live"`` record, or None.
         start_timeout: seconds to wait for the child to build the model.
     """
 
     def __init__(self, scene_ref: str, bar: str, duration: float, mapping, *, feedback: str = "reaction",
                  force_scale: float = 1.0, optimization_level: int = 2, record_path: str | None = None,
-                 start_timeout: float = 300.0):
+                 live_metadata: dict[str, Any] | None = None, start_timeout: float = 300.0):
         context = mp.get_context("spawn")
         self._conn, child = context.Pipe()
         factory = LivePhysicsFactory(scene_ref, bar, duration, mapping, feedback=feedback, force_scale=force_scale,
-                                     optimization_level=optimization_level, record_path=record_path)
+                                     optimization_level=optimization_level, record_path=record_path,
+                                     live_metadata=live_metadata)
         self._process = context.Process(target=_physics_main, name="dmarionette-physics", daemon=True,
                                         args=(child, factory))
         self._process.start()

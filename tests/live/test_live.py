@@ -104,6 +104,9 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
     simulated device had already moved (the further, the longer the first tick waited on a loaded
     machine). Sessions now record the starting poses and puppet state at t = 0
     (``live/record.py::record_start``); ``benchmarks/bench_live_replay_gap.py`` measures the gap.
+    The feedback channel (eq. 4) matches exactly too: the replay gives the device's bar the live
+    step's velocity (a backward difference of its recorded poses, ``DeviceBarTrajectory``) and
+    the scripted bar its scene trajectory.
     """
     import json
 
@@ -126,7 +129,8 @@ def test_record_info_replay_and_replay_device(tmp_path, capsys):
     assert main(["replay", str(session), "--fast-compile"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["frames_compared"] >= 3  # how many puppet steps ran depends on the load (README)
-    assert report["max_body_gap"] == 0.0, report
+    assert report["max_body_gap"] == 0.0 and report["rms_feedback_gap"] == 0.0, report
+    assert recorded.extra_metadata["live"]["devices"][0]["bar"] == "main"  # in every physics mode
     assert recorded.channels["/bar/main/pose"]["t"][0] == 0.0 and recorded.channels["/puppet/state"]["t"][0] == 0.0
     from dmarionette.io.session import session_bar_trajectories
 

@@ -335,7 +335,7 @@ def test_two_device_session_records_both_and_replays(tmp_path, capsys, model):
     assert main(["replay", str(session), "--fast-compile"]) == 0
     report = json.loads(capsys.readouterr().out)
     # Exactly the recorded puppet, as for one device (tests/live/test_live.py says why).
-    assert report["frames_compared"] >= 3 and report["max_body_gap"] == 0.0, report
+    assert report["frames_compared"] >= 3 and report["max_body_gap"] == 0.0 and report["rms_feedback_gap"] == 0.0, report
     trajectories = session_bar_trajectories(recorded)
     for bar in BARS:
         pose = recorded.channels[f"/bar/{bar}/pose"]

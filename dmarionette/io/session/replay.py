@@ -17,6 +17,7 @@ import numpy as np
 
 from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.marionette.rollout import MarionetteTrajectory, simulate_marionette
+from dmarionette.scene.bars import BarTrajectory
 from dmarionette.scene.scene import Scene
 from dmarionette.io.session.read import Session, read_session, session_bar_trajectories
 from dmarionette.io.session.write import SessionWriter
@@ -80,6 +81,46 @@ def record_simulation(model: MarionetteModel, duration: float, path: str | Path,
     return trajectory, path
 
 
+@dataclasses.dataclass(frozen=True)
+class DeviceBarTrajectory(BarTrajectory):
+    """A device-driven bar's recorded poses, with the velocity the live step gave it: the
+    backward difference of consecutive recorded positions over the string step (eq. 4's bar
+    velocity proxy). The spline's own derivative differs, so a replay's feedback channel would
+    not match the recorded one. At a time between recorded poses the spline's derivative.
+
+    Attributes:
+        step: the string step [s] the live session divided by.
+    """
+
+    step: float = 1e-3
+
+    def pose(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        position, velocity, rotation = super().pose(times)
+        t = np.asarray(self.times)
+        query = np.asarray(times, dtype=np.float64)
+        k = np.clip(np.searchsorted(t, query), 0, len(t) - 1)
+        k = np.where((k > 0) & (np.abs(t[k - 1] - query) < np.abs(t[k] - query)), k - 1, k)
+        at_pose = np.abs(t[k] - query) < 1e-9  # a recorded time (up to rounding)
+        p = np.asarray(self.positions, dtype=np.float64)
+        difference = np.where((k > 0)[:, None], (p[k] - p[np.maximum(k - 1, 0)]) / self.step, 0.0)
+        velocity[at_pose] = difference[at_pose]
+        return position, velocity, rotation
+
+
+def _replay_trajectory(session: Session, bar, recorded: BarTrajectory, driven: set[str]) -> BarTrajectory:
+    """What drives ``bar`` in a replay: a device-driven bar its recorded poses with the live step's
+    velocity; a bar whose scene trajectory is exactly its recorded poses (a scripted bar, or a
+    simulated session) that trajectory, so that its velocity is the one simulated; otherwise the
+    spline through its recorded poses."""
+    if bar.name in driven:
+        return DeviceBarTrajectory(recorded.times, recorded.positions, recorded.rotations, step=1.0 / session.string_hz)
+    position, _, _ = bar.trajectory.pose(recorded.times)
+    if np.array_equal(position, recorded.positions) and np.array_equal(bar.trajectory.angles(recorded.times),
+                                                                       recorded.rotations):
+        return bar.trajectory
+    return recorded
+
+
 def _as_field(value: Any) -> Any:
     return tuple(_as_field(v) for v in value) if isinstance(value, list) else value
 
@@ -106,7 +147,9 @@ def scene_for_replay(session: Session) -> Scene:
     strings = [dataclasses.replace(s, **{k: _as_field(v) for k, v in recorded[s.name].items() if k in fields})
                for s in scene.strings]
     trajectories = session_bar_trajectories(session)
-    bars = tuple(dataclasses.replace(bar, trajectory=trajectories[bar.name]) for bar in scene.bars)
+    driven = {device.get("bar") for device in session.extra_metadata.get("live", {}).get("devices", ())}
+    bars = tuple(dataclasses.replace(bar, trajectory=_replay_trajectory(session, bar, trajectories[bar.name], driven))
+                 for bar in scene.bars)
     for bar in bars:  # a string on a bar starts at its attach point at the first recorded pose
         for i, spec in enumerate(strings):
             if spec.name in bar.attach:
