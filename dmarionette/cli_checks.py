@@ -107,6 +107,20 @@ def start_values(text: str) -> dict[str, float]:
     return values
 
 
+def add_ray_flags(parser: argparse.ArgumentParser, what: str, *, one_in_process: bool = False) -> None:
+    """``--ray`` and ``--workers`` of a command that runs independent pieces of work on Ray
+    (``dmarionette.scale.ray_map``; docs/sweep.md, "Ray"): ``what`` says what runs where;
+    ``one_in_process``: the command runs a single piece in this process whatever ``--ray`` says."""
+    single = "; a single one always runs in this process, without Ray" if one_in_process else ""
+    parser.add_argument("--ray", default=None, metavar="local|off|ADDRESS",
+                        help=f"{what}: local (the default when the 'scale' extra is installed: an embedded Ray "
+                             "cluster on this machine, loopback only, one worker per core), off (this process, one "
+                             "after another; the default without Ray), or the address of a running Ray cluster "
+                             f"(host:port, or auto){single}")
+    parser.add_argument("--workers", type=integer(1, 100_000), default=None,
+                        help="Ray workers (default: one per CPU of the cluster)")
+
+
 def refuse_empty_option_values(parser: argparse.ArgumentParser, argv) -> None:
     """Refuses ``--flag=--``, which Python 3.11's argparse turns into ``[]`` without calling ``type``.
 

@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from dmarionette.cli_checks import Outputs, integer, number, start_values
+from dmarionette.cli_checks import Outputs, add_ray_flags, integer, number, start_values
 
 __all__ = ["add_author_command", "add_calibrate_command"]
 
@@ -77,7 +77,7 @@ def add_author_command(commands) -> None:
                         help="animation frames per second (default: 15)")
     author.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     author.add_argument("--quiet", action="store_true", help="no progress lines")
-    _add_ray_flags(author, "with several files, where the jobs run")
+    add_ray_flags(author, "with several files, where the jobs run", one_in_process=True)
     author.set_defaults(handler=_run_author)
 
 
@@ -92,17 +92,6 @@ def _ray_mode(args: argparse.Namespace, count: int) -> str:
     if mode != "off" and getattr(args, "interrupt", None) is not None:
         args.interrupt.disarm()
     return mode
-
-
-def _add_ray_flags(parser: argparse.ArgumentParser, what: str) -> None:
-    """``--ray`` and ``--workers``, as ``dmarionette sweep`` has them (docs/sweep.md, "Ray")."""
-    parser.add_argument("--ray", default=None, metavar="local|off|ADDRESS",
-                        help=f"{what}: local (the default when the 'scale' extra is installed: an embedded Ray "
-                             "cluster on this machine, loopback only, one worker per core), off (this process; the "
-                             "default without Ray), or the address of a running Ray cluster (host:port, or auto); "
-                             "a single one always runs in this process, without Ray")
-    parser.add_argument("--workers", type=integer(1, 100_000), default=None,
-                        help="Ray workers (default: one per CPU of the cluster)")
 
 
 def _run_author(args: argparse.Namespace) -> int:
@@ -249,8 +238,8 @@ def add_calibrate_command(commands) -> None:
     calibrate.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
     calibrate.add_argument("--no-picture", action="store_true", help="skip calibration.png")
     calibrate.add_argument("--quiet", action="store_true", help="no progress display")
-    _add_ray_flags(calibrate, "with several sessions, where their rollouts run (a worker keeps a session's model warm; "
-                              "the solver step stays in this process)")
+    add_ray_flags(calibrate, "with several sessions, where their rollouts run (a worker keeps a session's model warm; "
+                              "the solver step stays in this process)", one_in_process=True)
     calibrate.set_defaults(handler=_run_calibrate)
 
 

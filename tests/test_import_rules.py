@@ -334,8 +334,8 @@ def _caught(tmp_path: Path, files: dict[str, str]) -> list[tuple[str, str]]:
     return [(v.rule, v.where) for v in check(_tree(tmp_path, files))]
 
 
-def test_a_clean_tree_passes(tmp_path):
-    assert _caught(tmp_path, {
+@pytest.mark.parametrize("files, caught", [
+    pytest.param({
         "dmarionette/rotations.py": "import numpy as np\n",
         "dmarionette/hw/device.py": "from dmarionette.rotations import x\nfrom . import mapping\n",
         "dmarionette/hw/mapping.py": "import numpy\n",
@@ -344,7 +344,51 @@ def test_a_clean_tree_passes(tmp_path):
         "dmarionette/strings/solver.py": "import warp as wp\nfrom ..scene.scene import Scene\n"
                                          "def f():\n    return wp.Tape()\n",
         "fitting/cli.py": "from dmarionette.scene import scene\ndef g():\n    return scene.load_scene\n",
-    }) == []
+    }, [], id="a_clean_tree_passes"),
+    pytest.param({
+        "dmarionette/live/process.py": "from dmarionette.live.run import _record_tick, public\n",
+        "dmarionette/live/run.py": "",
+    }, [("b", "dmarionette/live/process.py:1")], id="rule_b_catches_a_private_name_imported"),
+    pytest.param({
+        "dmarionette/scene/scene.py": "",
+        "fitting/author.py": "from dmarionette.scene import scene\n\ndef f():\n    return scene._puppet_table\n",
+    }, [("b", "fitting/author.py:4")], id="rule_b_catches_a_private_name_read_off_a_module"),
+    pytest.param({
+        "dmarionette/grad/tape.py": "import warp as wp\n\ndef f():\n    return wp._src.context.runtime\n",
+        "fitting/x.py": "from warp._src.context import runtime\n",
+    }, [("c", "dmarionette/grad/tape.py:4"), ("c", "fitting/x.py:1")], id="rule_c_catches_warp_internals"),
+    pytest.param({
+        "dmarionette/cli.py": "def run():\n    from fitting.author import author\n",
+        "fitting/author.py": "",
+    }, [("d", "dmarionette/cli.py:2")], id="rule_d_catches_dmarionette_importing_fitting_lazily"),
+    pytest.param({
+        "tests/test_hard_cases.py": "def check():\n    pass\n",
+        "tests/marionette/test_float32.py": "from test_hard_cases import check\n",
+        "tests/grad/test_tape.py": "import numpy\nfrom ..test_hard_cases import check\n",
+        "tests/support/strings.py": "",
+        "tests/strings/test_physics.py": "from tests.support.strings import make_model\n",
+    }, [("g", "tests/grad/test_tape.py:2"), ("g", "tests/marionette/test_float32.py:1")],
+        id="rule_g_catches_a_test_importing_another_test_module"),
+    pytest.param({
+        "dmarionette/grad/tape.py": "",
+        "tests/support/export.py": "",
+        "tests/io/test_export.py": "from tests.support.export import _synthetic\n",
+        "tests/grad/test_tape.py": "from dmarionette.grad import tape\n\ndef test(monkeypatch):\n"
+                                   "    monkeypatch.setattr(tape, '_copy_unrecorded', None)\n",
+        "tests/live/test_view.py": "from viser import _messages\n",  # a third party's: not this rule's
+    }, [("g", "tests/grad/test_tape.py:4"), ("g", "tests/io/test_export.py:1")],
+        id="rule_g_catches_a_test_reaching_into_private_names"),
+    pytest.param({
+        "dmarionette/marionette/solver.py": "class SolverMarionette:\n    def __init__(self):\n"
+                                            "        self._spare = [1]\n\n    def step(self, other):\n"
+                                            "        return other._spare  # the same class: fine\n",
+        "dmarionette/grad/tape.py": "def record(solver, q):\n    q._private_of_numpy_or_warp\n"
+                                    "    return solver._spare[0]\n",
+    }, [("b", "dmarionette/grad/tape.py:3")], id="rule_b_catches_a_private_attribute_of_another_modules_object"),
+])
+def test_each_rule_catches_its_violation(tmp_path, files, caught):
+    """A synthetic tree ({relative path: source}) and the violations it holds, (rule, where) each."""
+    assert _caught(tmp_path, files) == caught
 
 
 def test_rule_a_catches_a_cycle_through_a_lazy_import(tmp_path):
@@ -367,34 +411,6 @@ def test_rule_a_catches_a_longer_cycle_across_packages(tmp_path):
     assert [rule for rule, _ in caught] == ["a", "d"]
 
 
-def test_rule_b_catches_a_private_name_imported(tmp_path):
-    assert _caught(tmp_path, {
-        "dmarionette/live/process.py": "from dmarionette.live.run import _record_tick, public\n",
-        "dmarionette/live/run.py": "",
-    }) == [("b", "dmarionette/live/process.py:1")]
-
-
-def test_rule_b_catches_a_private_name_read_off_a_module(tmp_path):
-    assert _caught(tmp_path, {
-        "dmarionette/scene/scene.py": "",
-        "fitting/author.py": "from dmarionette.scene import scene\n\ndef f():\n    return scene._puppet_table\n",
-    }) == [("b", "fitting/author.py:4")]
-
-
-def test_rule_c_catches_warp_internals(tmp_path):
-    assert _caught(tmp_path, {
-        "dmarionette/grad/tape.py": "import warp as wp\n\ndef f():\n    return wp._src.context.runtime\n",
-        "fitting/x.py": "from warp._src.context import runtime\n",
-    }) == [("c", "dmarionette/grad/tape.py:4"), ("c", "fitting/x.py:1")]
-
-
-def test_rule_d_catches_dmarionette_importing_fitting_lazily(tmp_path):
-    assert _caught(tmp_path, {
-        "dmarionette/cli.py": "def run():\n    from fitting.author import author\n",
-        "fitting/author.py": "",
-    }) == [("d", "dmarionette/cli.py:2")]
-
-
 @pytest.mark.parametrize("statement", ["import warp as wp", "from ..strings.model import StringModel",
                                        "from dmarionette.kernels import body_contact", "import dmarionette"])
 def test_rule_e_catches_a_description_importing_a_simulator(tmp_path, statement):
@@ -414,34 +430,3 @@ def test_rule_f_catches_kernels_and_hw_reaching_out(tmp_path, source, statement)
     others = {name: "" for name in ("dmarionette/hw/device.py", "dmarionette/kernels/bar_feedback.py",
                                     "dmarionette/scene/bars.py")}
     assert _caught(tmp_path, {**others, source: f"import numpy\n{statement}\n"}) == [("f", f"{source}:2")]
-
-
-def test_rule_g_catches_a_test_importing_another_test_module(tmp_path):
-    assert _caught(tmp_path, {
-        "tests/test_hard_cases.py": "def check():\n    pass\n",
-        "tests/marionette/test_float32.py": "from test_hard_cases import check\n",
-        "tests/grad/test_tape.py": "import numpy\nfrom ..test_hard_cases import check\n",
-        "tests/support/strings.py": "",
-        "tests/strings/test_physics.py": "from tests.support.strings import make_model\n",
-    }) == [("g", "tests/grad/test_tape.py:2"), ("g", "tests/marionette/test_float32.py:1")]
-
-
-def test_rule_g_catches_a_test_reaching_into_private_names(tmp_path):
-    assert _caught(tmp_path, {
-        "dmarionette/grad/tape.py": "",
-        "tests/support/export.py": "",
-        "tests/io/test_export.py": "from tests.support.export import _synthetic\n",
-        "tests/grad/test_tape.py": "from dmarionette.grad import tape\n\ndef test(monkeypatch):\n"
-                                   "    monkeypatch.setattr(tape, '_copy_unrecorded', None)\n",
-        "tests/live/test_view.py": "from viser import _messages\n",  # a third party's: not this rule's
-    }) == [("g", "tests/grad/test_tape.py:4"), ("g", "tests/io/test_export.py:1")]
-
-
-def test_rule_b_catches_a_private_attribute_of_another_modules_object(tmp_path):
-    assert _caught(tmp_path, {
-        "dmarionette/marionette/solver.py": "class SolverMarionette:\n    def __init__(self):\n"
-                                            "        self._spare = [1]\n\n    def step(self, other):\n"
-                                            "        return other._spare  # the same class: fine\n",
-        "dmarionette/grad/tape.py": "def record(solver, q):\n    q._private_of_numpy_or_warp\n"
-                                    "    return solver._spare[0]\n",
-    }) == [("b", "dmarionette/grad/tape.py:3")]

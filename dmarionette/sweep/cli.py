@@ -15,7 +15,7 @@ import math
 import sys
 from pathlib import Path
 
-from dmarionette.cli_checks import integer, number
+from dmarionette.cli_checks import add_ray_flags, integer, number
 
 __all__ = ["EXIT_NON_FINITE", "EXIT_WORKER_LOST", "add_sweep_command", "run_sweep_command"]
 
@@ -47,13 +47,7 @@ def add_sweep_command(sub) -> None:
                        help="variants handed to a worker at a time, run as the worlds of one batched model in the "
                             f"same launches (default: the variants shared evenly by the workers, at most "
                             f"{AUTO_WORLDS_PER_BATCH} a batch); 1: one rollout per variant")
-    sweep.add_argument("--ray", default=None, metavar="local|off|ADDRESS",
-                       help="where the variants run: local (the default when the 'scale' extra is installed: an "
-                            "embedded Ray cluster on this machine, loopback only, one worker per core), off (this "
-                            "process, one after another; the default without Ray), or the address of a running "
-                            "Ray cluster (host:port, or auto)")
-    sweep.add_argument("--workers", type=integer(1, 100_000), default=None,
-                       help="Ray workers (default: one per CPU of the cluster)")
+    add_ray_flags(sweep, "where the variants run")
     sweep.add_argument("--resume", action="store_true",
                        help="keep the rows of an earlier run's OUT/sweep.csv and run only the missing variants")
     sweep.add_argument("--no-picture", action="store_true", help="skip sweep.png")

@@ -33,25 +33,24 @@ SPRING = string_spring_functions(wp.float64)
 K, C, DELTA, V_EPS = 2000.0, 5.0, 0.5e-3, 0.01
 
 
-@wp.func
-def _normal_smooth_d(x: wp.float64) -> wp.float64:
-    fn, kn, cn = compute_normal_smooth(x, wp.float64(0.0), wp.float64(K), wp.float64(C), wp.float64(DELTA),
-                                       wp.float64(V_EPS))
-    return fn
+def _normal_force(normal, variable: str):
+    """The normal force of ``normal`` (``compute_normal_smooth`` or ``compute_normal_hard``) as a
+    function of the gap ``d`` at rest (``variable="d"``) or of the normal velocity ``v_n`` at zero
+    gap (``"vn"``)."""
+    along_gap = variable == "d"
 
+    @wp.func
+    def normal_force(x: wp.float64) -> wp.float64:
+        d = wp.float64(0.0)
+        vn = wp.float64(0.0)
+        if wp.static(along_gap):
+            d = x
+        else:
+            vn = x
+        fn, kn, cn = normal(d, vn, wp.float64(K), wp.float64(C), wp.float64(DELTA), wp.float64(V_EPS))
+        return fn
 
-@wp.func
-def _normal_smooth_vn(x: wp.float64) -> wp.float64:
-    fn, kn, cn = compute_normal_smooth(wp.float64(0.0), x, wp.float64(K), wp.float64(C), wp.float64(DELTA),
-                                       wp.float64(V_EPS))
-    return fn
-
-
-@wp.func
-def _normal_hard_d(x: wp.float64) -> wp.float64:
-    fn, kn, cn = compute_normal_hard(x, wp.float64(0.0), wp.float64(K), wp.float64(C), wp.float64(DELTA),
-                                     wp.float64(V_EPS))
-    return fn
+    return normal_force
 
 
 @wp.func
@@ -99,15 +98,15 @@ CASES = {
     "softplus_far": (compute_softplus, 0.0, lambda x: _sig(x), None),  # +-1e3: finite, no overflow
     "sigmoid": (compute_sigmoid, 0.0, lambda x: _sig(x) * (1.0 - _sig(x)), None),
     # smooth contact at zero gap and at rest (the default start): d and v_n
-    "normal_smooth_d": (_normal_smooth_d, 0.0,
+    "normal_smooth_d": (_normal_force(compute_normal_smooth, "d"), 0.0,
                         lambda x: K * _sig(x / DELTA) + C * _sig(x / DELTA) * (1 - _sig(x / DELTA)) / DELTA * V_EPS * np.log(2.0),
                         None),
-    "normal_smooth_vn": (_normal_smooth_vn, 0.0, lambda x: -C * 0.5 * _sig(-x / V_EPS), None),
+    "normal_smooth_vn": (_normal_force(compute_normal_smooth, "vn"), 0.0, lambda x: -C * 0.5 * _sig(-x / V_EPS), None),
     # sqrt(|v|^2 + 1e-24) at v = 0: a finite (zero) gradient where a plain norm has none
     "smooth_norm": (_smooth_norm, 0.0, lambda x: 1.25 * x / np.sqrt(1.25 * x * x + 1e-24), None),
     # genuine kinks: hard contact onset, a tension-only segment going slack, the printed
     # spring's clamped geometric stiffness at the rest length
-    "normal_hard_d": (_normal_hard_d, 0.0, lambda x: K * (x > 0), "left"),
+    "normal_hard_d": (_normal_force(compute_normal_hard, "d"), 0.0, lambda x: K * (x > 0), "left"),
     "tension": (_tension, 0.0, lambda x: 3.0 * (x > 0), "left"),
     "ramp_lower": (_ramp_lower, 0.0, lambda x: 1.0 * (x >= 0), "right"),
     "ramp_upper": (_ramp_upper, 0.0, lambda x: 1.0 * (x <= 0), "right"),

@@ -80,13 +80,18 @@ class Problem:
         return loss, controls, states[0]
 
 
-@pytest.fixture(scope="module")
-def taped():
-    problem = Problem()
+def _taped(**options):
+    """A ``Problem(**options)``'s loss run on a tape and differentiated: ``(problem, controls, first)``."""
+    problem = Problem(**options)
     tape = wp.Tape()
     loss, controls, first = problem.loss(tape=tape)
     tape.backward(loss)
     return problem, controls, first
+
+
+@pytest.fixture(scope="module")
+def taped():
+    return _taped()
 
 
 def _central(f, eps):
@@ -184,11 +189,7 @@ def test_gradient_wrt_initial_state(taped, which):
 
 @pytest.fixture(scope="module")
 def taped_tied():
-    problem = Problem(tied=True)
-    tape = wp.Tape()
-    loss, controls, first = problem.loss(tape=tape)
-    tape.backward(loss)
-    return problem, controls, first
+    return _taped(tied=True)
 
 
 @pytest.mark.parametrize("name", ["string_tie_stiffness", "string_tie_damping", "string_stiffness"])
@@ -211,11 +212,7 @@ def test_gradient_wrt_body_point_path(taped_tied):
 
 @pytest.fixture(scope="module")
 def taped_tension_only():
-    problem = Problem(tension_only=True)
-    tape = wp.Tape()
-    loss, controls, first = problem.loss(tape=tape)
-    tape.backward(loss)
-    return problem, controls, first
+    return _taped(tension_only=True)
 
 
 @pytest.mark.parametrize("name", ["string_stiffness", "string_internal_friction"])

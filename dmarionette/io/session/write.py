@@ -54,10 +54,17 @@ def _vector(n: int, description: str, items: dict | None = None) -> dict:
 
 _T = {"type": "number", "description": "simulated time [s] (the log time is log_time_origin_ns + t in ns)"}
 
-def _message_schema(name: str, description: str, properties: dict, required: list[str]) -> dict:
-    """JSON Schema of one message type: an object with the simulated time ``t`` and ``properties``."""
+def _message_schema(name: str, description: str, properties: dict, optional: tuple[str, ...] = ()) -> dict:
+    """JSON Schema of one message type: an object with the simulated time ``t`` and ``properties``,
+    each of them required but the ``optional`` ones."""
+    required = [key for key in properties if key not in optional]
     return {"title": name, "type": "object", "description": description,
             "properties": {"t": _T, **properties}, "required": ["t", *required]}
+
+
+def _vector3_message_schema(name: str, description: str, **vectors: str) -> dict:
+    """:func:`_message_schema` of a message of 3-vectors (each required), by name and description."""
+    return _message_schema(name, description, {key: _vector(3, text) for key, text in vectors.items()})
 
 
 #: JSON Schema of each message type, by schema name (one schema record each in the file).
@@ -70,29 +77,21 @@ SCHEMAS: dict[str, dict] = {schema["title"]: schema for schema in (
          "buttons": {"type": "integer", "description": "button bitmask"},
          "device_time": {"type": "number",
                          "description": "the device's clock [s since open], when t is the simulated time (optional)"}},
-        ["position", "orientation", "buttons"]),
-    _message_schema(
-        "dmarionette.DeviceForce",
-        "The force sent to the device (after the safety filter), device frame.",
-        {"force": _vector(3, "force [N], device frame")},
-        ["force"]),
-    _message_schema(
-        "dmarionette.BarPose",
-        "A control bar's pose, world frame (y up).",
-        {"position": _vector(3, "bar centre [m], world frame"),
-         "rotation": _vector(3, "XYZ Euler angles [deg], R = Rz Ry Rx (control_bar.py)")},
-        ["position", "rotation"]),
-    _message_schema(
-        "dmarionette.BarFeedback",
-        "Forces of the strings on a bar, world frame.",
-        {"eq4": _vector(3, "paper eq. 4 feedback summed over the bar's taut strings [N]"),
-         "reaction": _vector(3, "exact reaction: sum of string tensions at the attach points [N]")},
-        ["eq4", "reaction"]),
+        optional=("device_time",)),
+    _vector3_message_schema(
+        "dmarionette.DeviceForce", "The force sent to the device (after the safety filter), device frame.",
+        force="force [N], device frame"),
+    _vector3_message_schema(
+        "dmarionette.BarPose", "A control bar's pose, world frame (y up).",
+        position="bar centre [m], world frame", rotation="XYZ Euler angles [deg], R = Rz Ry Rx (control_bar.py)"),
+    _vector3_message_schema(
+        "dmarionette.BarFeedback", "Forces of the strings on a bar, world frame.",
+        eq4="paper eq. 4 feedback summed over the bar's taut strings [N]",
+        reaction="exact reaction: sum of string tensions at the attach points [N]"),
     _message_schema(
         "dmarionette.StringTaut",
         "Taut flags (paper 3.2), one per string in the order of the metadata's 'strings'.",
-        {"taut": {"type": "array", "items": {"type": "integer", "enum": [0, 1]}}},
-        ["taut"]),
+        {"taut": {"type": "array", "items": {"type": "integer", "enum": [0, 1]}}}),
     _message_schema(
         "dmarionette.PuppetState",
         "The puppet: generalised coordinates and body poses (world frame), bodies in the order of the "
@@ -100,8 +99,7 @@ SCHEMAS: dict[str, dict] = {schema["title"]: schema for schema in (
         {"joint_q": {"type": "array", "items": {"type": ["number", "null"]},
                      "description": "generalised coordinates (metadata 'joint_q_layout')"},
          "body_pos": {"type": "array", "items": _vector(3, "body centre [m]")},
-         "body_rot": {"type": "array", "items": _vector(4, "body quaternion (x, y, z, w)")}},
-        ["joint_q", "body_pos", "body_rot"]),
+         "body_rot": {"type": "array", "items": _vector(4, "body quaternion (x, y, z, w)")}}),
 )}
 
 # topic pattern -> schema name
