@@ -166,8 +166,9 @@ def add_calibrate_command(commands) -> None:
                     "noise scales, residuals white in time) and every constant is identifiable; 2 bad input; 3 the "
                     "solver did not converge or the fit does not explain the data (reduced chi^2 > 2, or residuals "
                     "structured in time); 4 some constants are not identifiable (their "
-                    "intervals are infinite). Warnings are printed in bold (**WARNING: ...**) and written to "
-                    "calibration.json's 'status'.")
+                    "intervals are infinite); 6 a Ray worker died more often than the retries allow (several "
+                    "sessions on Ray; nothing is written). Warnings are printed in bold (**WARNING: ...**) and "
+                    "written to calibration.json's 'status'.")
     calibrate.add_argument("session", type=Path, nargs="+",
                            help="the .mcap session file; several: fitted together with one shared set of constants "
                                 "(their residuals stacked; same strings and rates; --solver lm-fd; per-session "
@@ -315,6 +316,10 @@ def _run_calibrate(args: argparse.Namespace) -> int:
         bar.set_description(stage, refresh=False)
         bar.update(count - bar.n)
 
+    from dmarionette.scale.ray_map import WorkerLostError
+
+    from .author_batch import EXIT_WORKER_LOST  # the fitting commands' exit code for a lost worker
+
     try:
         sessions = args.session if len(args.session) > 1 else args.session[0]
         result = calibrate_session(sessions, targets=args.targets, params=args.params, solver=args.solver,
@@ -328,6 +333,9 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    fit_initial_state=args.fit_initial_state, noise_joint=args.noise_joint,
                                    optimization_level=0 if args.fast_compile else 2,
                                    progress=progress if bar is not None else None, ray=mode, workers=args.workers)
+    except WorkerLostError as error:  # not the user's input (exit code 2): the cluster lost a worker for good
+        print(f"error: {error}; nothing was written to {out} (run it again, or with --ray off)", file=sys.stderr)
+        return EXIT_WORKER_LOST
     finally:
         if bar is not None:
             bar.close()

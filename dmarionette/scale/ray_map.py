@@ -208,8 +208,9 @@ def ray_error(error: BaseException, retries: int) -> BaseException:
     if isinstance(error, RayTaskError):  # fn raised: its own exception, not a lost worker
         cause = getattr(error, "cause", None)
         return cause if isinstance(cause, BaseException) else RuntimeError(str(error))
+    lines = str(error).strip().splitlines()  # Ray's own first line says why; the rest is actor details
     return WorkerLostError(f"a Ray worker died more than {retries} times (restarted and its item retried each "
-                           f"time); the results that arrived before stand: {error}")
+                           f"time); the results that arrived before stand: {lines[0] if lines else type(error).__name__}")
 
 
 def init_worker_warp() -> None:

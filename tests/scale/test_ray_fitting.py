@@ -75,6 +75,22 @@ def test_a_worker_killed_mid_calibration_is_replaced_and_the_numbers_stay(sessio
     assert without(on_ray, TIMINGS | {"ray_workers"}) == without(in_process[0], TIMINGS | {"ray_workers"})
 
 
+def test_a_worker_that_keeps_dying_stops_calibrate_with_exit_code_6(sessions, tmp_path, capsys):
+    """Past its retries (3 restarts) a lost worker is not the user's input (exit code 2) nor a fit that
+    missed (3): exit code 6, one clear line, no calibration written."""
+    out = tmp_path / "o"
+    argv = ["calibrate", *map(str, sessions), "--params", "k,k_d", "--start", "k=300,k_d=3", "--window", "0.2",
+            "--noise-position", str(NOISE_POSITION), "--known-noise", "--max-steps", "3", "--fast-compile",
+            "--quiet", "--no-picture", "--ray", "local", "--out", str(out)]
+    with KillWorkerMidTask(b"ray::StateWorker.run", skip=4, times=20) as killer:
+        code = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 6, err
+    assert len(killer.kills) >= 4  # the first death and its 3 retries
+    assert len(err) == 1 and "a Ray worker died more than 3 times" in err[0] and "nothing was written" in err[0], err
+    assert not (out / "calibration.json").exists()
+
+
 def test_one_session_never_starts_ray(sessions, tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("Ray was asked for")

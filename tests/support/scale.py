@@ -48,14 +48,18 @@ def _title(pid: int) -> bytes:
 
 class KillWorkerMidTask:
     """A thread that SIGKILLs the first of this process's Ray workers (a grandchild: driver -> raylet ->
-    worker) seen running a task whose title starts with ``title``, once, within ``timeout`` seconds; the
-    first ``skip`` tasks seen starting (polled every 10 ms) are let run."""
+    worker) seen running a task whose title starts with ``title``, within ``timeout`` seconds; the
+    first ``skip`` tasks seen starting (polled every 10 ms) are let run. With ``times`` > 1 it goes on
+    killing each task seen starting after that, ``times`` workers in all (``kills`` lists them)."""
 
-    def __init__(self, title: bytes = b"ray::VariantWorker.run", timeout: float = 120.0, skip: int = 0):
+    def __init__(self, title: bytes = b"ray::VariantWorker.run", timeout: float = 120.0, skip: int = 0,
+                 times: int = 1):
         self.title = title
         self.timeout = timeout
         self.skip = skip
+        self.times = times
         self.killed: int | None = None
+        self.kills: list[int] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._watch, daemon=True)
 
@@ -77,10 +81,12 @@ class KillWorkerMidTask:
                 if _title(pid).startswith(self.title) and _ppid(_ppid(pid)) == me:
                     now.add(pid)
                     started += pid not in running
-                    if started > self.skip:
+                    if started > self.skip and pid not in self.kills:
                         os.kill(pid, signal.SIGKILL)
                         self.killed = pid
-                        return
+                        self.kills.append(pid)
+                        if len(self.kills) >= self.times:
+                            return
             running = now
             time.sleep(0.01)
 
