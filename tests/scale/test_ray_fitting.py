@@ -1,6 +1,7 @@
 """Ray in ``calibrate`` and ``author`` (the ``scale`` extra): an embedded local cluster of 2 workers, started
 once for this module, on loopback. A two-session calibration whose sessions' rollouts run on the workers
-gives the in-process numbers, bit for bit, also when a worker is SIGKILLed in the middle of it; a two-file
+gives the in-process numbers, bit for bit, also when a worker is SIGKILLed in the middle of it, and exit
+code 6 when every worker that starts a rollout is killed (past the retries); a two-file
 batch ``author`` on the workers writes what two single-file runs write; bad ``--ray`` values are refused
 before any work, and one session or one file never starts Ray."""
 
