@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import tomllib
@@ -554,6 +555,12 @@ def main(argv: Sequence[str] | None = None, commands: Mapping[str, metadata.Entr
     except KeyboardInterrupt:
         print(args.outputs.interrupted(), file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader of the output went away (`dmarionette scenes | head -3`): stop quietly, with the
+        # status of a command ended by SIGPIPE; what is still buffered goes nowhere, not to a second
+        # error at exit.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 def _run_handler(args: argparse.Namespace) -> int:

@@ -47,6 +47,17 @@ def test_bad_scene_gives_a_clear_error_and_no_traceback(tmp_path):
     assert str(bad) in run.stderr and "'mass'" in run.stderr and "> 0" in run.stderr
 
 
+def test_output_into_a_closed_pipe_ends_quietly():
+    """`dmarionette scenes | head -3` where head has gone: the status of a command ended by SIGPIPE
+    (141), no traceback. The pipe is closed before the command writes (it takes longer to start)."""
+    run = subprocess.Popen([sys.executable, "-m", "dmarionette.cli", "scenes"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    run.stdout.close()
+    err = run.stderr.read()
+    assert run.wait() == 141, err
+    assert err == ""
+
+
 # ------------------------------------------------------------------ plug-in commands (entry points)
 
 FITTING_COMMANDS = {"author": "fitting.cli:add_author_command", "calibrate": "fitting.cli:add_calibrate_command"}
