@@ -42,14 +42,18 @@ from .string_system import string_system_row_function
 
 
 @functools.cache
-def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool]):
+def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], keep: bool = False):
     """Builds ``integrate_string_implicit`` for a float type and an effect set (printed springs).
 
     Args:
         scalar: ``wp.float64`` or ``wp.float32``.
         effects: ``(gravity, internal_friction, air_drag, ground_contact, ground_friction)``
             as compile-time switches (``StringEffects.as_tuple``).
+        keep: also keep the pivot inverses in ``pivot_inverse``, for the step's hand-written
+            adjoint (``string_step_adjoint``; the same values, bit for bit). A compile-time
+            switch, as for the recorded solve (``string_solve``): the plain step stores nothing more.
     """
+    KEEP = keep
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     compute_string_spring = string_spring_functions(scalar).compute_string_spring_printed
@@ -90,6 +94,7 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         gravity: vec3,
         ground_height: scalar,
         dt: scalar,
+        pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
     ):
@@ -118,6 +123,8 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
             inv, c, d = compute_thomas_first_row(diag, upper, rhs)
         else:
             inv, c, d = compute_thomas_row(diag, upper, rhs, upper_prev, c_prev, d_prev)
+        if wp.static(KEEP):
+            pivot_inverse[p] = inv
         scratch_c[p] = c
         scratch_d[p] = d
         return c, d, upper, x_next, v_next, v, f_next, k_next
@@ -148,7 +155,8 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         tie_q: wp.array(dtype=vec3),
         tie_qd: wp.array(dtype=vec3),
         dt: scalar,
-        # State out:
+        # State out (``pivot_inverse``: only if built with ``keep``):
+        pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
         particle_dv: wp.array(dtype=vec3),
@@ -188,19 +196,19 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
             start + 1, 1, start + 1 == last, x, particle_qd[start + 1], particle_qd[start], f_prev, k_prev,
             mat33(zero), vec3(zero), mat33(zero), particle_q, particle_qd, particle_mass, stiffness, rest_length,
             top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
-            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, scratch_c, scratch_d)
+            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, pivot_inverse, scratch_c, scratch_d)
         for p in range(start + 2, last):
             c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
                 p, 2, False, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd, particle_mass, stiffness,
                 rest_length, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption,
                 ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
-                scratch_c, scratch_d)
+                pivot_inverse, scratch_c, scratch_d)
         if last > start + 1:
             c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
                 last, last - start, True, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd, particle_mass,
                 stiffness, rest_length, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption,
                 ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
-                scratch_c, scratch_d)
+                pivot_inverse, scratch_c, scratch_d)
         d_prev = d
 
         # Back substitution (x_j = d'_j - C'_j x_{j+1}) and v1 = v0 + dv, x1 = x0 + h v1, upwards.

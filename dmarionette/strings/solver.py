@@ -40,6 +40,7 @@ import warp as wp
 from dmarionette.kernels.string_integrate import integrate_string_kernels
 from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_system_kernels
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
+from dmarionette.kernels.string_step_adjoint import string_step_adjoint_kernel
 from dmarionette.kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
 
@@ -99,6 +100,10 @@ class SolverStringImplicit:
 
     def __init__(self, model: StringModel):
         self.model = model
+        # Printed springs on a tape: the one-launch step and its hand-written adjoint
+        # (``kernels/string_step_adjoint``); False records the five passes instead (Warp's
+        # automatic adjoints, the solve's hand-written one): the reference the tests compare with.
+        self.hand_adjoint = not model.effects.tension_only
         self._tension_only = model.effects.tension_only
         self._eval_spring = eval_string_spring_kernel(model.scalar, self._tension_only)
         self._eval_system = eval_string_system_kernel(model.scalar, model.effects.as_tuple())
@@ -107,13 +112,23 @@ class SolverStringImplicit:
         self._integrate, self._eval_tie = integrate_string_kernels(model.scalar)
         self._integrate_implicit = None if self._tension_only else \
             integrate_string_implicit_kernel(model.scalar, model.effects.as_tuple())
+        self._integrate_implicit_keep = None if self._tension_only else \
+            integrate_string_implicit_kernel(model.scalar, model.effects.as_tuple(), keep=True)
+        self._integrate_implicit_adjoint = None if self._tension_only else \
+            string_step_adjoint_kernel(model.scalar, model.effects.as_tuple())
+        self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
 
     def new_workspace(self, taped: bool = True) -> StringWorkspace:
-        """A workspace of one step's own (``taped``: with gradients, and for tension-only
+        """A workspace of one step's own (``taped``: with gradients where the five passes are
+        recorded (not for the hand-written adjoint, which needs none), and for tension-only
         springs the active-set pass's arrays)."""
-        return StringWorkspace.allocate(self.model, requires_grad=taped, active_set=taped and self._tension_only)
+        return StringWorkspace.allocate(self.model, requires_grad=taped and not self._hand_adjoint_used(),
+                                        active_set=taped and self._tension_only)
+
+    def _hand_adjoint_used(self) -> bool:
+        return self.hand_adjoint and not self._tension_only
 
     def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float, *,
              tape: wp.Tape | None = None, workspace: StringWorkspace | None = None) -> None:
@@ -136,6 +151,10 @@ class SolverStringImplicit:
         if tape is None and self._integrate_implicit is not None:
             self.integrate_string_implicit(state_in, state_out, control, h, ws)  # the five passes in one launch
             return
+        if tape is not None and self._hand_adjoint_used():
+            self.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
+            self.record_step_adjoint(state_in, state_out, control, h, ws, tape)
+            return
         forced = self._none_forced  # every segment in the system (printed springs)
         if tape is not None and self._tension_only:
             self.eval_active_set(state_in, control, h, ws.active_set)  # unrecorded: which segments are taut
@@ -151,13 +170,15 @@ class SolverStringImplicit:
         self.integrate_string(state_in, state_out, control, h, ws)  # v1 = v0 + dv, x1 = x0 + h v1
         self.eval_string_tie_force(state_out, control)  # eq. 2 force on bodies, taut flags
 
-    def integrate_string_implicit(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
-        """The plain step's five passes as one launch, one string per thread (printed springs,
-        no tape; module doc). Writes ``state_out`` and ``ws``'s ``scratch_c``, ``scratch_d`` and
-        ``particle_dv`` (not the blocks of ``A``, which it never stores)."""
+    def integrate_string_implicit(self, state_in, state_out, control, h, ws: StringWorkspace,
+                                  keep: bool = False) -> None:
+        """The plain step's five passes as one launch, one string per thread (printed springs;
+        module doc). Writes ``state_out`` and ``ws``'s ``scratch_c``, ``scratch_d`` and
+        ``particle_dv`` (not the blocks of ``A``, which it never stores); ``keep``: also the pivot
+        inverses (``scratch_inverse``), for the hand-written adjoint. Never recorded."""
         m = self.model
         wp.launch(
-            self._integrate_implicit,
+            self._integrate_implicit_keep if keep else self._integrate_implicit,
             dim=m.string_count,
             inputs=[
                 m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
@@ -168,11 +189,49 @@ class SolverStringImplicit:
                 state_in.particle_q, state_in.particle_qd,
                 control.top_q, control.tie_q, control.tie_qd, h,
             ],
-            outputs=[ws.scratch_c, ws.scratch_d, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
-                     state_out.tie_force, state_out.string_taut],
+            outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv, state_out.particle_q,
+                     state_out.particle_qd, state_out.tie_force, state_out.string_taut],
             device=m.device,
             record_tape=False,
         )
+
+    def _grad(self, a: wp.array) -> wp.array:
+        """``a.grad``, or a scratch array of its shape for an input that carries no gradient."""
+        if a.grad is not None:
+            return a.grad
+        key = (a.dtype, a.shape)
+        if key not in self._grad_sinks:
+            self._grad_sinks[key] = wp.zeros(a.shape, dtype=a.dtype, device=a.device)
+        return self._grad_sinks[key]
+
+    def record_step_adjoint(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape) -> None:
+        """Records the hand-written adjoint of the one-launch step just run (``keep``) on ``tape``
+        (``kernels/string_step_adjoint``). It reads ``ws``'s pivot inverses, ``C'`` and ``dv``: the
+        workspace must not be reused before the adjoint has run (each taped step has its own)."""
+        m = self.model
+        params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
+                  m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
+                  m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
+        inputs = [state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd]
+        outputs = [state_out.particle_q, state_out.particle_qd, state_out.tie_force]
+
+        def backward():
+            wp.launch(
+                self._integrate_implicit_adjoint,
+                dim=m.string_count,
+                inputs=[
+                    m.string_start, *params, m.gravity, m.ground_height,
+                    state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
+                    ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
+                    ws.segment_force, ws.segment_jacobian, ws.scratch_rhs_bar,
+                    *[self._grad(a) for a in outputs],
+                ],
+                outputs=[self._grad(a) for a in inputs + params],
+                device=m.device,
+                record_tape=False,
+            )
+
+        tape.record_func(backward, arrays=[a for a in outputs + inputs + params if a.grad is not None])
 
     def eval_active_set(self, state_in, control, h, ws: StringWorkspace) -> None:
         """Tension-only springs: the active set of a step from ``state_in`` (segments taut at
