@@ -22,13 +22,13 @@ flags known. Measured: about 1.2x faster than the five passes with the same arit
 (with the old assembly the fusion alone bought ~3 %; the rest is the assembly's structure,
 ``string_system.compute_string_system_row``).
 
-Not for tapes: its loops carry values from particle to particle, which Warp's automatic
-adjoint does not replay, so a step on a tape runs the five passes (recorded; the solve has
-its hand-written adjoint). Both schedules call the same ``@wp.func``\\ s in the same order, so
-they agree bit for bit (``tests/strings/test_string_step_schedules.py``), and a taped
-rollout re-run from a checkpoint ends where the plain one did. The tension-only springs
-(``StringEffects.tension_only``) keep the five passes: their active-set solve re-solves a
-chain after adding blocks to ``A``, which needs ``A`` stored.
+On a tape too: a taped printed-spring step runs this kernel (built with ``keep``, which also
+stores the pivot inverses) off the tape and records the hand-written adjoint of the whole step,
+``string_step_adjoint`` (Warp's automatic adjoint does not replay the values its loops carry
+from particle to particle). The tension-only springs (``StringEffects.tension_only``) keep the
+five passes, on a tape or not: their active-set solve re-solves a chain after adding blocks to
+``A``, which needs ``A`` stored. Both schedules call the same ``@wp.func``\ s in the same order,
+so they agree bit for bit (``tests/strings/test_string_step_schedules.py``).
 """
 
 import functools

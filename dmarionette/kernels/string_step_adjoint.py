@@ -29,55 +29,71 @@ stiffness (zero derivative while a segment is compressed). ``gravity``, ``ground
 ``dt`` are kernel values (no gradient, as under Warp's tape). Gradients are accumulated
 into the inputs' ``.grad`` and the outputs' gradients consumed (zeroed), as Warp's adjoint of a
 store does, so the rest of the tape sees what Warp's own adjoint would leave. Checked against
-the taped five passes to rounding (``tests/grad/test_string_step_adjoint.py``).
+the taped five passes to rounding (``tests/grad/test_string_step_adjoint.py``, every effect on).
+
+Each force term is defined once (``string_terms``, ``string_spring``, ``string_tie``) and
+assembled once (``string_system.compute_string_system_row``); this kernel is their derivative
+written out, so a change to a term must be mirrored here: the test above fails otherwise.
 """
 
 import functools
+from types import SimpleNamespace
 
 import warp as wp
-
-from .string_spring import string_spring_functions
 
 __all__ = ["string_step_adjoint_kernel"]
 
 
 @functools.cache
-def string_spring_adjoint_function(scalar):
-    """Builds ``compute_spring_adjoint``: the adjoint of ``compute_string_spring_printed``."""
+def string_spring_adjoint_functions(scalar) -> SimpleNamespace:
+    """Builds the spring's pieces the adjoint uses (``compute_string_spring_printed``'s, by structure).
+
+    The printed spring's block is ``K = alpha u u^T + beta I`` with ``alpha = -k_s (1 - g)``,
+    ``beta = -k_s g``, ``g = max(1 - d/l, 0)``; the adjoint never forms it: ``K r`` is
+    ``alpha u (u . r) + beta r``, and a segment's ``K_bar`` (a sum of outer products ``a b^T``)
+    enters only through ``u^T K_bar u``, ``tr K_bar`` and ``(K_bar + K_bar^T) u``, accumulated
+    per outer product (``compute_outer_moments``).
+    """
     vec3 = wp.types.vector(3, scalar)
-    mat33 = wp.types.matrix((3, 3), scalar)
 
     @wp.func
-    def compute_spring_adjoint(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar, f_bar: vec3,
-                               k_bar: mat33):
-        """For ``f = -k_s (l - d) u`` and ``K = -k_s (1 - g) u u^T - k_s g I`` (``g = max(1 - d/l, 0)``,
-        ``e = x_a - x_b``, ``l = |e|``, ``u = e / l``), given ``f_bar`` and ``K_bar``: returns
-        ``(e_bar, stiffness_bar, rest_length_bar)`` (``x_a_bar = e_bar``, ``x_b_bar = -e_bar``)."""
-        one = scalar(1.0)
+    def compute_spring_parts(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+        """``(u, l, 1 - d/l, alpha, beta)`` of the segment ``e = x_a - x_b``."""
         e = x_a - x_b
         length = wp.length(e)
-        u = e / length
+        ratio = scalar(1.0) - rest_length / length
+        geometric = wp.max(ratio, scalar(0.0))
+        return e / length, length, ratio, -stiffness * (scalar(1.0) - geometric), -stiffness * geometric
+
+    @wp.func
+    def compute_outer_moments(a: vec3, b: vec3, u: vec3):
+        """For ``M = a b^T``: ``(u^T M u, tr M, (M + M^T) u)``."""
+        ua = wp.dot(u, a)
+        ub = wp.dot(u, b)
+        return ua * ub, wp.dot(a, b), ub * a + ua * b
+
+    @wp.func
+    def compute_spring_adjoint(u: vec3, length: scalar, ratio: scalar, alpha: scalar, stiffness: scalar,
+                               rest_length: scalar, f_bar: vec3, k_uu: scalar, k_tr: scalar, k_sym: vec3):
+        """Adjoint of ``f = -k_s (l - d) u`` and ``K`` (parts from ``compute_spring_parts``), given ``f_bar``
+        and ``K_bar``'s moments: returns ``(e_bar, stiffness_bar, rest_length_bar)``."""
+        one = scalar(1.0)
         stretch = length - rest_length
+        geometric = wp.max(ratio, scalar(0.0))
         u_f = wp.dot(u, f_bar)
-        u_bar = (-stiffness * stretch) * f_bar
-        stiffness_bar = -stretch * u_f
+        u_bar = (-stiffness * stretch) * f_bar + alpha * k_sym
+        stiffness_bar = -stretch * u_f - (one - geometric) * k_uu - geometric * k_tr
         length_bar = -stiffness * u_f
         rest_bar = stiffness * u_f
-        ratio = one - rest_length / length
-        geometric = wp.max(ratio, scalar(0.0))
-        alpha = -stiffness * (one - geometric)  # K = alpha u u^T + beta I, beta = -k_s g
-        alpha_bar = wp.dot(u, k_bar * u)
-        beta_bar = k_bar[0, 0] + k_bar[1, 1] + k_bar[2, 2]
-        u_bar = u_bar + alpha * ((k_bar + wp.transpose(k_bar)) * u)
-        stiffness_bar = stiffness_bar - (one - geometric) * alpha_bar - geometric * beta_bar
-        if ratio > scalar(0.0):
-            g_bar = stiffness * (alpha_bar - beta_bar)
+        if ratio > scalar(0.0):  # where the clamp passes 1 - d/l (Warp's adjoint of max: the same side)
+            g_bar = stiffness * (k_uu - k_tr)
             length_bar = length_bar + g_bar * rest_length / (length * length)
             rest_bar = rest_bar - g_bar / length
         e_bar = (u_bar - wp.dot(u, u_bar) * u) / length + length_bar * u
         return e_bar, stiffness_bar, rest_bar
 
-    return compute_spring_adjoint
+    return SimpleNamespace(compute_spring_parts=compute_spring_parts, compute_outer_moments=compute_outer_moments,
+                           compute_spring_adjoint=compute_spring_adjoint)
 
 
 @functools.cache
@@ -87,8 +103,9 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
-    compute_string_spring = string_spring_functions(scalar).compute_string_spring_printed
-    compute_spring_adjoint = string_spring_adjoint_function(scalar)
+    spring = string_spring_adjoint_functions(scalar)
+    compute_spring_parts, compute_outer_moments = spring.compute_spring_parts, spring.compute_outer_moments
+    compute_spring_adjoint = spring.compute_spring_adjoint
 
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_adjoint(
@@ -121,9 +138,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_dv: wp.array(dtype=vec3),
         particle_q_out: wp.array(dtype=vec3),
         particle_qd_out: wp.array(dtype=vec3),
-        # Scratch:
-        segment_force: wp.array(dtype=vec3),
-        segment_jacobian: wp.array(dtype=mat33),
+        # Scratch (the solve's forward substitution):
         solve_bar: wp.array(dtype=vec3),
         # Adjoint in (consumed: zeroed):
         particle_q_out_grad: wp.array(dtype=vec3),
@@ -185,9 +200,11 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_bar = x_top_bar + v_top_bar / dt
         particle_q_grad[start] = particle_q_grad[start] - v_top_bar / dt
 
-        # 2. Forward substitution of A lambda = dv_bar (top to bottom), the segments' springs kept.
+        # 2. Forward substitution of A lambda = dv_bar, top to bottom (A_{j-1,j} = h^2 K_{j-1} - h k_f I).
         y_prev = vec3(zero)
+        x_prev = particle_q[start]
         for p in range(start + 1, last + 1):
+            x = particle_q[p]
             x_bar = particle_q_out_grad[p]
             v_bar = particle_qd_out_grad[p]
             particle_q_out_grad[p] = vec3(zero)
@@ -195,23 +212,19 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             if p == last:
                 x_bar = x_bar + tie_stiffness * force_bar
                 v_bar = v_bar + tie_damping * force_bar
-            dv_bar = v_bar + dt * x_bar  # x1 = x0 + h (v0 + dv)
+            r = v_bar + dt * x_bar  # dv_bar: x1 = x0 + h (v0 + dv)
             particle_q_grad[p] = particle_q_grad[p] + x_bar
-            particle_qd_grad[p] = particle_qd_grad[p] + dv_bar
-            f, k, _active = compute_string_spring(particle_q[p - 1], particle_q[p], stiffness, rest_length)
-            segment_force[p - 1] = f
-            segment_jacobian[p - 1] = k
-            r = dv_bar
+            particle_qd_grad[p] = particle_qd_grad[p] + r
             if p > start + 1:
-                upper_prev = h2 * k + mat33(g_upper, zero, zero, zero, g_upper, zero, zero, zero, g_upper)
-                r = dv_bar - wp.transpose(upper_prev) * y_prev
-            y = pivot_inverse[p] * r
-            solve_bar[p] = y
-            y_prev = y
+                u, _l, _ratio, alpha, beta = compute_spring_parts(x_prev, x, stiffness, rest_length)
+                r = r - (h2 * (alpha * wp.dot(u, y_prev)) * u + (h2 * beta + g_upper) * y_prev)
+            y_prev = pivot_inverse[p] * r
+            solve_bar[p] = y_prev
+            x_prev = x
 
-        # 3. Back substitution (bottom to top) and each row's adjoint; segment p (below row p) is
-        # complete once rows p + 1 and p are done.
-        mass_bar_s = zero
+        # 3. Back substitution, bottom to top, and each row's adjoint. Segment p (below row p) is
+        # complete once rows p + 1 (its "prev") and p (its "next") are done; its K_bar is kept as
+        # moments (``compute_outer_moments``), its parts carried from row p + 1.
         stiffness_bar = zero
         rest_bar = zero
         friction_bar = zero
@@ -223,38 +236,38 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_dv_bar = vec3(zero)
         lam_next = vec3(zero)
         dv_next = vec3(zero)
-        f_bar_next = vec3(zero)  # the segment below the row: its adjoint from the row below
-        k_bar_next = mat33(zero)
+        v_next = vec3(zero)
+        x = particle_q[last]
+        v = particle_qd[last]
+        # The segment below the row (none below the last): parts, and its adjoint so far.
+        u_n = vec3(zero)
+        l_n = zero
+        ratio_n = zero
+        alpha_n = zero
+        beta_n = zero
+        f_bar_n = vec3(zero)
+        uu_n = zero
+        tr_n = zero
+        sym_n = vec3(zero)
         for i in range(last - start):
             p = last - i
             is_last = p == last
             j = p - start
+            x_prev = particle_q[p - 1]
+            v_prev = particle_qd[p - 1]
+            u_p, l_p, ratio_p, alpha_p, beta_p = compute_spring_parts(x_prev, x, stiffness, rest_length)
             lam = solve_bar[p]
             if not is_last:
                 lam = lam - scratch_c[p] * lam_next
             dv = particle_dv[p]
-            x = particle_q[p]
-            v = particle_qd[p]
-            v_prev = particle_qd[p - 1]
-            v_next = vec3(zero)
-            if not is_last:
-                v_next = particle_qd[p + 1]
             mass = particle_mass[p]
-            f_prev = segment_force[p - 1]
-            k_prev = segment_jacobian[p - 1]
-            k_next = mat33(zero)
-            if not is_last:
-                k_next = segment_jacobian[p]
-            # A_bar = -lambda dv^T on the stored blocks, b_bar = lambda.
-            diag_bar = -wp.outer(lam, dv)
-            upper_bar = mat33(zero)
-            if not is_last:
-                upper_bar = -(wp.outer(lam, dv_next) + wp.outer(dv, lam_next))
+            # A_bar = -lambda dv^T on the stored blocks (A_{j,j+1} also stands, transposed, at
+            # (j+1, j)), b_bar = lambda. diag = -h^2 (K_prev + K_next) + diag(a_xz, a_y, a_xz), so
+            # K_prev_bar and K_next_bar get h^2 lambda dv^T; upper = h^2 K_next - h k_f I gets
+            # -(lambda dv_next^T + dv lambda_next^T).
             rhs_bar = lam
-            # diag = -h^2 (K_prev + K_next) + diag(a_xz, a_y, a_xz); rhs = h force + rhs_k + h^2 diag(k_c, k_c + k_y, k_c) v.
-            stiff_bar = -h2 * diag_bar
-            a_xz_bar = diag_bar[0, 0] + diag_bar[2, 2]
-            a_y_bar = diag_bar[1, 1]
+            a_xz_bar = -(lam[0] * dv[0] + lam[2] * dv[2])
+            a_y_bar = -lam[1] * dv[1]
             force_row_bar = dt * rhs_bar
             v_bar = vec3(zero)
             v_prev_bar = vec3(zero)
@@ -309,33 +322,52 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     friction_bar = friction_bar + dt * wp.dot(top_dv, rhs_bar)
                     top_dv_bar = top_dv_bar + (dt * friction) * rhs_bar
                 if not is_last:
+                    # tr(upper_bar) = -(lambda . dv_next + dv . lambda_next); upper's -h k_f I.
                     friction_bar = (friction_bar - wp.dot(v - v_next, force_row_bar) - d_base_bar
-                                    - dt * (upper_bar[0, 0] + upper_bar[1, 1] + upper_bar[2, 2]))
+                                    + dt * (wp.dot(lam, dv_next) + wp.dot(dv, lam_next)))
                     v_bar = v_bar - friction * force_row_bar
                     v_next_bar = v_next_bar + friction * force_row_bar
-            # The springs: force = f_next - f_prev, stiff = K_prev + K_next, upper = h^2 K_next (+ friction),
-            # rhs_k = K_prev w_prev + K_next h^2 (v - v_next).
-            f_bar_prev = -force_row_bar
-            k_bar_prev = stiff_bar
+            # The segment above: force -f_prev, diag's -h^2 K_prev, rhs_k's K_prev w_prev.
             w_prev = h2 * (v - v_prev)
             if j == 1:
                 w_prev = h2 * v - dt * top_dx
-            k_bar_prev = k_bar_prev + wp.outer(rhs_bar, w_prev)
-            w_bar = wp.transpose(k_prev) * rhs_bar
+            uu_p, tr_p, sym_p = compute_outer_moments(h2 * lam, dv, u_p)
+            uu, tr, sym = compute_outer_moments(rhs_bar, w_prev, u_p)
+            uu_p = uu_p + uu
+            tr_p = tr_p + tr
+            sym_p = sym_p + sym
+            w_bar = alpha_p * wp.dot(u_p, rhs_bar) * u_p + beta_p * rhs_bar  # K_prev^T rhs_bar
             v_bar = v_bar + h2 * w_bar
             if j == 1:
                 top_dx_bar = top_dx_bar - dt * w_bar
             else:
                 v_prev_bar = v_prev_bar - h2 * w_bar
             if not is_last:
-                f_bar_next = f_bar_next + force_row_bar
-                k_bar_next = k_bar_next + stiff_bar + h2 * upper_bar + wp.outer(rhs_bar, h2 * (v - v_next))
-                w_next_bar = h2 * (wp.transpose(k_next) * rhs_bar)
+                # The segment below: force +f_next, diag's -h^2 K_next, upper's h^2 K_next, rhs_k's
+                # K_next h^2 (v - v_next); then its spring's adjoint (it is complete).
+                f_bar_n = f_bar_n + force_row_bar
+                uu, tr, sym = compute_outer_moments(h2 * lam, dv, u_n)
+                uu_n = uu_n + uu
+                tr_n = tr_n + tr
+                sym_n = sym_n + sym
+                uu, tr, sym = compute_outer_moments(-h2 * lam, dv_next, u_n)
+                uu_n = uu_n + uu
+                tr_n = tr_n + tr
+                sym_n = sym_n + sym
+                uu, tr, sym = compute_outer_moments(-h2 * dv, lam_next, u_n)
+                uu_n = uu_n + uu
+                tr_n = tr_n + tr
+                sym_n = sym_n + sym
+                w_next = h2 * (v - v_next)
+                uu, tr, sym = compute_outer_moments(rhs_bar, w_next, u_n)
+                uu_n = uu_n + uu
+                tr_n = tr_n + tr
+                sym_n = sym_n + sym
+                w_next_bar = h2 * (alpha_n * wp.dot(u_n, rhs_bar) * u_n + beta_n * rhs_bar)
                 v_bar = v_bar + w_next_bar
                 v_next_bar = v_next_bar - w_next_bar
-                # Segment p (this particle to the next) is complete: its spring's adjoint.
-                e_bar, k_s_bar, d_bar = compute_spring_adjoint(x, particle_q[p + 1], stiffness, rest_length,
-                                                               f_bar_next, k_bar_next)
+                e_bar, k_s_bar, d_bar = compute_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
+                                                               f_bar_n, uu_n, tr_n, sym_n)
                 stiffness_bar = stiffness_bar + k_s_bar
                 rest_bar = rest_bar + d_bar
                 x_bar = x_bar + e_bar
@@ -345,13 +377,24 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             particle_qd_grad[p] = particle_qd_grad[p] + v_bar
             particle_qd_grad[p - 1] = particle_qd_grad[p - 1] + v_prev_bar
             particle_mass_grad[p] = particle_mass_grad[p] + mass_bar
-            f_bar_next = f_bar_prev
-            k_bar_next = k_bar_prev
+            # Row p - 1 is next: segment p - 1 becomes the one below.
+            u_n = u_p
+            l_n = l_p
+            ratio_n = ratio_p
+            alpha_n = alpha_p
+            beta_n = beta_p
+            f_bar_n = -force_row_bar
+            uu_n = uu_p
+            tr_n = tr_p
+            sym_n = sym_p
             lam_next = lam
             dv_next = dv
+            v_next = v
+            v = v_prev
+            x = x_prev
         # The top segment (the top particle at the start of the step to particle start + 1).
-        e_bar, k_s_bar, d_bar = compute_spring_adjoint(particle_q[start], particle_q[start + 1], stiffness,
-                                                       rest_length, f_bar_next, k_bar_next)
+        e_bar, k_s_bar, d_bar = compute_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
+                                                       f_bar_n, uu_n, tr_n, sym_n)
         stiffness_bar = stiffness_bar + k_s_bar
         rest_bar = rest_bar + d_bar
         particle_q_grad[start] = particle_q_grad[start] + e_bar

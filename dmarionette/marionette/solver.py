@@ -386,7 +386,6 @@ class SolverMarionette:
             if m.scene.body_effects["feedback"] and m.bar_count else None
         self._response = eval_string_response_kernel(m.strings.scalar, m.scene.effects.internal_friction, m.substeps)
         self.workspace = self.new_workspace(taped=False)
-        self._string_control_cache = {}
 
     def new_workspace(self, taped: bool = True) -> MarionetteWorkspace:
         """A workspace for one taped step (``taped``), or one that plain steps may reuse."""
@@ -412,19 +411,18 @@ class SolverMarionette:
     def string_controls(self, control: MarionetteControl, *,
                         workspace: MarionetteWorkspace | None = None) -> list[StringControl]:
         """The controls of the n string steps: views of ``control``'s buffers and the
-        workspace's tie path (float32 strings: of their own float32 copies); cached for the
-        plain workspace (the cache holds the control, so its id stays unique)."""
+        workspace's tie path (float32 strings: of their own float32 copies); cached in the
+        workspace (a taped rollout re-run from Python would otherwise make n views per string step)."""
         ws = workspace or self.workspace
         key = id(control)
-        if ws is self.workspace and key in self._string_control_cache:
-            return self._string_control_cache[key][1]
+        if key in ws.control_views:
+            return ws.control_views[key][1]
         if ws.narrow is None:
             top_q, tie_q, tie_qd = control.top_q, ws.tie_q, ws.tie_qd
         else:
             top_q, tie_q, tie_qd = ws.narrow.top_q, ws.narrow.tie_q, ws.narrow.tie_qd
         views = [StringControl(top_q[j], tie_q[j], tie_qd[j]) for j in range(self.model.substeps)]
-        if ws is self.workspace:
-            self._string_control_cache[key] = (control, views)
+        ws.control_views[key] = (control, views)
         return views
 
     def step(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl,

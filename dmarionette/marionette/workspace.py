@@ -83,6 +83,9 @@ class MarionetteWorkspace:
         narrow: float32 strings only: their float32 controls (``top_q``, ``tie_q``, ``tie_qd``).
         puppet_control: the puppet step's control (the body springs' anchors).
         puppet_workspace: the puppet step's derived quantities.
+        control_views: the string steps' controls of a puppet control seen by this workspace,
+            by the control's id (``SolverMarionette.string_controls``; the entry holds the
+            control, so the id stays unique).
     """
 
     points: PuppetPoints
@@ -96,6 +99,7 @@ class MarionetteWorkspace:
     narrow: SimpleNamespace | None
     puppet_control: ArticulationControl
     puppet_workspace: ArticulationWorkspace
+    control_views: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
     def allocate(cls, model, *, taped: bool = False) -> MarionetteWorkspace:

@@ -9,16 +9,19 @@ One step is five named passes::
     integrate_string       v1 = v0 + dv, x1 = x0 + h v1; the top particle follows its bar
     eval_string_tie_force  eq. 2 force on each body point, taut flags (paper §3.2)
 
-A plain step (no tape) with the printed spring launches them as one kernel instead,
+A step with the printed spring launches them as one kernel instead,
 ``integrate_string_implicit`` (``kernels/string_step``: one string per thread, the same
 functions in the same order, so the same numbers bit for bit; about 1.2x faster,
-``docs/performance.md``); a step on a tape, or with tension-only springs, launches the five
-passes.
+``docs/performance.md``); on a tape it also keeps its pivot inverses and records the
+hand-written adjoint of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``;
+issue 13: backward / forward of a marionette gradient 4.3-5.1 -> about 3). The tension-only
+springs launch the five passes, and so does a taped printed-spring step with
+``hand_adjoint = False`` (the reference its tests compare with).
 
 A step recorded on a tape is asked for explicitly (``step(..., tape=tape)``): it writes its
-intermediates into a workspace of its own (one array per step, as Warp's reverse pass
-needs; given, or allocated by the step) and the solve records its hand-written adjoint
-(``tape.record_func``). The active set of the tension-only springs (which segments are in
+intermediates into a workspace of its own (given, or allocated by the step), read by its
+adjoint. With the five passes (one array per step, as Warp's reverse pass needs) the solve
+records its hand-written adjoint (``tape.record_func``). The active set of the tension-only springs (which segments are in
 the system) is found first by an unrecorded pass (launches with ``record_tape=False``); the
 recorded pass then assembles and solves the system with that active set, so the gradient
 is that of the step with the active set held fixed (the derivative of the piecewise-smooth
@@ -223,7 +226,7 @@ class SolverStringImplicit:
                     m.string_start, *params, m.gravity, m.ground_height,
                     state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
                     ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
-                    ws.segment_force, ws.segment_jacobian, ws.scratch_rhs_bar,
+                    ws.scratch_rhs_bar,
                     *[self._grad(a) for a in outputs],
                 ],
                 outputs=[self._grad(a) for a in inputs + params],

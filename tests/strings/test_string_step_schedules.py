@@ -1,8 +1,9 @@
 """The two schedules of the implicit string step compute the same numbers, bit for bit.
 
-A plain printed-spring step runs as one launch per string (``kernels/string_step``,
-``integrate_string_implicit``); a step on a tape (and every tension-only step) runs the five
-passes (spring, system, solve, integrate, tie force). Both call the same ``@wp.func``\\ s in the
+A printed-spring step runs as one launch per string (``kernels/string_step``,
+``integrate_string_implicit``), on a tape too (with its hand-written adjoint); every
+tension-only step, and a taped step with ``hand_adjoint = False``, runs the five passes
+(spring, system, solve, integrate, tie force). Both call the same ``@wp.func``\\ s in the
 same order, so a taped re-run of a rollout (the gradient engine's backward pass) ends exactly
 where the plain run did. Checked on a hard case: strings swung fast, lowered onto the ground,
 their ties moving, every effect on, float64 and float32, chains of 2 to 50 particles.
@@ -78,9 +79,13 @@ def test_one_launch_step_equals_the_five_passes(precision):
     assert np.all(np.isfinite(a.particle_q.numpy()))
 
 
-def test_a_taped_step_ends_where_the_plain_step_does():
+@pytest.mark.parametrize("hand_adjoint", [True, False], ids=["one-launch", "five-passes"])
+def test_a_taped_step_ends_where_the_plain_step_does(hand_adjoint):
+    """A taped step runs the one-launch step (its adjoint hand-written) or, as the reference
+    for that adjoint, the five passes; either ends where the plain step does, bit for bit."""
     model = _model("float64")
     solver = SolverStringImplicit(model)
+    solver.hand_adjoint = hand_adjoint
     a, b, taped_out = model.state(), model.state(), model.state()
     dt = 1e-3
     for k, control in enumerate(_controls(model, 300, dt)):

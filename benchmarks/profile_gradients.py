@@ -1,0 +1,122 @@
+"""Where a marionette gradient's backward pass goes (issue 13): the taped re-run against the reverse
+pass, and the string step's hand-written adjoint against its forward.
+
+    .venv/bin/python benchmarks/profile_gradients.py [--seconds 4] [--repeats 3]
+
+Prints, for the ``hanging`` scene (6 x 50 particles, 1 kHz / 30 Hz, smoothed contact):
+
+- the engine (``MarionetteGradient``, captured graphs): the forward, and the backward split into
+  its captured taped re-runs, its captured reverse passes and the rest (host work between
+  replays: checkpoints, inputs and seeds written in, gradients read out), each as a multiple
+  of the forward (medians of ``--repeats``);
+- one string step (300 particles) as captured graphs of 100 launches: the plain one-launch
+  step, the same step keeping its pivot inverses (a taped step's), and its adjoint
+  (``kernels/string_step_adjoint``), µs per launch (medians of 5 replays).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING
+
+import dmarionette as dm  # noqa: E402
+import dmarionette.capture as capture  # noqa: E402
+from dmarionette.grad.engine import MarionetteGradient  # noqa: E402
+from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
+
+
+class ChunkClock:
+    """Times every ``CapturedChunk.run`` by chunk (the engine's re-run and reverse graphs)."""
+
+    def __init__(self):
+        self.times: dict[int, float] = {}
+        self._run = capture.CapturedChunk.run
+
+        def run(chunk):
+            t0 = time.perf_counter()
+            self._run(chunk)
+            self.times[id(chunk)] = self.times.get(id(chunk), 0.0) + time.perf_counter() - t0
+
+        capture.CapturedChunk.run = run
+
+
+def _engine_split(model, seconds: float, repeats: int, clock: ChunkClock) -> dict[str, float]:
+    engine = MarionetteGradient(model, int(round(seconds / model.puppet_dt)))
+    inputs = engine.scene_inputs()
+    rng = np.random.default_rng(0)
+    weights = {k: rng.normal(size=s) for k, s in engine.output_shapes.items()}
+    engine.forward(inputs)
+    engine.backward(weights)  # plans and captures
+    graphs = engine._taped._graphs.values()  # (re-run, reverse, tape) per segment length
+    reruns, reverses = {id(g[0]) for g in graphs}, {id(g[1]) for g in graphs}
+    rows = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        engine.forward(inputs)
+        forward = time.perf_counter() - t0
+        clock.times.clear()
+        t0 = time.perf_counter()
+        engine.backward(weights)
+        backward = time.perf_counter() - t0
+        rerun = sum(t for k, t in clock.times.items() if k in reruns)
+        reverse = sum(t for k, t in clock.times.items() if k in reverses)
+        rows.append({"forward": forward, "backward": backward, "rerun": rerun, "reverse": reverse,
+                     "rest": backward - rerun - reverse})
+    return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+
+
+def _per_launch(launch, n: int = 100) -> float:
+    launch()
+    with wp.ScopedCapture(device="cpu") as c:
+        for _ in range(n):
+            launch()
+    times = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        wp.capture_launch(c.graph)
+        times.append((time.perf_counter() - t0) / n * 1e6)
+    return statistics.median(times)
+
+
+def _string_step(model) -> dict[str, float]:
+    solver, strings = model.string_solver, model.strings
+    state_in, state_out, control = strings.state(), strings.state(), strings.control()
+    ws = solver.new_workspace(True)
+    h = strings.scalar(model.string_dt)
+    tape = wp.Tape()
+    solver.record_step_adjoint(state_in, state_out, control, h, ws, tape)
+    return {
+        "plain step": _per_launch(lambda: solver.integrate_string_implicit(state_in, state_out, control, h,
+                                                                           solver.workspace)),
+        "taped step (keeps its pivots)": _per_launch(
+            lambda: solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)),
+        "its adjoint": _per_launch(tape.launches[-1]),
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seconds", type=float, default=4.0)
+    p.add_argument("--repeats", type=int, default=3)
+    args = p.parse_args()
+    clock = ChunkClock()
+    model = MarionetteModel(dm.load_scene("hanging"), requires_grad=True)
+    split = _engine_split(model, args.seconds, args.repeats, clock)
+    f = split["forward"]
+    print(f"# hanging 6 x 50, {args.seconds:g} s rollout, medians of {args.repeats}")
+    print(f"forward {f:.3f} s; backward {split['backward']:.3f} s = {split['backward'] / f:.2f} forwards:")
+    for name in ("rerun", "reverse", "rest"):
+        print(f"  {name:8s} {split[name]:.3f} s  {split[name] / f:.2f} forwards")
+    print("# one string step, 300 particles, captured (µs per launch)")
+    for name, us in _string_step(model).items():
+        print(f"  {name:32s} {us:.1f}")
+
+
+if __name__ == "__main__":
+    main()
