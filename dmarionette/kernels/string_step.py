@@ -27,7 +27,7 @@ stores the pivot inverses) off the tape and records the hand-written adjoint of 
 ``string_step_adjoint`` (Warp's automatic adjoint does not replay the values its loops carry
 from particle to particle). The tension-only springs (``StringEffects.tension_only``) keep the
 five passes, on a tape or not: their active-set solve re-solves a chain after adding blocks to
-``A``, which needs ``A`` stored. Both schedules call the same ``@wp.func``\ s in the same order,
+``A``, which needs ``A`` stored. Both schedules call the same ``@wp.func``\\ s in the same order,
 so they agree bit for bit (``tests/strings/test_string_step_schedules.py``).
 """
 
