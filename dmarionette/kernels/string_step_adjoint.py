@@ -107,6 +107,219 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     compute_spring_parts, compute_outer_moments = spring.compute_spring_parts, spring.compute_outer_moments
     compute_spring_adjoint = spring.compute_spring_adjoint
 
+    acc_t = wp.types.vector(21, scalar)  # a row's running sums (compute_row_adjoint)
+
+    @wp.func
+    def compute_row_adjoint(
+        p: int,
+        j: int,
+        is_last: bool,
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        particle_mass: wp.array(dtype=scalar),
+        particle_dv: wp.array(dtype=vec3),
+        scratch_c: wp.array(dtype=mat33),
+        solve_bar: wp.array(dtype=vec3),
+        particle_q_grad: wp.array(dtype=vec3),
+        particle_qd_grad: wp.array(dtype=vec3),
+        particle_mass_grad: wp.array(dtype=scalar),
+        stiffness: scalar,
+        rest_length: scalar,
+        friction: scalar,
+        air_drag: scalar,
+        ground_stiffness: scalar,
+        ground_absorption: scalar,
+        ground_friction: scalar,
+        tie_stiffness: scalar,
+        tie_damping: scalar,
+        tie_x: vec3,
+        tie_v: vec3,
+        gravity: vec3,
+        ground_height: scalar,
+        dt: scalar,
+        top_dx: vec3,
+        top_dv: vec3,
+        x: vec3,
+        v: vec3,
+        v_next: vec3,
+        lam_next: vec3,
+        dv_next: vec3,
+        u_n: vec3,
+        l_n: scalar,
+        ratio_n: scalar,
+        alpha_n: scalar,
+        beta_n: scalar,
+        f_bar_n: vec3,
+        uu_n: scalar,
+        tr_n: scalar,
+        sym_n: vec3,
+        acc: acc_t,
+    ):
+        """The adjoint of row ``p`` (``j = p - start``; ``is_last``: the chain's last particle): its
+        ``lambda``, the block row's assembly, the segment above's moments started and the segment
+        below's (``u_n`` ...) completed and pulled back to the particles. Called with ``is_last``
+        and ``j`` known at the first and the last row, so that the rows between compile without
+        their branches (as the forward's ``compute_forward_row``). ``acc``: the string's running
+        sums (``k_s``, ``d``, ``k_f``, ``k_air``, ground ``k``, absorption, friction, tie ``k``,
+        ``k_d``, then the tie target's, its velocity's, ``top_dx``'s and ``top_dv``'s adjoints).
+        Returns the values the next row (``p - 1``) carries, and ``acc``."""
+        zero = scalar(0.0)
+        h2 = dt * dt
+        stiffness_bar = acc[0]
+        rest_bar = acc[1]
+        friction_bar = acc[2]
+        air_bar = acc[3]
+        ground_stiffness_bar = acc[4]
+        ground_absorption_bar = acc[5]
+        ground_friction_bar = acc[6]
+        tie_stiffness_bar = acc[7]
+        tie_damping_bar = acc[8]
+        tie_x_bar = vec3(acc[9], acc[10], acc[11])
+        tie_v_bar = vec3(acc[12], acc[13], acc[14])
+        top_dx_bar = vec3(acc[15], acc[16], acc[17])
+        top_dv_bar = vec3(acc[18], acc[19], acc[20])
+        x_prev = particle_q[p - 1]
+        v_prev = particle_qd[p - 1]
+        u_p, l_p, ratio_p, alpha_p, beta_p = compute_spring_parts(x_prev, x, stiffness, rest_length)
+        lam = solve_bar[p]
+        if not is_last:
+            lam = lam - scratch_c[p] * lam_next
+        dv = particle_dv[p]
+        mass = particle_mass[p]
+        # A_bar = -lambda dv^T on the stored blocks (A_{j,j+1} also stands, transposed, at
+        # (j+1, j)), b_bar = lambda. diag = -h^2 (K_prev + K_next) + diag(a_xz, a_y, a_xz), so
+        # K_prev_bar and K_next_bar get h^2 lambda dv^T; upper = h^2 K_next - h k_f I gets
+        # -(lambda dv_next^T + dv lambda_next^T).
+        rhs_bar = lam
+        a_xz_bar = -(lam[0] * dv[0] + lam[2] * dv[2])
+        a_y_bar = -lam[1] * dv[1]
+        force_row_bar = dt * rhs_bar
+        v_bar = vec3(zero)
+        v_prev_bar = vec3(zero)
+        v_next_bar = vec3(zero)
+        x_bar = vec3(zero)
+        k_c = zero
+        k_y = zero
+        if is_last:
+            k_c = -tie_stiffness
+        below = False
+        if wp.static(GROUND):
+            below = x[1] < ground_height
+            if below:
+                k_y = -ground_stiffness
+        k_c_bar = h2 * wp.dot(rhs_bar, v) - h2 * (a_xz_bar + a_y_bar)
+        k_y_bar = h2 * rhs_bar[1] * v[1] - h2 * a_y_bar
+        v_bar = v_bar + h2 * vec3(k_c * rhs_bar[0], (k_c + k_y) * rhs_bar[1], k_c * rhs_bar[2])
+        mass_bar = a_xz_bar + a_y_bar
+        d_xz_bar = -dt * a_xz_bar
+        d_y_bar = -dt * a_y_bar
+        d_base_bar = d_xz_bar + d_y_bar  # d_y starts as d_xz (friction and air drag)
+        if is_last:
+            # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I.
+            tie_x_bar = tie_x_bar + tie_stiffness * force_row_bar
+            tie_v_bar = tie_v_bar + tie_damping * force_row_bar
+            x_bar = x_bar - tie_stiffness * force_row_bar
+            v_bar = v_bar - tie_damping * force_row_bar
+            tie_stiffness_bar = tie_stiffness_bar + wp.dot(tie_x - x, force_row_bar) - k_c_bar
+            tie_damping_bar = tie_damping_bar + wp.dot(tie_v - v, force_row_bar) - d_base_bar
+        if wp.static(GROUND):
+            if below:
+                # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
+                ground_stiffness_bar = ground_stiffness_bar + (ground_height - x[1]) * force_row_bar[1] - k_y_bar
+                x_bar = x_bar - vec3(zero, ground_stiffness * force_row_bar[1], zero)
+                ground_absorption_bar = ground_absorption_bar - v[1] * force_row_bar[1] - d_y_bar
+                v_bar = v_bar - vec3(zero, ground_absorption * force_row_bar[1], zero)
+                if wp.static(GROUND_FRICTION):
+                    ground_friction_bar = (ground_friction_bar - v[0] * force_row_bar[0]
+                                           - v[2] * force_row_bar[2] - d_xz_bar)
+                    v_bar = v_bar - vec3(ground_friction * force_row_bar[0], zero,
+                                         ground_friction * force_row_bar[2])
+        if wp.static(AIR):
+            air_bar = air_bar - wp.dot(v, force_row_bar) - d_base_bar
+            v_bar = v_bar - air_drag * force_row_bar
+        if wp.static(GRAVITY):
+            mass_bar = mass_bar + wp.dot(gravity, force_row_bar)
+        if wp.static(FRICTION):
+            friction_bar = friction_bar - wp.dot(v - v_prev, force_row_bar) - d_base_bar
+            v_bar = v_bar - friction * force_row_bar
+            v_prev_bar = v_prev_bar + friction * force_row_bar
+            if j == 1:
+                friction_bar = friction_bar + dt * wp.dot(top_dv, rhs_bar)
+                top_dv_bar = top_dv_bar + (dt * friction) * rhs_bar
+            if not is_last:
+                # tr(upper_bar) = -(lambda . dv_next + dv . lambda_next); upper's -h k_f I.
+                friction_bar = (friction_bar - wp.dot(v - v_next, force_row_bar) - d_base_bar
+                                + dt * (wp.dot(lam, dv_next) + wp.dot(dv, lam_next)))
+                v_bar = v_bar - friction * force_row_bar
+                v_next_bar = v_next_bar + friction * force_row_bar
+        # The segment above: force -f_prev, diag's -h^2 K_prev, rhs_k's K_prev w_prev.
+        w_prev = h2 * (v - v_prev)
+        if j == 1:
+            w_prev = h2 * v - dt * top_dx
+        uu_p, tr_p, sym_p = compute_outer_moments(h2 * lam, dv, u_p)
+        uu, tr, sym = compute_outer_moments(rhs_bar, w_prev, u_p)
+        uu_p = uu_p + uu
+        tr_p = tr_p + tr
+        sym_p = sym_p + sym
+        w_bar = alpha_p * wp.dot(u_p, rhs_bar) * u_p + beta_p * rhs_bar  # K_prev^T rhs_bar
+        v_bar = v_bar + h2 * w_bar
+        if j == 1:
+            top_dx_bar = top_dx_bar - dt * w_bar
+        else:
+            v_prev_bar = v_prev_bar - h2 * w_bar
+        if not is_last:
+            # The segment below: force +f_next, diag's -h^2 K_next, upper's h^2 K_next, rhs_k's
+            # K_next h^2 (v - v_next); then its spring's adjoint (it is complete).
+            f_bar_n = f_bar_n + force_row_bar
+            uu, tr, sym = compute_outer_moments(h2 * lam, dv, u_n)
+            uu_n = uu_n + uu
+            tr_n = tr_n + tr
+            sym_n = sym_n + sym
+            uu, tr, sym = compute_outer_moments(-h2 * lam, dv_next, u_n)
+            uu_n = uu_n + uu
+            tr_n = tr_n + tr
+            sym_n = sym_n + sym
+            uu, tr, sym = compute_outer_moments(-h2 * dv, lam_next, u_n)
+            uu_n = uu_n + uu
+            tr_n = tr_n + tr
+            sym_n = sym_n + sym
+            w_next = h2 * (v - v_next)
+            uu, tr, sym = compute_outer_moments(rhs_bar, w_next, u_n)
+            uu_n = uu_n + uu
+            tr_n = tr_n + tr
+            sym_n = sym_n + sym
+            w_next_bar = h2 * (alpha_n * wp.dot(u_n, rhs_bar) * u_n + beta_n * rhs_bar)
+            v_bar = v_bar + w_next_bar
+            v_next_bar = v_next_bar - w_next_bar
+            e_bar, k_s_bar, d_bar = compute_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
+                                                           f_bar_n, uu_n, tr_n, sym_n)
+            stiffness_bar = stiffness_bar + k_s_bar
+            rest_bar = rest_bar + d_bar
+            x_bar = x_bar + e_bar
+            particle_q_grad[p + 1] = particle_q_grad[p + 1] - e_bar
+            particle_qd_grad[p + 1] = particle_qd_grad[p + 1] + v_next_bar
+        particle_q_grad[p] = particle_q_grad[p] + x_bar
+        particle_qd_grad[p] = particle_qd_grad[p] + v_bar
+        particle_qd_grad[p - 1] = particle_qd_grad[p - 1] + v_prev_bar
+        particle_mass_grad[p] = particle_mass_grad[p] + mass_bar
+        # Row p - 1 is next: segment p - 1 becomes the one below.
+        u_n = u_p
+        l_n = l_p
+        ratio_n = ratio_p
+        alpha_n = alpha_p
+        beta_n = beta_p
+        f_bar_n = -force_row_bar
+        uu_n = uu_p
+        tr_n = tr_p
+        sym_n = sym_p
+        lam_next = lam
+        dv_next = dv
+        v_next = v
+        v = v_prev
+        x = x_prev
+        acc_out = acc_t(stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar, ground_friction_bar, tie_stiffness_bar, tie_damping_bar, tie_x_bar[0], tie_x_bar[1], tie_x_bar[2], tie_v_bar[0], tie_v_bar[1], tie_v_bar[2], top_dx_bar[0], top_dx_bar[1], top_dx_bar[2], top_dv_bar[0], top_dv_bar[1], top_dv_bar[2])
+        return x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc_out
+
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_adjoint(
         # Model:
@@ -222,18 +435,10 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             solve_bar[p] = y_prev
             x_prev = x
 
-        # 3. Back substitution, bottom to top, and each row's adjoint. Segment p (below row p) is
-        # complete once rows p + 1 (its "prev") and p (its "next") are done; its K_bar is kept as
-        # moments (``compute_outer_moments``), its parts carried from row p + 1.
-        stiffness_bar = zero
-        rest_bar = zero
-        friction_bar = zero
-        air_bar = zero
-        ground_stiffness_bar = zero
-        ground_absorption_bar = zero
-        ground_friction_bar = zero
-        top_dx_bar = vec3(zero)
-        top_dv_bar = vec3(zero)
+        # 3. Back substitution, bottom to top, and each row's adjoint (``compute_row_adjoint``). Segment p
+        # (below row p) is complete once rows p + 1 (its "prev") and p (its "next") are done; its
+        # K_bar is kept as moments (``compute_outer_moments``), its parts carried from row p + 1.
+        acc = acc_t(zero)
         lam_next = vec3(zero)
         dv_next = vec3(zero)
         v_next = vec3(zero)
@@ -249,149 +454,42 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         uu_n = zero
         tr_n = zero
         sym_n = vec3(zero)
-        for i in range(last - start):
-            p = last - i
-            is_last = p == last
-            j = p - start
-            x_prev = particle_q[p - 1]
-            v_prev = particle_qd[p - 1]
-            u_p, l_p, ratio_p, alpha_p, beta_p = compute_spring_parts(x_prev, x, stiffness, rest_length)
-            lam = solve_bar[p]
-            if not is_last:
-                lam = lam - scratch_c[p] * lam_next
-            dv = particle_dv[p]
-            mass = particle_mass[p]
-            # A_bar = -lambda dv^T on the stored blocks (A_{j,j+1} also stands, transposed, at
-            # (j+1, j)), b_bar = lambda. diag = -h^2 (K_prev + K_next) + diag(a_xz, a_y, a_xz), so
-            # K_prev_bar and K_next_bar get h^2 lambda dv^T; upper = h^2 K_next - h k_f I gets
-            # -(lambda dv_next^T + dv lambda_next^T).
-            rhs_bar = lam
-            a_xz_bar = -(lam[0] * dv[0] + lam[2] * dv[2])
-            a_y_bar = -lam[1] * dv[1]
-            force_row_bar = dt * rhs_bar
-            v_bar = vec3(zero)
-            v_prev_bar = vec3(zero)
-            v_next_bar = vec3(zero)
-            x_bar = vec3(zero)
-            k_c = zero
-            k_y = zero
-            if is_last:
-                k_c = -tie_stiffness
-            below = False
-            if wp.static(GROUND):
-                below = x[1] < ground_height
-                if below:
-                    k_y = -ground_stiffness
-            k_c_bar = h2 * wp.dot(rhs_bar, v) - h2 * (a_xz_bar + a_y_bar)
-            k_y_bar = h2 * rhs_bar[1] * v[1] - h2 * a_y_bar
-            v_bar = v_bar + h2 * vec3(k_c * rhs_bar[0], (k_c + k_y) * rhs_bar[1], k_c * rhs_bar[2])
-            mass_bar = a_xz_bar + a_y_bar
-            d_xz_bar = -dt * a_xz_bar
-            d_y_bar = -dt * a_y_bar
-            d_base_bar = d_xz_bar + d_y_bar  # d_y starts as d_xz (friction and air drag)
-            if is_last:
-                # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I.
-                tie_x_bar = tie_x_bar + tie_stiffness * force_row_bar
-                tie_v_bar = tie_v_bar + tie_damping * force_row_bar
-                x_bar = x_bar - tie_stiffness * force_row_bar
-                v_bar = v_bar - tie_damping * force_row_bar
-                tie_stiffness_bar = tie_stiffness_bar + wp.dot(tie_x - x, force_row_bar) - k_c_bar
-                tie_damping_bar = tie_damping_bar + wp.dot(tie_v - v, force_row_bar) - d_base_bar
-            if wp.static(GROUND):
-                if below:
-                    # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
-                    ground_stiffness_bar = ground_stiffness_bar + (ground_height - x[1]) * force_row_bar[1] - k_y_bar
-                    x_bar = x_bar - vec3(zero, ground_stiffness * force_row_bar[1], zero)
-                    ground_absorption_bar = ground_absorption_bar - v[1] * force_row_bar[1] - d_y_bar
-                    v_bar = v_bar - vec3(zero, ground_absorption * force_row_bar[1], zero)
-                    if wp.static(GROUND_FRICTION):
-                        ground_friction_bar = (ground_friction_bar - v[0] * force_row_bar[0]
-                                               - v[2] * force_row_bar[2] - d_xz_bar)
-                        v_bar = v_bar - vec3(ground_friction * force_row_bar[0], zero,
-                                             ground_friction * force_row_bar[2])
-            if wp.static(AIR):
-                air_bar = air_bar - wp.dot(v, force_row_bar) - d_base_bar
-                v_bar = v_bar - air_drag * force_row_bar
-            if wp.static(GRAVITY):
-                mass_bar = mass_bar + wp.dot(gravity, force_row_bar)
-            if wp.static(FRICTION):
-                friction_bar = friction_bar - wp.dot(v - v_prev, force_row_bar) - d_base_bar
-                v_bar = v_bar - friction * force_row_bar
-                v_prev_bar = v_prev_bar + friction * force_row_bar
-                if j == 1:
-                    friction_bar = friction_bar + dt * wp.dot(top_dv, rhs_bar)
-                    top_dv_bar = top_dv_bar + (dt * friction) * rhs_bar
-                if not is_last:
-                    # tr(upper_bar) = -(lambda . dv_next + dv . lambda_next); upper's -h k_f I.
-                    friction_bar = (friction_bar - wp.dot(v - v_next, force_row_bar) - d_base_bar
-                                    + dt * (wp.dot(lam, dv_next) + wp.dot(dv, lam_next)))
-                    v_bar = v_bar - friction * force_row_bar
-                    v_next_bar = v_next_bar + friction * force_row_bar
-            # The segment above: force -f_prev, diag's -h^2 K_prev, rhs_k's K_prev w_prev.
-            w_prev = h2 * (v - v_prev)
-            if j == 1:
-                w_prev = h2 * v - dt * top_dx
-            uu_p, tr_p, sym_p = compute_outer_moments(h2 * lam, dv, u_p)
-            uu, tr, sym = compute_outer_moments(rhs_bar, w_prev, u_p)
-            uu_p = uu_p + uu
-            tr_p = tr_p + tr
-            sym_p = sym_p + sym
-            w_bar = alpha_p * wp.dot(u_p, rhs_bar) * u_p + beta_p * rhs_bar  # K_prev^T rhs_bar
-            v_bar = v_bar + h2 * w_bar
-            if j == 1:
-                top_dx_bar = top_dx_bar - dt * w_bar
-            else:
-                v_prev_bar = v_prev_bar - h2 * w_bar
-            if not is_last:
-                # The segment below: force +f_next, diag's -h^2 K_next, upper's h^2 K_next, rhs_k's
-                # K_next h^2 (v - v_next); then its spring's adjoint (it is complete).
-                f_bar_n = f_bar_n + force_row_bar
-                uu, tr, sym = compute_outer_moments(h2 * lam, dv, u_n)
-                uu_n = uu_n + uu
-                tr_n = tr_n + tr
-                sym_n = sym_n + sym
-                uu, tr, sym = compute_outer_moments(-h2 * lam, dv_next, u_n)
-                uu_n = uu_n + uu
-                tr_n = tr_n + tr
-                sym_n = sym_n + sym
-                uu, tr, sym = compute_outer_moments(-h2 * dv, lam_next, u_n)
-                uu_n = uu_n + uu
-                tr_n = tr_n + tr
-                sym_n = sym_n + sym
-                w_next = h2 * (v - v_next)
-                uu, tr, sym = compute_outer_moments(rhs_bar, w_next, u_n)
-                uu_n = uu_n + uu
-                tr_n = tr_n + tr
-                sym_n = sym_n + sym
-                w_next_bar = h2 * (alpha_n * wp.dot(u_n, rhs_bar) * u_n + beta_n * rhs_bar)
-                v_bar = v_bar + w_next_bar
-                v_next_bar = v_next_bar - w_next_bar
-                e_bar, k_s_bar, d_bar = compute_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
-                                                               f_bar_n, uu_n, tr_n, sym_n)
-                stiffness_bar = stiffness_bar + k_s_bar
-                rest_bar = rest_bar + d_bar
-                x_bar = x_bar + e_bar
-                particle_q_grad[p + 1] = particle_q_grad[p + 1] - e_bar
-                particle_qd_grad[p + 1] = particle_qd_grad[p + 1] + v_next_bar
-            particle_q_grad[p] = particle_q_grad[p] + x_bar
-            particle_qd_grad[p] = particle_qd_grad[p] + v_bar
-            particle_qd_grad[p - 1] = particle_qd_grad[p - 1] + v_prev_bar
-            particle_mass_grad[p] = particle_mass_grad[p] + mass_bar
-            # Row p - 1 is next: segment p - 1 becomes the one below.
-            u_n = u_p
-            l_n = l_p
-            ratio_n = ratio_p
-            alpha_n = alpha_p
-            beta_n = beta_p
-            f_bar_n = -force_row_bar
-            uu_n = uu_p
-            tr_n = tr_p
-            sym_n = sym_p
-            lam_next = lam
-            dv_next = dv
-            v_next = v
-            v = v_prev
-            x = x_prev
+        x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
+            compute_row_adjoint(
+                last, last - start, True, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
+                particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length, friction, air_drag,
+                ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping, tie_x, tie_v,
+                gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n,
+                alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+        for i in range(last - start - 2):
+            x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
+                compute_row_adjoint(
+                    last - 1 - i, 2, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c,
+                    solve_bar, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length,
+                    friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
+                    tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
+                    dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+        if last > start + 1:
+            x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
+                compute_row_adjoint(
+                    start + 1, 1, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
+                    particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length, friction,
+                    air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping,
+                    tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n,
+                    l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+        stiffness_bar = acc[0]
+        rest_bar = acc[1]
+        friction_bar = acc[2]
+        air_bar = acc[3]
+        ground_stiffness_bar = acc[4]
+        ground_absorption_bar = acc[5]
+        ground_friction_bar = acc[6]
+        tie_stiffness_bar = tie_stiffness_bar + acc[7]
+        tie_damping_bar = tie_damping_bar + acc[8]
+        tie_x_bar = tie_x_bar + vec3(acc[9], acc[10], acc[11])
+        tie_v_bar = tie_v_bar + vec3(acc[12], acc[13], acc[14])
+        top_dx_bar = vec3(acc[15], acc[16], acc[17])
+        top_dv_bar = vec3(acc[18], acc[19], acc[20])
         # The top segment (the top particle at the start of the step to particle start + 1).
         e_bar, k_s_bar, d_bar = compute_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
                                                        f_bar_n, uu_n, tr_n, sym_n)
