@@ -1,0 +1,374 @@
+"""Probe for issue 19: does Warp's CPU backend emit packed SIMD for a block Thomas solve
+written with several chains in lockstep, one vector lane per chain?
+
+Run:  python benchmarks/probe_simd_lanes.py [--rows 50] [--chains 6 8 64] [--lanes 4 8] [--repeats 9]
+
+It solves ``L`` random symmetric positive definite block-tridiagonal systems of ``n`` 3x3
+blocks (float64; ``A_jj = 4 I + S``, ``A_{j,j+1} = S'``, ``S, S'`` symmetric with entries in
+[-0.25, 0.25], so the systems are block diagonally dominant and need no pivoting), each
+chain with the block Thomas algorithm, in two formulations:
+
+- ``scalar``: one chain per thread, ``mat33d`` blocks, the project's own row steps
+  (``string_solve.thomas_row_functions``: ``wp.inverse``, matrix products), the same loop as
+  ``string_solve.compute_block_thomas`` (``C'``, ``d'`` written to scratch and read back).
+- ``lanes K``: ``K`` chains per thread in lockstep, structure of arrays: each block is a
+  ``9 x K`` matrix whose row ``e`` holds block element ``e`` of the ``K`` chains (a lane
+  vector), each right-hand side ``3 x K``. Arithmetic is element-wise on lane vectors
+  (``wp.cw_mul``, ``+``, ``-``, ``wp.cw_div``), the inverse by cofactors written out on
+  lanes. The same loop as ``scalar``. Chains beyond ``L`` (when ``K`` does not divide ``L``)
+  are padding (identity blocks, zero right-hand side) and are not counted in the timing.
+
+It checks both against NumPy's dense solve and against each other (bit for bit or not),
+times them (thread CPU time of one launch replayed from a CPU graph, median of
+``--repeats``; Warp runs a CPU launch's threads one after the other on the calling thread,
+so this is one core), reports ns per block row (= per particle), and disassembles the
+compiled kernels from Warp's kernel cache (``objdump -d``) to count packed vs scalar
+double-precision instructions and moves. Nothing here is used by the simulator; the
+findings are in ``docs/simd_probe.md``.
+"""
+
+import argparse
+import collections
+import functools
+import glob
+import os
+import re
+import statistics
+import subprocess
+import time
+
+import numpy as np
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING
+
+from dmarionette.kernels.string_solve import thomas_row_functions  # noqa: E402
+
+mat33d, vec3d = wp.mat33d, wp.vec3d
+
+
+# --- the scalar reference: one chain per thread -------------------------------------------------
+
+@functools.cache
+def scalar_kernel():
+    thomas = thomas_row_functions(wp.float64)
+    compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def solve_chains_scalar(
+        row_count: int,
+        system_diag: wp.array(dtype=mat33d),
+        system_upper: wp.array(dtype=mat33d),
+        system_rhs: wp.array(dtype=vec3d),
+        scratch_c: wp.array(dtype=mat33d),
+        scratch_d: wp.array(dtype=vec3d),
+        solution: wp.array(dtype=vec3d),
+    ):
+        """Block Thomas of chain ``tid`` (rows ``tid * row_count ...``), as ``compute_block_thomas``."""
+        start = wp.tid() * row_count
+        last = start + row_count - 1
+        inv, c, d = compute_thomas_first_row(system_diag[start], system_upper[start], system_rhs[start])
+        scratch_c[start] = c
+        scratch_d[start] = d
+        for p in range(start + 1, last + 1):
+            inv, c, d = compute_thomas_row(system_diag[p], system_upper[p], system_rhs[p], system_upper[p - 1],
+                                           scratch_c[p - 1], scratch_d[p - 1])
+            scratch_c[p] = c
+            scratch_d[p] = d
+        solution[last] = scratch_d[last]
+        for i in range(row_count - 1):
+            p = last - 1 - i
+            solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
+
+    return solve_chains_scalar
+
+
+# --- K chains per thread in lockstep: lane vectors -----------------------------------------------
+
+@functools.cache
+def lane_types(lanes: int):
+    """``(lane block 9 x K, lane vector 3 x K)`` float64 matrix types."""
+    return wp.types.matrix((9, lanes), wp.float64), wp.types.matrix((3, lanes), wp.float64)
+
+
+@functools.cache
+def lane_kernel(lanes: int):
+    block, vec = lane_types(lanes)
+    lane = wp.types.vector(lanes, wp.float64)
+
+    @wp.func
+    def lane_mul(a: block, b: block):
+        """``a b`` (row ``3 i + j`` is element ``(i, j)``)."""
+        r = block()
+        for i in range(3):
+            for j in range(3):
+                r[3 * i + j] = wp.cw_mul(a[3 * i], b[j]) + wp.cw_mul(a[3 * i + 1], b[3 + j]) + wp.cw_mul(
+                    a[3 * i + 2], b[6 + j])
+        return r
+
+    @wp.func
+    def lane_tmul(a: block, b: block):
+        """``a^T b``."""
+        r = block()
+        for i in range(3):
+            for j in range(3):
+                r[3 * i + j] = wp.cw_mul(a[i], b[j]) + wp.cw_mul(a[3 + i], b[3 + j]) + wp.cw_mul(a[6 + i], b[6 + j])
+        return r
+
+    @wp.func
+    def lane_mul_vec(a: block, v: vec):
+        """``a v``."""
+        r = vec()
+        for i in range(3):
+            r[i] = wp.cw_mul(a[3 * i], v[0]) + wp.cw_mul(a[3 * i + 1], v[1]) + wp.cw_mul(a[3 * i + 2], v[2])
+        return r
+
+    @wp.func
+    def lane_tmul_vec(a: block, v: vec):
+        """``a^T v``."""
+        r = vec()
+        for i in range(3):
+            r[i] = wp.cw_mul(a[i], v[0]) + wp.cw_mul(a[3 + i], v[1]) + wp.cw_mul(a[6 + i], v[2])
+        return r
+
+    @wp.func
+    def lane_cofactor(a: lane, b: lane, c: lane, d: lane):
+        """``a b - c d``, lane by lane."""
+        return wp.cw_mul(a, b) - wp.cw_mul(c, d)
+
+    @wp.func
+    def lane_inverse(m: block):
+        """The inverse by cofactors, in ``wp.inverse``'s order (no zero-determinant branch:
+        the systems are SPD)."""
+        b = block()
+        b[0] = lane_cofactor(m[4], m[8], m[5], m[7])
+        b[3] = lane_cofactor(m[5], m[6], m[3], m[8])
+        b[6] = lane_cofactor(m[3], m[7], m[4], m[6])
+        b[1] = lane_cofactor(m[2], m[7], m[1], m[8])
+        b[4] = lane_cofactor(m[0], m[8], m[2], m[6])
+        b[7] = lane_cofactor(m[1], m[6], m[0], m[7])
+        b[2] = lane_cofactor(m[1], m[5], m[2], m[4])
+        b[5] = lane_cofactor(m[2], m[3], m[0], m[5])
+        b[8] = lane_cofactor(m[0], m[4], m[1], m[3])
+        # det = row 0 . (row 1 x row 2); the cross product is the first column of cofactors
+        det = wp.cw_mul(m[0], b[0]) + wp.cw_mul(m[1], b[3]) + wp.cw_mul(m[2], b[6])
+        rcp = wp.cw_div(lane(wp.float64(1.0)), det)
+        r = block()
+        for e in range(9):
+            r[e] = wp.cw_mul(b[e], rcp)
+        return r
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def solve_chains_lanes(
+        row_count: int,
+        system_diag: wp.array(dtype=block),
+        system_upper: wp.array(dtype=block),
+        system_rhs: wp.array(dtype=vec),
+        scratch_c: wp.array(dtype=block),
+        scratch_d: wp.array(dtype=vec),
+        solution: wp.array(dtype=vec),
+    ):
+        """Block Thomas of the ``K`` chains of lane group ``tid``, the scalar kernel's loop."""
+        start = wp.tid() * row_count
+        last = start + row_count - 1
+        inv = lane_inverse(system_diag[start])
+        scratch_c[start] = lane_mul(inv, system_upper[start])
+        scratch_d[start] = lane_mul_vec(inv, system_rhs[start])
+        for p in range(start + 1, last + 1):
+            upper_prev = system_upper[p - 1]
+            inv = lane_inverse(system_diag[p] - lane_tmul(upper_prev, scratch_c[p - 1]))
+            scratch_c[p] = lane_mul(inv, system_upper[p])
+            scratch_d[p] = lane_mul_vec(inv, system_rhs[p] - lane_tmul_vec(upper_prev, scratch_d[p - 1]))
+        solution[last] = scratch_d[last]
+        for i in range(row_count - 1):
+            p = last - 1 - i
+            solution[p] = scratch_d[p] - lane_mul_vec(scratch_c[p], solution[p + 1])
+
+    return solve_chains_lanes
+
+
+# --- systems, layouts, checks -------------------------------------------------------------------
+
+def random_systems(chains: int, rows: int, seed: int = 19):
+    """``(diag, upper, rhs)`` of shapes ``(chains, rows, 3, 3)``, ``(chains, rows, 3, 3)``,
+    ``(chains, rows, 3)``; the last row's upper block is zero (the chain ends there)."""
+    rng = np.random.default_rng(seed)
+
+    def symmetric(scale):
+        s = rng.uniform(-scale, scale, size=(chains, rows, 3, 3))
+        return 0.5 * (s + s.transpose(0, 1, 3, 2))
+
+    diag = 4.0 * np.eye(3) + symmetric(0.25)
+    upper = symmetric(0.25)
+    upper[:, -1] = 0.0
+    rhs = rng.uniform(-1.0, 1.0, size=(chains, rows, 3))
+    return diag, upper, rhs
+
+
+def dense_solutions(diag, upper, rhs):
+    """NumPy's dense solve of each chain's system, shape ``(chains, rows, 3)``."""
+    chains, rows = rhs.shape[:2]
+    out = np.empty_like(rhs)
+    for s in range(chains):
+        a = np.zeros((3 * rows, 3 * rows))
+        for j in range(rows):
+            a[3 * j:3 * j + 3, 3 * j:3 * j + 3] = diag[s, j]
+            if j + 1 < rows:
+                a[3 * j:3 * j + 3, 3 * j + 3:3 * j + 6] = upper[s, j]
+                a[3 * j + 3:3 * j + 6, 3 * j:3 * j + 3] = upper[s, j].T
+        out[s] = np.linalg.solve(a, rhs[s].reshape(-1)).reshape(rows, 3)
+    return out
+
+
+def to_lanes(blocks, lanes: int, pad_value):
+    """``(chains, rows, ...)`` -> ``(groups * rows, elements, lanes)``: chain ``g K + k``'s element
+    ``e`` of row ``j`` at ``[g rows + j, e, k]``; missing chains filled with ``pad_value``."""
+    chains, rows = blocks.shape[:2]
+    groups = -(-chains // lanes)
+    flat = blocks.reshape(chains, rows, -1)
+    padded = np.broadcast_to(np.asarray(pad_value, dtype=float).reshape(-1), (groups * lanes, rows, flat.shape[2])).copy()
+    padded[:chains] = flat
+    return np.ascontiguousarray(padded.reshape(groups, lanes, rows, -1).transpose(0, 2, 3, 1)).reshape(
+        groups * rows, flat.shape[2], lanes)
+
+
+def from_lanes(x, chains: int, rows: int, lanes: int):
+    """Inverse of ``to_lanes`` for ``(groups * rows, 3, lanes)`` -> ``(chains, rows, 3)``."""
+    groups = x.shape[0] // rows
+    return x.reshape(groups, rows, 3, lanes).transpose(0, 3, 1, 2).reshape(groups * lanes, rows, 3)[:chains]
+
+
+class Solve:
+    """One formulation's launch on one set of systems, ready to run and time."""
+
+    def __init__(self, name: str, kernel, dim: int, rows: int, inputs, block_dtype, vec_dtype, chains: int, lanes: int):
+        self.name, self.kernel, self.dim, self.rows, self.chains, self.lanes = name, kernel, dim, rows, chains, lanes
+        self.inputs = [wp.array(a, dtype=t) for a, t in zip(inputs, (block_dtype, block_dtype, vec_dtype))]
+        count = self.inputs[2].shape[0]
+        self.outputs = [wp.zeros(count, dtype=block_dtype), wp.zeros(count, dtype=vec_dtype),
+                        wp.zeros(count, dtype=vec_dtype)]
+
+    def launch(self):
+        wp.launch(self.kernel, dim=self.dim, inputs=[self.rows, *self.inputs], outputs=self.outputs)
+
+    def solution(self) -> np.ndarray:
+        x = self.outputs[2].numpy()
+        if self.lanes == 0:
+            return x.reshape(self.chains, self.rows, 3)
+        return from_lanes(x, self.chains, self.rows, self.lanes)
+
+
+def make_solves(chains: int, rows: int, lane_counts, seed: int = 19):
+    diag, upper, rhs = random_systems(chains, rows, seed)
+    solves = [Solve("scalar", scalar_kernel(), chains, rows,
+                    (diag.reshape(-1, 3, 3), upper.reshape(-1, 3, 3), rhs.reshape(-1, 3)), mat33d, vec3d, chains, 0)]
+    for k in lane_counts:
+        block, vec = lane_types(k)
+        inputs = (to_lanes(diag, k, np.eye(3)), to_lanes(upper, k, 0.0), to_lanes(rhs, k, 0.0))
+        solves.append(Solve(f"lanes {k}", lane_kernel(k), -(-chains // k), rows, inputs, block, vec, chains, k))
+    return solves, dense_solutions(diag, upper, rhs)
+
+
+def cost(fn, count: int, repeats: int) -> float:
+    """Median thread CPU time [s] of one ``fn()`` replayed from a CPU graph of ``count`` calls."""
+    fn()  # loads the module (no compiling while capturing)
+    with wp.ScopedCapture() as capture:
+        for _ in range(count):
+            fn()
+    times = []
+    for _ in range(repeats):
+        start = time.thread_time()
+        wp.capture_launch(capture.graph)
+        times.append(time.thread_time() - start)
+    return statistics.median(times) / count
+
+
+# --- disassembly --------------------------------------------------------------------------------
+
+PACKED = re.compile(r"^v?(add|sub|mul|div|fn?m(add|sub)\d{3})pd$")
+SCALAR = re.compile(r"^v?(add|sub|mul|div|fn?m(add|sub)\d{3})sd$")
+MOVE = re.compile(r"^v?mov")
+
+
+def kernel_object(kernel) -> str:
+    """The compiled object of ``kernel``'s module in Warp's kernel cache."""
+    module = kernel.module
+    hits = glob.glob(os.path.join(wp.config.kernel_cache_dir, f"wp_{module.name}_*", "*.o"))
+    hits = [h for h in hits if module.get_module_hash().hex()[:7] in h] or hits
+    if len(hits) != 1:
+        raise RuntimeError(f"expected one object for module {module.name!r}, found {hits}")
+    return hits[0]
+
+
+def instruction_counts(kernel) -> collections.Counter:
+    """Counts of packed/scalar double arithmetic, moves and all instructions in the kernel's
+    forward function (``objdump -d``), packed split by register width."""
+    text = subprocess.run(["objdump", "-d", "--no-show-raw-insn", kernel_object(kernel)], check=True,
+                          capture_output=True, text=True).stdout
+    counts = collections.Counter()
+    inside = False
+    for line in text.splitlines():
+        if line.endswith(">:"):
+            inside = line.rstrip(":").endswith("_cpu_forward>")
+            continue
+        fields = line.split("\t")
+        if not inside or len(fields) < 2 or not fields[1].strip():
+            continue
+        op = fields[1].split()[0]
+        operands = fields[1][len(op):]
+        counts["all"] += 1
+        if PACKED.match(op):
+            width = "zmm" if "zmm" in operands else "ymm" if "ymm" in operands else "xmm"
+            counts[f"packed {width}"] += 1
+        elif SCALAR.match(op):
+            counts["scalar"] += 1
+        elif MOVE.match(op):
+            counts["moves"] += 1
+    return counts
+
+
+# --- main ---------------------------------------------------------------------------------------
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows", type=int, default=50, help="blocks per chain (particles per string)")
+    parser.add_argument("--chains", type=int, nargs="+", default=[6, 8, 64])
+    parser.add_argument("--lanes", type=int, nargs="+", default=[4, 8])
+    parser.add_argument("--repeats", type=int, default=9)
+    args = parser.parse_args()
+    wp.init()
+
+    print(f"## Agreement ({args.rows} rows, float64)\n")
+    print("| chains | formulation | max |x - x_dense| / max |x| | bit-identical to scalar |")
+    print("|---:|---|---:|---:|")
+    for chains in args.chains:
+        solves, exact = make_solves(chains, args.rows, args.lanes)
+        for solve in solves:
+            solve.launch()
+        reference = solves[0].solution()
+        scale = np.abs(exact).max()
+        for solve in solves:
+            x = solve.solution()
+            same = np.count_nonzero(x.view(np.int64) == reference.view(np.int64))
+            print(f"| {chains} | {solve.name} | {np.abs(x - exact).max() / scale:.1e} | {same}/{x.size} |")
+
+    print(f"\n## Time: thread CPU, median of {args.repeats} replays, ns per block row (= particle)\n")
+    print("| chains | " + " | ".join(s.name for s in make_solves(1, 2, args.lanes)[0]) + " |")
+    print("|---:|" + "---:|" * (1 + len(args.lanes)))
+    for chains in args.chains:
+        solves, _ = make_solves(chains, args.rows, args.lanes)
+        count = max(20, 20000 // (chains * args.rows))
+        ns = [cost(s.launch, count, args.repeats) * 1e9 / (chains * args.rows) for s in solves]
+        print(f"| {chains} | " + " | ".join(f"{v:.1f}" for v in ns) + " |")
+
+    print("\n## Instructions in each kernel's compiled forward function (objdump -d, static counts)\n")
+    print("| formulation | all | packed double (xmm/ymm/zmm) | scalar double | moves |")
+    print("|---|---:|---:|---:|---:|")
+    for name, kernel in [("scalar", scalar_kernel())] + [(f"lanes {k}", lane_kernel(k)) for k in args.lanes]:
+        c = instruction_counts(kernel)
+        print(f"| {name} | {c['all']} | {c['packed xmm']}/{c['packed ymm']}/{c['packed zmm']} | {c['scalar']} "
+              f"| {c['moves']} |")
+
+
+if __name__ == "__main__":
+    main()
