@@ -92,9 +92,50 @@ def lane_types(lanes: int):
 
 
 @functools.cache
-def lane_kernel(lanes: int):
+def lane_fma(lanes: int):
+    """``fma(a, b, c)`` lane by lane (one rounding), a native snippet: Warp has no fused
+    multiply-add builtin, and its generated code puts each operation in its own statement, so
+    Clang never contracts ``cw_mul(a, b) + c``."""
+    lane = wp.types.vector(lanes, wp.float64)
+    snippet = f"""
+    typedef double lanes_t __attribute__((ext_vector_type({lanes})));
+    lanes_t x, y, z;
+    __builtin_memcpy(&x, a.c, sizeof(x));
+    __builtin_memcpy(&y, b.c, sizeof(y));
+    __builtin_memcpy(&z, c.c, sizeof(z));
+    z = __builtin_elementwise_fma(x, y, z);
+    decltype(a) r;
+    __builtin_memcpy(r.c, &z, sizeof(z));
+    return r;
+    """
+
+    @wp.func_native(snippet)
+    def lane_fma(a: lane, b: lane, c: lane) -> lane:
+        ...
+
+    return lane_fma
+
+
+@functools.cache
+def lane_kernel(lanes: int, fused: bool):
+    """The lockstep solve of ``lanes`` chains per thread. ``fused``: the block products
+    ``mat33 * mat33`` summed as ``fma`` chains, as Warp's ``mul`` does (``muladd<double>``);
+    everything else (``mat33 * vec3``, ``wp.inverse``'s cofactors and determinant) is rounded
+    operation by operation there, and here. So each lane can give the scalar kernel's bits
+    (measured: fusing the cofactors or the determinant as well breaks that). Not ``fused``:
+    every product and sum rounded.
+    """
     block, vec = lane_types(lanes)
     lane = wp.types.vector(lanes, wp.float64)
+    FUSED = fused
+    fma = lane_fma(lanes)
+
+    @wp.func
+    def lane_dot3(a0: lane, a1: lane, a2: lane, b0: lane, b1: lane, b2: lane):
+        """``a0 b0 + a1 b1 + a2 b2`` as in ``mat33 * mat33`` (fused) or ``mat33 * vec3``."""
+        if wp.static(FUSED):
+            return fma(a2, b2, fma(a1, b1, wp.cw_mul(a0, b0)))
+        return wp.cw_mul(a0, b0) + wp.cw_mul(a1, b1) + wp.cw_mul(a2, b2)
 
     @wp.func
     def lane_mul(a: block, b: block):
@@ -102,8 +143,7 @@ def lane_kernel(lanes: int):
         r = block()
         for i in range(3):
             for j in range(3):
-                r[3 * i + j] = wp.cw_mul(a[3 * i], b[j]) + wp.cw_mul(a[3 * i + 1], b[3 + j]) + wp.cw_mul(
-                    a[3 * i + 2], b[6 + j])
+                r[3 * i + j] = lane_dot3(a[3 * i], a[3 * i + 1], a[3 * i + 2], b[j], b[3 + j], b[6 + j])
         return r
 
     @wp.func
@@ -112,12 +152,12 @@ def lane_kernel(lanes: int):
         r = block()
         for i in range(3):
             for j in range(3):
-                r[3 * i + j] = wp.cw_mul(a[i], b[j]) + wp.cw_mul(a[3 + i], b[3 + j]) + wp.cw_mul(a[6 + i], b[6 + j])
+                r[3 * i + j] = lane_dot3(a[i], a[3 + i], a[6 + i], b[j], b[3 + j], b[6 + j])
         return r
 
     @wp.func
     def lane_mul_vec(a: block, v: vec):
-        """``a v``."""
+        """``a v`` (never fused, as ``mat33 * vec3``)."""
         r = vec()
         for i in range(3):
             r[i] = wp.cw_mul(a[3 * i], v[0]) + wp.cw_mul(a[3 * i + 1], v[1]) + wp.cw_mul(a[3 * i + 2], v[2])
@@ -133,7 +173,7 @@ def lane_kernel(lanes: int):
 
     @wp.func
     def lane_cofactor(a: lane, b: lane, c: lane, d: lane):
-        """``a b - c d``, lane by lane."""
+        """``a b - c d``, lane by lane (never fused: ``wp.inverse`` is not contracted)."""
         return wp.cw_mul(a, b) - wp.cw_mul(c, d)
 
     @wp.func
@@ -265,7 +305,9 @@ def make_solves(chains: int, rows: int, lane_counts, seed: int = 19):
     for k in lane_counts:
         block, vec = lane_types(k)
         inputs = (to_lanes(diag, k, np.eye(3)), to_lanes(upper, k, 0.0), to_lanes(rhs, k, 0.0))
-        solves.append(Solve(f"lanes {k}", lane_kernel(k), -(-chains // k), rows, inputs, block, vec, chains, k))
+        for fused in (False, True):
+            solves.append(Solve(f"lanes {k}{' fma' if fused else ''}", lane_kernel(k, fused), -(-chains // k), rows,
+                                inputs, block, vec, chains, k))
     return solves, dense_solutions(diag, upper, rhs)
 
 
@@ -300,22 +342,42 @@ def kernel_object(kernel) -> str:
     return hits[0]
 
 
-def instruction_counts(kernel) -> collections.Counter:
-    """Counts of packed/scalar double arithmetic, moves and all instructions in the kernel's
-    forward function (``objdump -d``), packed split by register width."""
+def forward_instructions(kernel) -> list[tuple[int, str, str]]:
+    """``(address, mnemonic, operands)`` of the kernel's forward function (``objdump -d``)."""
     text = subprocess.run(["objdump", "-d", "--no-show-raw-insn", kernel_object(kernel)], check=True,
                           capture_output=True, text=True).stdout
-    counts = collections.Counter()
-    inside = False
+    out, inside = [], False
     for line in text.splitlines():
         if line.endswith(">:"):
-            inside = line.rstrip(":").endswith("_cpu_forward>")
+            inside = line[:-2].endswith("_cpu_forward")
             continue
         fields = line.split("\t")
-        if not inside or len(fields) < 2 or not fields[1].strip():
-            continue
-        op = fields[1].split()[0]
-        operands = fields[1][len(op):]
+        if inside and len(fields) >= 2 and fields[1].strip():
+            op, _, operands = fields[1].strip().partition(" ")
+            out.append((int(fields[0].strip().rstrip(":"), 16), op, operands.strip()))
+    return out
+
+
+def innermost_loop(instructions):
+    """The instructions of the largest innermost loop: the span from a backward jump's target
+    to the jump, containing no other such span (for these kernels: the forward elimination).
+    Code that the compiler placed out of line (a rare branch) is not in the span."""
+    spans = []
+    for address, op, operands in instructions:
+        match = re.match(r"([0-9a-f]+) <", operands)
+        if op.startswith("j") and match and int(match.group(1), 16) < address:
+            spans.append((int(match.group(1), 16), address))
+    inner = [s for s in spans if not any(o != s and s[0] <= o[0] and o[1] <= s[1] for o in spans)]
+    sizes = [(sum(1 for a, _, _ in instructions if lo <= a <= hi), lo, hi) for lo, hi in inner]
+    _, lo, hi = max(sizes)
+    return [i for i in instructions if lo <= i[0] <= hi]
+
+
+def instruction_counts(instructions) -> collections.Counter:
+    """Counts of packed double arithmetic (by register width), scalar double arithmetic, moves,
+    and all instructions."""
+    counts = collections.Counter()
+    for _, op, operands in instructions:
         counts["all"] += 1
         if PACKED.match(op):
             width = "zmm" if "zmm" in operands else "ymm" if "ymm" in operands else "xmm"
@@ -354,7 +416,7 @@ def main() -> None:
 
     print(f"\n## Time: thread CPU, median of {args.repeats} replays, ns per block row (= particle)\n")
     print("| chains | " + " | ".join(s.name for s in make_solves(1, 2, args.lanes)[0]) + " |")
-    print("|---:|" + "---:|" * (1 + len(args.lanes)))
+    print("|---:|" + "---:|" * (1 + 2 * len(args.lanes)))
     for chains in args.chains:
         solves, _ = make_solves(chains, args.rows, args.lanes)
         count = max(20, 20000 // (chains * args.rows))
@@ -362,13 +424,20 @@ def main() -> None:
         print(f"| {chains} | " + " | ".join(f"{v:.1f}" for v in ns) + " |")
 
     print("\n## Instructions in each kernel's compiled forward function (objdump -d, static counts)\n")
-    print("| formulation | all | packed double (xmm/ymm/zmm) | scalar double | moves |")
-    print("|---|---:|---:|---:|---:|")
-    for name, kernel in [("scalar", scalar_kernel())] + [(f"lanes {k}", lane_kernel(k)) for k in args.lanes]:
-        c = instruction_counts(kernel)
-        print(f"| {name} | {c['all']} | {c['packed xmm']}/{c['packed ymm']}/{c['packed zmm']} | {c['scalar']} "
-              f"| {c['moves']} |")
-
+    print("Whole function, then the elimination loop (largest innermost loop; one iteration = one block row"
+          " of K chains), and that loop per particle (/ K).\n")
+    print("| formulation | part | all | packed double xmm / ymm / zmm | scalar double | moves |")
+    print("|---|---|---:|---:|---:|---:|")
+    for name, kernel, k in [("scalar", scalar_kernel(), 1)] + [(f"lanes {k}{' fma' if f else ''}", lane_kernel(k, f), k)
+                                                          for k in args.lanes for f in (False, True)]:
+        whole = forward_instructions(kernel)
+        loop = innermost_loop(whole)
+        for part, c, div in (("function", instruction_counts(whole), 1), ("loop", instruction_counts(loop), 1),
+                             ("loop / K", instruction_counts(loop), k)):
+            if part == "loop / K" and k == 1:
+                continue
+            print(f"| {name} | {part} | {c['all'] / div:.0f} | {c['packed xmm'] / div:.0f} / {c['packed ymm'] / div:.0f}"
+                  f" / {c['packed zmm'] / div:.0f} | {c['scalar'] / div:.0f} | {c['moves'] / div:.0f} |")
 
 if __name__ == "__main__":
     main()
