@@ -91,6 +91,9 @@ def lane_types(lanes: int):
     return wp.types.matrix((9, lanes), wp.float64), wp.types.matrix((3, lanes), wp.float64)
 
 
+STYLES = ("vector", "fma", "loops")
+
+
 @functools.cache
 def lane_fma(lanes: int):
     """``fma(a, b, c)`` lane by lane (one rounding), a native snippet: Warp has no fused
@@ -117,25 +120,71 @@ def lane_fma(lanes: int):
 
 
 @functools.cache
-def lane_kernel(lanes: int, fused: bool):
-    """The lockstep solve of ``lanes`` chains per thread. ``fused``: the block products
-    ``mat33 * mat33`` summed as ``fma`` chains, as Warp's ``mul`` does (``muladd<double>``);
-    everything else (``mat33 * vec3``, ``wp.inverse``'s cofactors and determinant) is rounded
-    operation by operation there, and here. So each lane can give the scalar kernel's bits
-    (measured: fusing the cofactors or the determinant as well breaks that). Not ``fused``:
-    every product and sum rounded.
+def lane_kernel(lanes: int, style: str):
+    """The lockstep solve of ``lanes`` chains per thread, in one of three ``style``s:
+
+    - ``"vector"``: element-wise operations on lane vectors (``wp.cw_mul``, ``+``, ``-``,
+      ``wp.cw_div``), every product and sum rounded;
+    - ``"fma"``: the same, but the block products ``mat33 * mat33`` summed as ``fma`` chains,
+      as Warp's ``mul`` does (``muladd<double>``); everything else (``mat33 * vec3``,
+      ``wp.inverse``'s cofactors and determinant) is rounded operation by operation there, and
+      here. So each lane can give the scalar kernel's bits (measured: fusing the cofactors or
+      the determinant as well breaks that);
+    - ``"loops"``: the arithmetic of ``"vector"`` written as scalar statements in a loop over
+      the lanes that Warp unrolls (constant trip count): whether LLVM's SLP vectorizer packs
+      them.
     """
     block, vec = lane_types(lanes)
     lane = wp.types.vector(lanes, wp.float64)
-    FUSED = fused
+    FUSED, LOOPS, LANES = style == "fma", style == "loops", lanes
     fma = lane_fma(lanes)
 
     @wp.func
+    def lane_sum3(a0: lane, a1: lane, a2: lane, b0: lane, b1: lane, b2: lane):
+        """``a0 b0 + a1 b1 + a2 b2``, each product and sum rounded (as ``mat33 * vec3``)."""
+        if wp.static(LOOPS):
+            r = lane()
+            for k in range(LANES):
+                r[k] = a0[k] * b0[k] + a1[k] * b1[k] + a2[k] * b2[k]
+            return r
+        return wp.cw_mul(a0, b0) + wp.cw_mul(a1, b1) + wp.cw_mul(a2, b2)
+
+    @wp.func
+    def lane_cofactor(a: lane, b: lane, c: lane, d: lane):
+        """``a b - c d``, lane by lane (never fused: ``wp.inverse`` is not contracted)."""
+        if wp.static(LOOPS):
+            r = lane()
+            for k in range(LANES):
+                r[k] = a[k] * b[k] - c[k] * d[k]
+            return r
+        return wp.cw_mul(a, b) - wp.cw_mul(c, d)
+
+    @wp.func
+    def lane_scale(a: lane, b: lane):
+        """``a b``, lane by lane."""
+        if wp.static(LOOPS):
+            r = lane()
+            for k in range(LANES):
+                r[k] = a[k] * b[k]
+            return r
+        return wp.cw_mul(a, b)
+
+    @wp.func
+    def lane_reciprocal(a: lane):
+        """``1 / a``, lane by lane."""
+        if wp.static(LOOPS):
+            r = lane()
+            for k in range(LANES):
+                r[k] = wp.float64(1.0) / a[k]
+            return r
+        return wp.cw_div(lane(wp.float64(1.0)), a)
+
+    @wp.func
     def lane_dot3(a0: lane, a1: lane, a2: lane, b0: lane, b1: lane, b2: lane):
-        """``a0 b0 + a1 b1 + a2 b2`` as in ``mat33 * mat33`` (fused) or ``mat33 * vec3``."""
+        """``a0 b0 + a1 b1 + a2 b2`` as in ``mat33 * mat33`` (fused in style ``"fma"``)."""
         if wp.static(FUSED):
             return fma(a2, b2, fma(a1, b1, wp.cw_mul(a0, b0)))
-        return wp.cw_mul(a0, b0) + wp.cw_mul(a1, b1) + wp.cw_mul(a2, b2)
+        return lane_sum3(a0, a1, a2, b0, b1, b2)
 
     @wp.func
     def lane_mul(a: block, b: block):
@@ -160,7 +209,7 @@ def lane_kernel(lanes: int, fused: bool):
         """``a v`` (never fused, as ``mat33 * vec3``)."""
         r = vec()
         for i in range(3):
-            r[i] = wp.cw_mul(a[3 * i], v[0]) + wp.cw_mul(a[3 * i + 1], v[1]) + wp.cw_mul(a[3 * i + 2], v[2])
+            r[i] = lane_sum3(a[3 * i], a[3 * i + 1], a[3 * i + 2], v[0], v[1], v[2])
         return r
 
     @wp.func
@@ -168,13 +217,8 @@ def lane_kernel(lanes: int, fused: bool):
         """``a^T v``."""
         r = vec()
         for i in range(3):
-            r[i] = wp.cw_mul(a[i], v[0]) + wp.cw_mul(a[3 + i], v[1]) + wp.cw_mul(a[6 + i], v[2])
+            r[i] = lane_sum3(a[i], a[3 + i], a[6 + i], v[0], v[1], v[2])
         return r
-
-    @wp.func
-    def lane_cofactor(a: lane, b: lane, c: lane, d: lane):
-        """``a b - c d``, lane by lane (never fused: ``wp.inverse`` is not contracted)."""
-        return wp.cw_mul(a, b) - wp.cw_mul(c, d)
 
     @wp.func
     def lane_inverse(m: block):
@@ -191,11 +235,10 @@ def lane_kernel(lanes: int, fused: bool):
         b[5] = lane_cofactor(m[2], m[3], m[0], m[5])
         b[8] = lane_cofactor(m[0], m[4], m[1], m[3])
         # det = row 0 . (row 1 x row 2); the cross product is the first column of cofactors
-        det = wp.cw_mul(m[0], b[0]) + wp.cw_mul(m[1], b[3]) + wp.cw_mul(m[2], b[6])
-        rcp = wp.cw_div(lane(wp.float64(1.0)), det)
+        rcp = lane_reciprocal(lane_sum3(m[0], m[1], m[2], b[0], b[3], b[6]))
         r = block()
         for e in range(9):
-            r[e] = wp.cw_mul(b[e], rcp)
+            r[e] = lane_scale(b[e], rcp)
         return r
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -305,8 +348,8 @@ def make_solves(chains: int, rows: int, lane_counts, seed: int = 19):
     for k in lane_counts:
         block, vec = lane_types(k)
         inputs = (to_lanes(diag, k, np.eye(3)), to_lanes(upper, k, 0.0), to_lanes(rhs, k, 0.0))
-        for fused in (False, True):
-            solves.append(Solve(f"lanes {k}{' fma' if fused else ''}", lane_kernel(k, fused), -(-chains // k), rows,
+        for style in STYLES:
+            solves.append(Solve(f"lanes {k} {style}", lane_kernel(k, style), -(-chains // k), rows,
                                 inputs, block, vec, chains, k))
     return solves, dense_solutions(diag, upper, rhs)
 
@@ -421,10 +464,10 @@ def main() -> None:
 
     print(f"\n## Time: thread CPU, median of {args.repeats} replays, ns per block row (= particle)\n")
     print("| chains | " + " | ".join(s.name for s in make_solves(1, 2, args.lanes)[0]) + " |")
-    print("|---:|" + "---:|" * (1 + 2 * len(args.lanes)))
+    print("|---:|" + "---:|" * (1 + len(STYLES) * len(args.lanes)))
     for chains in args.chains:
         solves, _ = make_solves(chains, args.rows, args.lanes)
-        count = max(20, 20000 // (chains * args.rows))
+        count = max(50, 1_000_000 // (chains * args.rows))  # replays of ~10-40 ms
         ns = [cost(s.launch, count, args.repeats) * 1e9 / (chains * args.rows) for s in solves]
         print(f"| {chains} | " + " | ".join(f"{v:.1f}" for v in ns) + " |")
 
@@ -433,16 +476,21 @@ def main() -> None:
           " of K chains), and that loop per particle (/ K).\n")
     print("| formulation | part | all | packed double xmm / ymm / zmm | scalar double | moves |")
     print("|---|---|---:|---:|---:|---:|")
-    for name, kernel, k in [("scalar", scalar_kernel(), 1)] + [(f"lanes {k}{' fma' if f else ''}", lane_kernel(k, f), k)
-                                                          for k in args.lanes for f in (False, True)]:
+    listings = {}
+    for name, kernel, k in [("scalar", scalar_kernel(), 1)] + [(f"lanes {k} {style}", lane_kernel(k, style), k)
+                                                          for k in args.lanes for style in STYLES]:
         whole = forward_instructions(kernel)
         loop = innermost_loop(whole)
+        listings[name] = [(op, re.sub(r"<[^>]*>", "", operands)) for _, op, operands in whole]
         for part, c, div in (("function", instruction_counts(whole), 1), ("loop", instruction_counts(loop), 1),
                              ("loop / K", instruction_counts(loop), k)):
             if part == "loop / K" and k == 1:
                 continue
             print(f"| {name} | {part} | {c['all'] / div:.0f} | {c['packed xmm'] / div:.0f} / {c['packed ymm'] / div:.0f}"
                   f" / {c['packed zmm'] / div:.0f} | {c['scalar'] / div:.0f} | {c['moves'] / div:.0f} |")
+    for k in args.lanes:
+        same = listings[f"lanes {k} loops"] == listings[f"lanes {k} vector"]
+        print(f"\nlanes {k}: 'loops' and 'vector' compile to {'the same' if same else 'different'} machine code.")
 
 if __name__ == "__main__":
     main()
