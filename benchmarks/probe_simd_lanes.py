@@ -1,24 +1,27 @@
 """Probe for issue 19: does Warp's CPU backend emit packed SIMD for a block Thomas solve
 written with several chains in lockstep, one vector lane per chain?
 
-Run:  python benchmarks/probe_simd_lanes.py [--rows 50] [--chains 6 8 64] [--lanes 4 8] [--repeats 9] [--no-avx512]
+Run:  python benchmarks/probe_simd_lanes.py [--rows 50] [--chains 6 8 64] [--lanes 4 8] [--repeats 9]
+          [--no-avx512]
 
 It solves ``L`` random symmetric positive definite block-tridiagonal systems of ``n`` 3x3
 blocks (float64; ``A_jj = 4 I + S``, ``A_{j,j+1} = S'``, ``S, S'`` symmetric with entries in
 [-0.25, 0.25], so the systems are block diagonally dominant and need no pivoting), each
-chain with the block Thomas algorithm, in two formulations:
+chain with the block Thomas algorithm, in these formulations:
 
 - ``scalar``: one chain per thread, ``mat33d`` blocks, the project's own row steps
   (``string_solve.thomas_row_functions``: ``wp.inverse``, matrix products), the same loop as
   ``string_solve.compute_block_thomas`` (``C'``, ``d'`` written to scratch and read back).
-- ``lanes K``: ``K`` chains per thread in lockstep, structure of arrays: each block is a
-  ``9 x K`` matrix whose row ``e`` holds block element ``e`` of the ``K`` chains (a lane
-  vector), each right-hand side ``3 x K``. Arithmetic is element-wise on lane vectors
-  (``wp.cw_mul``, ``+``, ``-``, ``wp.cw_div``), the inverse by cofactors written out on
-  lanes. The same loop as ``scalar``. Chains beyond ``L`` (when ``K`` does not divide ``L``)
-  are padding (identity blocks, zero right-hand side) and are not counted in the timing.
+- ``lanes K <style>``: ``K`` chains per thread in lockstep, structure of arrays: each block is
+  a ``9 x K`` matrix whose row ``e`` holds block element ``e`` of the ``K`` chains (a lane
+  vector), each right-hand side ``3 x K``; the same loop as ``scalar``, the inverse by
+  cofactors written out on lanes. Styles (``lane_kernel``): ``vector`` (element-wise
+  ``wp.cw_mul``, ``+``, ``-``, ``wp.cw_div``), ``fma`` (the block products with a lane fused
+  multiply-add, as Warp's ``mat33 * mat33``: the scalar kernel's bits), ``loops`` (scalar
+  statements in an unrolled loop over the lanes). Chains beyond ``L`` (when ``K`` does not
+  divide ``L``) are padding (identity blocks, zero right-hand side), not counted in the time.
 
-It checks both against NumPy's dense solve and against each other (bit for bit or not),
+It checks each against NumPy's dense solve and against each other (bit for bit or not),
 times them (thread CPU time of one launch replayed from a CPU graph, median of
 ``--repeats``; Warp runs a CPU launch's threads one after the other on the calling thread,
 so this is one core), reports ns per block row (= per particle), and disassembles the
@@ -56,10 +59,13 @@ def scalar_kernel():
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve_chains_scalar(
+        # Model:
         row_count: int,
+        # State in:
         system_diag: wp.array(dtype=mat33d),
         system_upper: wp.array(dtype=mat33d),
         system_rhs: wp.array(dtype=vec3d),
+        # State out:
         scratch_c: wp.array(dtype=mat33d),
         scratch_d: wp.array(dtype=vec3d),
         solution: wp.array(dtype=vec3d),
@@ -243,10 +249,13 @@ def lane_kernel(lanes: int, style: str):
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve_chains_lanes(
+        # Model:
         row_count: int,
+        # State in:
         system_diag: wp.array(dtype=block),
         system_upper: wp.array(dtype=block),
         system_rhs: wp.array(dtype=vec),
+        # State out:
         scratch_c: wp.array(dtype=block),
         scratch_d: wp.array(dtype=vec),
         solution: wp.array(dtype=vec),
@@ -309,7 +318,8 @@ def to_lanes(blocks, lanes: int, pad_value):
     chains, rows = blocks.shape[:2]
     groups = -(-chains // lanes)
     flat = blocks.reshape(chains, rows, -1)
-    padded = np.broadcast_to(np.asarray(pad_value, dtype=float).reshape(-1), (groups * lanes, rows, flat.shape[2])).copy()
+    pad = np.asarray(pad_value, dtype=float).reshape(-1)
+    padded = np.broadcast_to(pad, (groups * lanes, rows, flat.shape[2])).copy()
     padded[:chains] = flat
     return np.ascontiguousarray(padded.reshape(groups, lanes, rows, -1).transpose(0, 2, 3, 1)).reshape(
         groups * rows, flat.shape[2], lanes)
@@ -441,7 +451,7 @@ def main() -> int:
     parser.add_argument("--lanes", type=int, nargs="+", default=[4, 8])
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--no-avx512", action="store_true",
-                        help="compile for the host CPU without AVX-512 (16 ymm registers; a machine with AVX2/FMA only)")
+                        help="compile for the host CPU without AVX-512 (16 ymm registers: an AVX2/FMA machine)")
     args = parser.parse_args()
     if args.no_avx512:  # Warp expands -march=native into -target-feature flags; a later one wins
         wp.config.cpu_compiler_flags += " -target-feature -avx512f"
@@ -496,7 +506,8 @@ def main() -> int:
                              ("loop / K", instruction_counts(loop), k)):
             if part == "loop / K" and k == 1:
                 continue
-            print(f"| {name} | {part} | {c['all'] / div:.0f} | {c['packed xmm'] / div:.0f} / {c['packed ymm'] / div:.0f}"
+            print(f"| {name} | {part} | {c['all'] / div:.0f} | {c['packed xmm'] / div:.0f}"
+                  f" / {c['packed ymm'] / div:.0f}"
                   f" / {c['packed zmm'] / div:.0f} | {c['scalar'] / div:.0f} | {c['moves'] / div:.0f} |")
     for k in args.lanes:
         same = listings[f"lanes {k} loops"] == listings[f"lanes {k} vector"]
