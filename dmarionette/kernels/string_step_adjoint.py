@@ -337,23 +337,22 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         string_tied: wp.array(dtype=scalar),
         gravity: vec3,
         ground_height: scalar,
-        # State in:
+        # State in (the step's start, then what the forward, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
-        # Control:
-        top_q: wp.array(dtype=vec3),
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
-        dt: scalar,
-        # The forward's (``integrate_string_implicit`` built with ``keep``):
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         particle_dv: wp.array(dtype=vec3),
         particle_q_out: wp.array(dtype=vec3),
         particle_qd_out: wp.array(dtype=vec3),
-        # Scratch (the solve's forward substitution):
+        # Control:
+        top_q: wp.array(dtype=vec3),
+        tie_q: wp.array(dtype=vec3),
+        tie_qd: wp.array(dtype=vec3),
+        dt: scalar,
+        # State out (scratch: the solve's forward substitution):
         solve_bar: wp.array(dtype=vec3),
-        # Adjoint in (consumed: zeroed):
+        # Adjoint in and out (read, then consumed: zeroed):
         particle_q_out_grad: wp.array(dtype=vec3),
         particle_qd_out_grad: wp.array(dtype=vec3),
         tie_force_grad: wp.array(dtype=vec3),

@@ -224,12 +224,11 @@ class SolverStringImplicit:
                 dim=m.string_count,
                 inputs=[
                     m.string_start, *params, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
+                    state_in.particle_q, state_in.particle_qd,
                     ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
-                    ws.scratch_rhs_bar,
-                    *[self._grad(a) for a in outputs],
+                    control.top_q, control.tie_q, control.tie_qd, h,
                 ],
-                outputs=[self._grad(a) for a in inputs + params],
+                outputs=[ws.scratch_rhs_bar, *[self._grad(a) for a in outputs], *[self._grad(a) for a in inputs + params]],
                 device=m.device,
                 record_tape=False,
             )
