@@ -13,7 +13,9 @@ bar work of ``marionette/energy.py``), and the coupling response. The active-set
 the tension-only springs (``string_solve``) adds the blocks this spring returns.
 
 Built per float type by :func:`string_spring_functions` (cached), as the other string terms
-(``string_terms``).
+(``string_terms``). :func:`string_spring_adjoint_functions` holds the printed spring's
+derivative as the string step's hand-written adjoint (``string_step_adjoint``) uses it: by
+its structure ``K = alpha u u^T + beta I``, next to the spring it differentiates.
 """
 
 
@@ -22,7 +24,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-__all__ = ["string_spring_functions"]
+__all__ = ["string_spring_adjoint_functions", "string_spring_functions"]
 
 
 @functools.cache
@@ -136,3 +138,56 @@ def string_spring_functions(scalar) -> SimpleNamespace:
         compute_string_spring_tension_only=compute_string_spring_tension_only,
         compute_string_tension=compute_string_tension,
     )
+
+
+@functools.cache
+def string_spring_adjoint_functions(scalar) -> SimpleNamespace:
+    """Builds the printed spring's pieces that the string step's hand-written adjoint uses
+    (``string_step_adjoint``), by the structure of ``compute_string_spring_printed``.
+
+    The printed spring's block is ``K = alpha u u^T + beta I`` with ``alpha = -k_s (1 - g)``,
+    ``beta = -k_s g``, ``g = max(1 - d/l, 0)``; the adjoint never forms it: ``K r`` is
+    ``alpha u (u . r) + beta r``, and a segment's ``K_bar`` (a sum of outer products ``a b^T``)
+    enters only through ``u^T K_bar u``, ``tr K_bar`` and ``(K_bar + K_bar^T) u``, accumulated
+    per outer product (``compute_outer_moments``).
+    """
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.func
+    def compute_spring_parts(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
+        """``(u, l, 1 - d/l, alpha, beta)`` of the segment ``e = x_a - x_b``."""
+        e = x_a - x_b
+        length = wp.length(e)
+        ratio = scalar(1.0) - rest_length / length
+        geometric = wp.max(ratio, scalar(0.0))
+        return e / length, length, ratio, -stiffness * (scalar(1.0) - geometric), -stiffness * geometric
+
+    @wp.func
+    def compute_outer_moments(a: vec3, b: vec3, u: vec3):
+        """For ``M = a b^T``: ``(u^T M u, tr M, (M + M^T) u)``."""
+        ua = wp.dot(u, a)
+        ub = wp.dot(u, b)
+        return ua * ub, wp.dot(a, b), ub * a + ua * b
+
+    @wp.func
+    def compute_spring_adjoint(u: vec3, length: scalar, ratio: scalar, alpha: scalar, stiffness: scalar,
+                               rest_length: scalar, f_bar: vec3, k_uu: scalar, k_tr: scalar, k_sym: vec3):
+        """Adjoint of ``f = -k_s (l - d) u`` and ``K`` (parts from ``compute_spring_parts``), given ``f_bar``
+        and ``K_bar``'s moments: returns ``(e_bar, stiffness_bar, rest_length_bar)``."""
+        one = scalar(1.0)
+        stretch = length - rest_length
+        geometric = wp.max(ratio, scalar(0.0))
+        u_f = wp.dot(u, f_bar)
+        u_bar = (-stiffness * stretch) * f_bar + alpha * k_sym
+        stiffness_bar = -stretch * u_f - (one - geometric) * k_uu - geometric * k_tr
+        length_bar = -stiffness * u_f
+        rest_bar = stiffness * u_f
+        if ratio > scalar(0.0):  # where the clamp passes 1 - d/l (Warp's adjoint of max: the same side)
+            g_bar = stiffness * (k_uu - k_tr)
+            length_bar = length_bar + g_bar * rest_length / (length * length)
+            rest_bar = rest_bar - g_bar / length
+        e_bar = (u_bar - wp.dot(u, u_bar) * u) / length + length_bar * u
+        return e_bar, stiffness_bar, rest_bar
+
+    return SimpleNamespace(compute_spring_parts=compute_spring_parts, compute_outer_moments=compute_outer_moments,
+                           compute_spring_adjoint=compute_spring_adjoint)

@@ -37,63 +37,12 @@ written out, so a change to a term must be mirrored here: the test above fails o
 """
 
 import functools
-from types import SimpleNamespace
 
 import warp as wp
 
+from .string_spring import string_spring_adjoint_functions
+
 __all__ = ["string_step_adjoint_kernel"]
-
-
-@functools.cache
-def string_spring_adjoint_functions(scalar) -> SimpleNamespace:
-    """Builds the spring's pieces the adjoint uses (``compute_string_spring_printed``'s, by structure).
-
-    The printed spring's block is ``K = alpha u u^T + beta I`` with ``alpha = -k_s (1 - g)``,
-    ``beta = -k_s g``, ``g = max(1 - d/l, 0)``; the adjoint never forms it: ``K r`` is
-    ``alpha u (u . r) + beta r``, and a segment's ``K_bar`` (a sum of outer products ``a b^T``)
-    enters only through ``u^T K_bar u``, ``tr K_bar`` and ``(K_bar + K_bar^T) u``, accumulated
-    per outer product (``compute_outer_moments``).
-    """
-    vec3 = wp.types.vector(3, scalar)
-
-    @wp.func
-    def compute_spring_parts(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar):
-        """``(u, l, 1 - d/l, alpha, beta)`` of the segment ``e = x_a - x_b``."""
-        e = x_a - x_b
-        length = wp.length(e)
-        ratio = scalar(1.0) - rest_length / length
-        geometric = wp.max(ratio, scalar(0.0))
-        return e / length, length, ratio, -stiffness * (scalar(1.0) - geometric), -stiffness * geometric
-
-    @wp.func
-    def compute_outer_moments(a: vec3, b: vec3, u: vec3):
-        """For ``M = a b^T``: ``(u^T M u, tr M, (M + M^T) u)``."""
-        ua = wp.dot(u, a)
-        ub = wp.dot(u, b)
-        return ua * ub, wp.dot(a, b), ub * a + ua * b
-
-    @wp.func
-    def compute_spring_adjoint(u: vec3, length: scalar, ratio: scalar, alpha: scalar, stiffness: scalar,
-                               rest_length: scalar, f_bar: vec3, k_uu: scalar, k_tr: scalar, k_sym: vec3):
-        """Adjoint of ``f = -k_s (l - d) u`` and ``K`` (parts from ``compute_spring_parts``), given ``f_bar``
-        and ``K_bar``'s moments: returns ``(e_bar, stiffness_bar, rest_length_bar)``."""
-        one = scalar(1.0)
-        stretch = length - rest_length
-        geometric = wp.max(ratio, scalar(0.0))
-        u_f = wp.dot(u, f_bar)
-        u_bar = (-stiffness * stretch) * f_bar + alpha * k_sym
-        stiffness_bar = -stretch * u_f - (one - geometric) * k_uu - geometric * k_tr
-        length_bar = -stiffness * u_f
-        rest_bar = stiffness * u_f
-        if ratio > scalar(0.0):  # where the clamp passes 1 - d/l (Warp's adjoint of max: the same side)
-            g_bar = stiffness * (k_uu - k_tr)
-            length_bar = length_bar + g_bar * rest_length / (length * length)
-            rest_bar = rest_bar - g_bar / length
-        e_bar = (u_bar - wp.dot(u, u_bar) * u) / length + length_bar * u
-        return e_bar, stiffness_bar, rest_bar
-
-    return SimpleNamespace(compute_spring_parts=compute_spring_parts, compute_outer_moments=compute_outer_moments,
-                           compute_spring_adjoint=compute_spring_adjoint)
 
 
 @functools.cache
