@@ -11,7 +11,11 @@ Prints, for the ``hanging`` scene (6 x 50 particles, 1 kHz / 30 Hz, smoothed con
   of the forward (medians of ``--repeats``);
 - one string step (300 particles) as captured graphs of 100 launches: the plain one-launch
   step, the same step keeping its pivot inverses (a taped step's), and its adjoint
-  (``kernels/string_step_adjoint``), µs per launch (medians of 5 replays).
+  (``kernels/string_step_adjoint``), µs per launch (medians of 5 replays);
+- the reverse pass of one taped puppet step (``SolverMarionette.step`` on a ``wp.Tape``), captured,
+  by groups of its launches: all of them, without the string steps' adjoints, without those and
+  the bar feedback's, and the feedback's and the puppet's implicit solve's alone (µs, medians of
+  5 replays of 20). The arrays of one step stay in the cache here, unlike in the engine's segments.
 """
 
 from __future__ import annotations
@@ -100,6 +104,35 @@ def _string_step(model) -> dict[str, float]:
     }
 
 
+def _reverse_by_group(model) -> dict[str, float]:
+    from dmarionette.marionette.solver import MarionetteControl, SolverMarionette
+
+    solver = SolverMarionette(model)
+    a, b = model.state(requires_grad=True), model.state(requires_grad=True)
+    control = MarionetteControl(model, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        solver.step(a, b, control, tape=tape)
+
+    def name(launch):
+        return "string adjoint" if callable(launch) else launch[0].key
+
+    def reverse(keep) -> float:
+        part = wp.Tape()
+        part.launches = [launch for launch in tape.launches if keep(name(launch))]
+        part.gradients = tape.gradients
+        return _per_launch(part.backward, 20)
+
+    feedback = [k for k in {name(launch) for launch in tape.launches} if "bar_feedback" in k]
+    return {
+        "all": reverse(lambda k: True),
+        "without the string adjoints": reverse(lambda k: k != "string adjoint"),
+        "without those and the feedback": reverse(lambda k: k != "string adjoint" and k not in feedback),
+        "the feedback alone": reverse(lambda k: k in feedback),
+        "solve_body_dynamics alone": reverse(lambda k: k == "solve_body_dynamics"),
+    }
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=4.0)
@@ -116,6 +149,9 @@ def main() -> None:
     print("# one string step, 300 particles, captured (µs per launch)")
     for name, us in _string_step(model).items():
         print(f"  {name:32s} {us:.1f}")
+    print(f"# the reverse pass of one taped puppet step ({model.substeps} string steps), captured (µs)")
+    for name, us in _reverse_by_group(model).items():
+        print(f"  {name:32s} {us:.0f}")
 
 
 if __name__ == "__main__":
