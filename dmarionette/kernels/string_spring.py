@@ -189,5 +189,58 @@ def string_spring_adjoint_functions(scalar) -> SimpleNamespace:
         e_bar = (u_bar - wp.dot(u, u_bar) * u) / length + length_bar * u
         return e_bar, stiffness_bar, rest_bar
 
+    @wp.func
+    def compute_spring_parts_tension_only(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar, forced: int):
+        """``compute_spring_parts`` of ``compute_string_spring_tension_only`` in a step whose active set
+        forces the segment (``forced = 1``) or not: ``(u, l, 1 - d/l, alpha, beta)``, ``alpha = beta = 0``
+        for an inactive segment (slack and not forced: no block), ``alpha = -k_s, beta = 0`` for a
+        forced slack one (the axial block), the printed spring's parts for a taut one."""
+        zero = scalar(0.0)
+        e = x_a - x_b
+        length = wp.length(e)
+        u = vec3(zero)
+        ratio = scalar(-1.0)
+        if length > zero:
+            u = e / length
+            ratio = scalar(1.0) - rest_length / length
+        alpha = zero
+        beta = zero
+        if length > rest_length:
+            alpha = -stiffness * (scalar(1.0) - ratio)
+            beta = -stiffness * ratio
+        elif forced == 1:
+            alpha = -stiffness
+        return u, length, ratio, alpha, beta
+
+    @wp.func
+    def compute_spring_adjoint_tension_only(u: vec3, length: scalar, ratio: scalar, alpha: scalar, stiffness: scalar,
+                                            rest_length: scalar, f_bar: vec3, k_uu: scalar, k_tr: scalar,
+                                            k_sym: vec3, forced: int):
+        """``compute_spring_adjoint`` of the tension-only spring ``f = -k_s max(l - d, 0) u`` and its block
+        (parts from ``compute_spring_parts_tension_only``): the force and the geometric block only
+        where the segment is taut (Warp's adjoint of ``max`` at ``l = d``: the zero side), the axial
+        block ``-k_s u u^T`` where a slack segment is forced; nothing for coincident particles."""
+        zero = scalar(0.0)
+        e_bar = vec3(zero)
+        stiffness_bar = zero
+        rest_bar = zero
+        if length > zero:
+            u_bar = alpha * k_sym
+            length_bar = zero
+            if length > rest_length:
+                stretch = length - rest_length
+                u_f = wp.dot(u, f_bar)
+                u_bar = u_bar - (stiffness * stretch) * f_bar
+                stiffness_bar = -stretch * u_f - (scalar(1.0) - ratio) * k_uu - ratio * k_tr
+                g_bar = stiffness * (k_uu - k_tr)
+                length_bar = -stiffness * u_f + g_bar * rest_length / (length * length)
+                rest_bar = stiffness * u_f - g_bar / length
+            elif forced == 1:
+                stiffness_bar = -k_uu
+            e_bar = (u_bar - wp.dot(u, u_bar) * u) / length + length_bar * u
+        return e_bar, stiffness_bar, rest_bar
+
     return SimpleNamespace(compute_spring_parts=compute_spring_parts, compute_outer_moments=compute_outer_moments,
-                           compute_spring_adjoint=compute_spring_adjoint)
+                           compute_spring_adjoint=compute_spring_adjoint,
+                           compute_spring_parts_tension_only=compute_spring_parts_tension_only,
+                           compute_spring_adjoint_tension_only=compute_spring_adjoint_tension_only)

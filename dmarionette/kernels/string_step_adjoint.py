@@ -1,8 +1,9 @@
-"""The hand-written adjoint of the whole implicit string step (printed springs), one string per thread.
+"""The hand-written adjoint of the whole implicit string step, one string per thread.
 
 A taped step with the paper's printed spring runs the one-launch step (``string_step``, built
-to keep its pivot inverses) and records this kernel as its adjoint (``tape.record_func``),
-instead of recording the five passes and letting Warp differentiate each (issue 13, item 5:
+to keep its pivot inverses), one with tension-only springs its five passes off the tape (the
+solve keeping its factorisation), and each records this kernel as its adjoint
+(``tape.record_func``), instead of recording the passes and letting Warp differentiate each (issue 13, item 5:
 Warp's adjoint kernels replay every pass's forward before its reverse, and the reverse of
 the assembly differentiates full 3x3 products; that made backward / forward 4.3-5.1).
 
@@ -25,8 +26,10 @@ and its adjoint, given ``x1_bar``, ``v1_bar`` and ``F_bar``:
 
 The function differentiated is exactly the forward's, including its branches: the ground
 term where the particle starts below the ground, and the clamp of the spring's geometric
-stiffness (zero derivative while a segment is compressed). ``gravity``, ``ground_height`` and
-``dt`` are kernel values (no gradient, as under Warp's tape). Gradients are accumulated
+stiffness (zero derivative while a segment is compressed). Tension-only springs: the step
+with its active set held fixed, as the five taped passes differentiate it (the force only
+where a segment is taut; a slack segment the active set forces has the axial block).
+``gravity``, ``ground_height`` and ``dt`` are kernel values (no gradient, as under Warp's tape). Gradients are accumulated
 into the inputs' ``.grad`` and the outputs' gradients consumed (zeroed), as Warp's adjoint of a
 store does, so the rest of the tape sees what Warp's own adjoint would leave. Checked against
 the taped five passes to rounding (``tests/grad/test_string_step_adjoint.py``, every effect on).
@@ -46,15 +49,32 @@ __all__ = ["string_step_adjoint_kernel"]
 
 
 @functools.cache
-def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool]):
-    """Builds ``integrate_string_implicit_adjoint`` for a float type and an effect set (printed
-    springs; ``effects`` as ``integrate_string_implicit_kernel``'s)."""
+def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], tension_only: bool = False):
+    """Builds ``integrate_string_implicit_adjoint`` for a float type, an effect set (``effects`` as
+    ``integrate_string_implicit_kernel``'s) and a spring: printed, or tension-only with the step's
+    active set held fixed (``segment_forced``, as the recorded step assembles it; ``strings/solver.py``)."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
+    TENSION_ONLY = tension_only
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     spring = string_spring_adjoint_functions(scalar)
-    compute_spring_parts, compute_outer_moments = spring.compute_spring_parts, spring.compute_outer_moments
-    compute_spring_adjoint = spring.compute_spring_adjoint
+    compute_outer_moments = spring.compute_outer_moments
+
+    @wp.func
+    def compute_parts(x_a: vec3, x_b: vec3, stiffness: scalar, rest_length: scalar, forced: int):
+        """The segment's spring parts (printed, or tension-only with its active-set flag)."""
+        if wp.static(TENSION_ONLY):
+            return spring.compute_spring_parts_tension_only(x_a, x_b, stiffness, rest_length, forced)
+        return spring.compute_spring_parts(x_a, x_b, stiffness, rest_length)
+
+    @wp.func
+    def compute_segment_adjoint(u: vec3, length: scalar, ratio: scalar, alpha: scalar, stiffness: scalar,
+                                rest_length: scalar, f_bar: vec3, k_uu: scalar, k_tr: scalar, k_sym: vec3, forced: int):
+        """The segment's spring adjoint (printed, or tension-only with its active-set flag)."""
+        if wp.static(TENSION_ONLY):
+            return spring.compute_spring_adjoint_tension_only(u, length, ratio, alpha, stiffness, rest_length, f_bar,
+                                                              k_uu, k_tr, k_sym, forced)
+        return spring.compute_spring_adjoint(u, length, ratio, alpha, stiffness, rest_length, f_bar, k_uu, k_tr, k_sym)
 
     acc_t = wp.types.vector(21, scalar)  # a row's running sums (compute_row_adjoint)
 
@@ -69,6 +89,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_dv: wp.array(dtype=vec3),
         scratch_c: wp.array(dtype=mat33),
         solve_bar: wp.array(dtype=vec3),
+        segment_forced: wp.array(dtype=wp.int32),
         particle_q_grad: wp.array(dtype=vec3),
         particle_qd_grad: wp.array(dtype=vec3),
         particle_mass_grad: wp.array(dtype=scalar),
@@ -129,7 +150,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_dv_bar = vec3(acc[18], acc[19], acc[20])
         x_prev = particle_q[p - 1]
         v_prev = particle_qd[p - 1]
-        u_p, l_p, ratio_p, alpha_p, beta_p = compute_spring_parts(x_prev, x, stiffness, rest_length)
+        u_p, l_p, ratio_p, alpha_p, beta_p = compute_parts(x_prev, x, stiffness, rest_length, segment_forced[p - 1])
         lam = solve_bar[p]
         if not is_last:
             lam = lam - scratch_c[p] * lam_next
@@ -240,8 +261,8 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             w_next_bar = h2 * (alpha_n * wp.dot(u_n, rhs_bar) * u_n + beta_n * rhs_bar)
             v_bar = v_bar + w_next_bar
             v_next_bar = v_next_bar - w_next_bar
-            e_bar, k_s_bar, d_bar = compute_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
-                                                           f_bar_n, uu_n, tr_n, sym_n)
+            e_bar, k_s_bar, d_bar = compute_segment_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
+                                                             f_bar_n, uu_n, tr_n, sym_n, segment_forced[p])
             stiffness_bar = stiffness_bar + k_s_bar
             rest_bar = rest_bar + d_bar
             x_bar = x_bar + e_bar
@@ -266,7 +287,11 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         v_next = v
         v = v_prev
         x = x_prev
-        acc_out = acc_t(stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar, ground_friction_bar, tie_stiffness_bar, tie_damping_bar, tie_x_bar[0], tie_x_bar[1], tie_x_bar[2], tie_v_bar[0], tie_v_bar[1], tie_v_bar[2], top_dx_bar[0], top_dx_bar[1], top_dx_bar[2], top_dv_bar[0], top_dv_bar[1], top_dv_bar[2])
+        acc_out = acc_t(
+            stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar,
+            ground_friction_bar, tie_stiffness_bar, tie_damping_bar, tie_x_bar[0], tie_x_bar[1], tie_x_bar[2],
+            tie_v_bar[0], tie_v_bar[1], tie_v_bar[2], top_dx_bar[0], top_dx_bar[1], top_dx_bar[2], top_dv_bar[0],
+            top_dv_bar[1], top_dv_bar[2])
         return x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc_out
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -294,6 +319,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_dv: wp.array(dtype=vec3),
         particle_q_out: wp.array(dtype=vec3),
         particle_qd_out: wp.array(dtype=vec3),
+        segment_forced: wp.array(dtype=wp.int32),
         # Control:
         top_q: wp.array(dtype=vec3),
         tie_q: wp.array(dtype=vec3),
@@ -377,7 +403,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             particle_q_grad[p] = particle_q_grad[p] + x_bar
             particle_qd_grad[p] = particle_qd_grad[p] + r
             if p > start + 1:
-                u, _l, _ratio, alpha, beta = compute_spring_parts(x_prev, x, stiffness, rest_length)
+                u, _l, _ratio, alpha, beta = compute_parts(x_prev, x, stiffness, rest_length, segment_forced[p - 1])
                 r = r - (h2 * (alpha * wp.dot(u, y_prev)) * u + (h2 * beta + g_upper) * y_prev)
             y_prev = pivot_inverse[p] * r
             solve_bar[p] = y_prev
@@ -405,26 +431,26 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
             compute_row_adjoint(
                 last, last - start, True, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
-                particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length, friction, air_drag,
-                ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping, tie_x, tie_v,
-                gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n,
-                alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+                segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length,
+                friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
+                tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
+                dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
         for i in range(last - start - 2):
             x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
                 compute_row_adjoint(
                     last - 1 - i, 2, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c,
-                    solve_bar, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length,
-                    friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
-                    tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
-                    dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+                    solve_bar, segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
+                    rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
+                    tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v,
+                    v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
         if last > start + 1:
             x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
                 compute_row_adjoint(
                     start + 1, 1, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
-                    particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length, friction,
-                    air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping,
-                    tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n,
-                    l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+                    segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length,
+                    friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
+                    tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
+                    dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
         stiffness_bar = acc[0]
         rest_bar = acc[1]
         friction_bar = acc[2]
@@ -439,8 +465,8 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_dx_bar = vec3(acc[15], acc[16], acc[17])
         top_dv_bar = vec3(acc[18], acc[19], acc[20])
         # The top segment (the top particle at the start of the step to particle start + 1).
-        e_bar, k_s_bar, d_bar = compute_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
-                                                       f_bar_n, uu_n, tr_n, sym_n)
+        e_bar, k_s_bar, d_bar = compute_segment_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
+                                                         f_bar_n, uu_n, tr_n, sym_n, segment_forced[start])
         stiffness_bar = stiffness_bar + k_s_bar
         rest_bar = rest_bar + d_bar
         particle_q_grad[start] = particle_q_grad[start] + e_bar

@@ -12,18 +12,19 @@ One step is five named passes::
 A step with the printed spring launches them as one kernel instead,
 ``integrate_string_implicit`` (``kernels/string_step``: one string per thread, the same
 functions in the same order, so the same numbers bit for bit; about 1.2x faster,
-``docs/performance.md``); on a tape it also keeps its pivot inverses and records the
-hand-written adjoint of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``;
-issue 13: backward / forward of a marionette gradient 4.3-5.1 -> about 3). The tension-only
-springs launch the five passes, and so does a taped printed-spring step with
-``hand_adjoint = False`` (the reference its tests compare with).
+``docs/performance.md``); on a tape it also keeps its pivot inverses. The tension-only springs
+launch the five passes. A step on a tape runs off the tape and records the hand-written adjoint
+of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``; issue 13: backward /
+forward of a marionette gradient 4.3-5.1 -> about 3); with ``hand_adjoint = False`` it records
+the five passes instead (Warp's adjoints: the reference its tests compare with).
 
 A step recorded on a tape is asked for explicitly (``step(..., tape=tape)``): it writes its
 intermediates into a workspace of its own (given, or allocated by the step), read by its
-adjoint. With the five passes (one array per step, as Warp's reverse pass needs) the solve
-records its hand-written adjoint (``tape.record_func``). The active set of the tension-only springs (which segments are in
+adjoint. With the five passes recorded (one array per step, as Warp's reverse pass needs) the
+solve records its hand-written adjoint. The active set of the tension-only springs (which segments are in
 the system) is found first by an unrecorded pass (launches with ``record_tape=False``); the
-recorded pass then assembles and solves the system with that active set, so the gradient
+step then assembles and solves the system with that active set (recorded, or kept for the
+hand-written adjoint), so the gradient
 is that of the step with the active set held fixed (the derivative of the piecewise-smooth
 step away from its kinks). The step then integrates the unrecorded pass's ``dv``, which is
 the plain step's bit for bit: where a segment snaps taut in the step, the plain solve adds
@@ -103,10 +104,10 @@ class SolverStringImplicit:
 
     def __init__(self, model: StringModel):
         self.model = model
-        # Printed springs on a tape: the one-launch step and its hand-written adjoint
-        # (``kernels/string_step_adjoint``); False records the five passes instead (Warp's
-        # automatic adjoints, the solve's hand-written one): the reference the tests compare with.
-        self.hand_adjoint = not model.effects.tension_only
+        # On a tape: the step's hand-written adjoint (``kernels/string_step_adjoint``) is recorded;
+        # False records the five passes instead (Warp's automatic adjoints, the solve's hand-written
+        # one): the reference the tests compare with.
+        self.hand_adjoint = True
         self._tension_only = model.effects.tension_only
         self._eval_spring = eval_string_spring_kernel(model.scalar, self._tension_only)
         self._eval_system = eval_string_system_kernel(model.scalar, model.effects.as_tuple())
@@ -117,8 +118,8 @@ class SolverStringImplicit:
             integrate_string_implicit_kernel(model.scalar, model.effects.as_tuple())
         self._integrate_implicit_keep = None if self._tension_only else \
             integrate_string_implicit_kernel(model.scalar, model.effects.as_tuple(), keep=True)
-        self._integrate_implicit_adjoint = None if self._tension_only else \
-            string_step_adjoint_kernel(model.scalar, model.effects.as_tuple())
+        self._integrate_implicit_adjoint = string_step_adjoint_kernel(model.scalar, model.effects.as_tuple(),
+                                                                      self._tension_only)
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
@@ -127,11 +128,8 @@ class SolverStringImplicit:
         """A workspace of one step's own (``taped``: with gradients where the five passes are
         recorded (not for the hand-written adjoint, which needs none), and for tension-only
         springs the active-set pass's arrays)."""
-        return StringWorkspace.allocate(self.model, requires_grad=taped and not self._hand_adjoint_used(),
+        return StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
                                         active_set=taped and self._tension_only)
-
-    def _hand_adjoint_used(self) -> bool:
-        return self.hand_adjoint and not self._tension_only
 
     def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float, *,
              tape: wp.Tape | None = None, workspace: StringWorkspace | None = None) -> None:
@@ -154,9 +152,13 @@ class SolverStringImplicit:
         if tape is None and self._integrate_implicit is not None:
             self.integrate_string_implicit(state_in, state_out, control, h, ws)  # the five passes in one launch
             return
-        if tape is not None and self._hand_adjoint_used():
-            self.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
-            self.record_step_adjoint(state_in, state_out, control, h, ws, tape)
+        if tape is not None and self.hand_adjoint:
+            if self._tension_only:
+                self.step_tension_only_kept(state_in, state_out, control, h, ws)
+                self.record_step_adjoint(state_in, state_out, control, h, ws, tape, ws.active_set.segment_active)
+            else:
+                self.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
+                self.record_step_adjoint(state_in, state_out, control, h, ws, tape, self._none_forced)
             return
         forced = self._none_forced  # every segment in the system (printed springs)
         if tape is not None and self._tension_only:
@@ -207,9 +209,28 @@ class SolverStringImplicit:
             self._grad_sinks[key] = wp.zeros(a.shape, dtype=a.dtype, device=a.device)
         return self._grad_sinks[key]
 
-    def record_step_adjoint(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape) -> None:
-        """Records the hand-written adjoint of the one-launch step just run (``keep``) on ``tape``
-        (``kernels/string_step_adjoint``). It reads ``ws``'s pivot inverses, ``C'`` and ``dv``: the
+    def step_tension_only_kept(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
+        """A tension-only step off the tape that keeps what its adjoint reads: the active set
+        (``ws.active_set.segment_active``), the system assembled with it and solved keeping its
+        factorisation (``ws.scratch_inverse``, ``ws.scratch_c``), and the plain step's ``dv`` (module
+        doc: the step ends where the plain one does, bit for bit)."""
+        m = self.model
+        self.eval_active_set(state_in, control, h, ws.active_set)
+        self.eval_string_spring(state_in, ws.active_set.segment_active, ws, record=False)
+        self.eval_string_system(state_in, control, h, ws, record=False)
+        wp.launch(self._solve_recorded, dim=m.string_count,
+                  inputs=[m.string_start, ws.system_diag, ws.system_upper, ws.system_rhs],
+                  outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv],
+                  device=m.device, record_tape=False)
+        self.apply_active_set_dv(ws)
+        self.integrate_string(state_in, state_out, control, h, ws, record=False)
+        self.eval_string_tie_force(state_out, control, record=False)
+
+    def record_step_adjoint(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape,
+                            forced: wp.array) -> None:
+        """Records the hand-written adjoint of the step just run on ``tape`` (the one-launch step
+        with ``keep``, or :meth:`step_tension_only_kept` with the active set ``forced``;
+        ``kernels/string_step_adjoint``). It reads ``ws``'s pivot inverses, ``C'`` and ``dv``: the
         workspace must not be reused before the adjoint has run (each taped step has its own)."""
         m = self.model
         params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
@@ -226,9 +247,10 @@ class SolverStringImplicit:
                     m.string_start, *params, m.gravity, m.ground_height,
                     state_in.particle_q, state_in.particle_qd,
                     ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
-                    control.top_q, control.tie_q, control.tie_qd, h,
+                    forced, control.top_q, control.tie_q, control.tie_qd, h,
                 ],
-                outputs=[ws.scratch_rhs_bar, *[self._grad(a) for a in outputs], *[self._grad(a) for a in inputs + params]],
+                outputs=[ws.scratch_rhs_bar, *[self._grad(a) for a in outputs],
+                         *[self._grad(a) for a in inputs + params]],
                 device=m.device,
                 record_tape=False,
             )
@@ -323,7 +345,7 @@ class SolverStringImplicit:
 
         tape.record_func(backward, arrays=[ws.system_diag, ws.system_upper, ws.system_rhs, ws.particle_dv])
 
-    def integrate_string(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
+    def integrate_string(self, state_in, state_out, control, h, ws: StringWorkspace, record: bool = True) -> None:
         m = self.model
         wp.launch(
             self._integrate,
@@ -334,9 +356,10 @@ class SolverStringImplicit:
             ],
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=m.device,
+            record_tape=record,
         )
 
-    def eval_string_tie_force(self, state_out, control) -> None:
+    def eval_string_tie_force(self, state_out, control, record: bool = True) -> None:
         m = self.model
         wp.launch(
             self._eval_tie,
@@ -348,4 +371,5 @@ class SolverStringImplicit:
             ],
             outputs=[state_out.tie_force, state_out.string_taut],
             device=m.device,
+            record_tape=record,
         )

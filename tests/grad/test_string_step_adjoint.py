@@ -7,7 +7,8 @@ gradient must agree to rounding, in every input group the step has: the initial 
 velocities, the tops, the tie targets and their velocities, and every constant (mass, ``k_s``,
 rest length, ``k_f``, ``k_air``, ground repulsion, absorption and friction, tie ``k``, ``k_d`` and
 the ``tied`` flag). The problems switch every effect on, with particles on the ground, a
-string tied to a moving body point and a slack segment (the clamped geometric stiffness).
+string tied to a moving body point and a slack segment (the clamped geometric stiffness), with
+the printed springs and with the tension-only ones.
 
 Tolerance: 1e-10 of each group's largest gradient. The two adjoints sum the same products in
 another order; measured differences are 1e-16 to 3e-14 of the group's scale over 400 steps
@@ -22,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import warp as wp
 from tests.support.strings import make_model, spec
 
@@ -46,7 +48,7 @@ def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss:
     wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
 
 
-def _model():
+def _model(tension_only: bool):
     """Three strings: one swinging onto the ground, one tied to a circling point, one slack at the top."""
     return make_model(
         [spec(name="ground", particle_count=9, top=(0.0, 0.15, 0.0), bottom=(0.5, 0.02, 0.0), length=0.6,
@@ -57,11 +59,11 @@ def _model():
               tie_damping=3.0),
          spec(name="slack", particle_count=6, top=(1.0, 1.0, 0.0), bottom=(1.0, 0.75, 0.05), length=0.35,
               load_mass=0.02)],
-        effects=ALL_ON, requires_grad=True)
+        effects=dataclasses.replace(ALL_ON, tension_only=tension_only), requires_grad=True)
 
 
-def _string_gradients(hand: bool) -> dict[str, np.ndarray]:
-    model = _model()
+def _string_gradients(hand: bool, tension_only: bool) -> dict[str, np.ndarray]:
+    model = _model(tension_only)
     solver = SolverStringImplicit(model)
     solver.hand_adjoint = hand
     rng = np.random.default_rng(11)
@@ -97,8 +99,11 @@ def _string_gradients(hand: bool) -> dict[str, np.ndarray]:
     return {k: np.array(v, dtype=float) for k, v in out.items()}
 
 
-def test_hand_adjoint_equals_the_taped_passes_on_strings():
-    hand, taped = _string_gradients(True), _string_gradients(False)
+@pytest.mark.parametrize("tension_only", [False, True], ids=["printed", "tension-only"])
+def test_hand_adjoint_equals_the_taped_passes_on_strings(tension_only):
+    """Tension-only springs: both differentiate the step with its active set held fixed (the
+    slack string's segments are inactive, or forced by the step's end; ``strings/solver.py``)."""
+    hand, taped = _string_gradients(True, tension_only), _string_gradients(False, tension_only)
     for name in taped:
         scale = np.max(np.abs(taped[name]))
         assert scale > 0.0, name  # every group is exercised
