@@ -17,10 +17,20 @@ order and rounding (Warp's generated C++ is not contracted; its ``mat33 * mat33`
 adds, e.g. the zero entries of ``f_ground``, are added here too), so each lane can give the
 scalar kernel's bits.
 
+Two styles of lane operations (``lane_step_kernel``): ``native``, each operation a Clang
+``ext_vector_type`` snippet (``native_lane_ops``: one packed instruction whatever LLVM's SLP
+vectorizer does), and ``warp``, Warp's own ``+``, ``-``, ``wp.cw_mul``, ``wp.cw_div`` on
+``vector(K)`` (packing left to the SLP vectorizer). Only ``native`` must be bit-identical (the
+probe fails otherwise): with Warp's default CPU flags (``-mllvm=-slp-recursion-max-depth=4``)
+the ``warp`` style computed lane 1 wrongly here (other lanes exact; exact with
+``-fno-slp-vectorize`` or without the depth flag, ``--lane-flags``; not diagnosed further:
+an LLVM SLP vectorizer defect or undefined behaviour in the generated code); the probe prints
+its agreement as measured.
+
 It builds a ``StringModel`` of ``L`` strings of ``n`` particles (all effects on, varied
 constants, some particles below the ground, most strings tied), checks the laned step against
 ``integrate_string_implicit_kernel(wp.float64, effects)`` after 1 and after ``--steps`` steps
-(fails, exit 1, if not bit-identical), times both (thread CPU time of one launch replayed from a
+(fails, exit 1, if ``native`` is not bit-identical), times both (thread CPU time of one launch replayed from a
 CPU graph, median of ``--repeats``; ns per particle-step), and counts packed vs scalar
 double instructions with ``objdump`` (``probe_simd_lanes``' helpers). Findings:
 ``docs/simd_probe.md``, "The whole step".
@@ -30,6 +40,8 @@ import argparse
 import functools
 import glob
 import os
+
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -43,6 +55,7 @@ from dmarionette.kernels.string_step import integrate_string_implicit_kernel  # 
 from dmarionette.strings.model import StringEffects, StringModel, StringSpec  # noqa: E402
 
 LANE_FLAGS = None  # --lane-flags: compiler flags of the laned kernel's module (None: Warp's)
+STYLES = ("native", "warp")  # only "native" must be bit-identical (see main)
 EFFECTS = StringEffects()  # every effect on, printed springs
 f64 = wp.float64
 
@@ -50,21 +63,98 @@ f64 = wp.float64
 # --- the laned step ------------------------------------------------------------------------------
 
 @functools.cache
-def lane_step_kernel(lanes: int):
-    """``integrate_string_implicit`` for ``lanes`` strings per thread (module doc)."""
+def native_lane_ops(lanes: int) -> SimpleNamespace:
+    """Lane operations as native snippets on Clang ``ext_vector_type`` values (one packed
+    instruction each, whatever the SLP vectorizer makes of the kernel), each rounding as the
+    scalar operation it stands for: ``add, sub, mul, div`` (``a op b``), ``sqrt``, ``max``
+    (``a > b ? a : b``, Warp's ``wp.max`` for doubles), ``where_less(x, y, a, b)`` (``a`` where
+    ``x < y``, else ``b``: a blend by the comparison's mask)."""
+    lane = wp.types.vector(lanes, f64)
+    head = f"""
+    typedef double lanes_t __attribute__((ext_vector_type({lanes})));
+    typedef long mask_t __attribute__((ext_vector_type({lanes})));
+    lanes_t x, y, z;
+    __builtin_memcpy(&x, a.c, sizeof(x));
+    """
+    load_b = "__builtin_memcpy(&y, b.c, sizeof(y));\n"
+    tail = """
+    decltype(a) r;
+    __builtin_memcpy(r.c, &z, sizeof(z));
+    return r;
+    """
+
+    def binary(expression):
+        @wp.func_native(head + load_b + f"z = {expression};" + tail)
+        def op(a: lane, b: lane) -> lane:
+            ...
+        return op
+
+    @wp.func_native(head + "z = __builtin_elementwise_sqrt(x);" + tail)
+    def sqrt(a: lane) -> lane:
+        ...
+
+    @wp.func_native(head + load_b + """
+    lanes_t p, q;
+    __builtin_memcpy(&p, c.c, sizeof(p));
+    __builtin_memcpy(&q, d.c, sizeof(q));
+    mask_t m = x < y;
+    z = __builtin_bit_cast(lanes_t, (__builtin_bit_cast(mask_t, p) & m) | (__builtin_bit_cast(mask_t, q) & ~m));
+    """ + tail)
+    def where_less(a: lane, b: lane, c: lane, d: lane) -> lane:
+        ...
+
+    return SimpleNamespace(add=binary("x + y"), sub=binary("x - y"), mul=binary("x * y"), div=binary("x / y"),
+                           max=binary("__builtin_bit_cast(lanes_t, (__builtin_bit_cast(mask_t, x) & (x > y))"
+                                      " | (__builtin_bit_cast(mask_t, y) & ~(x > y)))"),
+                           sqrt=sqrt, where_less=where_less)
+
+
+@functools.cache
+def lane_step_kernel(lanes: int, style: str = "native"):
+    """``integrate_string_implicit`` for ``lanes`` strings per thread (module doc). ``style``:
+    the lane operations as Warp's (``"warp"``: ``+``, ``-``, ``wp.cw_mul``, ``wp.cw_div`` on
+    ``vector(K)``, ``sqrt``, ``max``, ``where`` in unrolled loops over the lanes; packing is
+    left to LLVM's SLP vectorizer) or as native snippets (``"native"``, ``native_lane_ops``)."""
     lane = wp.types.vector(lanes, f64)
     lvec = wp.types.matrix((3, lanes), f64)
     lmat = wp.types.matrix((9, lanes), f64)
-    LANES = lanes
+    LANES, NATIVE = lanes, style == "native"
     fma = lane_fma(lanes)
+    nat = native_lane_ops(lanes)
+
+    @wp.func
+    def ladd(a: lane, b: lane):
+        if wp.static(NATIVE):
+            return nat.add(a, b)
+        return a + b
+
+    @wp.func
+    def lsub(a: lane, b: lane):
+        if wp.static(NATIVE):
+            return nat.sub(a, b)
+        return a - b
+
+    @wp.func
+    def lmul(a: lane, b: lane):
+        if wp.static(NATIVE):
+            return nat.mul(a, b)
+        return wp.cw_mul(a, b)
+
+    @wp.func
+    def ldiv(a: lane, b: lane):
+        if wp.static(NATIVE):
+            return nat.div(a, b)
+        return wp.cw_div(a, b)
 
     @wp.func
     def lneg(a: lane):
         """``-a`` of a float as Warp computes it (``0 - a``: ``-(+0) = +0``), lane by lane."""
-        return lane(f64(0.0)) - a
+        return lsub(lane(f64(0.0)), a)
 
     @wp.func
     def lsqrt(a: lane):
+        if wp.static(NATIVE):
+            return nat.sqrt(a)
         r = lane()
         for k in range(LANES):
             r[k] = wp.sqrt(a[k])
@@ -72,6 +162,8 @@ def lane_step_kernel(lanes: int):
 
     @wp.func
     def lmax(a: lane, b: lane):
+        if wp.static(NATIVE):
+            return nat.max(a, b)
         r = lane()
         for k in range(LANES):
             r[k] = wp.max(a[k], b[k])
@@ -80,31 +172,61 @@ def lane_step_kernel(lanes: int):
     @wp.func
     def lselect_less(x: lane, y: lane, a: lane, b: lane):
         """``a`` where ``x < y``, else ``b``, lane by lane."""
+        if wp.static(NATIVE):
+            return nat.where_less(x, y, a, b)
         r = lane()
         for k in range(LANES):
             r[k] = wp.where(x[k] < y[k], a[k], b[k])
         return r
 
     @wp.func
+    def vadd(a: lvec, b: lvec):
+        r = lvec()
+        for i in range(3):
+            r[i] = ladd(a[i], b[i])
+        return r
+
+    @wp.func
+    def vsub(a: lvec, b: lvec):
+        r = lvec()
+        for i in range(3):
+            r[i] = lsub(a[i], b[i])
+        return r
+
+    @wp.func
+    def madd(a: lmat, b: lmat):
+        r = lmat()
+        for e in range(9):
+            r[e] = ladd(a[e], b[e])
+        return r
+
+    @wp.func
+    def msub(a: lmat, b: lmat):
+        r = lmat()
+        for e in range(9):
+            r[e] = lsub(a[e], b[e])
+        return r
+
+    @wp.func
     def lsum3(a0: lane, a1: lane, a2: lane, b0: lane, b1: lane, b2: lane):
         """``(a0 b0 + a1 b1) + a2 b2``, each operation rounded (``dot``, ``mat33 * vec3``)."""
-        return wp.cw_mul(a0, b0) + wp.cw_mul(a1, b1) + wp.cw_mul(a2, b2)
+        return ladd(ladd(lmul(a0, b0), lmul(a1, b1)), lmul(a2, b2))
 
     @wp.func
     def lscale(s: lane, v: lvec):
         """``s v`` (a scalar per lane times a 3-vector)."""
         r = lvec()
         for i in range(3):
-            r[i] = wp.cw_mul(s, v[i])
+            r[i] = lmul(s, v[i])
         return r
 
     @wp.func
     def ldot3(a0: lane, a1: lane, a2: lane, b0: lane, b1: lane, b2: lane):
         """As ``mat33 * mat33``: ``fma(a2, b2, fma(a1, b1, a0 b0))``."""
-        return fma(a2, b2, fma(a1, b1, wp.cw_mul(a0, b0)))
+        return fma(a2, b2, fma(a1, b1, lmul(a0, b0)))
 
     @wp.func
-    def lmul(a: lmat, b: lmat):
+    def lmatmul(a: lmat, b: lmat):
         r = lmat()
         for i in range(3):
             for j in range(3):
@@ -112,7 +234,7 @@ def lane_step_kernel(lanes: int):
         return r
 
     @wp.func
-    def ltmul(a: lmat, b: lmat):
+    def ltmatmul(a: lmat, b: lmat):
         r = lmat()
         for i in range(3):
             for j in range(3):
@@ -134,46 +256,51 @@ def lane_step_kernel(lanes: int):
         return r
 
     @wp.func
+    def lcofactor(a: lane, b: lane, c: lane, d: lane):
+        return lsub(lmul(a, b), lmul(c, d))
+
+    @wp.func
     def linverse(m: lmat):
         """``wp.inverse`` (cofactors, determinant ``row 0 . (row 1 x row 2)``, times ``1 / det``);
         no zero-determinant branch (the step's pivots are SPD)."""
         b = lmat()
-        b[0] = wp.cw_mul(m[4], m[8]) - wp.cw_mul(m[5], m[7])
-        b[3] = wp.cw_mul(m[5], m[6]) - wp.cw_mul(m[3], m[8])
-        b[6] = wp.cw_mul(m[3], m[7]) - wp.cw_mul(m[4], m[6])
-        b[1] = wp.cw_mul(m[2], m[7]) - wp.cw_mul(m[1], m[8])
-        b[4] = wp.cw_mul(m[0], m[8]) - wp.cw_mul(m[2], m[6])
-        b[7] = wp.cw_mul(m[1], m[6]) - wp.cw_mul(m[0], m[7])
-        b[2] = wp.cw_mul(m[1], m[5]) - wp.cw_mul(m[2], m[4])
-        b[5] = wp.cw_mul(m[2], m[3]) - wp.cw_mul(m[0], m[5])
-        b[8] = wp.cw_mul(m[0], m[4]) - wp.cw_mul(m[1], m[3])
-        rcp = wp.cw_div(lane(f64(1.0)), lsum3(m[0], m[1], m[2], b[0], b[3], b[6]))
+        b[0] = lcofactor(m[4], m[8], m[5], m[7])
+        b[3] = lcofactor(m[5], m[6], m[3], m[8])
+        b[6] = lcofactor(m[3], m[7], m[4], m[6])
+        b[1] = lcofactor(m[2], m[7], m[1], m[8])
+        b[4] = lcofactor(m[0], m[8], m[2], m[6])
+        b[7] = lcofactor(m[1], m[6], m[0], m[7])
+        b[2] = lcofactor(m[1], m[5], m[2], m[4])
+        b[5] = lcofactor(m[2], m[3], m[0], m[5])
+        b[8] = lcofactor(m[0], m[4], m[1], m[3])
+        rcp = ldiv(lane(f64(1.0)), lsum3(m[0], m[1], m[2], b[0], b[3], b[6]))
         r = lmat()
         for e in range(9):
-            r[e] = wp.cw_mul(b[e], rcp)
+            r[e] = lmul(b[e], rcp)
         return r
 
     @wp.func
     def lspring(x_a: lvec, x_b: lvec, stiffness: lane, rest_length: lane):
         """``string_spring.compute_string_spring_printed``: force on ``a`` and ``K_aa``."""
-        e = x_a - x_b
+        e = vsub(x_a, x_b)
         length = lsqrt(lsum3(e[0], e[1], e[2], e[0], e[1], e[2]))
         u = lvec()
         for i in range(3):
-            u[i] = wp.cw_div(e[i], length)
+            u[i] = ldiv(e[i], length)
         neg_k = lneg(stiffness)
-        force = lscale(wp.cw_mul(neg_k, length - rest_length), u)
-        geometric = lmax(lane(f64(1.0)) - wp.cw_div(rest_length, length), lane(f64(0.0)))
-        w = lscale(wp.cw_mul(neg_k, lane(f64(1.0)) - geometric), u)
-        kg = wp.cw_mul(stiffness, geometric)
+        one = lane(f64(1.0))
+        force = lscale(lmul(neg_k, lsub(length, rest_length)), u)
+        geometric = lmax(lsub(one, ldiv(rest_length, length)), lane(f64(0.0)))
+        w = lscale(lmul(neg_k, lsub(one, geometric)), u)
+        kg = lmul(stiffness, geometric)
         zero = lane(f64(0.0))
         jac = lmat()
         for i in range(3):
             for j in range(3):
                 if i == j:
-                    jac[3 * i + j] = wp.cw_mul(w[i], u[j]) - kg
+                    jac[3 * i + j] = lsub(lmul(w[i], u[j]), kg)
                 else:
-                    jac[3 * i + j] = wp.cw_mul(w[i], u[j]) - zero
+                    jac[3 * i + j] = lsub(lmul(w[i], u[j]), zero)
         return force, jac
 
     @wp.func
@@ -192,79 +319,79 @@ def lane_step_kernel(lanes: int):
         d_y = zero
         k_c = zero
         k_y = zero
-        force = -f_prev
+        force = -f_prev  # a vector's negation is a true one (vec.h), unlike a float's
         stiff = k_prev
         upper = lmat()
         if not is_last:
-            force = f_next - f_prev
-            stiff = k_prev + k_next
+            force = vsub(f_next, f_prev)
+            stiff = madd(k_prev, k_next)
             for e in range(9):
-                upper[e] = wp.cw_mul(h2, k_next[e])
-        w_prev = lscale(h2, v - v_prev)
+                upper[e] = lmul(h2, k_next[e])
+        w_prev = lscale(h2, vsub(v, v_prev))
         if j == 1:
-            w_prev = lscale(h2, v) - lscale(hl, top_dx)
+            w_prev = vsub(lscale(h2, v), lscale(hl, top_dx))
         rhs_k = lmul_vec(k_prev, w_prev)
         if not is_last:
-            rhs_k = rhs_k + lmul_vec(k_next, lscale(h2, v - v_next))
+            rhs_k = vadd(rhs_k, lmul_vec(k_next, lscale(h2, vsub(v, v_next))))
         # internal friction (D = -k_f I per segment)
         neg_f = lneg(friction)
-        force = force + lscale(neg_f, v - v_prev)
-        d_xz = d_xz + neg_f
+        force = vadd(force, lscale(neg_f, vsub(v, v_prev)))
+        d_xz = ladd(d_xz, neg_f)
         if j == 1:
-            rhs_k = rhs_k - lscale(hl, lscale(neg_f, top_dv))
+            rhs_k = vsub(rhs_k, lscale(hl, lscale(neg_f, top_dv)))
         if not is_last:
-            force = force + lscale(neg_f, v - v_next)
-            d_xz = d_xz + neg_f
-            g = wp.cw_mul(hl, neg_f)
+            force = vadd(force, lscale(neg_f, vsub(v, v_next)))
+            d_xz = ladd(d_xz, neg_f)
+            g = lmul(hl, neg_f)
             for e in range(9):
                 if e % 4 == 0:
-                    upper[e] = upper[e] + g
+                    upper[e] = ladd(upper[e], g)
                 else:
-                    upper[e] = upper[e] + zero
+                    upper[e] = ladd(upper[e], zero)
         # gravity, air drag
         for i in range(3):
-            force[i] = force[i] + wp.cw_mul(mass, lane(gravity[i]))
-        force = force + lscale(lneg(air_drag), v)
-        d_xz = d_xz + (lneg(air_drag))
+            force[i] = ladd(force[i], lmul(mass, lane(gravity[i])))
+        neg_air = lneg(air_drag)
+        force = vadd(force, lscale(neg_air, v))
+        d_xz = ladd(d_xz, neg_air)
         d_y = d_xz
         # ground contact and friction: both sides on every lane, then a select
         gh = lane(ground_height)
         y = x[1]
-        depth = gh - y
-        f_gy = wp.cw_mul(ground_stiffness, depth) - wp.cw_mul(ground_absorption, v[1])
-        force_x = lselect_less(y, gh, force[0] + zero, force[0])
-        force_y = lselect_less(y, gh, force[1] + f_gy, force[1])
-        force_z = lselect_less(y, gh, force[2] + zero, force[2])
+        f_gy = lsub(lmul(ground_stiffness, lsub(gh, y)), lmul(ground_absorption, v[1]))
+        force_x = lselect_less(y, gh, ladd(force[0], zero), force[0])
+        force_y = lselect_less(y, gh, ladd(force[1], f_gy), force[1])
+        force_z = lselect_less(y, gh, ladd(force[2], zero), force[2])
         k_y = lselect_less(y, gh, lneg(ground_stiffness), k_y)
-        d_y = lselect_less(y, gh, d_y + (lneg(ground_absorption)), d_y)
+        d_y = lselect_less(y, gh, ladd(d_y, lneg(ground_absorption)), d_y)
         neg_gf = lneg(ground_friction)
-        force_x = lselect_less(y, gh, force_x + wp.cw_mul(neg_gf, v[0]), force_x)
-        force_y = lselect_less(y, gh, force_y + zero, force_y)
-        force_z = lselect_less(y, gh, force_z + wp.cw_mul(neg_gf, v[2]), force_z)
-        d_xz = lselect_less(y, gh, d_xz + neg_gf, d_xz)
+        force_x = lselect_less(y, gh, ladd(force_x, lmul(neg_gf, v[0])), force_x)
+        force_y = lselect_less(y, gh, ladd(force_y, zero), force_y)
+        force_z = lselect_less(y, gh, ladd(force_z, lmul(neg_gf, v[2])), force_z)
+        d_xz = lselect_less(y, gh, ladd(d_xz, neg_gf), d_xz)
         force[0] = force_x
         force[1] = force_y
         force[2] = force_z
         if is_last:
             # the tie, eq. 2: f = -(-k (x_b - x) - k_d (v_b - v)), K = -k I, D = -k_d I
-            f_body = lscale(lneg(tie_stiffness), tie_x - x) - lscale(tie_damping, tie_v - v)
-            force = force + (-f_body)
+            f_body = vsub(lscale(lneg(tie_stiffness), vsub(tie_x, x)), lscale(tie_damping, vsub(tie_v, v)))
+            force = vadd(force, -f_body)
             k_c = lneg(tie_stiffness)
-            d_xz = d_xz + (lneg(tie_damping))
-            d_y = d_y + (lneg(tie_damping))
-        a_xz = mass - wp.cw_mul(hl, d_xz) - wp.cw_mul(h2, k_c)
-        a_y = mass - wp.cw_mul(hl, d_y) - wp.cw_mul(h2, k_c + k_y)
+            d_xz = ladd(d_xz, lneg(tie_damping))
+            d_y = ladd(d_y, lneg(tie_damping))
+        a_xz = lsub(lsub(mass, lmul(hl, d_xz)), lmul(h2, k_c))
+        a_y = lsub(lsub(mass, lmul(hl, d_y)), lmul(h2, ladd(k_c, k_y)))
         neg_h2 = lneg(h2)
         diag = lmat()
         for e in range(9):
-            diag[e] = wp.cw_mul(neg_h2, stiff[e])
-        diag[0] = diag[0] + a_xz
-        diag[4] = diag[4] + a_y
-        diag[8] = diag[8] + a_xz
-        rhs = lscale(hl, force) + rhs_k
-        rhs[0] = rhs[0] + wp.cw_mul(h2, wp.cw_mul(k_c, v[0]))
-        rhs[1] = rhs[1] + wp.cw_mul(h2, wp.cw_mul(k_c + k_y, v[1]))
-        rhs[2] = rhs[2] + wp.cw_mul(h2, wp.cw_mul(k_c, v[2]))
+            diag[e] = lmul(neg_h2, stiff[e])
+        diag[0] = ladd(diag[0], a_xz)
+        diag[4] = ladd(diag[4], a_y)
+        diag[8] = ladd(diag[8], a_xz)
+        rhs = vadd(lscale(hl, force), rhs_k)
+        rhs[0] = ladd(rhs[0], lmul(h2, lmul(k_c, v[0])))
+        rhs[1] = ladd(rhs[1], lmul(h2, lmul(ladd(k_c, k_y), v[1])))
+        rhs[2] = ladd(rhs[2], lmul(h2, lmul(k_c, v[2])))
         return diag, upper, rhs
 
     @wp.func
@@ -294,12 +421,12 @@ def lane_step_kernel(lanes: int):
         d = lvec()
         if j == 1:
             inv = linverse(diag)
-            c = lmul(inv, upper)
+            c = lmatmul(inv, upper)
             d = lmul_vec(inv, rhs)
         else:
-            inv = linverse(diag - ltmul(upper_prev, c_prev))
-            c = lmul(inv, upper)
-            d = lmul_vec(inv, rhs - ltmul_vec(upper_prev, d_prev))
+            inv = linverse(msub(diag, ltmatmul(upper_prev, c_prev)))
+            c = lmatmul(inv, upper)
+            d = lmul_vec(inv, vsub(rhs, ltmul_vec(upper_prev, d_prev)))
         scratch_c[p] = c
         scratch_d[p] = d
         return c, d, upper, x_next, v_next, v, f_next, k_next
@@ -350,16 +477,16 @@ def lane_step_kernel(lanes: int):
         ground_absorption = string_ground_absorption[s]
         ground_friction = string_ground_friction[s]
         tied = string_tied[s]
-        tie_stiffness = wp.cw_mul(tied, string_tie_stiffness[s])
-        tie_damping = wp.cw_mul(tied, string_tie_damping[s])
+        tie_stiffness = lmul(tied, string_tie_stiffness[s])
+        tie_damping = lmul(tied, string_tie_damping[s])
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
         hl = lane(dt)
-        top_dx = top - particle_q[start]
+        top_dx = vsub(top, particle_q[start])
         top_dv = lvec()
         for i in range(3):
-            top_dv[i] = wp.cw_div(top_dx[i], hl) - particle_qd[start][i]
+            top_dv[i] = lsub(ldiv(top_dx[i], hl), particle_qd[start][i])
 
         x = particle_q[start + 1]
         f_prev, k_prev = lspring(particle_q[start], x, stiffness, rest_length)
@@ -384,21 +511,22 @@ def lane_step_kernel(lanes: int):
         for i in range(last - start):
             p = last - i
             if p < last:
-                dv = scratch_d[p] - lmul_vec(scratch_c[p], dv)
+                dv = vsub(scratch_d[p], lmul_vec(scratch_c[p], dv))
             particle_dv[p] = dv
-            v1 = particle_qd[p] + dv
+            v1 = vadd(particle_qd[p], dv)
             particle_qd_out[p] = v1
-            particle_q_out[p] = particle_q[p] + lscale(hl, v1)
+            particle_q_out[p] = vadd(particle_q[p], lscale(hl, v1))
         particle_dv[start] = lvec()
         q0 = particle_q[start]
         qd0 = lvec()
         for i in range(3):
-            qd0[i] = wp.cw_div(top[i] - q0[i], hl)
+            qd0[i] = ldiv(lsub(top[i], q0[i]), hl)
         particle_qd_out[start] = qd0
         particle_q_out[start] = top
         x_last = particle_q_out[last]
-        tie_force[s] = lscale(lneg(tie_stiffness), tie_x - x_last) - lscale(tie_damping, tie_v - particle_qd_out[last])
-        e = x_last - top
+        tie_force[s] = vsub(lscale(lneg(tie_stiffness), vsub(tie_x, x_last)),
+                            lscale(tie_damping, vsub(tie_v, particle_qd_out[last])))
+        e = vsub(x_last, top)
         length = lsqrt(lsum3(e[0], e[1], e[2], e[0], e[1], e[2]))
         string_taut[s] = lselect_less(string_taut_distance[s], length, lane(f64(1.0)), lane(f64(0.0)))
 
@@ -471,11 +599,12 @@ class LaneStep:
     """``lane_step_kernel(K)`` on the same model and state; strings beyond ``L`` are padding
     (copies of the last string), not counted."""
 
-    def __init__(self, model: StringModel, q: np.ndarray, qd: np.ndarray, dt: float, lanes: int):
+    def __init__(self, model: StringModel, q: np.ndarray, qd: np.ndarray, dt: float, lanes: int,
+                 style: str = "native"):
         self.model, self.dt, self.lanes = model, dt, lanes
         L, n = model.string_count, int(model.string_particle_count[0])
         self.L, self.n, self.groups = L, n, -(-L // lanes)
-        self.kernel = lane_step_kernel(lanes)
+        self.kernel = lane_step_kernel(lanes, style)
         lane = wp.types.vector(lanes, f64)
         lvec, lmat = wp.types.matrix((3, lanes), f64), wp.types.matrix((9, lanes), f64)
         self.lvec, self.lmat, self.lane = lvec, lmat, lane
@@ -602,18 +731,20 @@ def main() -> int:
             if not np.all(np.isfinite(ref[0])):
                 failures.append(f"scalar step not finite after {steps} steps")
             for k in args.lanes:
-                same, total, worst = compare(ref, run_steps(LaneStep(model, q, qd, args.dt, k), steps))
-                print(f"| {strings} | {k} | {steps} | {below}/{q.shape[0]} | {same}/{total} | {worst:.1e} |")
-                if same != total:
-                    failures.append(f"lanes {k}, {strings} strings, {steps} steps: {same}/{total} bit-identical")
+                for style in STYLES:
+                    same, total, worst = compare(ref, run_steps(LaneStep(model, q, qd, args.dt, k, style), steps))
+                    print(f"| {strings} | {k} {style} | {steps} | {below}/{q.shape[0]} | {same}/{total} | {worst:.1e} |")
+                    if same != total and style == "native":
+                        failures.append(f"lanes {k} {style}, {strings} strings, {steps} steps: {same}/{total} bit-identical")
 
     print(f"\n## Time: thread CPU, median of {args.repeats} replays, ns per particle-step\n")
-    print("| strings | scalar | " + " | ".join(f"lanes {k}" for k in args.lanes) + " |")
-    print("|---:|---:|" + "---:|" * len(args.lanes))
+    print("| strings | scalar | " + " | ".join(f"lanes {k} {style}" for k in args.lanes for style in STYLES) + " |")
+    print("|---:|---:|" + "---:|" * (len(args.lanes) * len(STYLES)))
     for strings in args.strings:
         model = make_model(strings, args.particles)
         q, qd = initial_state(model)
-        steps = [ScalarStep(model, q, qd, args.dt)] + [LaneStep(model, q, qd, args.dt, k) for k in args.lanes]
+        steps = [ScalarStep(model, q, qd, args.dt)] + [LaneStep(model, q, qd, args.dt, k, style)
+                                                        for k in args.lanes for style in STYLES]
         count = max(50, 1_000_000 // (strings * args.particles))
         ns = [cost(s.launch, count, args.repeats) * 1e9 / (strings * args.particles) for s in steps]
         print(f"| {strings} | " + " | ".join(f"{v:.1f}" for v in ns) + " |")
@@ -624,7 +755,8 @@ def main() -> int:
     print("| kernel | part | all | packed double xmm / ymm / zmm | scalar double | moves |")
     print("|---|---|---:|---:|---:|---:|")
     kernels = [("scalar (integrate_string_implicit)", integrate_string_implicit_kernel(wp.float64, EFFECTS.as_tuple()),
-                1)] + [(f"lanes {k}", lane_step_kernel(k), k) for k in args.lanes]
+                1)] + [(f"lanes {k} {style}", lane_step_kernel(k, style), k)
+                     for k in args.lanes for style in STYLES]
     for name, kernel, k in kernels:
         whole = forward_instructions(kernel)
         loop = innermost_loop(whole)
