@@ -667,7 +667,8 @@ def run_steps(step, steps: int):
 
 
 def compare(a, b):
-    """``(bit-identical count, total, max |a - b| / max |a|)`` over ``q, qd, tie_force, taut``."""
+    """``(bit-identical count, total, max |a - b| / max |a|)`` over ``q, qd, tie_force, taut``
+    (per array, the largest; ``inf`` where one side is not finite)."""
     same = total = 0
     worst = 0.0
     for x, y in zip(a, b):
@@ -675,7 +676,9 @@ def compare(a, b):
         same += int(np.count_nonzero(x.view(np.int64) == y.view(np.int64)))
         total += x.size
         scale = np.abs(x).max() or 1.0
-        worst = max(worst, float(np.abs(x - y).max() / scale))
+        diff = np.abs(x - y)
+        diff[~np.isfinite(diff)] = np.inf  # a NaN or infinity on one side counts as infinitely far
+        worst = max(worst, float(diff.max() / scale))
     return same, total, worst
 
 
