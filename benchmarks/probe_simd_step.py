@@ -736,9 +736,11 @@ def main() -> int:
             for k in args.lanes:
                 for style in STYLES:
                     same, total, worst = compare(ref, run_steps(LaneStep(model, q, qd, args.dt, k, style), steps))
-                    print(f"| {strings} | {k} {style} | {steps} | {below}/{q.shape[0]} | {same}/{total} | {worst:.1e} |")
+                    print(f"| {strings} | {k} {style} | {steps} | {below}/{q.shape[0]} | {same}/{total}"
+                          f" | {worst:.1e} |")
                     if same != total and style == "native":
-                        failures.append(f"lanes {k} {style}, {strings} strings, {steps} steps: {same}/{total} bit-identical")
+                        failures.append(f"lanes {k} {style}, {strings} strings, {steps} steps:"
+                                        f" {same}/{total} bit-identical")
 
     print(f"\n## Time: thread CPU, median of {args.repeats} replays, ns per particle-step\n")
     print("| strings | scalar | " + " | ".join(f"lanes {k} {style}" for k in args.lanes for style in STYLES) + " |")
