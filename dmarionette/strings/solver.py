@@ -12,8 +12,10 @@ One step is five named passes::
 A step with the printed spring launches them as one kernel instead,
 ``integrate_string_implicit`` (``kernels/string_step``: one string per thread, the same
 functions in the same order, so the same numbers bit for bit; about 1.2x faster,
-``docs/performance.md``); on a tape it also keeps its pivot inverses. The tension-only springs
-launch the five passes. A step on a tape runs off the tape and records the hand-written adjoint
+``docs/performance.md``); on a tape it also keeps its pivot inverses. A plain float64 step on
+the CPU runs it with four strings per thread in SIMD lanes instead (``kernels/string_step_lanes``,
+issue 19: the same numbers bit for bit; :attr:`SolverStringImplicit.lanes` turns it off). The
+tension-only springs launch the five passes. A step on a tape runs off the tape and records the hand-written adjoint
 of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``; issue 13: backward /
 forward of a marionette gradient 4.3-5.1 -> about 3); with ``hand_adjoint = False`` it records
 the five passes instead (Warp's adjoints: the reference its tests compare with).
@@ -44,6 +46,7 @@ import warp as wp
 from dmarionette.kernels.string_integrate import integrate_string_kernels
 from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_system_kernels
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
+from dmarionette.kernels.string_step_lanes import LANES, integrate_string_lanes_kernel, lane_groups, lane_types
 from dmarionette.kernels.string_step_adjoint import string_step_adjoint_kernel
 from dmarionette.kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
@@ -120,6 +123,14 @@ class SolverStringImplicit:
             integrate_string_implicit_kernel(model.scalar, model.effects.as_tuple(), keep=True)
         self._integrate_implicit_adjoint = string_step_adjoint_kernel(model.scalar, model.effects.as_tuple(),
                                                                       self._tension_only)
+        # A plain step with printed springs, float64, on the CPU: K strings per thread in SIMD lanes
+        # (``kernels/string_step_lanes``; the Clang vector snippets do not compile for CUDA).
+        # Every string is in a group of strings of its particle count; a count no other string
+        # shares makes a group of one real lane and K - 1 padding lanes (the same time as the
+        # scalar kernel for that string's thread, and one kernel launch for the whole step).
+        # False: the scalar one-launch kernel (tests, benchmarks).
+        self.lanes = (not self._tension_only and model.scalar is wp.float64 and model.device.is_cpu)
+        self._lane_plan = None  # (group arrays, laned scratch), built on the first laned step
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
@@ -150,7 +161,10 @@ class SolverStringImplicit:
         h = m.scalar(dt)
         ws = workspace if workspace is not None else (self.new_workspace() if tape is not None else self.workspace)
         if tape is None and self._integrate_implicit is not None:
-            self.integrate_string_implicit(state_in, state_out, control, h, ws)  # the five passes in one launch
+            if self.lanes:
+                self.integrate_string_lanes(state_in, state_out, control, h, ws)  # K strings per thread
+            else:
+                self.integrate_string_implicit(state_in, state_out, control, h, ws)  # the five passes in one launch
             return
         if tape is not None and self.hand_adjoint:
             if self._tension_only:
@@ -196,6 +210,42 @@ class SolverStringImplicit:
             ],
             outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv, state_out.particle_q,
                      state_out.particle_qd, state_out.tie_force, state_out.string_taut],
+            device=m.device,
+            record_tape=False,
+        )
+
+    def integrate_string_lanes(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
+        """:meth:`integrate_string_implicit` (plain) with ``LANES`` strings of equal particle count
+        per thread (``kernels/string_step_lanes``): the same numbers, bit for bit. Writes
+        ``state_out`` and ``ws.particle_dv``; ``C'``, ``d'`` go to laned scratch of its own (read
+        by nobody else), not to ``ws.scratch_c``/``scratch_d``. Never recorded."""
+        m = self.model
+        if not (not self._tension_only and m.scalar is wp.float64 and m.device.is_cpu):
+            raise ValueError("the laned string step needs printed springs, float64 and a CPU device")
+        if self._lane_plan is None:
+            group_string, group_real, group_base, rows = lane_groups(m.string_start.numpy(), LANES)
+            kernel = integrate_string_lanes_kernel(m.effects.as_tuple(), LANES)
+            _lane, ivec, lvec, lmat = lane_types(LANES)
+            with wp.ScopedDevice(m.device):
+                self._lane_plan = (kernel, [wp.array(group_string, dtype=ivec), wp.array(group_real, dtype=wp.int32),
+                                            wp.array(group_base, dtype=wp.int32)],
+                                   [wp.zeros(rows, dtype=lmat), wp.zeros(rows, dtype=lvec)])
+        kernel, groups, scratch = self._lane_plan
+        wp.launch(
+            kernel,
+            dim=groups[1].shape[0],
+            inputs=[
+                *groups,
+                m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                m.string_internal_friction, m.string_air_drag,
+                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
+                m.string_tie_stiffness, m.string_tie_damping, m.string_tied, m.string_taut_distance,
+                m.gravity, m.ground_height,
+                state_in.particle_q, state_in.particle_qd,
+                control.top_q, control.tie_q, control.tie_qd, h,
+            ],
+            outputs=[*scratch, ws.particle_dv, state_out.particle_q, state_out.particle_qd, state_out.tie_force,
+                     state_out.string_taut],
             device=m.device,
             record_tape=False,
         )
