@@ -45,6 +45,7 @@ import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
 
+from dmarionette.kernels.lane_ops import lane_fma  # noqa: E402 (moved to the package)
 from dmarionette.kernels.string_solve import thomas_row_functions  # noqa: E402
 
 mat33d, vec3d = wp.mat33d, wp.vec3d
@@ -98,31 +99,6 @@ def lane_types(lanes: int):
 
 
 STYLES = ("vector", "fma", "loops")
-
-
-@functools.cache
-def lane_fma(lanes: int):
-    """``fma(a, b, c)`` lane by lane (one rounding), a native snippet: Warp has no fused
-    multiply-add builtin, and its generated code puts each operation in its own statement, so
-    Clang never contracts ``cw_mul(a, b) + c``."""
-    lane = wp.types.vector(lanes, wp.float64)
-    snippet = f"""
-    typedef double lanes_t __attribute__((ext_vector_type({lanes})));
-    lanes_t x, y, z;
-    __builtin_memcpy(&x, a.c, sizeof(x));
-    __builtin_memcpy(&y, b.c, sizeof(y));
-    __builtin_memcpy(&z, c.c, sizeof(z));
-    z = __builtin_elementwise_fma(x, y, z);
-    decltype(a) r;
-    __builtin_memcpy(r.c, &z, sizeof(z));
-    return r;
-    """
-
-    @wp.func_native(snippet)
-    def lane_fma(a: lane, b: lane, c: lane) -> lane:
-        ...
-
-    return lane_fma
 
 
 @functools.cache

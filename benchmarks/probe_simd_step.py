@@ -41,8 +41,6 @@ import functools
 import glob
 import os
 
-from types import SimpleNamespace
-
 import numpy as np
 import warp as wp
 
@@ -51,6 +49,7 @@ wp.config.log_level = wp.LOG_WARNING
 import benchmarks.probe_simd_lanes as probe  # noqa: E402
 from benchmarks.probe_simd_lanes import (  # noqa: E402
     cost, forward_instructions, from_lanes, innermost_loop, instruction_counts, lane_fma, to_lanes)
+from dmarionette.kernels.lane_ops import native_lane_ops  # noqa: E402 (moved to the package)
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel  # noqa: E402
 from dmarionette.strings.model import StringEffects, StringModel, StringSpec  # noqa: E402
 
@@ -61,53 +60,6 @@ f64 = wp.float64
 
 
 # --- the laned step ------------------------------------------------------------------------------
-
-@functools.cache
-def native_lane_ops(lanes: int) -> SimpleNamespace:
-    """Lane operations as native snippets on Clang ``ext_vector_type`` values (one packed
-    instruction each, whatever the SLP vectorizer makes of the kernel), each rounding as the
-    scalar operation it stands for: ``add, sub, mul, div`` (``a op b``), ``sqrt``, ``max``
-    (``a > b ? a : b``, Warp's ``wp.max`` for doubles), ``where_less(x, y, a, b)`` (``a`` where
-    ``x < y``, else ``b``: a blend by the comparison's mask)."""
-    lane = wp.types.vector(lanes, f64)
-    head = f"""
-    typedef double lanes_t __attribute__((ext_vector_type({lanes})));
-    typedef long mask_t __attribute__((ext_vector_type({lanes})));
-    lanes_t x, y, z;
-    __builtin_memcpy(&x, a.c, sizeof(x));
-    """
-    load_b = "__builtin_memcpy(&y, b.c, sizeof(y));\n"
-    tail = """
-    decltype(a) r;
-    __builtin_memcpy(r.c, &z, sizeof(z));
-    return r;
-    """
-
-    def binary(expression):
-        @wp.func_native(head + load_b + f"z = {expression};" + tail)
-        def op(a: lane, b: lane) -> lane:
-            ...
-        return op
-
-    @wp.func_native(head + "z = __builtin_elementwise_sqrt(x);" + tail)
-    def sqrt(a: lane) -> lane:
-        ...
-
-    @wp.func_native(head + load_b + """
-    lanes_t p, q;
-    __builtin_memcpy(&p, c.c, sizeof(p));
-    __builtin_memcpy(&q, d.c, sizeof(q));
-    mask_t m = x < y;
-    z = __builtin_bit_cast(lanes_t, (__builtin_bit_cast(mask_t, p) & m) | (__builtin_bit_cast(mask_t, q) & ~m));
-    """ + tail)
-    def where_less(a: lane, b: lane, c: lane, d: lane) -> lane:
-        ...
-
-    return SimpleNamespace(add=binary("x + y"), sub=binary("x - y"), mul=binary("x * y"), div=binary("x / y"),
-                           max=binary("__builtin_bit_cast(lanes_t, (__builtin_bit_cast(mask_t, x) & (x > y))"
-                                      " | (__builtin_bit_cast(mask_t, y) & ~(x > y)))"),
-                           sqrt=sqrt, where_less=where_less)
-
 
 @functools.cache
 def lane_step_kernel(lanes: int, style: str = "native"):
