@@ -1,6 +1,6 @@
 """Where the time of a string step and of a marionette step goes: the cost of each pass.
 
-Run:  python benchmarks/profile_steps.py [--repeats 9] [--puppet-hz 30 1000]
+Run:  python benchmarks/profile_steps.py [--repeats 9] [--puppet-hz 30 1000] [--live-ticks 3000] [--no-lanes]
 
 Each pass (a solver method, as ``SolverStringImplicit.step`` and ``SolverMarionette.step`` call
 it) is captured ``R`` times in a row as one CPU graph and replayed ``--repeats`` times; the
@@ -11,10 +11,11 @@ on a shared machine (wall-clock medians are for ``bench_strings.py``/``bench_mar
 
 Strings: the ``strings`` scene (6 x 50 particles, float64, all effects on): the five passes of
 the taped step (spring, system, solve, integrate, tie force) one by one and together, and the
-plain step (``step``: one launch, ``kernels/string_step``, since issue 19; before it, the
-five passes). Marionette: the ``hanging`` scene at each ``--puppet-hz``, per puppet step and
+plain step (``step``: one launch; ``kernels/string_step_lanes``, four strings per thread, and
+with ``lanes = False`` the scalar ``kernels/string_step``; before issue 19, the five passes). Marionette: the ``hanging`` scene at each ``--puppet-hz``, per puppet step and
 per simulated millisecond: the passes of ``SolverMarionette.step``. Live: the wall and CPU
 time of one live tick (``LiveMarionette.advance``, as the servo loop's physics calls it).
+``--no-lanes``: the marionette and live steps with the scalar one-launch string kernel.
 """
 
 from __future__ import annotations
@@ -68,6 +69,11 @@ def profile_strings(repeats: int) -> None:
         solver.step(a, b, control, 1e-3)
         a.assign(b)
 
+    def scalar_step(a, b, control):
+        solver.lanes = False
+        solver.step(a, b, control, 1e-3)
+        solver.lanes = True
+
     def five():
         solver.eval_string_spring(a, forced, ws)
         solver.eval_string_system(a, control, h, ws)
@@ -83,7 +89,8 @@ def profile_strings(repeats: int) -> None:
         ("integrate_string", lambda: solver.integrate_string(a, b, control, h, ws)),
         ("eval_string_tie_force", lambda: solver.eval_string_tie_force(b, control)),
         ("the five passes", five),
-        ("step (plain)", lambda: solver.step(a, b, control, 1e-3)),
+        ("step (plain, scalar kernel: lanes off)", lambda: scalar_step(a, b, control)),
+        ("step (plain, lanes)", lambda: solver.step(a, b, control, 1e-3)),
     ]
     print(f"## Strings: 6 x 50 float64, thread CPU time per pass (min of {repeats})\n")
     print("| pass | µs | ns per particle |")
@@ -93,9 +100,13 @@ def profile_strings(repeats: int) -> None:
         print(f"| {name} | {seconds * 1e6:.2f} | {seconds * 1e9 / model.particle_count:.1f} |")
 
 
+LANES = True  # --no-lanes: False (the marionette and live steps)
+
+
 def profile_marionette(puppet_hz: float, repeats: int) -> None:
     scene = dataclasses.replace(dm.load_scene("hanging"), puppet_hz=puppet_hz)
     model = MarionetteModel(scene, optimization_level=2)
+    model.string_solver.lanes = model.string_solver.lanes and LANES
     solver = SolverMarionette(model)
     a, b, control = model.state(), model.state(), model.control()
     for _ in range(3):
@@ -130,6 +141,7 @@ def profile_live_tick(ticks: int) -> None:
     from dmarionette.marionette.solver import bar_inputs
 
     model = MarionetteModel(dm.load_scene("hanging"), optimization_level=2)
+    model.string_solver.lanes = model.string_solver.lanes and LANES
     live = LiveMarionette(model)
     times = model.string_dt * np.arange(1, ticks + 1)
     tops, bar_q, bar_qd = bar_inputs(model, times)
@@ -152,8 +164,12 @@ def main() -> None:
     p.add_argument("--puppet-hz", type=float, nargs="*", default=[30.0, 1000.0],
                    help="puppet rates of the marionette profiles (none: skip them)")
     p.add_argument("--live-ticks", type=int, default=3000, help="ticks of the live-tick timing (0: skip)")
+    p.add_argument("--no-lanes", action="store_true", help="marionette and live: the scalar string kernel")
     args = p.parse_args()
-    print(f"# Step profile — Warp {wp.config.version}, CPU (one thread)\n")
+    global LANES
+    LANES = not args.no_lanes
+    print(f"# Step profile — Warp {wp.config.version}, CPU (one thread); marionette string lanes "
+          f"{'on' if LANES else 'off'}\n")
     profile_strings(args.repeats)
     for hz in args.puppet_hz:
         profile_marionette(hz, args.repeats)
