@@ -128,9 +128,11 @@ class SolverStringImplicit:
         # Every string is in a group of strings of its particle count; a count no other string
         # shares makes a group of one real lane and K - 1 padding lanes (the same time as the
         # scalar kernel for that string's thread, and one kernel launch for the whole step).
-        # False: the scalar one-launch kernel (tests, benchmarks).
-        self.lanes = (not self._tension_only and model.scalar is wp.float64 and model.device.is_cpu)
-        self._lane_plan = None  # (group arrays, laned scratch), built on the first laned step
+        # ``lanes = False``: the scalar one-launch kernel (tests, benchmarks). Built here, not
+        # on the first step, so that ``first_run.load_kernels`` finds the kernel.
+        self.lanes = not self._tension_only and model.scalar is wp.float64 and model.device.is_cpu
+        self._integrate_lanes = integrate_string_lanes_kernel(model.effects.as_tuple(), LANES) if self.lanes else None
+        self._lane_plan = self._new_lane_plan() if self.lanes else None  # (group arrays, laned scratch)
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
@@ -220,19 +222,11 @@ class SolverStringImplicit:
         ``state_out`` and ``ws.particle_dv``; ``C'``, ``d'`` go to laned scratch of its own (read
         by nobody else), not to ``ws.scratch_c``/``scratch_d``. Never recorded."""
         m = self.model
-        if not (not self._tension_only and m.scalar is wp.float64 and m.device.is_cpu):
+        if self._integrate_lanes is None:
             raise ValueError("the laned string step needs printed springs, float64 and a CPU device")
-        if self._lane_plan is None:
-            group_string, group_real, group_base, rows = lane_groups(m.string_start.numpy(), LANES)
-            kernel = integrate_string_lanes_kernel(m.effects.as_tuple(), LANES)
-            _lane, ivec, lvec, lmat = lane_types(LANES)
-            with wp.ScopedDevice(m.device):
-                self._lane_plan = (kernel, [wp.array(group_string, dtype=ivec), wp.array(group_real, dtype=wp.int32),
-                                            wp.array(group_base, dtype=wp.int32)],
-                                   [wp.zeros(rows, dtype=lmat), wp.zeros(rows, dtype=lvec)])
-        kernel, groups, scratch = self._lane_plan
+        groups, scratch = self._lane_plan
         wp.launch(
-            kernel,
+            self._integrate_lanes,
             dim=groups[1].shape[0],
             inputs=[
                 *groups,
@@ -249,6 +243,16 @@ class SolverStringImplicit:
             device=m.device,
             record_tape=False,
         )
+
+    def _new_lane_plan(self) -> tuple[list[wp.array], list[wp.array]]:
+        """The laned step's group table (``string_step_lanes.lane_groups``: string indices, real
+        lanes, scratch offsets per group) and its laned scratch (``C'``, ``d'`` of each group's rows)."""
+        m = self.model
+        group_string, group_real, group_base, rows = lane_groups(m.string_start.numpy(), LANES)
+        _lane, ivec, lvec, lmat = lane_types(LANES)
+        with wp.ScopedDevice(m.device):
+            return ([wp.array(group_string, dtype=ivec), wp.array(group_real, dtype=wp.int32),
+                     wp.array(group_base, dtype=wp.int32)], [wp.zeros(rows, dtype=lmat), wp.zeros(rows, dtype=lvec)])
 
     def _grad(self, a: wp.array) -> wp.array:
         """``a.grad``, or a scratch array of its shape for an input that carries no gradient."""
