@@ -390,11 +390,10 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
 
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_lanes(
-        # Group table (lane_groups):
+        # Model (the group table, ``lane_groups``, then the strings):
         group_string: wp.array(dtype=ivec),
         group_real: wp.array(dtype=wp.int32),
         group_base: wp.array(dtype=wp.int32),
-        # Model:
         string_start: wp.array(dtype=wp.int32),
         particle_mass: wp.array(dtype=f64),
         string_stiffness: wp.array(dtype=f64),
@@ -418,7 +417,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         tie_q: wp.array(dtype=vec3),
         tie_qd: wp.array(dtype=vec3),
         dt: f64,
-        # Laned scratch, then the state out:
+        # State out (first the laned scratch of C', d'):
         lane_c: wp.array(dtype=lmat),
         lane_d: wp.array(dtype=lvec),
         particle_dv: wp.array(dtype=vec3),

@@ -12,9 +12,9 @@ their ties moving, every effect on, float64 and float32, chains of 2 to 50 parti
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, spec
+from tests.support.strings import make_model, spec, swung_controls
 
-from dmarionette.strings.model import StringControl, StringEffects
+from dmarionette.strings.model import StringEffects
 from dmarionette.strings.solver import SolverStringImplicit
 
 wp.config.log_level = wp.LOG_WARNING
@@ -36,18 +36,6 @@ def _model(precision: str):
     return make_model(strings, effects=StringEffects(), precision=precision)
 
 
-def _controls(model, steps: int, dt: float):
-    """Tops swung at 2 Hz by 10 cm and lowered 0.3 m (the bottoms reach the ground); ties circling."""
-    tops = np.array([s.top for s in model.specs])
-    ties = model.tie_points()
-    for k in range(steps):
-        t = (k + 1) * dt
-        top = tops + np.array([0.1 * np.sin(4 * np.pi * t), -0.3 * min(t / 0.3, 1.0), 0.05 * np.cos(4 * np.pi * t)])
-        tie = ties + 0.05 * np.array([np.sin(6 * t), 0.0, np.cos(6 * t) - 1.0])
-        tie_v = 0.3 * np.array([np.cos(6 * t), 0.0, -np.sin(6 * t)]) * np.ones_like(ties)
-        yield StringControl.from_numpy(model, top, tie, tie_v)
-
-
 def _five_passes(solver: SolverStringImplicit, state_in, state_out, control, dt: float) -> None:
     """The step as the five passes (what a taped step launches), without a tape."""
     ws = solver.workspace
@@ -67,7 +55,7 @@ def test_one_launch_step_equals_the_five_passes(precision):
     c, d = model.state(), model.state()
     dt = 1e-3
     reached_ground = False
-    for control in _controls(model, 400, dt):
+    for control in swung_controls(model, 400, dt):
         fused.step(a, b, control, dt)
         _five_passes(passes, c, d, control, dt)
         for name in ("particle_q", "particle_qd", "tie_force", "string_taut"):
@@ -88,7 +76,7 @@ def test_a_taped_step_ends_where_the_plain_step_does(hand_adjoint):
     solver.hand_adjoint = hand_adjoint
     a, b, taped_out = model.state(), model.state(), model.state()
     dt = 1e-3
-    for k, control in enumerate(_controls(model, 300, dt)):
+    for k, control in enumerate(swung_controls(model, 300, dt)):
         if k % 25 == 24:
             tape = wp.Tape()
             with tape:

@@ -3,7 +3,7 @@
 import numpy as np
 import warp as wp
 
-from dmarionette.strings.model import StringEffects, StringModel, StringSpec
+from dmarionette.strings.model import StringControl, StringEffects, StringModel, StringSpec
 from dmarionette.strings.rollout import StringRollout
 from dmarionette.strings.solver import SolverStringImplicit
 
@@ -42,3 +42,15 @@ def spec(**kwargs) -> StringSpec:
                 mass=0.002, load_mass=0.0, stiffness=500.0, internal_friction=0.0, air_drag=0.0)
     base.update(kwargs)
     return StringSpec(**base)
+
+
+def swung_controls(model, steps: int, dt: float):
+    """Tops swung at 2 Hz by 10 cm and lowered 0.3 m (the bottoms reach the ground); ties circling."""
+    tops = np.array([s.top for s in model.specs])
+    ties = model.tie_points()
+    for k in range(steps):
+        t = (k + 1) * dt
+        top = tops + np.array([0.1 * np.sin(4 * np.pi * t), -0.3 * min(t / 0.3, 1.0), 0.05 * np.cos(4 * np.pi * t)])
+        tie = ties + 0.05 * np.array([np.sin(6 * t), 0.0, np.cos(6 * t) - 1.0])
+        tie_v = 0.3 * np.array([np.cos(6 * t), 0.0, -np.sin(6 * t)]) * np.ones_like(ties)
+        yield StringControl.from_numpy(model, top, tie, tie_v)
