@@ -231,7 +231,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         return r
 
     @wp.func
-    def lspring(x_a: lvec, x_b: lvec, stiffness: lane, rest_length: lane):
+    def compute_lane_spring(x_a: lvec, x_b: lvec, stiffness: lane, rest_length: lane):
         """``string_spring.compute_string_spring_printed``: the force on ``a`` and ``K_aa``."""
         e = vsub(x_a, x_b)
         length = lsqrt(lsum3(e[0], e[1], e[2], e[0], e[1], e[2]))
@@ -255,7 +255,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         return force, jac
 
     @wp.func
-    def lrow(
+    def compute_lane_system_row(
         j: int, is_last: bool, x: lvec, v: lvec, v_prev: lvec, v_next: lvec, mass: lane,
         f_prev: lvec, k_prev: lmat, f_next: lvec, k_next: lmat, top_dx: lvec, top_dv: lvec,
         friction: lane, air_drag: lane, ground_stiffness: lane, ground_absorption: lane, ground_friction: lane,
@@ -348,7 +348,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         return diag, upper, rhs
 
     @wp.func
-    def lforward_row(
+    def compute_lane_forward_row(
         j: int, first: bool, is_last: bool, starts: ivec, row: int, x: lvec, v: lvec, v_prev: lvec,
         f_prev: lvec, k_prev: lmat, upper_prev: lmat, d_prev: lvec, c_prev: lmat,
         particle_q: wp.array(dtype=vec3), particle_qd: wp.array(dtype=vec3), particle_mass: wp.array(dtype=f64),
@@ -366,11 +366,11 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         if not is_last:
             x_next = gather_particle3(particle_q, starts, j + 1)
             v_next = gather_particle3(particle_qd, starts, j + 1)
-            f_next, k_next = lspring(x, x_next, stiffness, rest_length)
+            f_next, k_next = compute_lane_spring(x, x_next, stiffness, rest_length)
         jj = 2
         if first:
             jj = 1
-        diag, upper, rhs = lrow(
+        diag, upper, rhs = compute_lane_system_row(
             jj, is_last, x, v, v_prev, v_next, gather_particle(particle_mass, starts, j), f_prev, k_prev, f_next,
             k_next, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
             tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt)
@@ -461,20 +461,20 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
 
         # Forward sweep, the first and last rows peeled as in the scalar kernel.
         x = gather_particle3(particle_q, starts, 1)
-        f_prev, k_prev = lspring(q0, x, stiffness, rest_length)
-        c, d, upper, x_next, v_next, v, f_next, k_next = lforward_row(
+        f_prev, k_prev = compute_lane_spring(q0, x, stiffness, rest_length)
+        c, d, upper, x_next, v_next, v, f_next, k_next = compute_lane_forward_row(
             1, True, last == 1, starts, base + 1, x, gather_particle3(particle_qd, starts, 1), qd0, f_prev, k_prev,
             lmat(), lvec(), lmat(), particle_q, particle_qd, particle_mass, stiffness, rest_length,
             top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
             tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, lane_c, lane_d)
         for j in range(2, last):
-            c, d, upper, x_next, v_next, v, f_next, k_next = lforward_row(
+            c, d, upper, x_next, v_next, v, f_next, k_next = compute_lane_forward_row(
                 j, False, False, starts, base + j, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q,
                 particle_qd, particle_mass, stiffness, rest_length, top_dx, top_dv, friction, air_drag,
                 ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping, tie_x, tie_v,
                 gravity, ground_height, dt, lane_c, lane_d)
         if last > 1:
-            c, d, upper, x_next, v_next, v, f_next, k_next = lforward_row(
+            c, d, upper, x_next, v_next, v, f_next, k_next = compute_lane_forward_row(
                 last, False, True, starts, base + last, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q,
                 particle_qd, particle_mass, stiffness, rest_length, top_dx, top_dv, friction, air_drag,
                 ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping, tie_x, tie_v,
