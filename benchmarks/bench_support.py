@@ -3,10 +3,28 @@ folder is on ``sys.path``)."""
 
 from __future__ import annotations
 
+import statistics
 import time
 from typing import Any
 
-__all__ = ["time_forward_backward"]
+import warp as wp
+
+__all__ = ["graph_cost", "time_forward_backward"]
+
+
+def graph_cost(fn, count: int, repeats: int, least: bool = False) -> float:
+    """Thread CPU time [s] of one ``fn()`` replayed from a Warp graph of ``count`` calls, over
+    ``repeats`` replays: their median, or with ``least`` the least."""
+    fn()  # loads the modules (no compiling while capturing)
+    with wp.ScopedCapture() as capture:
+        for _ in range(count):
+            fn()
+    times = []
+    for _ in range(repeats):
+        start = time.thread_time()
+        wp.capture_launch(capture.graph)
+        times.append(time.thread_time() - start)
+    return (min(times) if least else statistics.median(times)) / count
 
 
 def time_forward_backward(engine: Any, inputs: Any, cot: dict, repeats: int) -> tuple[list[float], list[float]]:

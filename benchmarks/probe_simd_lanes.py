@@ -36,9 +36,7 @@ import functools
 import glob
 import os
 import re
-import statistics
 import subprocess
-import time
 
 import numpy as np
 import warp as wp
@@ -47,6 +45,8 @@ wp.config.log_level = wp.LOG_WARNING
 
 from dmarionette.kernels.lane_ops import lane_fma  # noqa: E402 (moved to the package)
 from dmarionette.kernels.string_solve import thomas_row_functions  # noqa: E402
+
+from bench_support import graph_cost  # noqa: E402
 
 mat33d, vec3d = wp.mat33d, wp.vec3d
 
@@ -342,16 +342,7 @@ def make_solves(chains: int, rows: int, lane_counts, seed: int = 19):
 
 def cost(fn, count: int, repeats: int) -> float:
     """Median thread CPU time [s] of one ``fn()`` replayed from a CPU graph of ``count`` calls."""
-    fn()  # loads the module (no compiling while capturing)
-    with wp.ScopedCapture() as capture:
-        for _ in range(count):
-            fn()
-    times = []
-    for _ in range(repeats):
-        start = time.thread_time()
-        wp.capture_launch(capture.graph)
-        times.append(time.thread_time() - start)
-    return statistics.median(times) / count
+    return graph_cost(fn, count, repeats)
 
 
 # --- disassembly --------------------------------------------------------------------------------

@@ -46,12 +46,13 @@ import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
 
-import benchmarks.probe_simd_lanes as probe  # noqa: E402
-from benchmarks.probe_simd_lanes import (  # noqa: E402
-    cost, forward_instructions, from_lanes, innermost_loop, instruction_counts, lane_fma, to_lanes)
 from dmarionette.kernels.lane_ops import native_lane_ops  # noqa: E402 (moved to the package)
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel  # noqa: E402
 from dmarionette.strings.model import StringEffects, StringModel, StringSpec  # noqa: E402
+
+import probe_simd_lanes as probe  # noqa: E402  (this folder is on sys.path when run as a script)
+from probe_simd_lanes import (  # noqa: E402
+    cost, forward_instructions, from_lanes, innermost_loop, instruction_counts, lane_fma, to_lanes)
 
 LANE_FLAGS = None  # --lane-flags: compiler flags of the laned kernel's module (None: Warp's)
 STYLES = ("native", "warp")  # only "native" must be bit-identical (see main)

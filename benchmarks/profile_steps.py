@@ -33,6 +33,8 @@ from dmarionette.marionette.solver import MarionetteModel, SolverMarionette  # n
 from dmarionette.strings.model import StringModel  # noqa: E402
 from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
 
+from bench_support import graph_cost  # noqa: E402
+
 
 @wp.kernel
 def _empty(
@@ -44,16 +46,7 @@ def _empty(
 
 def cost(fn, count: int, repeats: int) -> float:
     """Least thread CPU time [s] of one ``fn()`` replayed from a graph of ``count`` calls."""
-    fn()  # loads the modules (no compiling while capturing)
-    with wp.ScopedCapture() as capture:
-        for _ in range(count):
-            fn()
-    times = []
-    for _ in range(repeats):
-        start = time.thread_time()
-        wp.capture_launch(capture.graph)
-        times.append(time.thread_time() - start)
-    return min(times) / count
+    return graph_cost(fn, count, repeats, least=True)
 
 
 def profile_strings(repeats: int) -> None:

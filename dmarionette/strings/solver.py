@@ -174,7 +174,7 @@ class SolverStringImplicit:
                 self.record_step_adjoint(state_in, state_out, control, h, ws, tape, ws.active_set.segment_active)
             else:
                 self.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
-                self.record_step_adjoint(state_in, state_out, control, h, ws, tape, self._none_forced)
+                self.record_step_adjoint(state_in, state_out, control, h, ws, tape)
             return
         forced = self._none_forced  # every segment in the system (printed springs)
         if tape is not None and self._tension_only:
@@ -281,12 +281,14 @@ class SolverStringImplicit:
         self.eval_string_tie_force(state_out, control, record=False)
 
     def record_step_adjoint(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape,
-                            forced: wp.array) -> None:
+                            forced: wp.array | None = None) -> None:
         """Records the hand-written adjoint of the step just run on ``tape`` (the one-launch step
         with ``keep``, or :meth:`step_tension_only_kept` with the active set ``forced``;
         ``kernels/string_step_adjoint``). It reads ``ws``'s pivot inverses, ``C'`` and ``dv``: the
-        workspace must not be reused before the adjoint has run (each taped step has its own)."""
+        workspace must not be reused before the adjoint has run (each taped step has its own);
+        ``forced``: the tension-only step's active set (None for printed springs)."""
         m = self.model
+        forced = self._none_forced if forced is None else forced
         params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
                   m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
                   m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
