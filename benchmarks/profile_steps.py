@@ -1,6 +1,6 @@
 """Where the time of a string step and of a marionette step goes: the cost of each pass.
 
-Run:  python benchmarks/profile_steps.py [--repeats 9] [--puppet-hz 30 1000] [--live-ticks 3000] [--no-lanes]
+Run:  python benchmarks/profile_steps.py [--repeats 9] [--puppet-hz 30 1000] [--live-ticks 3000] [--lanes]
 
 Each pass (a solver method, as ``SolverStringImplicit.step`` and ``SolverMarionette.step`` call
 it) is captured ``R`` times in a row as one CPU graph and replayed ``--repeats`` times; the
@@ -15,7 +15,7 @@ plain step (``step``: one launch; ``kernels/string_step_lanes``, four strings pe
 with ``lanes = False`` the scalar ``kernels/string_step``; before issue 19, the five passes). Marionette: the ``hanging`` scene at each ``--puppet-hz``, per puppet step and
 per simulated millisecond: the passes of ``SolverMarionette.step``. Live: the wall and CPU
 time of one live tick (``LiveMarionette.advance``, as the servo loop's physics calls it).
-``--no-lanes``: the marionette and live steps with the scalar one-launch string kernel.
+``--lanes``: the marionette and live steps with the laned string kernel (``SolverStringImplicit.lanes``).
 """
 
 from __future__ import annotations
@@ -62,10 +62,9 @@ def profile_strings(repeats: int) -> None:
         solver.step(a, b, control, 1e-3)
         a.assign(b)
 
-    def scalar_step(a, b, control):
-        solver.lanes = False
+    def plain_step(lanes: bool):
+        solver.lanes = lanes  # read when the step is captured: the graph holds that kernel
         solver.step(a, b, control, 1e-3)
-        solver.lanes = True
 
     def five():
         solver.eval_string_spring(a, forced, ws)
@@ -82,8 +81,8 @@ def profile_strings(repeats: int) -> None:
         ("integrate_string", lambda: solver.integrate_string(a, b, control, h, ws)),
         ("eval_string_tie_force", lambda: solver.eval_string_tie_force(b, control)),
         ("the five passes", five),
-        ("step (plain, scalar kernel: lanes off)", lambda: scalar_step(a, b, control)),
-        ("step (plain, lanes)", lambda: solver.step(a, b, control, 1e-3)),
+        ("step (plain, scalar kernel: lanes off)", lambda: plain_step(False)),
+        ("step (plain, lanes)", lambda: plain_step(True)),
     ]
     print(f"## Strings: 6 x 50 float64, thread CPU time per pass (min of {repeats})\n")
     print("| pass | µs | ns per particle |")
@@ -93,13 +92,13 @@ def profile_strings(repeats: int) -> None:
         print(f"| {name} | {seconds * 1e6:.2f} | {seconds * 1e9 / model.particle_count:.1f} |")
 
 
-LANES = True  # --no-lanes: False (the marionette and live steps)
+LANES = False  # --lanes: True (the marionette and live steps)
 
 
 def profile_marionette(puppet_hz: float, repeats: int) -> None:
     scene = dataclasses.replace(dm.load_scene("hanging"), puppet_hz=puppet_hz)
     model = MarionetteModel(scene, optimization_level=2)
-    model.string_solver.lanes = model.string_solver.lanes and LANES
+    model.string_solver.lanes = LANES
     solver = SolverMarionette(model)
     a, b, control = model.state(), model.state(), model.control()
     for _ in range(3):
@@ -134,7 +133,7 @@ def profile_live_tick(ticks: int) -> None:
     from dmarionette.marionette.solver import bar_inputs
 
     model = MarionetteModel(dm.load_scene("hanging"), optimization_level=2)
-    model.string_solver.lanes = model.string_solver.lanes and LANES
+    model.string_solver.lanes = LANES
     live = LiveMarionette(model)
     times = model.string_dt * np.arange(1, ticks + 1)
     tops, bar_q, bar_qd = bar_inputs(model, times)
@@ -157,10 +156,10 @@ def main() -> None:
     p.add_argument("--puppet-hz", type=float, nargs="*", default=[30.0, 1000.0],
                    help="puppet rates of the marionette profiles (none: skip them)")
     p.add_argument("--live-ticks", type=int, default=3000, help="ticks of the live-tick timing (0: skip)")
-    p.add_argument("--no-lanes", action="store_true", help="marionette and live: the scalar string kernel")
+    p.add_argument("--lanes", action="store_true", help="marionette and live: the laned string kernel")
     args = p.parse_args()
     global LANES
-    LANES = not args.no_lanes
+    LANES = args.lanes
     print(f"# Step profile — Warp {wp.config.version}, CPU (one thread); marionette string lanes "
           f"{'on' if LANES else 'off'}\n")
     profile_strings(args.repeats)

@@ -2,8 +2,8 @@
 
 ``SolverStringImplicit.step`` without a tape, with the paper's printed spring, runs
 ``integrate_string_implicit`` instead of its five passes (spring, system, solve, integrate,
-tie force) (in float64 on the CPU, its laned form with four strings per thread,
-``string_step_lanes``, the same numbers bit for bit). It computes the same numbers with the
+tie force) (with ``SolverStringImplicit.lanes``, in float64 on the CPU, its laned form with four
+strings per thread, ``string_step_lanes``, the same numbers bit for bit). It computes the same numbers with the
 same functions, in another order of work:
 
 - each segment's spring (``string_spring.compute_string_spring_printed``) once, carried in

@@ -26,6 +26,8 @@ workspace), so they go to laned scratch arrays of the group plan (``lane_c``, ``
 
 Float64 and CPU only (the snippets are Clang C++), printed springs (the tension-only springs'
 active-set solve needs ``A`` stored), no ``keep`` (a taped step runs the scalar keep kernel).
+Off by default (``SolverStringImplicit.lanes``): the README's speed figures were measured with
+the scalar kernel and are to be measured again when it becomes the default.
 """
 
 import functools

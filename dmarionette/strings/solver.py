@@ -13,8 +13,8 @@ A step with the printed spring launches them as one kernel instead,
 ``integrate_string_implicit`` (``kernels/string_step``: one string per thread, the same
 functions in the same order, so the same numbers bit for bit; about 1.2x faster,
 ``docs/performance.md``); on a tape it also keeps its pivot inverses. A plain float64 step on
-the CPU runs it with four strings per thread in SIMD lanes instead (``kernels/string_step_lanes``,
-issue 19: the same numbers bit for bit; :attr:`SolverStringImplicit.lanes` turns it off). The
+the CPU can run it with four strings per thread in SIMD lanes instead (``kernels/string_step_lanes``,
+issue 19: the same numbers bit for bit; :attr:`SolverStringImplicit.lanes`, off by default). The
 tension-only springs launch the five passes. A step on a tape runs off the tape and records the hand-written adjoint
 of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``; issue 13: backward /
 forward of a marionette gradient 4.3-5.1 -> about 3); with ``hand_adjoint = False`` it records
@@ -123,16 +123,14 @@ class SolverStringImplicit:
             integrate_string_implicit_kernel(model.scalar, model.effects.as_tuple(), keep=True)
         self._integrate_implicit_adjoint = string_step_adjoint_kernel(model.scalar, model.effects.as_tuple(),
                                                                       self._tension_only)
-        # A plain step with printed springs, float64, on the CPU: K strings per thread in SIMD lanes
-        # (``kernels/string_step_lanes``; the Clang vector snippets do not compile for CUDA).
-        # Every string is in a group of strings of its particle count; a count no other string
-        # shares makes a group of one real lane and K - 1 padding lanes (the same time as the
-        # scalar kernel for that string's thread, and one kernel launch for the whole step).
-        # ``lanes = False``: the scalar one-launch kernel (tests, benchmarks). Built here, not
-        # on the first step, so that ``first_run.load_kernels`` finds the kernel.
-        self.lanes = not self._tension_only and model.scalar is wp.float64 and model.device.is_cpu
-        self._integrate_lanes = integrate_string_lanes_kernel(model.effects.as_tuple(), LANES) if self.lanes else None
-        self._lane_plan = self._new_lane_plan() if self.lanes else None  # (group arrays, laned scratch)
+        # A plain step with printed springs, float64, on the CPU can run K strings per thread in
+        # SIMD lanes (``kernels/string_step_lanes``; the Clang vector snippets do not compile for
+        # CUDA): :attr:`lanes`. Every string is in a group of strings of its particle count; a
+        # count no other string shares makes a group of one real lane and K - 1 padding lanes.
+        self._lanes_supported = not self._tension_only and model.scalar is wp.float64 and model.device.is_cpu
+        self._lanes = False
+        self._integrate_lanes = None
+        self._lane_plan = None  # (group arrays, laned scratch), built when lanes are turned on
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
@@ -215,6 +213,25 @@ class SolverStringImplicit:
             device=m.device,
             record_tape=False,
         )
+
+    @property
+    def lanes(self) -> bool:
+        """Plain steps in SIMD lanes (``kernels/string_step_lanes``: the same numbers as the scalar
+        one-launch kernel, bit for bit, about 2x faster for 6 x 50). **Off by default** for now:
+        every speed figure in the README was measured with the scalar kernel, and turning the
+        lanes on by default comes with measuring them again (issue 19). Setting it builds the
+        kernel; printed springs, float64 and a CPU device only (``ValueError`` otherwise)."""
+        return self._lanes
+
+    @lanes.setter
+    def lanes(self, on: bool) -> None:
+        if on and not self._lanes_supported:
+            raise ValueError("SolverStringImplicit.lanes: the laned string step needs printed springs, "
+                             "float64 and a CPU device")
+        if on and self._integrate_lanes is None:
+            self._integrate_lanes = integrate_string_lanes_kernel(self.model.effects.as_tuple(), LANES)
+            self._lane_plan = self._new_lane_plan()
+        self._lanes = bool(on)
 
     def integrate_string_lanes(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
         """:meth:`integrate_string_implicit` (plain) with ``LANES`` strings of equal particle count

@@ -77,8 +77,8 @@ def test_joint_limits_turned_off_are_not_in_the_generated_kernel(all_on, monkeyp
 @pytest.mark.parametrize("effect", ["air_drag", "internal_friction", "ground_contact"])
 def test_string_effects_turned_off_change_the_compiled_string_kernel(all_on, monkeypatch, effect):
     """The string terms live in one kernel built per effect set (``eval_string_system``, or in a
-    plain step the one-launch ``integrate_string_implicit`` that assembles the same rows, or in
-    float64 on the CPU its laned form ``integrate_string_lanes``): off, it is a different kernel."""
+    plain step the one-launch ``integrate_string_implicit`` that assembles the same rows, or with
+    ``SolverStringImplicit.lanes`` its laned form ``integrate_string_lanes``): off, it is a different kernel."""
     on_keys, _ = all_on
     scene = _scene()
     scene = dataclasses.replace(scene, effects=dataclasses.replace(scene.effects, **{effect: False}))
