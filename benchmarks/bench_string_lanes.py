@@ -6,7 +6,7 @@ Run:  python benchmarks/bench_string_lanes.py [--repeats 9] [--sizes 6x50 8x50 6
 kernel, ``kernels/string_step``) and ``lanes = True`` (``kernels/string_step_lanes``: four strings
 of equal particle count per thread), on ``probe_simd_step.make_model``'s strings (every effect on,
 some particles on the ground, most strings tied). Each is captured as a CPU graph of many steps and
-replayed (``profile_steps.cost``: the least thread CPU time of ``--repeats`` replays), twice,
+replayed (``bench_support.graph_cost``: the least thread CPU time of ``--repeats`` replays), twice,
 interleaved (off, on, off, on), the lesser kept; ns per particle-step.
 """
 
@@ -16,9 +16,10 @@ import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
 
-from benchmarks.probe_simd_step import make_model  # noqa: E402
-from benchmarks.profile_steps import cost  # noqa: E402
 from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
+
+from bench_support import graph_cost  # noqa: E402  (this folder is on sys.path when run as a script)
+from probe_simd_step import make_model  # noqa: E402
 
 
 def main() -> None:
@@ -43,7 +44,8 @@ def main() -> None:
 
         ns = {False: [], True: []}
         for lanes in (False, True, False, True):
-            ns[lanes].append(cost(lambda lanes=lanes: step(lanes), count, args.repeats) * 1e9 / model.particle_count)
+            seconds = graph_cost(lambda lanes=lanes: step(lanes), count, args.repeats, least=True)
+            ns[lanes].append(seconds * 1e9 / model.particle_count)
         scalar, laned = min(ns[False]), min(ns[True])
         print(f"| {strings} x {particles} | {scalar:.1f} | {laned:.1f} | {scalar / laned:.2f} |")
 
