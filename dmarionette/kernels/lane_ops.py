@@ -6,7 +6,7 @@ a Clang ``ext_vector_type`` (so the kernel gets packed instructions whatever LLV
 makes of it: with Warp's default CPU flags the SLP vectorizer computed one lane of a step written
 with Warp's own ``+``, ``wp.cw_mul`` wrongly, ``docs/simd_probe.md``). CPU only: the snippets are
 Clang C++, not CUDA. Used by ``string_step_lanes``; moved here from the probes
-(``benchmarks/probe_simd_step.py``, ``benchmarks/probe_simd_lanes.py``), which import them.
+(``benchmarks/probe_simd_lanes.py`` imports them; the whole-step probe, since removed, did too).
 """
 
 import functools
