@@ -124,6 +124,21 @@ def compute_normal_hard(d: wp.float64, vn: wp.float64, k: wp.float64, c: wp.floa
 
 
 @wp.func
+def compute_touching_hard(d: wp.float64) -> bool:
+    """Whether a hard contact of penetration ``d`` can act: at ``d <= 0`` its force, its implicit
+    block and their derivatives are all exactly zero (``compute_normal_hard``), so a kernel skips
+    the point; most points of a puppet are apart most of the time (issue 19: the ground kernel
+    was two thirds of a puppet step)."""
+    return d > wp.float64(0.0)
+
+
+@wp.func
+def compute_touching_smooth(d: wp.float64) -> bool:
+    """A smooth contact acts at every distance (its softplus force is never exactly zero)."""
+    return True
+
+
+@wp.func
 def compute_normal_smooth(d: wp.float64, vn: wp.float64, k: wp.float64, c: wp.float64, delta: wp.float64,
                           v_eps: wp.float64):
     """Smooth normal force ``k s + c sigma v_eps softplus(-v_n / v_eps)`` and its slopes:
@@ -237,9 +252,10 @@ def compute_box_distance(centre: wp.vec3d, box: StaticBox):
     return dist, n
 
 
-def _static_surface_kernel(name: str, Surface, surface_distance, response):
+def _static_surface_kernel(name: str, Surface, surface_distance, response, touching):
     """Builds the contact kernel of box corners and spheres against one kind of static surface
-    (``Surface``, a struct, and its ``surface_distance(centre, surface) -> (dist, n)``)."""
+    (``Surface``, a struct, and its ``surface_distance(centre, surface) -> (dist, n)``); points
+    where ``touching(d)`` is false add nothing."""
 
     @wp.kernel(module="unique", name=name)
     def eval_body_surface_contact(
@@ -268,11 +284,12 @@ def _static_surface_kernel(name: str, Surface, surface_distance, response):
         centre = x + wp.quat_rotate(body_rot[w, b], point_local[i])
         dist, n = surface_distance(centre, surface)
         d = point_radius[i] - dist
-        p = centre - point_radius[i] * n
-        v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
-        f, A = response(p, n, d, v, h, contact)
-        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
-        wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
+        if touching(d):
+            p = centre - point_radius[i] * n
+            v = body_v[w, b] + wp.cross(body_w[w, b], p - x)
+            f, A = response(p, n, d, v, h, contact)
+            wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, f))
+            wp.atomic_add(body_stiffness, w, b, compute_point_inertia(p, A))
 
     return eval_body_surface_contact
 
@@ -280,10 +297,11 @@ def _static_surface_kernel(name: str, Surface, surface_distance, response):
 @functools.cache
 def _kernels(smooth: bool):
     response, pair_response = _contact_responses(compute_normal_smooth if smooth else compute_normal_hard)
+    touching = compute_touching_smooth if smooth else compute_touching_hard
     eval_body_ground_contact = _static_surface_kernel("eval_body_ground_contact", GroundPlane,
-                                                      compute_ground_distance, response)
+                                                      compute_ground_distance, response, touching)
     eval_body_box_contact = _static_surface_kernel("eval_body_box_contact", StaticBox, compute_box_distance,
-                                                   response)
+                                                   response, touching)
 
     @wp.kernel(module="unique")
     def eval_body_ball_contact(
@@ -327,11 +345,12 @@ def _kernels(smooth: bool):
         n = wp.quat_rotate(rot, n_local)  # from the puppet body towards the ball
         p = x + wp.quat_rotate(rot, q)
         d = ball_radius - dist
-        v_body = body_v[w, b] + wp.cross(body_w[w, b], p - x)
-        v_ball = body_v[w, ball_body] + wp.cross(body_w[w, ball_body], p - c)
-        f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], contact)
-        wp.atomic_add(body_wrench, w, ball_body, compute_point_wrench(p, f))
-        wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, -f))
+        if touching(d):
+            v_body = body_v[w, b] + wp.cross(body_w[w, b], p - x)
+            v_ball = body_v[w, ball_body] + wp.cross(body_w[w, ball_body], p - c)
+            f = pair_response(n, d, v_ball - v_body, h, pair_mass[i], contact)
+            wp.atomic_add(body_wrench, w, ball_body, compute_point_wrench(p, f))
+            wp.atomic_add(body_wrench, w, b, compute_point_wrench(p, -f))
 
     return eval_body_ground_contact, eval_body_box_contact, eval_body_ball_contact
 
