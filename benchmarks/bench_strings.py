@@ -1,6 +1,6 @@
 """String simulator speed on one core: steps per second, scaling, and the cost of each effect.
 
-Run:  python benchmarks/bench_strings.py [--repeats 7] [--steps 3000] [--clock wall|cpu] [--only-6x50] [--lanes]
+Run:  python benchmarks/bench_strings.py [--repeats 7] [--steps 3000] [--clock wall|cpu] [--only-6x50] [--no-lanes]
 
 Every number is the median of ``--repeats`` timed runs of ``--steps`` steps (after one
 untimed warm-up run that also compiles the kernels), replayed as a captured CPU graph
@@ -11,9 +11,9 @@ machine's noise can be judged. Warp's CPU backend runs each launch on one thread
 ``--clock cpu`` times the calling thread's CPU time (``time.thread_time``) instead of the wall
 clock: on a machine shared with other work it leaves out the time the thread waited for a core
 (not the slowdown other processes cause through the caches). ``--only-6x50`` prints the first
-table only (for interleaved A/B runs of two checkouts, ``docs/performance.md``). ``--lanes``
-steps float64 with the laned kernel instead of the scalar one-launch one
-(``SolverStringImplicit.lanes``, off by default; ``kernels/string_step_lanes``).
+table only (for interleaved A/B runs of two checkouts, ``docs/performance.md``). float64 steps
+with the laned kernel, the default (``SolverStringImplicit.lanes``, ``kernels/string_step_lanes``);
+``--no-lanes`` with the scalar one-launch kernel instead (``kernels/string_step``).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
 
 DT = 1e-3
 CHUNK = 100
-LANES = False  # --lanes: True
+LANES = True  # --no-lanes: False
 
 
 def _model(particle_count=50, effects=None, precision="float64") -> StringModel:
@@ -51,7 +51,8 @@ def measure(model: StringModel, steps: int, repeats: int, clock=time.perf_counte
     """Median steps per second and relative spread (max-min)/median of the run times (``clock``:
     ``time.perf_counter`` for wall time, ``time.thread_time`` for the thread's CPU time)."""
     solver = SolverStringImplicit(model)
-    solver.lanes = LANES and model.scalar is wp.float64
+    if not LANES:
+        solver.lanes = False  # else the default: lanes wherever they apply (float64 printed springs)
     rollout = StringRollout(solver, DT, chunk_steps=CHUNK)
     steps = CHUNK * max(1, steps // CHUNK)
     t = DT * np.arange(1, steps + 1)
@@ -76,10 +77,11 @@ def main() -> None:
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                         help="wall: wall-clock time (default); cpu: the thread's CPU time (shared machines)")
     parser.add_argument("--only-6x50", action="store_true", help="only the 6 x 50 table")
-    parser.add_argument("--lanes", action="store_true", help="float64 with the laned kernel (SolverStringImplicit.lanes)")
+    parser.add_argument("--no-lanes", action="store_true",
+                        help="float64 with the scalar kernel (SolverStringImplicit.lanes = False)")
     args = parser.parse_args()
     global LANES
-    LANES = args.lanes
+    LANES = not args.no_lanes
     clock = time.perf_counter if args.clock == "wall" else time.thread_time
     print(f"# String benchmark — {platform.processor() or platform.machine()}, Python {platform.python_version()}, "
           f"Warp {wp.config.version}; dt = {DT * 1e3:g} ms; median of {args.repeats} runs of {args.steps} steps"

@@ -1,6 +1,6 @@
 """Where the time of a string step and of a marionette step goes: the cost of each pass.
 
-Run:  python benchmarks/profile_steps.py [--repeats 9] [--puppet-hz 30 1000] [--live-ticks 3000] [--lanes]
+Run:  python benchmarks/profile_steps.py [--repeats 9] [--puppet-hz 30 1000] [--live-ticks 3000] [--no-lanes]
 
 Each pass (a solver method, as ``SolverStringImplicit.step`` and ``SolverMarionette.step`` call
 it) is captured ``R`` times in a row as one CPU graph and replayed ``--repeats`` times; the
@@ -15,7 +15,8 @@ plain step (``step``: one launch; ``kernels/string_step_lanes``, four strings pe
 with ``lanes = False`` the scalar ``kernels/string_step``; before issue 19, the five passes). Marionette: the ``hanging`` scene at each ``--puppet-hz``, per puppet step and
 per simulated millisecond: the passes of ``SolverMarionette.step``. Live: the wall and CPU
 time of one live tick (``LiveMarionette.advance``, as the servo loop's physics calls it).
-``--lanes``: the marionette and live steps with the laned string kernel (``SolverStringImplicit.lanes``).
+The marionette and live steps run the default laned string kernel (``SolverStringImplicit.lanes``);
+``--no-lanes``: the scalar one instead.
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ def profile_strings(repeats: int) -> None:
         print(f"| {name} | {seconds * 1e6:.2f} | {seconds * 1e9 / model.particle_count:.1f} |")
 
 
-LANES = False  # --lanes: True (the marionette and live steps)
+LANES = True  # --no-lanes: False (the marionette and live steps)
 
 
 def profile_marionette(puppet_hz: float, repeats: int) -> None:
@@ -156,10 +157,10 @@ def main() -> None:
     p.add_argument("--puppet-hz", type=float, nargs="*", default=[30.0, 1000.0],
                    help="puppet rates of the marionette profiles (none: skip them)")
     p.add_argument("--live-ticks", type=int, default=3000, help="ticks of the live-tick timing (0: skip)")
-    p.add_argument("--lanes", action="store_true", help="marionette and live: the laned string kernel")
+    p.add_argument("--no-lanes", action="store_true", help="marionette and live: the scalar string kernel")
     args = p.parse_args()
     global LANES
-    LANES = args.lanes
+    LANES = not args.no_lanes
     print(f"# Step profile — Warp {wp.config.version}, CPU (one thread); marionette string lanes "
           f"{'on' if LANES else 'off'}\n")
     profile_strings(args.repeats)

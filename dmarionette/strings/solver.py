@@ -14,7 +14,7 @@ A step with the printed spring launches them as one kernel instead,
 functions in the same order, so the same numbers bit for bit; about 1.2x faster,
 ``docs/performance.md``); on a tape it also keeps its pivot inverses. A plain float64 step on
 the CPU can run it with four strings per thread in SIMD lanes instead (``kernels/string_step_lanes``,
-issue 19: the same numbers bit for bit; :attr:`SolverStringImplicit.lanes`, off by default). The
+issue 19: the same numbers bit for bit; :attr:`SolverStringImplicit.lanes`, on by default). The
 tension-only springs launch the five passes. A step on a tape runs off the tape and records the hand-written adjoint
 of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``; issue 13: backward /
 forward of a marionette gradient 4.3-5.1 -> about 3); with ``hand_adjoint = False`` it records
@@ -134,6 +134,7 @@ class SolverStringImplicit:
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
+        self.lanes = self._lanes_supported  # on wherever the laned kernel applies (issue 19)
 
     def new_workspace(self, taped: bool = True) -> StringWorkspace:
         """A workspace of one step's own (``taped``: with gradients where the five passes are
@@ -217,10 +218,10 @@ class SolverStringImplicit:
     @property
     def lanes(self) -> bool:
         """Plain steps in SIMD lanes (``kernels/string_step_lanes``: the same numbers as the scalar
-        one-launch kernel, bit for bit, about 2x faster for 6 x 50). **Off by default** for now:
-        every speed figure in the README was measured with the scalar kernel, and turning the
-        lanes on by default comes with measuring them again (issue 19). Setting it builds the
-        kernel; printed springs, float64 and a CPU device only (``ValueError`` otherwise)."""
+        one-launch kernel, bit for bit, about 2x faster for 6 x 50). **On by default** wherever it
+        applies: printed springs, float64 and a CPU device; elsewhere off, and setting it on raises
+        ``ValueError``. ``False`` runs the scalar kernel (the benchmarks' comparison). Setting it on
+        builds the kernel and its group table."""
         return self._lanes
 
     @lanes.setter

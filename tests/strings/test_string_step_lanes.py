@@ -84,8 +84,8 @@ def test_lanes_equal_the_scalar_step(effects):
     model = _model(effects)
     assert model.string_count % LANES != 0
     lanes, scalar = SolverStringImplicit(model), SolverStringImplicit(model)
-    assert not scalar.lanes  # off by default
-    lanes.lanes = True
+    assert lanes.lanes  # on by default (float64, CPU, printed springs)
+    scalar.lanes = False
     a, b = model.state(), model.state()
     c, d = model.state(), model.state()
     dt = 1e-3
@@ -109,7 +109,10 @@ def test_lanes_equal_the_scalar_step(effects):
 
 def test_lanes_are_refused_where_they_do_not_apply():
     solver = SolverStringImplicit(_model(StringEffects()))
-    solver.lanes = True  # float64, CPU, printed springs
+    assert solver.lanes  # float64, CPU, printed springs: on by default
+    solver.lanes = False
+    assert not solver.lanes
+    solver.lanes = True
     assert solver.lanes
     for model in (make_model([spec()], precision="float32"),
                   make_model([spec()], effects=StringEffects(tension_only=True), precision="float64")):
@@ -126,8 +129,8 @@ def test_marionette_taped_step_ends_where_the_laned_plain_step_does():
     model = MarionetteModel(scene, optimization_level=0, requires_grad=True)
     laned_model = MarionetteModel(scene, optimization_level=0)
     scalar_model = MarionetteModel(scene, optimization_level=0)
-    assert not model.string_solver.lanes and not scalar_model.string_solver.lanes  # off by default
-    laned_model.string_solver.lanes = True
+    assert model.string_solver.lanes and laned_model.string_solver.lanes  # on by default
+    scalar_model.string_solver.lanes = False
     solvers = [SolverMarionette(m) for m in (laned_model, scalar_model)]
     taped_solver = SolverMarionette(model)
     steps = round(0.3 / model.puppet_dt)
