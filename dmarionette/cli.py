@@ -195,9 +195,11 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse.Action]:
                                        "OUT/accuracy.csv, accuracy.png (Pareto plot) and accuracy.md.")
     bench.add_argument("what", choices=["accuracy"], help="the benchmark to run")
     bench.add_argument("--grid", choices=["full", "reduced"], default="full",
-                       help="full sweep (about 10 minutes) or the reduced grid CI runs")
+                       help="full sweep (about 30 s on one core once its kernels are compiled; the first "
+                            "run compiles them, minutes) or the reduced grid CI runs")
     bench.add_argument("--seconds", type=number(0.1, 60.0, unit="s"), default=3.0,
-                       help="length of the scripted motion [s] (0.1 to 60; the full grid takes ~10 min at 3 s)")
+                       help="length of the scripted motion [s] (0.1 to 60; the full grid takes about 30 s at 3 s, "
+                            "kernels compiled)")
     bench.add_argument("--repeats", type=integer(1, 100), default=3, help="timed runs per setting (median)")
     bench.add_argument("--out", type=Path, default=Path("out") / "bench", help="output folder")
     bench.add_argument("--fast-compile", action="store_true",
