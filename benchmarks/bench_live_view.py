@@ -8,7 +8,7 @@ hits all of them alike:
 * ``none``: no view (``dmarionette live --view none``);
 * ``server``: the browser view's server running and fed (``--view browser``), no browser connected;
 * ``client``: the same with one websocket client connected that receives and decodes every
-  frame as a browser would (tests/live_view_client.py, in this process, so its decoding counts
+  frame as a browser would (tests/support/live_view_client.py, in this process, so its decoding counts
   in ``cpu_percent``; a real browser renders in its own process, which on a 2-core machine
   also takes CPU from the loop: not measured here).
 
@@ -42,8 +42,8 @@ from dmarionette.live.view import LiveViewGeometry, LiveViewPublisher, SnapshotB
 from dmarionette.live.view_viser import LiveViewServer  # noqa: E402
 from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from live_view_client import ViewClient  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.support
+from tests.support.live_view_client import ViewClient  # noqa: E402
 
 
 def run_mode(model, mode: str, seconds: float, rate: float) -> dict:

@@ -16,7 +16,9 @@ with ``lanes = False`` the scalar ``kernels/string_step``; before issue 19, the 
 per simulated millisecond: the passes of ``SolverMarionette.step``. Live: the wall and CPU
 time of one live tick (``LiveMarionette.advance``, as the servo loop's physics calls it).
 The marionette and live steps run the default laned string kernel (``SolverStringImplicit.lanes``);
-``--no-lanes``: the scalar one instead.
+``--no-lanes``: the scalar one instead. Per puppet rate, also the puppet step's own passes, and the
+wall time of ``MarionetteRollout.run`` against its captured chunks replayed alone (the host work
+between replays).
 """
 
 from __future__ import annotations
@@ -116,6 +118,17 @@ def profile_marionette(puppet_hz: float, repeats: int) -> None:
         (f"{n} x eval_bar_feedback", lambda: [solver.eval_bar_feedback(b.strings, control, b, j) for j in range(n)]),
         ("end_step (anchors + the puppet step)", lambda: solver.end_step(a, b)),
     ]
+    # The puppet step's own passes (SolverArticulation.step), on the workspace the step just used.
+    ps, pw, pc = model.puppet_solver, ws.puppet_workspace, ws.puppet_control
+    h, hi = ps.step_sizes(model.puppet_dt)
+    rows += [
+        ("  puppet step: eval_kinematics", lambda: ps.eval_kinematics(a.puppet, pw)),
+        ("  puppet step: eval_external_forces", lambda: ps.eval_external_forces(pw, pc)),
+        ("  puppet step: eval_point_springs", lambda: ps.eval_point_springs(pw, pc, hi)),
+        ("  puppet step: eval_contacts (ground)", lambda: ps.eval_contacts(pw, hi)),
+        ("  puppet step: solve_dynamics", lambda: ps.solve_dynamics(a.puppet, b.puppet, pc, pw, h, hi)),
+        ("  puppet step: integrate", lambda: ps.integrate(a.puppet, b.puppet, h)),
+    ]
     print(f"\n## Marionette 'hanging', strings {scene.string_hz:g} Hz, puppet {puppet_hz:g} Hz "
           f"(n = {n}), thread CPU time (min of {repeats})\n")
     print("| pass | µs per puppet step | µs per simulated ms |")
@@ -123,6 +136,37 @@ def profile_marionette(puppet_hz: float, repeats: int) -> None:
     for name, fn in rows:
         seconds = cost(fn, max(1, 300 // n), repeats)
         print(f"| {name} | {seconds * 1e6:.1f} | {seconds / model.puppet_dt * 1e3:.2f} |")
+
+
+def profile_rollout(puppet_hz: float, seconds: float = 5.0) -> None:
+    """``MarionetteRollout.run`` against replaying its captured chunks alone: the host work between
+    replays (bar inputs in, outputs out), wall time per simulated ms, medians of 5."""
+    import statistics
+
+    from dmarionette.marionette.rollout import MarionetteRollout
+
+    scene = dataclasses.replace(dm.load_scene("hanging"), puppet_hz=puppet_hz)
+    model = MarionetteModel(scene, optimization_level=2)
+    model.string_solver.lanes = LANES
+    chunk = max(1, round(1.0 / (30.0 * model.puppet_dt)))  # one picture frame, as simulate does
+    rollout = MarionetteRollout(SolverMarionette(model), chunk)
+    chunks = max(1, round(seconds / (chunk * model.puppet_dt)))
+    state = model.state()
+    rollout.run(state, 0.0, 1)  # capture
+    ms = chunks * chunk * model.puppet_dt * 1e3
+    replay, run = [], []
+    for _ in range(5):
+        start = time.perf_counter()
+        for _ in range(chunks):
+            rollout._chunk.run()
+        replay.append((time.perf_counter() - start) / ms)
+        start = time.perf_counter()
+        rollout.run(state, 0.0, chunks)
+        run.append((time.perf_counter() - start) / ms)
+    print(f"\n## Rollout 'hanging', puppet {puppet_hz:g} Hz ({chunk} puppet steps per chunk), wall µs per "
+          f"simulated ms, median of 5\n")
+    print(f"chunk replays alone {statistics.median(replay) * 1e6:.1f}, MarionetteRollout.run "
+          f"{statistics.median(run) * 1e6:.1f}")
 
 
 def profile_live_tick(ticks: int) -> None:
@@ -166,6 +210,7 @@ def main() -> None:
     profile_strings(args.repeats)
     for hz in args.puppet_hz:
         profile_marionette(hz, args.repeats)
+        profile_rollout(hz)
     if args.live_ticks:
         profile_live_tick(args.live_ticks)
 

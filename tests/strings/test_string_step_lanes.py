@@ -1,8 +1,8 @@
 """The plain string step in SIMD lanes (``kernels/string_step_lanes``: four strings of equal
 particle count per thread) computes the scalar one-launch step's numbers, bit for bit.
 
-``SolverStringImplicit`` runs it for a plain float64 step on the CPU with ``lanes = True`` (off by
-default until the README's speed figures are re-measured with it); otherwise the scalar kernel
+``SolverStringImplicit`` runs it for a plain float64 step on the CPU with printed springs
+(``lanes``, on by default there); otherwise, or with ``lanes = False``, the scalar kernel
 (``kernels/string_step``). Checked on the hard
 case of ``test_string_step_schedules`` (tops swung fast and lowered onto the ground, ties moving,
 chains of 2 to 50 particles), with several strings per particle count and constants varied
