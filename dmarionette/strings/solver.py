@@ -17,8 +17,10 @@ the CPU can run it with four strings per thread in SIMD lanes instead (``kernels
 issue 19: the same numbers bit for bit; :attr:`SolverStringImplicit.lanes`, on by default). The
 tension-only springs launch the five passes. A step on a tape runs off the tape and records the hand-written adjoint
 of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``; issue 13: backward /
-forward of a marionette gradient 4.3-5.1 -> about 3); with ``hand_adjoint = False`` it records
-the five passes instead (Warp's adjoints: the reference its tests compare with).
+forward of a marionette gradient 4.3-5.1 -> about 3); with lanes, the laned step keeping its pivot
+inverses and the laned adjoint (``kernels/string_step_adjoint_lanes``: the same gradients bit for
+bit); with ``hand_adjoint = False`` it records the five passes instead (Warp's adjoints: the
+reference its tests compare with).
 
 A step recorded on a tape is asked for explicitly (``step(..., tape=tape)``): it writes its
 intermediates into a workspace of its own (given, or allocated by the step), read by its
@@ -348,11 +350,7 @@ class SolverStringImplicit:
             self._record_step_adjoint_lanes(state_in, state_out, control, h, ws, tape)
             return
         forced = self._none_forced if forced is None else forced
-        params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
-                  m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
-                  m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
-        inputs = [state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd]
-        outputs = [state_out.particle_q, state_out.particle_qd, state_out.tie_force]
+        params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
 
         def backward():
             wp.launch(
@@ -372,16 +370,23 @@ class SolverStringImplicit:
 
         tape.record_func(backward, arrays=[a for a in outputs + inputs + params if a.grad is not None])
 
-    def _record_step_adjoint_lanes(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape) -> None:
-        """:meth:`record_step_adjoint` of the laned step (``lanes=True``): the same inputs and
-        gradients, ``ws.lane_inverse`` and ``ws.lane_c`` for the scalar workspace's arrays."""
+    def _adjoint_arrays(self, state_in, state_out, control) -> tuple[list, list, list]:
+        """The step adjoints' differentiable arrays: the constants, the inputs and the outputs
+        (in the adjoint kernels' order of their gradients)."""
         m = self.model
-        groups, (_lane_c, _lane_d, lane_bar) = self._lane_plan
         params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
                   m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
                   m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
         inputs = [state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd]
         outputs = [state_out.particle_q, state_out.particle_qd, state_out.tie_force]
+        return params, inputs, outputs
+
+    def _record_step_adjoint_lanes(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape) -> None:
+        """:meth:`record_step_adjoint` of the laned step (``lanes=True``): the same inputs and
+        gradients, ``ws.lane_inverse`` and ``ws.lane_c`` for the scalar workspace's arrays."""
+        m = self.model
+        groups, (_lane_c, _lane_d, lane_bar) = self._lane_plan
+        params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
 
         def backward():
             wp.launch(
