@@ -15,10 +15,13 @@ so no lane ``fma`` is needed here: Warp's ``dot`` and ``mat33 * vec3`` are not c
 It reads what the laned keep step (``string_step_lanes.integrate_string_lanes_kernel(..., keep=True)``)
 stored: the pivot inverses and ``C'`` in the laned layout (``lane_inverse``, ``lane_c``: group
 ``g``'s row ``j`` at ``group_base[g] + j``), and ``particle_dv`` per particle. Its forward
-substitution goes to laned scratch (``lane_bar``). Padding lanes (a group of fewer than ``K``
-strings repeats one of its strings) compute and write nothing: every gradient is read, added to
-and written back for the real lanes only, in the scalar adjoint's order per address, and each
-string's particles and constants belong to one lane of one thread. Float64, CPU, printed springs
+substitution goes to laned scratch (``lane_bar``, and its terms of the particles' gradients
+``lane_x_bar``, ``lane_r``). Padding lanes (a group of fewer than ``K`` strings repeats one of its
+strings) compute and write nothing: every gradient is read, added to and written back for the real
+lanes only, and each string's particles and constants belong to one lane of one thread. A
+particle's gradient gets the same terms in the same order as in the scalar adjoint, but summed in
+registers across the rows and written once (the scalar adjoint reads and writes it at each of its
+up to five terms: in lanes each of those is a gather and a scatter). Float64, CPU, printed springs
 only (tension-only springs keep the scalar adjoint, as they keep the five passes forward).
 """
 
@@ -145,6 +148,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         first: bool, is_last: bool, starts: ivec, j: int, row: int, real: int,
         particle_q: wp.array(dtype=vec3), particle_qd: wp.array(dtype=vec3), particle_mass: wp.array(dtype=f64),
         particle_dv: wp.array(dtype=vec3), lane_c: wp.array(dtype=lmat), lane_bar: wp.array(dtype=lvec),
+        lane_x_bar: wp.array(dtype=lvec), lane_r: wp.array(dtype=lvec),
         particle_q_grad: wp.array(dtype=vec3), particle_qd_grad: wp.array(dtype=vec3),
         particle_mass_grad: wp.array(dtype=f64),
         stiffness: lane, rest_length: lane, friction: lane, air_drag: lane, ground_stiffness: lane,
@@ -152,9 +156,16 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         tie_v: lvec, gravity: vec3, ground_height: f64, dt: f64, top_dx: lvec, top_dv: lvec,
         x: lvec, v: lvec, v_next: lvec, lam_next: lvec, dv_next: lvec, u_n: lvec, l_n: lane, ratio_n: lane,
         alpha_n: lane, beta_n: lane, f_bar_n: lvec, uu_n: lane, tr_n: lane, sym_n: lvec, acc: lacc,
+        q_pend: lvec, qd_pend: lvec, qd_carry: lvec,
     ):
         """``compute_row_adjoint`` for row ``j`` of the group's strings (``first``: ``j == 1``),
-        its ``C'`` and ``lambda`` at ``row`` of the laned scratch. Returns what row ``j - 1`` carries."""
+        its ``C'`` and ``lambda`` at ``row`` of the laned scratch. Returns what row ``j - 1`` carries.
+
+        The particles' gradients are summed in registers, in the scalar adjoint's order per
+        particle, and written once each (the scalar adjoint reads and writes them at every term):
+        ``q_pend``, ``qd_pend``: particle ``j + 1``'s sums so far (written here, with the segment
+        below's terms, its last); ``qd_carry``: particle ``j``'s velocity gradient so far (its
+        forward-substitution term, row ``j + 1``'s ``v_prev_bar``)."""
         zero = lane(f64(0.0))
         zv = lvec()
         hl = lane(dt)
@@ -291,11 +302,16 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             stiffness_bar = ladd(stiffness_bar, k_s_bar)
             rest_bar = ladd(rest_bar, d_bar)
             x_bar = vadd(x_bar, e_bar)
-            scatter_sub3(particle_q_grad, starts, j + 1, real, e_bar)
-            scatter_add3(particle_qd_grad, starts, j + 1, real, v_next_bar)
-        scatter_add3(particle_q_grad, starts, j, real, x_bar)
-        scatter_add3(particle_qd_grad, starts, j, real, v_bar)
-        scatter_add3(particle_qd_grad, starts, j - 1, real, v_prev_bar)
+            scatter3(particle_q_grad, starts, j + 1, real, vsub(q_pend, e_bar))  # particle j + 1 is complete
+            scatter3(particle_qd_grad, starts, j + 1, real, vadd(qd_pend, v_next_bar))
+        # Particle j: its gradient before this step's adjoint, the forward substitution's term, this row's.
+        q_pend_out = vadd(vadd(gather_particle3(particle_q_grad, starts, j), lane_x_bar[row]), x_bar)
+        qd_pend_out = vadd(qd_carry, v_bar)
+        # Particle j - 1 (the top has no forward-substitution term).
+        qd_carry_out = gather_particle3(particle_qd_grad, starts, j - 1)
+        if not first:
+            qd_carry_out = vadd(qd_carry_out, lane_r[row - 1])
+        qd_carry_out = vadd(qd_carry_out, v_prev_bar)
         scatter_add(particle_mass_grad, starts, j, real, mass_bar)
         acc_out = lacc()
         acc_out[0] = stiffness_bar
@@ -314,7 +330,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             acc_out[18 + i] = top_dv_bar[i]
         # Row j - 1 is next: segment j - 1 becomes the one below.
         return (x_prev, v_prev, v, lam, dv, u_p, l_p, ratio_p, alpha_p, beta_p, -force_row_bar, uu_p, tr_p, sym_p,
-                acc_out)
+                acc_out, q_pend_out, qd_pend_out, qd_carry_out)
 
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_lanes_adjoint(
@@ -349,8 +365,11 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         tie_q: wp.array(dtype=vec3),
         tie_qd: wp.array(dtype=vec3),
         dt: f64,
-        # State out (laned scratch: the solve's forward substitution):
+        # State out (laned scratch: the solve's forward substitution, and the first terms of the
+        # particles' gradients, added in step 3):
         lane_bar: wp.array(dtype=lvec),
+        lane_x_bar: wp.array(dtype=lvec),
+        lane_r: wp.array(dtype=lvec),
         # Adjoint in and out (read, then consumed: zeroed):
         particle_q_out_grad: wp.array(dtype=vec3),
         particle_qd_out_grad: wp.array(dtype=vec3),
@@ -433,8 +452,8 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
                 x_bar = vadd(x_bar, lscale(tie_stiffness, force_bar))
                 v_bar = vadd(v_bar, lscale(tie_damping, force_bar))
             r = vadd(v_bar, lscale(hl, x_bar))  # dv_bar: x1 = x0 + h (v0 + dv)
-            scatter_add3(particle_q_grad, starts, j, real, x_bar)
-            scatter_add3(particle_qd_grad, starts, j, real, r)
+            lane_x_bar[base + j] = x_bar  # the particle's first gradient terms, added in step 3
+            lane_r[base + j] = r
             if j > 1:
                 u, _l, _ratio, alpha, beta = compute_lane_spring_parts(x_prev, x, stiffness, rest_length)
                 r = vsub(r, vadd(lscale(lmul(h2, lmul(alpha, ldot(u, y_prev))), u),
@@ -460,30 +479,34 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         uu_n = zero
         tr_n = zero
         sym_n = zv
-        x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
-            compute_lane_row_adjoint(
-                last == 1, True, starts, last, base + last, real, particle_q, particle_qd, particle_mass,
-                particle_dv, lane_c, lane_bar, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
+        q_pend = zv  # (no particle below the last row)
+        qd_pend = zv
+        qd_carry = vadd(gather_particle3(particle_qd_grad, starts, last), lane_r[base + last])
+        (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend,
+         qd_pend, qd_carry) = compute_lane_row_adjoint(
+            last == 1, True, starts, last, base + last, real, particle_q, particle_qd, particle_mass, particle_dv,
+            lane_c, lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
+            rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
+            tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next,
+            u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend, qd_carry)
+        for i in range(last - 2):
+            (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
+             q_pend, qd_pend, qd_carry) = compute_lane_row_adjoint(
+                False, False, starts, last - 1 - i, base + last - 1 - i, real, particle_q, particle_qd, particle_mass,
+                particle_dv, lane_c, lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad,
+                particle_mass_grad, stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption,
+                ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv,
+                x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
+                q_pend, qd_pend, qd_carry)
+        if last > 1:
+            (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
+             q_pend, qd_pend, qd_carry) = compute_lane_row_adjoint(
+                True, False, starts, 1, base + 1, real, particle_q, particle_qd, particle_mass, particle_dv, lane_c,
+                lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
                 rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
                 tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
-                dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
-        for i in range(last - 2):
-            x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
-                compute_lane_row_adjoint(
-                    False, False, starts, last - 1 - i, base + last - 1 - i, real, particle_q, particle_qd,
-                    particle_mass, particle_dv, lane_c, lane_bar, particle_q_grad, particle_qd_grad,
-                    particle_mass_grad, stiffness, rest_length, friction, air_drag, ground_stiffness,
-                    ground_absorption, ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity,
-                    ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n,
-                    beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
-        if last > 1:
-            x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
-                compute_lane_row_adjoint(
-                    True, False, starts, 1, base + 1, real, particle_q, particle_qd, particle_mass, particle_dv,
-                    lane_c, lane_bar, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length,
-                    friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
-                    tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
-                    dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+                dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend,
+                qd_carry)
         stiffness_bar = acc[0]
         rest_bar = acc[1]
         friction_bar = acc[2]
@@ -503,10 +526,11 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         stiffness_bar = ladd(stiffness_bar, k_s_bar)
         rest_bar = ladd(rest_bar, d_bar)
         scatter_add3(particle_q_grad, starts, 0, real, e_bar)
-        scatter_sub3(particle_q_grad, starts, 1, real, e_bar)
+        scatter3(particle_q_grad, starts, 1, real, vsub(q_pend, e_bar))  # particle 1 is complete
+        scatter3(particle_qd_grad, starts, 1, real, qd_pend)
         # top_dx = top - x0_start, top_dv = top_dx / h - v0_start.
         top_dx_bar = vadd(top_dx_bar, vdiv(top_dv_bar, hl))
-        scatter_sub3(particle_qd_grad, starts, 0, real, top_dv_bar)
+        scatter3(particle_qd_grad, starts, 0, real, vsub(qd_carry, top_dv_bar))
         top_bar = vadd(top_bar, top_dx_bar)
         scatter_sub3(particle_q_grad, starts, 0, real, top_dx_bar)
 

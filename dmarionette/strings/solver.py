@@ -266,7 +266,7 @@ class SolverStringImplicit:
         m = self.model
         if self._integrate_lanes is None:
             raise ValueError("the laned string step needs printed springs, float64 and a CPU device")
-        groups, (lane_c, lane_d, _lane_bar) = self._lane_plan
+        groups, (lane_c, lane_d, *_adjoint_scratch) = self._lane_plan
         lane_inverse = None
         if keep:
             if ws.lane_c is None:
@@ -294,15 +294,15 @@ class SolverStringImplicit:
     def _new_lane_plan(self) -> tuple[list[wp.array], list[wp.array]]:
         """The laned step's group table (``string_step_lanes.lane_groups``: string indices, real
         lanes, scratch offsets per group) and its laned scratch: ``C'``, ``d'`` of each group's rows
-        (a plain step's), and the laned adjoint's forward substitution (each read only within
-        its launch)."""
+        (a plain step's), and the laned adjoint's forward substitution and its terms of the
+        particles' gradients (each read only within its launch)."""
         m = self.model
         group_string, group_real, group_base, rows = lane_groups(m.string_start.numpy(), LANES)
         _lane, ivec, lvec, lmat = lane_types(LANES)
         with wp.ScopedDevice(m.device):
             return ([wp.array(group_string, dtype=ivec), wp.array(group_real, dtype=wp.int32),
                      wp.array(group_base, dtype=wp.int32)],
-                    [wp.zeros(rows, dtype=lmat), wp.zeros(rows, dtype=lvec), wp.zeros(rows, dtype=lvec)])
+                    [wp.zeros(rows, dtype=lmat), *[wp.zeros(rows, dtype=lvec) for _ in range(4)]])
 
     def _add_lane_keep(self, ws: StringWorkspace) -> None:
         """``ws.lane_inverse``, ``ws.lane_c``: a taped laned step's own, as many rows as the plan's."""
@@ -385,7 +385,7 @@ class SolverStringImplicit:
         """:meth:`record_step_adjoint` of the laned step (``lanes=True``): the same inputs and
         gradients, ``ws.lane_inverse`` and ``ws.lane_c`` for the scalar workspace's arrays."""
         m = self.model
-        groups, (_lane_c, _lane_d, lane_bar) = self._lane_plan
+        groups, (_lane_c, _lane_d, *adjoint_scratch) = self._lane_plan
         params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
 
         def backward():
@@ -398,7 +398,7 @@ class SolverStringImplicit:
                     ws.lane_inverse, ws.lane_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
                     control.top_q, control.tie_q, control.tie_qd, h,
                 ],
-                outputs=[lane_bar, *[self._grad(a) for a in outputs], *[self._grad(a) for a in inputs + params]],
+                outputs=[*adjoint_scratch, *[self._grad(a) for a in outputs], *[self._grad(a) for a in inputs + params]],
                 device=m.device,
                 record_tape=False,
             )
