@@ -146,7 +146,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     @wp.func
     def compute_lane_row_adjoint(
         first: bool, is_last: bool, starts: ivec, j: int, row: int, real: int,
-        particle_q: wp.array(dtype=vec3), particle_qd: wp.array(dtype=vec3), particle_mass: wp.array(dtype=f64),
+        particle_q: wp.array(dtype=vec3), particle_qd: wp.array(dtype=vec3),
         particle_dv: wp.array(dtype=vec3), lane_c: wp.array(dtype=lmat), lane_bar: wp.array(dtype=lvec),
         lane_x_bar: wp.array(dtype=lvec), lane_r: wp.array(dtype=lvec),
         particle_q_grad: wp.array(dtype=vec3), particle_qd_grad: wp.array(dtype=vec3),
@@ -190,7 +190,6 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         if not is_last:
             lam = vsub(lam, lmul_vec(lane_c[row], lam_next))
         dv = gather_particle3(particle_dv, starts, j)
-        mass = gather_particle(particle_mass, starts, j)
         rhs_bar = lam
         a_xz_bar = lneg(ladd(lmul(lam[0], dv[0]), lmul(lam[2], dv[2])))
         a_y_bar = lmul(lneg(lam[1]), dv[1])
@@ -484,7 +483,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         qd_carry = vadd(gather_particle3(particle_qd_grad, starts, last), lane_r[base + last])
         (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend,
          qd_pend, qd_carry) = compute_lane_row_adjoint(
-            last == 1, True, starts, last, base + last, real, particle_q, particle_qd, particle_mass, particle_dv,
+            last == 1, True, starts, last, base + last, real, particle_q, particle_qd, particle_dv,
             lane_c, lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
             rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
             tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next,
@@ -492,7 +491,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         for i in range(last - 2):
             (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
              q_pend, qd_pend, qd_carry) = compute_lane_row_adjoint(
-                False, False, starts, last - 1 - i, base + last - 1 - i, real, particle_q, particle_qd, particle_mass,
+                False, False, starts, last - 1 - i, base + last - 1 - i, real, particle_q, particle_qd,
                 particle_dv, lane_c, lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad,
                 particle_mass_grad, stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption,
                 ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv,
@@ -501,7 +500,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         if last > 1:
             (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
              q_pend, qd_pend, qd_carry) = compute_lane_row_adjoint(
-                True, False, starts, 1, base + 1, real, particle_q, particle_qd, particle_mass, particle_dv, lane_c,
+                True, False, starts, 1, base + 1, real, particle_q, particle_qd, particle_dv, lane_c,
                 lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
                 rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
                 tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,

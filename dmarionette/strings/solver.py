@@ -398,7 +398,8 @@ class SolverStringImplicit:
                     ws.lane_inverse, ws.lane_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
                     control.top_q, control.tie_q, control.tie_qd, h,
                 ],
-                outputs=[*adjoint_scratch, *[self._grad(a) for a in outputs], *[self._grad(a) for a in inputs + params]],
+                outputs=[*adjoint_scratch, *[self._grad(a) for a in outputs],
+                         *[self._grad(a) for a in inputs + params]],
                 device=m.device,
                 record_tape=False,
             )
