@@ -1,6 +1,6 @@
 """Cost of checkpointed marionette gradients (``MarionetteGradient``): time and memory.
 
-Run:  python benchmarks/bench_gradients.py [--seconds 1 4 16] [--memory-seconds 60] [--repeats 3]
+Run:  python benchmarks/bench_gradients.py [--seconds 1 4 16] [--memory-seconds 60] [--repeats 3] [--no-lanes]
 
 The scene is ``hanging`` (6 strings x 50 particles, 12 bodies, ground contact on and
 smoothed, joint limits and feedback on) at the paper's rates (strings 1 kHz, puppet 30 Hz),
@@ -20,6 +20,9 @@ serial on the CPU). Reported per length, medians over ``--repeats``:
   segment's arrays and gradients, the checkpoints, the host outputs), and the process's
   peak resident set (``ru_maxrss``) above its size after the model was built and the
   kernels loaded (a coarser number: it includes Python objects of the tape and the graphs).
+
+The string steps run in SIMD lanes (``SolverStringImplicit.lanes``, the default: the plain step
+and the taped one with its laned adjoint); ``--no-lanes``: the scalar kernels.
 
 The first run compiles the puppet kernels at -O2 (about a minute; cached afterwards).
 """
@@ -59,10 +62,11 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | None = None) -> dict:
+def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | None = None, lanes: bool = True) -> dict:
     scene = dm.load_scene("hanging")
     scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
     model = MarionetteModel(scene, requires_grad=True)
+    model.string_solver.lanes = lanes
     steps = round(seconds / model.puppet_dt)
     engine = MarionetteGradient(model, steps, capture=capture, checkpoint_steps=checkpoint_steps)
     inputs = engine.scene_inputs()
@@ -83,8 +87,13 @@ def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | Non
             "outputs_mib": mem["outputs"] / MIB, "rss_above_model_mib": _peak_mib() - base}
 
 
+LANES = True  # --no-lanes: False
+
+
 def _run(seconds: float, repeats: int, capture: bool = True, checkpoint_steps: int | None = None) -> dict:
     cmd = [sys.executable, __file__, "--one", str(seconds), "--repeats", str(repeats)]
+    if not LANES:
+        cmd.append("--no-lanes")
     if not capture:
         cmd.append("--no-capture")
     if checkpoint_steps:
@@ -102,13 +111,16 @@ def main() -> None:
     p.add_argument("--no-capture", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--checkpoint-steps", type=int, nargs="*", default=[],
                    help="also run every length with these segment lengths C (besides the default sqrt(P))")
+    p.add_argument("--no-lanes", action="store_true", help="the scalar string kernels (plain and taped)")
     args = p.parse_args()
+    global LANES
+    LANES = not args.no_lanes
     if args.one is not None:
         c = args.checkpoint_steps[0] if args.checkpoint_steps else None
-        print(json.dumps(one(args.one, args.repeats, not args.no_capture, c)))
+        print(json.dumps(one(args.one, args.repeats, not args.no_capture, c, LANES)))
         return
     print(f"# {platform.processor() or platform.machine()}, warp {wp.__version__}, hanging scene 6 x 50, "
-          "1 kHz / 30 Hz, smoothed contact")
+          f"1 kHz / 30 Hz, smoothed contact, string steps {'in lanes' if LANES else 'scalar (--no-lanes)'}")
     rows = []
     for s in args.seconds:
         rows.append(_run(s, args.repeats))

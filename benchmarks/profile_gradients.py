@@ -1,7 +1,7 @@
 """Where a marionette gradient's backward pass goes (issue 13): the taped re-run against the reverse
 pass, and the string step's hand-written adjoint against its forward.
 
-    .venv/bin/python benchmarks/profile_gradients.py [--seconds 4] [--repeats 3]
+    .venv/bin/python benchmarks/profile_gradients.py [--seconds 4] [--repeats 3] [--no-lanes] [--clock wall|cpu]
 
 Prints, for the ``hanging`` scene (6 x 50 particles, 1 kHz / 30 Hz, smoothed contact):
 
@@ -11,11 +11,18 @@ Prints, for the ``hanging`` scene (6 x 50 particles, 1 kHz / 30 Hz, smoothed con
   of the forward (medians of ``--repeats``);
 - one string step (300 particles) as captured graphs of 100 launches: the plain one-launch
   step, the same step keeping its pivot inverses (a taped step's), and its adjoint
-  (``kernels/string_step_adjoint``), µs per launch (medians of 5 replays);
+  (``kernels/string_step_adjoint``), µs per launch (medians of 5 replays); with lanes (the
+  default, ``SolverStringImplicit.lanes``) also the laned ones (``kernels/string_step_lanes``,
+  ``kernels/string_step_adjoint_lanes``);
 - the reverse pass of one taped puppet step (``SolverMarionette.step`` on a ``wp.Tape``), captured,
   by groups of its launches: all of them, without the string steps' adjoints, without those and
   the bar feedback's, and the feedback's and the puppet's implicit solve's alone (µs, medians of
   5 replays of 20). The arrays of one step stay in the cache here, unlike in the engine's segments.
+
+``--no-lanes``: the string steps of the engine and of the puppet step with the scalar kernels.
+``--clock cpu``: the captured launches (the one string step and the puppet step's reverse) timed by
+the calling thread's CPU time (``time.thread_time``) instead of the wall clock (on a shared machine
+it leaves out the time the thread waited for a core; Warp runs a CPU graph on the calling thread).
 """
 
 from __future__ import annotations
@@ -75,6 +82,9 @@ def _engine_split(model, seconds: float, repeats: int, clock: ChunkClock) -> dic
     return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
 
 
+CLOCK = time.perf_counter  # --clock cpu: time.thread_time
+
+
 def _per_launch(launch, n: int = 100) -> float:
     launch()
     with wp.ScopedCapture(device="cpu") as c:
@@ -82,9 +92,9 @@ def _per_launch(launch, n: int = 100) -> float:
             launch()
     times = []
     for _ in range(5):
-        t0 = time.perf_counter()
+        t0 = CLOCK()
         wp.capture_launch(c.graph)
-        times.append((time.perf_counter() - t0) / n * 1e6)
+        times.append((CLOCK() - t0) / n * 1e6)
     return statistics.median(times)
 
 
@@ -95,13 +105,23 @@ def _string_step(model) -> dict[str, float]:
     h = strings.scalar(model.string_dt)
     tape = wp.Tape()
     solver.record_step_adjoint(state_in, state_out, control, h, ws, tape)
-    return {
+    rows = {
         "plain step": _per_launch(lambda: solver.integrate_string_implicit(state_in, state_out, control, h,
                                                                            solver.workspace)),
         "taped step (keeps its pivots)": _per_launch(
             lambda: solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)),
         "its adjoint": _per_launch(tape.launches[-1]),
     }
+    if solver.lanes:
+        solver.record_step_adjoint(state_in, state_out, control, h, ws, tape, lanes=True)
+        rows.update({
+            "plain step, lanes": _per_launch(lambda: solver.integrate_string_lanes(state_in, state_out, control, h,
+                                                                                  solver.workspace)),
+            "taped step, lanes": _per_launch(
+                lambda: solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)),
+            "its adjoint, lanes": _per_launch(tape.launches[-1]),
+        })
+    return rows
 
 
 def _reverse_by_group(model) -> dict[str, float]:
@@ -137,19 +157,27 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=4.0)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--no-lanes", action="store_true", help="the scalar string kernels (plain and taped)")
+    p.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                   help="the captured launches' clock (cpu: the thread's CPU time)")
     args = p.parse_args()
+    global CLOCK
+    CLOCK = time.thread_time if args.clock == "cpu" else time.perf_counter
     clock = ChunkClock()
     model = MarionetteModel(dm.load_scene("hanging"), requires_grad=True)
+    model.string_solver.lanes = not args.no_lanes
     split = _engine_split(model, args.seconds, args.repeats, clock)
     f = split["forward"]
-    print(f"# hanging 6 x 50, {args.seconds:g} s rollout, medians of {args.repeats}")
+    print(f"# hanging 6 x 50, {args.seconds:g} s rollout, medians of {args.repeats}, string steps "
+          f"{'scalar (--no-lanes)' if args.no_lanes else 'in lanes'}")
     print(f"forward {f:.3f} s; backward {split['backward']:.3f} s = {split['backward'] / f:.2f} forwards:")
     for name in ("rerun", "reverse", "rest"):
         print(f"  {name:8s} {split[name]:.3f} s  {split[name] / f:.2f} forwards")
-    print("# one string step, 300 particles, captured (µs per launch)")
+    print(f"# one string step, 300 particles, captured (µs per launch, {args.clock} clock)")
     for name, us in _string_step(model).items():
         print(f"  {name:32s} {us:.1f}")
-    print(f"# the reverse pass of one taped puppet step ({model.substeps} string steps), captured (µs)")
+    print(f"# the reverse pass of one taped puppet step ({model.substeps} string steps), captured (µs, "
+          f"{args.clock} clock)")
     for name, us in _reverse_by_group(model).items():
         print(f"  {name:32s} {us:.0f}")
 

@@ -24,13 +24,16 @@ substitution reads them on a plain step (the adjoint reads the keep kernel's, in
 workspace), so they go to laned scratch arrays of the group plan (``lane_c``, ``lane_d``: one
 ``9 x K``/``3 x K`` entry per row of a group, group ``g``'s rows from ``group_base[g]``).
 
+Built with ``keep`` (a taped step's), it also stores the pivot inverses (``lane_inverse``), and
+its ``lane_c`` is the taped step's own: the laned hand-written adjoint
+(``string_step_adjoint_lanes``) reads both, as the scalar adjoint reads the scalar keep kernel's.
 Float64 and CPU only (the snippets are Clang C++), printed springs (the tension-only springs'
-active-set solve needs ``A`` stored), no ``keep`` (a taped step runs the scalar keep kernel).
-Off by default (``SolverStringImplicit.lanes``): the README's speed figures were measured with
-the scalar kernel and are to be measured again when it becomes the default.
+active-set solve needs ``A`` stored). On by default where it applies (``SolverStringImplicit.lanes``).
 """
 
 import functools
+
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -71,17 +74,17 @@ def lane_types(lanes: int = LANES):
 
 
 @functools.cache
-def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], lanes: int = LANES):
-    """Builds ``integrate_string_lanes`` (float64, printed springs) for an effect set
-    ``(gravity, internal_friction, air_drag, ground_contact, ground_friction)`` (compile-time
-    switches, ``StringEffects.as_tuple``) and ``lanes`` strings per thread."""
-    GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
+def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
+    """The laned step's ``@wp.func`` helpers for ``lanes`` strings per thread, shared by the laned
+    step (``integrate_string_lanes``) and its adjoint (``string_step_adjoint_lanes``): gathers from
+    and scatters to the simulator's arrays (a scatter writes the real lanes only), the scalar
+    kernel's vector and matrix operations on lanes in its order and rounding, and the printed
+    spring (``compute_lane_spring``)."""
     LANES_ = lanes
     lane, ivec, lvec, lmat = lane_types(lanes)
     vec3 = wp.vec3d
     nat = native_lane_ops(lanes)
-    ladd, lsub, lmul, ldiv, lsqrt, lmax, lselect_less, fma = (
-        nat.add, nat.sub, nat.mul, nat.div, nat.sqrt, nat.max, nat.where_less, nat.fma)
+    ladd, lsub, lmul, ldiv, lsqrt, lmax, fma = nat.add, nat.sub, nat.mul, nat.div, nat.sqrt, nat.max, nat.fma
 
     # --- gathers from and scatters to the simulator's arrays ---------------------------------
 
@@ -256,6 +259,37 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
                     jac[3 * i + j] = lsub(lmul(w[i], u[j]), zero)
         return force, jac
 
+    return SimpleNamespace(
+        gather_string=gather_string, gather_string3=gather_string3, gather_particle=gather_particle,
+        gather_particle3=gather_particle3, scatter3=scatter3, lneg=lneg, vadd=vadd, vsub=vsub, madd=madd, msub=msub,
+        lsum3=lsum3, lscale=lscale, lmatmul=lmatmul, ltmatmul=ltmatmul, lmul_vec=lmul_vec, ltmul_vec=ltmul_vec,
+        linverse=linverse, compute_lane_spring=compute_lane_spring)
+
+
+@functools.cache
+def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], lanes: int = LANES,
+                                  keep: bool = False):
+    """Builds ``integrate_string_lanes`` (float64, printed springs) for an effect set
+    ``(gravity, internal_friction, air_drag, ground_contact, ground_friction)`` (compile-time
+    switches, ``StringEffects.as_tuple``) and ``lanes`` strings per thread.
+
+    ``keep``: also keep the pivot inverses in ``lane_inverse`` (laned, as ``lane_c``), for the
+    laned hand-written adjoint (``string_step_adjoint_lanes``), as ``string_step``'s ``keep``: a
+    compile-time switch, the plain step stores nothing more."""
+    GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
+    KEEP = keep
+    LANES_ = lanes
+    lane, ivec, lvec, lmat = lane_types(lanes)
+    vec3 = wp.vec3d
+    nat = native_lane_ops(lanes)
+    ladd, lsub, lmul, ldiv, lsqrt, lselect_less = nat.add, nat.sub, nat.mul, nat.div, nat.sqrt, nat.where_less
+    f = lane_step_functions(lanes)
+    gather_string, gather_string3, gather_particle, gather_particle3, scatter3 = (
+        f.gather_string, f.gather_string3, f.gather_particle, f.gather_particle3, f.scatter3)
+    lneg, vadd, vsub, madd, msub, lsum3, lscale = f.lneg, f.vadd, f.vsub, f.madd, f.msub, f.lsum3, f.lscale
+    lmatmul, ltmatmul, lmul_vec, ltmul_vec, linverse = f.lmatmul, f.ltmatmul, f.lmul_vec, f.ltmul_vec, f.linverse
+    compute_lane_spring = f.compute_lane_spring
+
     @wp.func
     def compute_lane_system_row(
         j: int, is_last: bool, x: lvec, v: lvec, v_prev: lvec, v_next: lvec, mass: lane,
@@ -357,10 +391,11 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         stiffness: lane, rest_length: lane, top_dx: lvec, top_dv: lvec, friction: lane, air_drag: lane,
         ground_stiffness: lane, ground_absorption: lane, ground_friction: lane, tie_stiffness: lane,
         tie_damping: lane, tie_x: lvec, tie_v: lvec, gravity: vec3, ground_height: f64, dt: f64,
-        lane_c: wp.array(dtype=lmat), lane_d: wp.array(dtype=lvec),
+        lane_inverse: wp.array(dtype=lmat), lane_c: wp.array(dtype=lmat), lane_d: wp.array(dtype=lvec),
     ):
         """``string_step``'s ``compute_forward_row`` for row ``j`` of the group's strings
-        (``first``: ``j == 1``); ``C'_j``, ``d'_j`` to the laned scratch at ``row``."""
+        (``first``: ``j == 1``); ``C'_j``, ``d'_j`` (and with ``keep`` the pivot inverse) to the
+        laned scratch at ``row``."""
         x_next = x
         v_next = lvec()
         f_next = lvec()
@@ -376,6 +411,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
             jj, is_last, x, v, v_prev, v_next, gather_particle(particle_mass, starts, j), f_prev, k_prev, f_next,
             k_next, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
             tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt)
+        inv = lmat()
         c = lmat()
         d = lvec()
         if first:
@@ -386,6 +422,8 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
             inv = linverse(msub(diag, ltmatmul(upper_prev, c_prev)))
             c = lmatmul(inv, upper)
             d = lmul_vec(inv, vsub(rhs, ltmul_vec(upper_prev, d_prev)))
+        if wp.static(KEEP):
+            lane_inverse[row] = inv
         lane_c[row] = c
         lane_d[row] = d
         return c, d, upper, x_next, v_next, v, f_next, k_next
@@ -419,7 +457,8 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         tie_q: wp.array(dtype=vec3),
         tie_qd: wp.array(dtype=vec3),
         dt: f64,
-        # State out (first the laned scratch of C', d'):
+        # State out (first the laned scratch: pivot inverses, only if built with ``keep``, C', d'):
+        lane_inverse: wp.array(dtype=lmat),
         lane_c: wp.array(dtype=lmat),
         lane_d: wp.array(dtype=lvec),
         particle_dv: wp.array(dtype=vec3),
@@ -468,19 +507,19 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
             1, True, last == 1, starts, base + 1, x, gather_particle3(particle_qd, starts, 1), qd0, f_prev, k_prev,
             lmat(), lvec(), lmat(), particle_q, particle_qd, particle_mass, stiffness, rest_length,
             top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
-            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, lane_c, lane_d)
+            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, lane_inverse, lane_c, lane_d)
         for j in range(2, last):
             c, d, upper, x_next, v_next, v, f_next, k_next = compute_lane_forward_row(
                 j, False, False, starts, base + j, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q,
                 particle_qd, particle_mass, stiffness, rest_length, top_dx, top_dv, friction, air_drag,
                 ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping, tie_x, tie_v,
-                gravity, ground_height, dt, lane_c, lane_d)
+                gravity, ground_height, dt, lane_inverse, lane_c, lane_d)
         if last > 1:
             c, d, upper, x_next, v_next, v, f_next, k_next = compute_lane_forward_row(
                 last, False, True, starts, base + last, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q,
                 particle_qd, particle_mass, stiffness, rest_length, top_dx, top_dv, friction, air_drag,
                 ground_stiffness, ground_absorption, ground_friction, tie_stiffness, tie_damping, tie_x, tie_v,
-                gravity, ground_height, dt, lane_c, lane_d)
+                gravity, ground_height, dt, lane_inverse, lane_c, lane_d)
 
         # Back substitution and v1 = v0 + dv, x1 = x0 + h v1, upwards; real lanes written.
         dv = d

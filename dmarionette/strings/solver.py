@@ -17,8 +17,10 @@ the CPU can run it with four strings per thread in SIMD lanes instead (``kernels
 issue 19: the same numbers bit for bit; :attr:`SolverStringImplicit.lanes`, on by default). The
 tension-only springs launch the five passes. A step on a tape runs off the tape and records the hand-written adjoint
 of the whole step (``kernels/string_step_adjoint``, ``tape.record_func``; issue 13: backward /
-forward of a marionette gradient 4.3-5.1 -> about 3); with ``hand_adjoint = False`` it records
-the five passes instead (Warp's adjoints: the reference its tests compare with).
+forward of a marionette gradient 4.3-5.1 -> about 3); with lanes, the laned step keeping its pivot
+inverses and the laned adjoint (``kernels/string_step_adjoint_lanes``: the same gradients bit for
+bit); with ``hand_adjoint = False`` it records the five passes instead (Warp's adjoints: the
+reference its tests compare with).
 
 A step recorded on a tape is asked for explicitly (``step(..., tape=tape)``): it writes its
 intermediates into a workspace of its own (given, or allocated by the step), read by its
@@ -48,6 +50,7 @@ from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_syst
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
 from dmarionette.kernels.string_step_lanes import LANES, integrate_string_lanes_kernel, lane_groups, lane_types
 from dmarionette.kernels.string_step_adjoint import string_step_adjoint_kernel
+from dmarionette.kernels.string_step_adjoint_lanes import string_step_adjoint_lanes_kernel
 from dmarionette.kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
 
@@ -71,6 +74,10 @@ class StringWorkspace:
     scratch_rhs_bar: wp.array
     scratch_inverse: wp.array  # pivot inverses of a recorded solve, read by its adjoint
     active_set: StringWorkspace | None = None  # a taped tension-only step's unrecorded active-set pass
+    # A taped laned step's pivot inverses and C' (laned: a 9 x K block per row of a group), read by
+    # its laned adjoint; set by ``SolverStringImplicit.new_workspace`` (or the step) when lanes are on.
+    lane_inverse: wp.array | None = None
+    lane_c: wp.array | None = None
 
     @classmethod
     def allocate(cls, model: StringModel, requires_grad: bool, active_set: bool = False) -> StringWorkspace:
@@ -130,6 +137,8 @@ class SolverStringImplicit:
         self._lanes_supported = not self._tension_only and model.scalar is wp.float64 and model.device.is_cpu
         self._lanes = False
         self._integrate_lanes = None
+        self._integrate_lanes_keep = None  # a taped step's laned kernel, and its laned adjoint
+        self._integrate_lanes_adjoint = None
         self._lane_plan = None  # (group arrays, laned scratch), built when lanes are turned on
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
@@ -138,10 +147,14 @@ class SolverStringImplicit:
 
     def new_workspace(self, taped: bool = True) -> StringWorkspace:
         """A workspace of one step's own (``taped``: with gradients where the five passes are
-        recorded (not for the hand-written adjoint, which needs none), and for tension-only
-        springs the active-set pass's arrays)."""
-        return StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
-                                        active_set=taped and self._tension_only)
+        recorded (not for the hand-written adjoint, which needs none), for tension-only
+        springs the active-set pass's arrays, and with :attr:`lanes` the laned step's pivot
+        inverses and ``C'``)."""
+        ws = StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
+                                      active_set=taped and self._tension_only)
+        if taped and self.hand_adjoint and self.lanes:
+            self._add_lane_keep(ws)
+        return ws
 
     def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float, *,
              tape: wp.Tape | None = None, workspace: StringWorkspace | None = None) -> None:
@@ -171,6 +184,9 @@ class SolverStringImplicit:
             if self._tension_only:
                 self.step_tension_only_kept(state_in, state_out, control, h, ws)
                 self.record_step_adjoint(state_in, state_out, control, h, ws, tape, ws.active_set.segment_active)
+            elif self.lanes:
+                self.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)  # K strings per thread
+                self.record_step_adjoint(state_in, state_out, control, h, ws, tape, lanes=True)
             else:
                 self.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
                 self.record_step_adjoint(state_in, state_out, control, h, ws, tape)
@@ -217,11 +233,13 @@ class SolverStringImplicit:
 
     @property
     def lanes(self) -> bool:
-        """Plain steps in SIMD lanes (``kernels/string_step_lanes``: the same numbers as the scalar
-        one-launch kernel, bit for bit, about 2x faster for 6 x 50). **On by default** wherever it
-        applies: printed springs, float64 and a CPU device; elsewhere off, and setting it on raises
-        ``ValueError``. ``False`` runs the scalar kernel (the benchmarks' comparison). Setting it on
-        builds the kernel and its group table."""
+        """String steps in SIMD lanes (``kernels/string_step_lanes``: the same numbers as the scalar
+        one-launch kernel, bit for bit, about 2x faster for 6 x 50), plain ones and taped ones (the
+        laned step with ``keep`` and the laned hand-written adjoint,
+        ``kernels/string_step_adjoint_lanes``: the scalar adjoint's gradients, bit for bit).
+        **On by default** wherever it applies: printed springs, float64 and a CPU device; elsewhere
+        off, and setting it on raises ``ValueError``. ``False`` runs the scalar kernels (the
+        benchmarks' comparison). Setting it on builds the kernels and their group table."""
         return self._lanes
 
     @lanes.setter
@@ -230,21 +248,32 @@ class SolverStringImplicit:
             raise ValueError("SolverStringImplicit.lanes: the laned string step needs printed springs, "
                              "float64 and a CPU device")
         if on and self._integrate_lanes is None:
-            self._integrate_lanes = integrate_string_lanes_kernel(self.model.effects.as_tuple(), LANES)
+            effects = self.model.effects.as_tuple()
+            self._integrate_lanes = integrate_string_lanes_kernel(effects, LANES)
+            self._integrate_lanes_keep = integrate_string_lanes_kernel(effects, LANES, keep=True)
+            self._integrate_lanes_adjoint = string_step_adjoint_lanes_kernel(effects, LANES)
             self._lane_plan = self._new_lane_plan()
         self._lanes = bool(on)
 
-    def integrate_string_lanes(self, state_in, state_out, control, h, ws: StringWorkspace) -> None:
-        """:meth:`integrate_string_implicit` (plain) with ``LANES`` strings of equal particle count
-        per thread (``kernels/string_step_lanes``): the same numbers, bit for bit. Writes
-        ``state_out`` and ``ws.particle_dv``; ``C'``, ``d'`` go to laned scratch of its own (read
-        by nobody else), not to ``ws.scratch_c``/``scratch_d``. Never recorded."""
+    def integrate_string_lanes(self, state_in, state_out, control, h, ws: StringWorkspace,
+                               keep: bool = False) -> None:
+        """:meth:`integrate_string_implicit` with ``LANES`` strings of equal particle count per
+        thread (``kernels/string_step_lanes``): the same numbers, bit for bit. Writes ``state_out``
+        and ``ws.particle_dv``; ``C'``, ``d'`` go to laned scratch of its own (read by nobody else),
+        not to ``ws.scratch_c``/``scratch_d``; ``keep`` (a taped step): the pivot inverses and
+        ``C'`` to ``ws.lane_inverse``, ``ws.lane_c`` instead (laned, for the laned adjoint; allocated
+        here if ``ws`` was made with lanes off). Never recorded."""
         m = self.model
         if self._integrate_lanes is None:
             raise ValueError("the laned string step needs printed springs, float64 and a CPU device")
-        groups, scratch = self._lane_plan
+        groups, (lane_c, lane_d, *_adjoint_scratch) = self._lane_plan
+        lane_inverse = None
+        if keep:
+            if ws.lane_c is None:
+                self._add_lane_keep(ws)
+            lane_inverse, lane_c = ws.lane_inverse, ws.lane_c
         wp.launch(
-            self._integrate_lanes,
+            self._integrate_lanes_keep if keep else self._integrate_lanes,
             dim=groups[1].shape[0],
             inputs=[
                 *groups,
@@ -256,21 +285,31 @@ class SolverStringImplicit:
                 state_in.particle_q, state_in.particle_qd,
                 control.top_q, control.tie_q, control.tie_qd, h,
             ],
-            outputs=[*scratch, ws.particle_dv, state_out.particle_q, state_out.particle_qd, state_out.tie_force,
-                     state_out.string_taut],
+            outputs=[lane_inverse, lane_c, lane_d, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
+                     state_out.tie_force, state_out.string_taut],
             device=m.device,
             record_tape=False,
         )
 
     def _new_lane_plan(self) -> tuple[list[wp.array], list[wp.array]]:
         """The laned step's group table (``string_step_lanes.lane_groups``: string indices, real
-        lanes, scratch offsets per group) and its laned scratch (``C'``, ``d'`` of each group's rows)."""
+        lanes, scratch offsets per group) and its laned scratch: ``C'``, ``d'`` of each group's rows
+        (a plain step's), and the laned adjoint's forward substitution and its terms of the
+        particles' gradients (each read only within its launch)."""
         m = self.model
         group_string, group_real, group_base, rows = lane_groups(m.string_start.numpy(), LANES)
         _lane, ivec, lvec, lmat = lane_types(LANES)
         with wp.ScopedDevice(m.device):
             return ([wp.array(group_string, dtype=ivec), wp.array(group_real, dtype=wp.int32),
-                     wp.array(group_base, dtype=wp.int32)], [wp.zeros(rows, dtype=lmat), wp.zeros(rows, dtype=lvec)])
+                     wp.array(group_base, dtype=wp.int32)],
+                    [wp.zeros(rows, dtype=lmat), *[wp.zeros(rows, dtype=lvec) for _ in range(4)]])
+
+    def _add_lane_keep(self, ws: StringWorkspace) -> None:
+        """``ws.lane_inverse``, ``ws.lane_c``: a taped laned step's own, as many rows as the plan's."""
+        rows = self._lane_plan[1][0].shape[0]
+        _lane, _ivec, _lvec, lmat = lane_types(LANES)
+        ws.lane_inverse = wp.zeros(rows, dtype=lmat, device=self.model.device)
+        ws.lane_c = wp.zeros(rows, dtype=lmat, device=self.model.device)
 
     def _grad(self, a: wp.array) -> wp.array:
         """``a.grad``, or a scratch array of its shape for an input that carries no gradient."""
@@ -299,19 +338,19 @@ class SolverStringImplicit:
         self.eval_string_tie_force(state_out, control, record=False)
 
     def record_step_adjoint(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape,
-                            forced: wp.array | None = None) -> None:
+                            forced: wp.array | None = None, lanes: bool = False) -> None:
         """Records the hand-written adjoint of the step just run on ``tape`` (the one-launch step
         with ``keep``, or :meth:`step_tension_only_kept` with the active set ``forced``;
-        ``kernels/string_step_adjoint``). It reads ``ws``'s pivot inverses, ``C'`` and ``dv``: the
-        workspace must not be reused before the adjoint has run (each taped step has its own);
-        ``forced``: the tension-only step's active set (None for printed springs)."""
+        ``kernels/string_step_adjoint``; ``lanes``: the laned step with ``keep``, and its laned
+        adjoint ``kernels/string_step_adjoint_lanes``). It reads ``ws``'s pivot inverses, ``C'``
+        and ``dv``: the workspace must not be reused before the adjoint has run (each taped step
+        has its own); ``forced``: the tension-only step's active set (None for printed springs)."""
         m = self.model
+        if lanes:
+            self._record_step_adjoint_lanes(state_in, state_out, control, h, ws, tape)
+            return
         forced = self._none_forced if forced is None else forced
-        params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
-                  m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
-                  m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
-        inputs = [state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd]
-        outputs = [state_out.particle_q, state_out.particle_qd, state_out.tie_force]
+        params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
 
         def backward():
             wp.launch(
@@ -324,6 +363,42 @@ class SolverStringImplicit:
                     forced, control.top_q, control.tie_q, control.tie_qd, h,
                 ],
                 outputs=[ws.scratch_rhs_bar, *[self._grad(a) for a in outputs],
+                         *[self._grad(a) for a in inputs + params]],
+                device=m.device,
+                record_tape=False,
+            )
+
+        tape.record_func(backward, arrays=[a for a in outputs + inputs + params if a.grad is not None])
+
+    def _adjoint_arrays(self, state_in, state_out, control) -> tuple[list, list, list]:
+        """The step adjoints' differentiable arrays: the constants, the inputs and the outputs
+        (in the adjoint kernels' order of their gradients)."""
+        m = self.model
+        params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
+                  m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
+                  m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
+        inputs = [state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd]
+        outputs = [state_out.particle_q, state_out.particle_qd, state_out.tie_force]
+        return params, inputs, outputs
+
+    def _record_step_adjoint_lanes(self, state_in, state_out, control, h, ws: StringWorkspace, tape: wp.Tape) -> None:
+        """:meth:`record_step_adjoint` of the laned step (``lanes=True``): the same inputs and
+        gradients, ``ws.lane_inverse`` and ``ws.lane_c`` for the scalar workspace's arrays."""
+        m = self.model
+        groups, (_lane_c, _lane_d, *adjoint_scratch) = self._lane_plan
+        params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
+
+        def backward():
+            wp.launch(
+                self._integrate_lanes_adjoint,
+                dim=groups[1].shape[0],
+                inputs=[
+                    *groups, m.string_start, *params, m.gravity, m.ground_height,
+                    state_in.particle_q, state_in.particle_qd,
+                    ws.lane_inverse, ws.lane_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
+                    control.top_q, control.tie_q, control.tie_qd, h,
+                ],
+                outputs=[*adjoint_scratch, *[self._grad(a) for a in outputs],
                          *[self._grad(a) for a in inputs + params]],
                 device=m.device,
                 record_tape=False,

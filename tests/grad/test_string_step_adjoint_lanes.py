@@ -1,0 +1,209 @@
+"""The taped string step in SIMD lanes (the laned step with ``keep`` and the laned hand-written adjoint,
+``kernels/string_step_adjoint_lanes``) against the scalar one (the one-launch step with ``keep`` and
+``kernels/string_step_adjoint``): the same forward and the same gradients, bit for bit.
+
+The laned kernels do the scalar kernels' operations in their order and rounding, lane by lane, and
+each string's particles and constants are written by one lane of one thread, so nothing is summed
+in another order: every state output, every kept pivot inverse and every gradient must be equal
+(``np.testing.assert_array_equal``), not close. The problem is ``test_string_step_adjoint``'s (every
+effect on, particles below the ground, a string tied to a circling point, compressed segments)
+with its strings repeated and varied so that the groups of four strings of equal particle count are
+full, padded (11 strings), or one string with three padding lanes, and one group of two-particle
+chains (the last row is the first). Then the marionette engine (``MarionetteGradient``) on
+``chair_scripted`` and ``hanging``: lanes on and off give the same gradients, bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import warp as wp
+from tests.support.strings import make_model, spec
+
+import dmarionette as dm
+from dmarionette.grad.engine import MarionetteGradient
+from dmarionette.kernels.string_step_lanes import LANES, lane_groups
+from dmarionette.marionette.solver import MarionetteModel
+from dmarionette.strings.model import StringControl, StringEffects
+from dmarionette.strings.solver import SolverStringImplicit
+
+STEPS = 200
+DT = 1e-3
+ALL_ON = StringEffects(gravity=True, internal_friction=True, air_drag=True, ground_contact=True, ground_friction=True)
+CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
+             "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
+             "string_tie_stiffness", "string_tie_damping", "string_tied"]
+
+# test_string_step_adjoint's three strings and a two-particle chain, each repeated this many times.
+BASE = [
+    (5, dict(particle_count=9, top=(0.0, 0.15, 0.0), bottom=(0.5, 0.02, 0.0), length=0.6, internal_friction=0.3,
+             air_drag=0.05, ground_stiffness=2000.0, ground_absorption=5.0, ground_friction=2.0)),
+    (2, dict(particle_count=7, top=(0.5, 1.0, 0.0), bottom=(0.5, 0.6, 0.0), length=0.4, internal_friction=0.2,
+             air_drag=0.02, tied=True, tie_point=(0.6, 0.55, 0.1), tie_stiffness=300.0, tie_damping=3.0)),
+    (1, dict(particle_count=6, top=(1.0, 1.0, 0.0), bottom=(1.0, 0.75, 0.05), length=0.35, load_mass=0.02)),
+    (3, dict(particle_count=2, top=(1.5, 0.3, 0.0), bottom=(1.5, 0.05, 0.0), length=0.3, load_mass=0.01,
+             internal_friction=0.1, ground_stiffness=1500.0, ground_absorption=3.0, ground_friction=1.0,
+             tied=True, tie_point=(1.5, 0.05, 0.0), tie_stiffness=500.0, tie_damping=1.0)),
+]
+
+
+@wp.kernel
+def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
+
+
+def _model(effects: StringEffects):
+    """11 strings: counts 9 x 5 (a full group and a group of one), 7 x 2, 6 x 1, 2 x 3; each copy
+    moved and its constants varied (every other copy of a tied string cut)."""
+    specs = []
+    for b, (copies, kwargs) in enumerate(BASE):
+        for i in range(copies):
+            f = 1.0 + 0.07 * i
+            k = dict(kwargs)
+            shift = np.array([0.03 * i, 0.0, -0.02 * i])
+            k["top"] = tuple(np.add(k["top"], shift))
+            k["bottom"] = tuple(np.add(k["bottom"], shift))
+            if k.get("tie_point") is not None:
+                k["tie_point"] = tuple(np.add(k["tie_point"], shift))
+                k["tied"] = i % 2 == 0
+            for name in ("internal_friction", "air_drag", "ground_stiffness", "ground_absorption",
+                         "ground_friction", "tie_stiffness", "tie_damping"):
+                if name in k:
+                    k[name] = k[name] * f
+            specs.append(spec(name=f"s{b}_{i}", stiffness=500.0 * f, **k))
+    return make_model(specs, effects=effects, requires_grad=True)
+
+
+def _taped_run(lanes: bool, effects: StringEffects) -> dict[str, np.ndarray]:
+    """A taped rollout of ``STEPS`` steps (tops swung, ties circling) and the gradient of a random
+    weighting of the final positions, velocities and tie forces; returns every state output and
+    kept value of every step and every gradient."""
+    model = _model(effects)
+    solver = SolverStringImplicit(model)
+    solver.lanes = lanes
+    rng = np.random.default_rng(11)
+    t = DT * np.arange(1, STEPS + 1)[:, None]
+    tops = np.array([s.top for s in model.specs])[None] + np.stack(
+        [0.05 * np.sin(7.0 * t), -0.02 * np.sin(5.0 * t), 0.03 * t], axis=-1)
+    tie = model.tie_points()[None] + np.stack([0.05 * np.cos(4.0 * t), 0.05 * np.sin(4.0 * t), 0.0 * t], axis=-1)
+    tie_v = np.stack([-0.2 * np.sin(4.0 * t), 0.2 * np.cos(4.0 * t), 0.0 * t], axis=-1) * np.ones_like(tie)
+    controls = [StringControl.from_numpy(model, tops[k], tie[k], tie_v[k]) for k in range(STEPS)]
+    states = [model.state() for _ in range(STEPS + 1)]
+    workspaces = [solver.new_workspace() for _ in range(STEPS)]
+    weight = wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
+    force_weight = wp.array(rng.normal(size=(model.string_count, 3)), dtype=wp.vec3d)
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        for k in range(STEPS):
+            solver.step(states[k], states[k + 1], controls[k], DT, tape=tape, workspace=workspaces[k])
+        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_q, weight], outputs=[loss])
+        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_qd, weight], outputs=[loss])
+        wp.launch(weighted_sum, dim=model.string_count, inputs=[states[-1].tie_force, force_weight], outputs=[loss])
+    out = {name: np.array([getattr(s, name).numpy() for s in states[1:]])
+           for name in ("particle_q", "particle_qd", "tie_force", "string_taut")}
+    out["particle_dv"] = np.array([w.particle_dv.numpy() for w in workspaces])
+    out["pivot_inverse"] = np.array([_pivot_inverses(model, w, lanes) for w in workspaces])
+    tape.backward(loss)
+    out["particle_q0_grad"] = states[0].particle_q.grad.numpy()
+    out["particle_qd0_grad"] = states[0].particle_qd.grad.numpy()
+    for name in ("top_q", "tie_q", "tie_qd"):
+        out[name + "_grad"] = np.array([getattr(c, name).grad.numpy() for c in controls])
+    for name in CONSTANTS:
+        out[name + "_grad"] = getattr(model, name).grad.numpy()
+    out["below_ground"] = np.min(out["particle_q"][..., 1])
+    return out
+
+
+def _pivot_inverses(model, ws, lanes: bool) -> np.ndarray:
+    """The kept pivot inverses per particle (rows 1.. of each string; the top's row is never a pivot),
+    from the scalar workspace or from the laned one (real lanes only)."""
+    if not lanes:
+        inv = ws.scratch_inverse.numpy().copy()
+    else:
+        start = model.string_start.numpy()
+        group_string, group_real, group_base, _rows = lane_groups(start, LANES)
+        laned = ws.lane_inverse.numpy()  # (rows, 9, K)
+        inv = np.zeros((model.particle_count, 3, 3))
+        for g in range(len(group_real)):
+            for k in range(group_real[g]):
+                s = group_string[g, k]
+                n = start[s + 1] - start[s]
+                inv[start[s] + 1:start[s + 1]] = laned[group_base[g] + 1:group_base[g] + n, :, k].reshape(-1, 3, 3)
+    inv[model.string_start.numpy()[:-1]] = 0.0  # never written by either
+    return inv
+
+
+EFFECT_SETS = {
+    "every effect": ALL_ON,
+    "no ground friction": dataclasses.replace(ALL_ON, ground_friction=False),
+    "no gravity, no ground": StringEffects(gravity=False, internal_friction=True, air_drag=True, ground_contact=False,
+                                           ground_friction=False),
+}
+
+
+@pytest.mark.parametrize("effects", EFFECT_SETS.values(), ids=EFFECT_SETS.keys())
+def test_laned_taped_step_equals_the_scalar_one(effects):
+    laned, scalar = _taped_run(True, effects), _taped_run(False, effects)
+    if effects.ground_contact:
+        assert laned["below_ground"] < 0.0  # particles start steps below the ground
+    off = set()  # the gradients of constants whose effect is off are zero
+    if not effects.ground_contact:
+        off |= {"string_ground_stiffness_grad", "string_ground_absorption_grad", "string_ground_friction_grad"}
+    if not effects.ground_friction:
+        off.add("string_ground_friction_grad")
+    for name, value in scalar.items():
+        if name.endswith("_grad") and name not in off:
+            assert np.max(np.abs(value)) > 0.0, name  # every group is exercised
+        np.testing.assert_array_equal(laned[name], value, err_msg=name)
+
+
+def test_the_laned_taped_step_is_the_laned_kernel():
+    """The comparison above compares two different kernels: lanes on writes the laned keep arrays and
+    leaves the scalar ones untouched; lanes off the other way round."""
+    model = _model(ALL_ON)
+    solver = SolverStringImplicit(model)
+    assert solver.lanes
+    ws = solver.new_workspace()
+    a, b = model.state(), model.state()
+    tape = wp.Tape()
+    with tape:
+        solver.step(a, b, model.control(), DT, tape=tape, workspace=ws)
+    assert np.any(ws.lane_inverse.numpy() != 0.0) and not np.any(ws.scratch_inverse.numpy() != 0.0)
+    solver.lanes = False
+    ws = solver.new_workspace()
+    with tape:
+        solver.step(a, b, model.control(), DT, tape=tape, workspace=ws)
+    assert ws.lane_inverse is None and np.any(ws.scratch_inverse.numpy() != 0.0)
+
+
+def _engine_gradients(scene_name: str, lanes: bool, seconds: float, particle_count: int | None):
+    scene = dm.load_scene(scene_name)
+    if particle_count is not None:
+        scene = dataclasses.replace(
+            scene, strings=tuple(dataclasses.replace(s, particle_count=particle_count) for s in scene.strings))
+    scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
+    model = MarionetteModel(scene, optimization_level=0, requires_grad=True)
+    model.string_solver.lanes = lanes  # before the engine plans its taped segment
+    engine = MarionetteGradient(model, int(round(seconds / model.puppet_dt)))
+    rng = np.random.default_rng(3)
+    weights = {k: rng.normal(size=s) for k, s in engine.output_shapes.items()}
+    outputs = engine.forward(engine.scene_inputs())
+    grads = engine.backward(weights)
+    out = {f.name: np.asarray(getattr(grads, f.name)) for f in dataclasses.fields(grads)}
+    out.update({f"forward {k}": np.asarray(v) for k, v in dataclasses.asdict(outputs).items()}
+               if dataclasses.is_dataclass(outputs) else {})
+    return out
+
+
+@pytest.mark.parametrize("scene_name, seconds, particle_count",
+                         [("chair_scripted", 1.0 / 3.0, 10), ("hanging", 0.2, None)], ids=["chair_scripted", "hanging"])
+def test_laned_gradients_equal_the_scalar_ones_in_the_marionette(scene_name, seconds, particle_count):
+    laned = _engine_gradients(scene_name, True, seconds, particle_count)
+    scalar = _engine_gradients(scene_name, False, seconds, particle_count)
+    assert any(np.max(np.abs(v)) > 0.0 for v in scalar.values())
+    for name, value in scalar.items():
+        np.testing.assert_array_equal(laned[name], value, err_msg=name)
