@@ -59,20 +59,25 @@ __all__ = ["SolverStringImplicit", "StringWorkspace"]
 
 @dataclasses.dataclass
 class StringWorkspace:
-    """Intermediate arrays of one step (segment springs, block rows of ``A``, ``b``, ``dv``, scratch)."""
+    """Intermediate arrays of one step (segment springs, block rows of ``A``, ``b``, ``dv``, scratch).
 
-    segment_force: wp.array
-    segment_jacobian: wp.array
-    segment_jacobian_active: wp.array
-    segment_active: wp.array
-    system_diag: wp.array
-    system_upper: wp.array
-    system_rhs: wp.array
+    A *lean* workspace (:meth:`allocate` with ``lean``) has only ``particle_dv``: the laned steps
+    write nothing else of it (their pivot inverses and ``C'`` go to lane arrays), so a taped laned
+    step's workspace is ``particle_dv`` and ``lane_inverse``/``lane_c``. The other fields are None
+    until a step that needs them fills them (:meth:`SolverStringImplicit.step`)."""
+
+    segment_force: wp.array | None
+    segment_jacobian: wp.array | None
+    segment_jacobian_active: wp.array | None
+    segment_active: wp.array | None
+    system_diag: wp.array | None
+    system_upper: wp.array | None
+    system_rhs: wp.array | None
     particle_dv: wp.array
-    scratch_c: wp.array
-    scratch_d: wp.array
-    scratch_rhs_bar: wp.array
-    scratch_inverse: wp.array  # pivot inverses of a recorded solve, read by its adjoint
+    scratch_c: wp.array | None
+    scratch_d: wp.array | None
+    scratch_rhs_bar: wp.array | None
+    scratch_inverse: wp.array | None  # pivot inverses of a recorded solve, read by its adjoint
     active_set: StringWorkspace | None = None  # a taped tension-only step's unrecorded active-set pass
     # A taped laned step's pivot inverses and C' (laned: a 9 x K block per row of a group), read by
     # its laned adjoint; set by ``SolverStringImplicit.new_workspace`` (or the step) when lanes are on.
@@ -80,14 +85,19 @@ class StringWorkspace:
     lane_c: wp.array | None = None
 
     @classmethod
-    def allocate(cls, model: StringModel, requires_grad: bool, active_set: bool = False) -> StringWorkspace:
+    def allocate(cls, model: StringModel, requires_grad: bool, active_set: bool = False,
+                 lean: bool = False) -> StringWorkspace:
         """Arrays for one step's intermediates (``requires_grad``: for a step on a tape;
-        ``active_set``: with the unrecorded active-set pass's own, for taped tension-only springs)."""
+        ``active_set``: with the unrecorded active-set pass's own, for taped tension-only springs;
+        ``lean``: ``particle_dv`` alone, the class doc)."""
         n = model.particle_count
         with wp.ScopedDevice(model.device):
             def zeros(dtype, grad):
                 return wp.zeros(n, dtype=dtype, requires_grad=grad)
 
+            if lean:
+                others = [f.name for f in dataclasses.fields(cls) if f.name != "particle_dv"]
+                return cls(particle_dv=zeros(model.vec3, False), **dict.fromkeys(others))
             return cls(
                 segment_force=zeros(model.vec3, requires_grad),
                 segment_jacobian=zeros(model.mat33, requires_grad),
@@ -150,11 +160,21 @@ class SolverStringImplicit:
         recorded (not for the hand-written adjoint, which needs none), for tension-only
         springs the active-set pass's arrays, and with :attr:`lanes` the laned step's pivot
         inverses and ``C'``)."""
-        ws = StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
-                                      active_set=taped and self._tension_only)
         if taped and self.hand_adjoint and self.lanes:
+            ws = StringWorkspace.allocate(self.model, requires_grad=False, lean=True)  # what the laned path writes
             self._add_lane_keep(ws)
-        return ws
+            return ws
+        return StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
+                                        active_set=taped and self._tension_only)
+
+    def _fill_workspace(self, ws: StringWorkspace, taped: bool) -> None:
+        """Gives a lean workspace (made while :attr:`lanes` was on) the arrays of the path this step
+        takes instead (lanes turned off since, or the five taped passes)."""
+        full = StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
+                                        active_set=taped and self._tension_only)
+        for field in dataclasses.fields(StringWorkspace):
+            if getattr(ws, field.name) is None:
+                setattr(ws, field.name, getattr(full, field.name))
 
     def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float, *,
              tape: wp.Tape | None = None, workspace: StringWorkspace | None = None) -> None:
@@ -174,6 +194,8 @@ class SolverStringImplicit:
         m = self.model
         h = m.scalar(dt)
         ws = workspace if workspace is not None else (self.new_workspace() if tape is not None else self.workspace)
+        if ws.scratch_c is None and not (self.lanes and (tape is None or self.hand_adjoint)):
+            self._fill_workspace(ws, taped=tape is not None)  # a lean workspace on a scalar path
         if tape is None and self._integrate_implicit is not None:
             if self.lanes:
                 self.integrate_string_lanes(state_in, state_out, control, h, ws)  # K strings per thread

@@ -162,22 +162,29 @@ def test_laned_taped_step_equals_the_scalar_one(effects):
 
 
 def test_the_laned_taped_step_is_the_laned_kernel():
-    """The comparison above compares two different kernels: lanes on writes the laned keep arrays and
-    leaves the scalar ones untouched; lanes off the other way round."""
+    """The comparison above compares two different kernels: lanes on writes the laned keep arrays into
+    a lean workspace (``particle_dv`` and the lane arrays: no scalar arrays at all); lanes off the
+    scalar ones. A lean workspace stepped after lanes were turned off gets the scalar arrays and
+    ends where a scalar workspace does."""
     model = _model(ALL_ON)
     solver = SolverStringImplicit(model)
     assert solver.lanes
     ws = solver.new_workspace()
-    a, b = model.state(), model.state()
+    assert ws.scratch_inverse is None and ws.system_diag is None and ws.segment_jacobian is None
+    a, b, c = model.state(), model.state(), model.state()
     tape = wp.Tape()
     with tape:
         solver.step(a, b, model.control(), DT, tape=tape, workspace=ws)
-    assert np.any(ws.lane_inverse.numpy() != 0.0) and not np.any(ws.scratch_inverse.numpy() != 0.0)
+    assert np.any(ws.lane_inverse.numpy() != 0.0) and ws.scratch_inverse is None
     solver.lanes = False
-    ws = solver.new_workspace()
+    scalar_ws = solver.new_workspace()
     with tape:
-        solver.step(a, b, model.control(), DT, tape=tape, workspace=ws)
-    assert ws.lane_inverse is None and np.any(ws.scratch_inverse.numpy() != 0.0)
+        solver.step(a, b, model.control(), DT, tape=tape, workspace=scalar_ws)
+    assert scalar_ws.lane_inverse is None and np.any(scalar_ws.scratch_inverse.numpy() != 0.0)
+    with tape:
+        solver.step(a, c, model.control(), DT, tape=tape, workspace=ws)  # the lean one, lanes now off
+    np.testing.assert_array_equal(ws.scratch_inverse.numpy(), scalar_ws.scratch_inverse.numpy())
+    np.testing.assert_array_equal(c.particle_q.numpy(), b.particle_q.numpy())
 
 
 def _engine_gradients(scene_name: str, lanes: bool, seconds: float, particle_count: int | None):
