@@ -167,9 +167,15 @@ class SolverStringImplicit:
         return StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
                                         active_set=taped and self._tension_only)
 
+    def _scalar_arrays(self, ws: StringWorkspace) -> None:
+        """A scalar pass given a lean workspace fills it first (a launch with a missing array would
+        write through a null pointer)."""
+        if ws.scratch_c is None:
+            self._fill_workspace(ws, taped=True)
+
     def _fill_workspace(self, ws: StringWorkspace, taped: bool) -> None:
-        """Gives a lean workspace (made while :attr:`lanes` was on) the arrays of the path this step
-        takes instead (lanes turned off since, or the five taped passes)."""
+        """Gives a lean workspace (made while :attr:`lanes` was on) the scalar arrays (lanes turned
+        off since, or the five taped passes: ``taped`` with gradients where those are recorded)."""
         full = StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
                                         active_set=taped and self._tension_only)
         for field in dataclasses.fields(StringWorkspace):
@@ -194,8 +200,6 @@ class SolverStringImplicit:
         m = self.model
         h = m.scalar(dt)
         ws = workspace if workspace is not None else (self.new_workspace() if tape is not None else self.workspace)
-        if ws.scratch_c is None and not (self.lanes and (tape is None or self.hand_adjoint)):
-            self._fill_workspace(ws, taped=tape is not None)  # a lean workspace on a scalar path
         if tape is None and self._integrate_implicit is not None:
             if self.lanes:
                 self.integrate_string_lanes(state_in, state_out, control, h, ws)  # K strings per thread
@@ -235,6 +239,7 @@ class SolverStringImplicit:
         ``particle_dv`` (not the blocks of ``A``, which it never stores); ``keep``: also the pivot
         inverses (``scratch_inverse``), for the hand-written adjoint. Never recorded."""
         m = self.model
+        self._scalar_arrays(ws)
         wp.launch(
             self._integrate_implicit_keep if keep else self._integrate_implicit,
             dim=m.string_count,
@@ -371,6 +376,7 @@ class SolverStringImplicit:
         if lanes:
             self._record_step_adjoint_lanes(state_in, state_out, control, h, ws, tape)
             return
+        self._scalar_arrays(ws)
         forced = self._none_forced if forced is None else forced
         params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
 
@@ -444,6 +450,7 @@ class SolverStringImplicit:
 
     def eval_string_spring(self, state_in, forced, ws: StringWorkspace, record: bool = True) -> None:
         m = self.model
+        self._scalar_arrays(ws)
         wp.launch(
             self._eval_spring,
             dim=m.particle_count,
@@ -456,6 +463,7 @@ class SolverStringImplicit:
 
     def eval_string_system(self, state_in, control, h, ws: StringWorkspace, record: bool = True) -> None:
         m = self.model
+        self._scalar_arrays(ws)
         wp.launch(
             self._eval_system,
             dim=m.particle_count,
@@ -476,6 +484,7 @@ class SolverStringImplicit:
     def solve_string_system_active(self, state_in, control, h, ws: StringWorkspace) -> None:
         """The solve with the springs' active set resolved in place (not differentiable)."""
         m = self.model
+        self._scalar_arrays(ws)
         wp.launch(
             self._solve_active,
             dim=m.string_count,
@@ -489,6 +498,7 @@ class SolverStringImplicit:
 
     def solve_string_system(self, ws: StringWorkspace, tape) -> None:
         m = self.model
+        self._scalar_arrays(ws)
         # Under a tape: the same solve keeping its factorisation, for the adjoint recorded below.
         wp.launch(
             self._solve if tape is None else self._solve_recorded,
@@ -518,6 +528,7 @@ class SolverStringImplicit:
 
     def integrate_string(self, state_in, state_out, control, h, ws: StringWorkspace, record: bool = True) -> None:
         m = self.model
+        self._scalar_arrays(ws)
         wp.launch(
             self._integrate,
             dim=m.particle_count,
