@@ -64,7 +64,7 @@ class StringWorkspace:
     A *lean* workspace (:meth:`allocate` with ``lean``) has only ``particle_dv``: the laned steps
     write nothing else of it (their pivot inverses and ``C'`` go to lane arrays), so a taped laned
     step's workspace is ``particle_dv`` and ``lane_inverse``/``lane_c``. The other fields are None
-    until a step that needs them fills them (:meth:`SolverStringImplicit.step`)."""
+    until a scalar pass given the workspace fills them (``SolverStringImplicit._scalar_arrays``)."""
 
     segment_force: wp.array | None
     segment_jacobian: wp.array | None
