@@ -243,20 +243,24 @@ class SolverStringImplicit:
         wp.launch(
             self._integrate_implicit_keep if keep else self._integrate_implicit,
             dim=m.string_count,
-            inputs=[
-                m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
-                m.string_internal_friction, m.string_air_drag,
-                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
-                m.string_tie_stiffness, m.string_tie_damping, m.string_tied, m.string_taut_distance,
-                m.gravity, m.ground_height,
-                state_in.particle_q, state_in.particle_qd,
-                control.top_q, control.tie_q, control.tie_qd, h,
-            ],
+            inputs=self._step_inputs(state_in, control, h),
             outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv, state_out.particle_q,
                      state_out.particle_qd, state_out.tie_force, state_out.string_taut],
             device=m.device,
             record_tape=False,
         )
+
+    def _step_inputs(self, state_in, control, h) -> list:
+        """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in,
+        the control and the step."""
+        m = self.model
+        return [m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                m.string_internal_friction, m.string_air_drag,
+                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
+                m.string_tie_stiffness, m.string_tie_damping, m.string_tied, m.string_taut_distance,
+                m.gravity, m.ground_height,
+                state_in.particle_q, state_in.particle_qd,
+                control.top_q, control.tie_q, control.tie_qd, h]
 
     @property
     def lanes(self) -> bool:
@@ -302,16 +306,7 @@ class SolverStringImplicit:
         wp.launch(
             self._integrate_lanes_keep if keep else self._integrate_lanes,
             dim=groups[1].shape[0],
-            inputs=[
-                *groups,
-                m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
-                m.string_internal_friction, m.string_air_drag,
-                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
-                m.string_tie_stiffness, m.string_tie_damping, m.string_tied, m.string_taut_distance,
-                m.gravity, m.ground_height,
-                state_in.particle_q, state_in.particle_qd,
-                control.top_q, control.tie_q, control.tie_qd, h,
-            ],
+            inputs=[*groups, *self._step_inputs(state_in, control, h)],
             outputs=[lane_inverse, lane_c, lane_d, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
                      state_out.tie_force, state_out.string_taut],
             device=m.device,

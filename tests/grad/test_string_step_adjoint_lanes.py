@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, spec
+from tests.support.strings import make_model, repeated_specs
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
@@ -58,22 +58,7 @@ def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss:
 def _model(effects: StringEffects):
     """11 strings: counts 9 x 5 (a full group and a group of one), 7 x 2, 6 x 1, 2 x 3; each copy
     moved and its constants varied (every other copy of a tied string cut)."""
-    specs = []
-    for b, (copies, kwargs) in enumerate(BASE):
-        for i in range(copies):
-            f = 1.0 + 0.07 * i
-            k = dict(kwargs)
-            shift = np.array([0.03 * i, 0.0, -0.02 * i])
-            k["top"] = tuple(np.add(k["top"], shift))
-            k["bottom"] = tuple(np.add(k["bottom"], shift))
-            if k.get("tie_point") is not None:
-                k["tie_point"] = tuple(np.add(k["tie_point"], shift))
-                k["tied"] = i % 2 == 0
-            for name in ("internal_friction", "air_drag", "ground_stiffness", "ground_absorption",
-                         "ground_friction", "tie_stiffness", "tie_damping"):
-                if name in k:
-                    k[name] = k[name] * f
-            specs.append(spec(name=f"s{b}_{i}", stiffness=500.0 * f, **k))
+    specs = repeated_specs(BASE, (0.03, 0.0, -0.02))
     return make_model(specs, effects=effects, requires_grad=True)
 
 

@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, spec, swung_controls
+from tests.support.strings import make_model, repeated_specs, spec, swung_controls
 
 import dmarionette as dm
 from dmarionette.kernels.string_step_lanes import LANES, lane_groups
@@ -51,22 +51,7 @@ EFFECT_SETS = {
 def _model(effects: StringEffects):
     """19 strings: the hard case's five, repeated, each copy moved and its constants varied
     (stiffness, friction, drag, ground, tie; every other copy of a tied string cut)."""
-    specs = []
-    for b, (copies, kwargs) in enumerate(BASE):
-        for i in range(copies):
-            f = 1.0 + 0.07 * i
-            k = dict(kwargs)
-            shift = np.array([0.02 * i, 0.01 * i, -0.015 * i])
-            k["top"] = tuple(np.add(k["top"], shift))
-            k["bottom"] = tuple(np.add(k["bottom"], shift))
-            if k.get("tie_point") is not None:
-                k["tie_point"] = tuple(np.add(k["tie_point"], shift))
-                k["tied"] = i % 2 == 0
-            for name in ("internal_friction", "air_drag", "ground_stiffness", "ground_absorption",
-                         "ground_friction", "tie_stiffness", "tie_damping"):
-                if name in k:
-                    k[name] = k[name] * f
-            specs.append(spec(name=f"s{b}_{i}", stiffness=500.0 * f, **k))
+    specs = repeated_specs(BASE, (0.02, 0.01, -0.015))
     return make_model(specs, effects=effects, precision="float64")
 
 

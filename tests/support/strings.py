@@ -54,3 +54,27 @@ def swung_controls(model, steps: int, dt: float):
         tie = ties + 0.05 * np.array([np.sin(6 * t), 0.0, np.cos(6 * t) - 1.0])
         tie_v = 0.3 * np.array([np.cos(6 * t), 0.0, -np.sin(6 * t)]) * np.ones_like(ties)
         yield StringControl.from_numpy(model, top, tie, tie_v)
+
+
+def repeated_specs(base, shift) -> list[StringSpec]:
+    """Strings for the lane tests: each ``(copies, spec keywords)`` of ``base`` repeated ``copies``
+    times, copy ``i`` moved by ``i * shift`` and its constants scaled by ``1 + 0.07 i`` (stiffness,
+    friction, drag, ground, tie), every other copy of a tied string cut: groups of equal particle
+    count whose lanes differ."""
+    specs = []
+    for b, (copies, kwargs) in enumerate(base):
+        for i in range(copies):
+            f = 1.0 + 0.07 * i
+            k = dict(kwargs)
+            offset = i * np.asarray(shift, dtype=float)
+            k["top"] = tuple(np.add(k["top"], offset))
+            k["bottom"] = tuple(np.add(k["bottom"], offset))
+            if k.get("tie_point") is not None:
+                k["tie_point"] = tuple(np.add(k["tie_point"], offset))
+                k["tied"] = i % 2 == 0
+            for name in ("internal_friction", "air_drag", "ground_stiffness", "ground_absorption",
+                         "ground_friction", "tie_stiffness", "tie_damping"):
+                if name in k:
+                    k[name] = k[name] * f
+            specs.append(spec(name=f"s{b}_{i}", stiffness=500.0 * f, **k))
+    return specs
