@@ -111,7 +111,8 @@ def string_spring_functions(scalar) -> SimpleNamespace:
         SIGGRAPH 2002, clamp it for the same reason).
 
         **Why it is not the default:** it is a change of the paper's model (the printed spring
-        pushes), and it costs 5-22 % per string step. It passes the hard cases tried with it,
+        pushes), and it costs about 3x the printed spring's string step (which runs in SIMD
+        lanes; this one does not: ``benchmarks/bench_tension_only.py``). It passes the hard cases tried with it,
         strings alone and in a marionette, with the puppet at the string rate and at 30 Hz
         (``tests/strings/test_hard_cases_strings.py``, ``tests/marionette/test_tension_only_marionette.py``;
         at 30 Hz it was refused while the coupling extrapolated the tie path as ``x + H v``,
