@@ -25,12 +25,12 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, spec
+from tests.support.strings import make_model, spec, wiggled_controls
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.marionette.solver import MarionetteModel
-from dmarionette.strings.model import StringControl, StringEffects
+from dmarionette.strings.model import StringEffects
 from dmarionette.strings.solver import SolverStringImplicit
 
 STEPS = 400
@@ -67,13 +67,7 @@ def _string_gradients(hand: bool, tension_only: bool) -> dict[str, np.ndarray]:
     solver = SolverStringImplicit(model)
     solver.hand_adjoint = hand
     rng = np.random.default_rng(11)
-    t = DT * np.arange(1, STEPS + 1)[:, None]
-    tops = np.array([s.top for s in model.specs])[None] + np.stack(
-        [0.05 * np.sin(7.0 * t), -0.02 * np.sin(5.0 * t), 0.03 * t], axis=-1)
-    tie = model.tie_points()[None] + np.stack(
-        [0.05 * np.cos(4.0 * t), 0.05 * np.sin(4.0 * t), 0.0 * t], axis=-1)
-    tie_v = np.stack([-0.2 * np.sin(4.0 * t), 0.2 * np.cos(4.0 * t), 0.0 * t], axis=-1) * np.ones_like(tie)
-    controls = [StringControl.from_numpy(model, tops[k], tie[k], tie_v[k]) for k in range(STEPS)]
+    controls = wiggled_controls(model, STEPS, DT)
     states = [model.state() for _ in range(STEPS + 1)]
     weight = wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
     force_weight = wp.array(rng.normal(size=(model.string_count, 3)), dtype=wp.vec3d)

@@ -56,6 +56,16 @@ def swung_controls(model, steps: int, dt: float):
         yield StringControl.from_numpy(model, top, tie, tie_v)
 
 
+def wiggled_controls(model, steps: int, dt: float) -> list[StringControl]:
+    """The gradient tests' controls: tops swung a few cm and raised 3 cm/s, ties circling 5 cm at 4 rad/s."""
+    t = dt * np.arange(1, steps + 1)[:, None]
+    tops = np.array([s.top for s in model.specs])[None] + np.stack(
+        [0.05 * np.sin(7.0 * t), -0.02 * np.sin(5.0 * t), 0.03 * t], axis=-1)
+    tie = model.tie_points()[None] + np.stack([0.05 * np.cos(4.0 * t), 0.05 * np.sin(4.0 * t), 0.0 * t], axis=-1)
+    tie_v = np.stack([-0.2 * np.sin(4.0 * t), 0.2 * np.cos(4.0 * t), 0.0 * t], axis=-1) * np.ones_like(tie)
+    return [StringControl.from_numpy(model, tops[k], tie[k], tie_v[k]) for k in range(steps)]
+
+
 def repeated_specs(base, shift) -> list[StringSpec]:
     """Strings for the lane tests: each ``(copies, spec keywords)`` of ``base`` repeated ``copies``
     times, copy ``i`` moved by ``i * shift`` and its constants scaled by ``1 + 0.07 i`` (stiffness,
