@@ -522,9 +522,14 @@ def build_articulation_kernels(topo: ArticulationTopology, optimization_level: i
     options = f'wp.set_module_options({{"optimization_level": {int(optimization_level)}}})\n'
     source = "\n\n".join([_HEADER + options, em.kinematics(), em.dynamics(), em.integrate(), em.mass_matrix()])
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
-    if digest in _CACHE:
-        return _CACHE[digest]
-    name = f"dmarionette_articulation_{digest}"
+    return _import_generated(f"dmarionette_articulation_{digest}", source)
+
+
+def _import_generated(name: str, source: str):
+    """Writes ``source`` to the cache folder as ``name.py`` (unless there already) and imports it (once
+    per process); ``name`` carries the source's hash."""
+    if name in _CACHE:
+        return _CACHE[name]
     path = _cache_dir() / f"{name}.py"
     if not path.exists() or path.read_text() != source:
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
@@ -534,5 +539,5 @@ def build_articulation_kernels(topo: ArticulationTopology, optimization_level: i
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
-    _CACHE[digest] = module
+    _CACHE[name] = module
     return module

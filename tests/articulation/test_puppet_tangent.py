@@ -1,0 +1,283 @@
+"""Forward-mode (tangent) kernels of the generated puppet step (``kernels/articulation_tangent``).
+
+Each generated kernel (kinematics, dynamics with joint limits, integration, mass matrix) of
+the shipped puppet is checked against
+
+(a) Warp's reverse mode of the SAME primal kernel on a ``wp.Tape``, by the dot-product
+    identity ``<u, J v> = <J^T u, v>`` for random ``u`` and P random directions ``v`` at
+    once (P = 1, 3, 8). Both sides are sums of ~1e2..1e3 float64 products; their rounding
+    error is ~1e-16 x (number of terms) x (sum of |terms|), so the tolerance is 1e-10
+    relative to the sum of the absolute values of the terms of ``<u, J v>``.
+(b) central finite differences of the primal kernel with a step-size study: the error
+    falls like eps^2 (100x per decade) until rounding (~1e-16 |f| / eps) takes over.
+
+Two worlds: world 0 generic (hinges and universals inside their limits, away from the
+band), world 1 with joints inside the limit band (implicit part switched on partly), past
+a limit (penalty spring on), and the neck's ball past its cone.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+import warp as wp
+
+from dmarionette.articulation.solver import BallDescription, build_articulation_model
+from dmarionette.kernels.articulation_codegen import LIMIT_BAND, build_articulation_kernels
+from dmarionette.kernels.articulation_tangent import (
+    TangentError,
+    articulation_tangent_source,
+    build_articulation_tangent_kernels,
+    tangent_kernel_source,
+)
+from dmarionette.scene.puppet import load_puppet
+
+wp.config.log_level = wp.LOG_WARNING
+
+H = 0.01
+WORLDS = 2
+
+
+def _quat_mj(rng):
+    q = rng.normal(size=4)
+    q[0] = abs(q[0]) + 1.0
+    return q / np.linalg.norm(q) * 1.1  # off the unit sphere: normalisation is part of the kernel
+
+
+class Setup:
+    def __init__(self):
+        self.model = build_articulation_model(load_puppet(), requires_grad=False)
+        m = self.model
+        topo = m.topology
+        self.primal = build_articulation_kernels(topo, optimization_level=0)
+        self.tangent = build_articulation_tangent_kernels(topo, optimization_level=0)
+        rng = np.random.default_rng(11)
+        lower, upper = m.dof_limit_lower.numpy(), m.dof_limit_upper.numpy()
+        q = np.tile(m.q_rest, (WORLDS, 1))
+        qd = rng.normal(size=(WORLDS, m.qd_count))
+        self.band = []  # (world, dof, where) of the joints placed at the limits
+        for w in range(WORLDS):
+            q[w, 0:3] += rng.normal(size=3) * 0.05
+            q[w, 3:7] = _quat_mj(rng)
+            limit_case = 0
+            for j in topo.joints[1:]:
+                d, s = j.qd_start, j.q_start
+                if j.type == "ball":
+                    q[w, s:s + 4] = _quat_mj(rng)
+                    if w == 1:  # past the cone: rotation angle upper + 0.1
+                        n = rng.normal(size=3)
+                        n /= np.linalg.norm(n)
+                        th = upper[d] + 0.1
+                        q[w, s:s + 4] = np.r_[np.cos(th / 2), np.sin(th / 2) * n]
+                        self.band.append((w, d, "past the cone"))
+                    continue
+                for k in range(len(j.axes)):
+                    lo, up = lower[d + k], upper[d + k]
+                    if w == 0:
+                        q[w, s + k] = rng.uniform(lo + 0.2 * (up - lo), up - 0.2 * (up - lo))
+                    else:
+                        # cycle: inside the band below the upper limit, past the lower limit, generic
+                        case = limit_case % 3
+                        limit_case += 1
+                        if case == 0:
+                            q[w, s + k] = up - 0.4 * LIMIT_BAND
+                            qd[w, d + k] = abs(qd[w, d + k]) + 0.5  # q + h qd stays inside the band
+                            self.band.append((w, d + k, "in the band"))
+                        elif case == 1:
+                            q[w, s + k] = lo - 0.03
+                            qd[w, d + k] = -abs(qd[w, d + k]) - 0.5
+                            self.band.append((w, d + k, "past the limit"))
+                        else:
+                            q[w, s + k] = rng.uniform(lo + 0.2 * (up - lo), up - 0.2 * (up - lo))
+        self.q, self.qd = q, qd
+        nb = m.body_count
+        kin = self.run(self.primal.eval_body_kinematics, self.kinematics_values(q, qd))
+        self.body = {k: kin[k].numpy() for k in ("body_pos", "body_rot", "body_w", "body_v")}
+        self.wrench = rng.normal(size=(WORLDS, nb, 6)) * 0.1
+        a = rng.normal(size=(WORLDS, nb, 6, 6)) * 0.1
+        self.stiffness = np.einsum("wbij,wbkj->wbik", a, a) * 1e-3  # h D + h^2 K: small, symmetric PSD
+        self.joint_f = rng.normal(size=(WORLDS, m.qd_count)) * 0.05
+        self.rng = rng
+
+    # ------------------------------------------------------------ kernel argument values
+    def kinematics_values(self, q, qd):
+        m, nb = self.model, self.model.body_count
+        return dict(joint_q=q, joint_qd=qd, body_pos=np.zeros((WORLDS, nb, 3)), body_rot=np.zeros((WORLDS, nb, 4)),
+                    body_w=np.zeros((WORLDS, nb, 3)), body_v=np.zeros((WORLDS, nb, 3)))
+
+    def dynamics_values(self):
+        m = self.model
+        return dict(body_mass=m.body_mass.numpy(), body_inertia=m.body_inertia.numpy(),
+                    dof_damping=m.dof_damping.numpy(), gravity=m.gravity.numpy(),
+                    dof_limit_lower=m.dof_limit_lower.numpy(), dof_limit_upper=m.dof_limit_upper.numpy(),
+                    limit_stiffness=m.limit_stiffness, limit_damping=m.limit_damping,
+                    joint_q=self.q, joint_qd=self.qd, **self.body, body_wrench=self.wrench,
+                    body_stiffness=self.stiffness, joint_f=self.joint_f, h=H, h_implicit=H,
+                    joint_qdd=np.zeros((WORLDS, m.qd_count)), joint_qd_out=np.zeros((WORLDS, m.qd_count)))
+
+    def integrate_values(self):
+        m = self.model
+        return dict(joint_q=self.q, joint_qd=self.qd, h=H, joint_q_out=np.zeros((WORLDS, m.q_count)))
+
+    def mass_matrix_values(self):
+        m = self.model
+        return dict(body_mass=m.body_mass.numpy(), body_inertia=m.body_inertia.numpy(),
+                    body_pos=self.body["body_pos"], body_rot=self.body["body_rot"],
+                    mass_matrix=np.zeros((WORLDS, m.qd_count, m.qd_count)))
+
+    # ------------------------------------------------------------ launches
+    @staticmethod
+    def run(kernel, values, requires_grad=False):
+        """Launches ``kernel`` over the worlds with ``values`` by parameter name; returns the arrays."""
+        arrays, args = {}, []
+        for a in kernel.adj.args:
+            v = values[a.label]
+            if wp.types.is_array(a.type):
+                arrays[a.label] = wp.array(np.ascontiguousarray(v), dtype=a.type.dtype, requires_grad=requires_grad)
+                args.append(arrays[a.label])
+            else:
+                args.append(a.type(v))
+        wp.launch(kernel, dim=WORLDS, inputs=args)
+        return arrays
+
+
+KERNELS = {  # name: (values method, active inputs, outputs)
+    "eval_body_kinematics": ("kinematics_values", ("joint_q", "joint_qd"), ("body_pos", "body_rot", "body_w", "body_v")),
+    "solve_body_dynamics": ("dynamics_values", ("joint_q", "joint_qd", "body_pos", "body_rot", "body_w", "body_v",
+                                                "body_wrench", "body_stiffness", "joint_f"),
+                            ("joint_qdd", "joint_qd_out")),
+    "integrate_joint_coordinates": ("integrate_values", ("joint_q", "joint_qd"), ("joint_q_out",)),
+    "eval_mass_matrix": ("mass_matrix_values", ("body_pos", "body_rot"), ("mass_matrix",)),
+}
+
+
+@pytest.fixture(scope="module")
+def setup():
+    return Setup()
+
+
+def _values(setup, name):
+    if name == "eval_body_kinematics":
+        return setup.kinematics_values(setup.q, setup.qd)
+    return getattr(setup, KERNELS[name][0])()
+
+
+def jvp(setup, name, values, directions):
+    """Outputs' tangents (P, ...) for input tangents ``directions`` {name: (P, ...)}; one tangent launch."""
+    _, ins, outs = KERNELS[name]
+    P = next(iter(directions.values())).shape[0]
+    tv = dict(values, direction_count=P)
+    for n in ins:
+        tv["tan_" + n] = directions[n]
+    for n in outs:
+        tv["tan_" + n] = np.zeros((P,) + np.shape(values[n]))
+    arrays = setup.run(getattr(setup.tangent, name + "_tangent"), tv)
+    primal = setup.run(getattr(setup.primal, name), values)
+    for n in outs:  # the tangent kernel writes the primal outputs too
+        np.testing.assert_array_equal(arrays[n].numpy(), primal[n].numpy())
+    return {n: arrays["tan_" + n].numpy() for n in outs}
+
+
+def vjp(setup, name, values, adjoints):
+    """Inputs' adjoints J^T u by Warp's reverse mode of the primal kernel (wp.Tape)."""
+    _, ins, outs = KERNELS[name]
+    tape = wp.Tape()
+    with tape:
+        arrays = setup.run(getattr(setup.primal, name), values, requires_grad=True)
+    tape.backward(grads={arrays[n]: wp.array(adjoints[n], dtype=arrays[n].dtype) for n in outs})
+    return {n: arrays[n].grad.numpy() for n in ins}
+
+
+def _directions(setup, name, values, P):
+    return {n: setup.rng.normal(size=(P,) + np.shape(values[n])) for n in KERNELS[name][1]}
+
+
+@pytest.mark.parametrize("P", [1, 3, 8])
+@pytest.mark.parametrize("name", list(KERNELS))
+def test_tangent_matches_reverse_mode(setup, name, P):
+    values = _values(setup, name)
+    _, ins, outs = KERNELS[name]
+    v = _directions(setup, name, values, P)
+    u = {n: setup.rng.normal(size=np.shape(values[n])) for n in outs}
+    jv = jvp(setup, name, values, v)
+    jtu = vjp(setup, name, values, u)
+    for p in range(P):
+        terms_f = np.concatenate([(u[n] * jv[n][p]).ravel() for n in outs])
+        terms_r = np.concatenate([(jtu[n] * v[n][p]).ravel() for n in ins])
+        lhs, rhs = terms_f.sum(), terms_r.sum()
+        scale = max(np.abs(terms_f).sum(), np.abs(terms_r).sum())
+        print(f"{name} P={P} p={p}: <u, Jv> = {lhs:.15e}, <J^T u, v> = {rhs:.15e}, "
+              f"|diff| / scale = {abs(lhs - rhs) / scale:.1e}")
+        assert abs(lhs - rhs) <= 1e-10 * scale, (name, p)
+    assert all(np.all(np.isfinite(jv[n])) for n in outs)
+
+
+@pytest.mark.parametrize("name", list(KERNELS))
+def test_tangent_matches_finite_differences(setup, name):
+    values = _values(setup, name)
+    _, ins, outs = KERNELS[name]
+    v = _directions(setup, name, values, 1)
+    jv = jvp(setup, name, values, v)
+    ref = np.concatenate([jv[n][0].ravel() for n in outs])
+
+    def f(eps):
+        shifted = dict(values)
+        for n in ins:
+            shifted[n] = values[n] + eps * v[n][0]
+        out = setup.run(getattr(setup.primal, name), shifted)
+        return np.concatenate([out[n].numpy().ravel() for n in outs])
+
+    steps = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6]
+    err = [np.linalg.norm((f(e) - f(-e)) / (2 * e) - ref) / np.linalg.norm(ref) for e in steps]
+    print(name, "relative FD error per step:", ", ".join(f"{e:.0e}: {x:.1e}" for e, x in zip(steps, err)))
+    # truncation regime: eps^2, 100x per decade (>= 50x allowed for the next-order terms)
+    assert err[1] <= err[0] / 50 and err[2] <= err[1] / 50, err
+    # at the best step, truncation and rounding meet near 1e-16^(2/3) ~ 1e-11
+    assert min(err) <= 1e-9, err
+
+
+def test_limit_state_exercises_the_switches(setup):
+    """World 1 really has joints inside the band and past a limit (the switches' active branches)."""
+    kinds = {k for w, _, k in setup.band if w == 1}
+    assert kinds == {"in the band", "past the limit", "past the cone"}
+
+
+@pytest.mark.parametrize("variant", ["ball", "no limits"])
+def test_transformer_covers_the_shipped_topologies(variant):
+    """The other shipped topologies (the ball scenes' extra free body; limits compiled out) transform."""
+    if variant == "ball":
+        model = build_articulation_model(load_puppet(), ball=BallDescription())
+    else:
+        model = build_articulation_model(load_puppet(), joint_limits=False)
+    source = articulation_tangent_source(model.topology)
+    for name in KERNELS:
+        assert f"def {name}_tangent(" in source
+
+
+@pytest.mark.parametrize("line, construct", [
+    ("y = joint_q[w, 0] ** wp.float64(2.0)", "binary operator Pow"),
+    ("y = wp.sin(joint_q[w, 0])", "no rule for function wp.sin"),
+    ("y = wp.normalize(wp.vec3d(joint_q[w, 0], zero, zero))", "no rule for function wp.normalize"),
+    ("out[w, 1] += joint_q[w, 0]", "statement kind AugAssign"),
+    ("y = wp.float64(joint_q[w, 0])", "wp.float64 of an active value"),
+])
+def test_unknown_constructs_raise(line, construct):
+    source = f'''@wp.kernel
+def k(
+    # State in:
+    joint_q: wp.array2d(dtype=wp.float64),
+    # Control:
+    h: wp.float64,
+    # State out:
+    out: wp.array2d(dtype=wp.float64),
+):
+    w = wp.tid()
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    {line}
+    out[w, 0] = wp.float64(1.0)
+'''
+    with pytest.raises(TangentError, match=re.escape(construct)):
+        tangent_kernel_source(source)
