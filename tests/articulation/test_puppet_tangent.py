@@ -191,7 +191,11 @@ def vjp(setup, name, values, adjoints):
 
 
 def _directions(setup, name, values, P):
-    return {n: setup.rng.normal(size=(P,) + np.shape(values[n])) for n in KERNELS[name][1]}
+    v = {n: setup.rng.normal(size=(P,) + np.shape(values[n])) for n in KERNELS[name][1]}
+    if "body_stiffness" in v:  # symmetric and at the scale of the stiffness: H stays positive definite along it
+        s = v["body_stiffness"]
+        v["body_stiffness"] = (s + np.swapaxes(s, -1, -2)) * 1e-4
+    return v
 
 
 @pytest.mark.parametrize("P", [1, 3, 8])
@@ -229,12 +233,13 @@ def test_tangent_matches_finite_differences(setup, name):
         out = setup.run(getattr(setup.primal, name), shifted)
         return np.concatenate([out[n].numpy().ravel() for n in outs])
 
-    steps = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6]
+    steps = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8]
     err = [np.linalg.norm((f(e) - f(-e)) / (2 * e) - ref) / np.linalg.norm(ref) for e in steps]
     print(name, "relative FD error per step:", ", ".join(f"{e:.0e}: {x:.1e}" for e, x in zip(steps, err)))
     # truncation regime: eps^2, 100x per decade (>= 50x allowed for the next-order terms)
-    assert err[1] <= err[0] / 50 and err[2] <= err[1] / 50, err
-    # at the best step, truncation and rounding meet near 1e-16^(2/3) ~ 1e-11
+    # (the dynamics' curvature is large: a 30 g arm's inertia, so its truncation regime reaches 1e-6)
+    assert all(err[i + 1] <= err[i] / 50 for i in range(3)), err
+    # at the best step, truncation and rounding meet (~1e-16^(2/3) ~ 1e-11 for unit curvature)
     assert min(err) <= 1e-9, err
 
 
