@@ -286,3 +286,27 @@ def k(
 '''
     with pytest.raises(TangentError, match=re.escape(construct)):
         tangent_kernel_source(source)
+
+
+def test_tangent_matches_reverse_mode_at_exact_ties(setup):
+    """Switches at exact ties take the branch Warp's adjoint takes: world 1 at rest (``max(q, q + h qd)``
+    and the ball's ``max(th, th + h n.om)`` tie) with the in-band joints exactly at their upper limit
+    (``max(q - upper, 0)`` ties, and the band weight's ``clamp(1, 0, 1)`` sits on its upper bound)."""
+    name = "solve_body_dynamics"
+    upper = setup.model.dof_limit_upper.numpy()
+    q, qd = setup.q.copy(), setup.qd.copy()
+    qd[1] = 0.0
+    for j in setup.model.topology.joints:
+        for k in range(len(j.axes) if j.type in ("hinge", "universal") else 0):
+            if (1, j.qd_start + k, "in the band") in setup.band:
+                q[1, j.q_start + k] = upper[j.qd_start + k]
+    values = dict(setup.dynamics_values(), joint_q=q, joint_qd=qd)
+    v = _directions(setup, name, values, 3)
+    u = {n: setup.rng.normal(size=np.shape(values[n])) for n in KERNELS[name][2]}
+    jv = jvp(setup, name, values, v)
+    jtu = vjp(setup, name, values, u)
+    for p in range(3):
+        terms_f = np.concatenate([(u[n] * jv[n][p]).ravel() for n in KERNELS[name][2]])
+        terms_r = np.concatenate([(jtu[n] * v[n][p]).ravel() for n in KERNELS[name][1]])
+        scale = max(np.abs(terms_f).sum(), np.abs(terms_r).sum())
+        assert abs(terms_f.sum() - terms_r.sum()) <= 1e-10 * scale, p
