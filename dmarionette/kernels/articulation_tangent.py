@@ -47,6 +47,12 @@ with Warp's adjoint of the same kernel to rounding):
   ``-x`` if ``x < 0``), so forward and reverse agree at exact ties too; comparisons and
   ``wp.where``'s condition carry no tangent.
 
+Values the rules need that depend on the primal only (``1 / b`` of a division, ``0.5 / y``
+of a square root, the branch a switch takes, and the partial derivatives of a
+``<name>_tangent`` function whose active arguments are all scalars, e.g. the hinge
+quaternion's derivative in its angle) are computed once, before the direction loop, as
+``_c<n>``: the loop holds only what is linear in the tangents.
+
 Anything else (another statement kind, operator or function, keyword arguments, an
 active index, ``wp.float64(...)`` of an active value) raises
 :class:`TangentError` naming the construct: no term is ever dropped silently.
@@ -90,6 +96,7 @@ from dmarionette.kernels.articulation_math_tangent import (
 
 _PREFIX = "tan_"
 _TEMP = "_a"
+_COEF = "_c"
 
 # Zero of a type, as a name the tangent kernel defines first.
 _ZERO = {"wp.float64": "_zero", "wp.vec3d": "_zero3", "wp.quatd": "_zeroq", "spatial6": "spatial6()",
@@ -138,7 +145,7 @@ class _Kernel:
         self.groups = _parameter_groups(source)  # [(group, [(name, annotation)])]
         self.params = {n: a for _, ps in self.groups for n, a in ps}
         used = {n.id for n in ast.walk(self.fn) if isinstance(n, ast.Name)} | set(self.params)
-        clash = sorted(n for n in used if n.startswith((_PREFIX, _TEMP, "_zero")) or n in ("p", "direction_count"))
+        clash = sorted(n for n in used if n.startswith((_PREFIX, _TEMP, _COEF, "_zero")) or n in ("p", "direction_count"))
         if clash:
             raise TangentError(f"articulation_tangent: names {clash} clash with the tangent kernel's own")
         self.active: set[str] = {n for n in TANGENT_INPUTS if n in self.params}
@@ -146,6 +153,7 @@ class _Kernel:
         self.primal: list[str] = []
         self.tangent: list[str] = []
         self.temps = 0
+        self.pending: list[str] = []  # coefficients of the statement being lowered (primal-only values)
 
     # ------------------------------------------------------------ activity
     def is_array(self, name: str) -> bool:
@@ -188,6 +196,8 @@ class _Kernel:
         """``name = node``: the primal statement and, if active, its tangent statement."""
         node, tan = self.lower(node, name)
         self.primal.append(f"{name} = {_src(node)}")
+        self.primal += self.pending
+        self.pending = []
         if tan is not None:
             self.active.add(name)
             self.tangent.append(f"{_PREFIX}{name} = {tan}")
@@ -230,6 +240,14 @@ class _Kernel:
             return f"{_PREFIX}{node.value.id}[{', '.join(['p'] + [_src(i) for i in idx])}]"
         _fail(node, "not an atom (internal)")
 
+    def coef(self, expr: str) -> str:
+        """A name for ``expr``, a value of the primal only, computed once before the direction loop
+        (after the statement being lowered: it may use its result)."""
+        self.temps += 1
+        name = f"{_COEF}{self.temps}"
+        self.pending.append(f"{name} = {expr}")
+        return name
+
     # ------------------------------------------------------------ rules
     def binop(self, node: ast.BinOp, result: str) -> str:
         a, b = _src(node.left), _src(node.right)
@@ -242,11 +260,12 @@ class _Kernel:
             return ta if tb is None else f"{ta} - {tb}"
         if isinstance(node.op, ast.Mult):
             return _sum([None if ta is None else f"{ta} * {b}", None if tb is None else f"{a} * {tb}"])
-        if isinstance(node.op, ast.Div):
+        if isinstance(node.op, ast.Div):  # a scalar divisor: 1 / b once, then products
+            inv = self.coef(f"wp.float64(1.0) / {b}")
             if tb is None:
-                return f"{ta} / {b}"
+                return f"{ta} * {inv}"
             num = f"-({result} * {tb})" if ta is None else f"{ta} - {result} * {tb}"
-            return f"({num}) / {b}"
+            return f"({num}) * {inv}"
         _fail(node, f"binary operator {type(node.op).__name__}")
 
     def call(self, node: ast.Call, result: str) -> str:
@@ -267,23 +286,33 @@ class _Kernel:
             name, types = _TANGENT_FUNC[f]
             if len(args) != len(types):
                 _fail(node, f"{f} with {len(args)} arguments (rule for {len(types)})")
+            if all(ty == "wp.float64" for t, ty in zip(tans, types) if t is not None):
+                # scalar active arguments: the partial derivatives once, then sum_i d_i x_i_t
+                terms = []
+                for i, t in enumerate(tans):
+                    if t is not None:
+                        unit = ["wp.float64(1.0)" if k == i else _ZERO[ty] for k, ty in enumerate(types)]
+                        partial = self.coef(f"{name}({', '.join(args + unit)})")
+                        terms.append(f"{partial} * {t}")
+                return _sum(terms)
             zeros = [t if t is not None else _ZERO[ty] for t, ty in zip(tans, types)]
             return f"{name}({', '.join(args + zeros)})"
         t = [x if x is not None else "_zero" for x in tans]  # switches and scalar functions: float64 operands
         if f == "wp.sqrt" and len(args) == 1:
-            return f"{t[0]} * (wp.float64(0.5) / {result})"
+            return f"{t[0]} * {self.coef(f'wp.float64(0.5) / {result}')}"
         if f == "wp.atan2" and len(args) == 2:
             y, x = args
-            return f"({x} * {t[0]} - {y} * {t[1]}) / ({x} * {x} + {y} * {y})"
+            return f"({x} * {t[0]} - {y} * {t[1]}) * {self.coef(f'wp.float64(1.0) / ({x} * {x} + {y} * {y})')}"
         if f == "wp.max" and len(args) == 2:
-            return f"wp.where({args[0]} > {args[1]}, {t[0]}, {t[1]})"
+            return f"wp.where({self.coef(f'{args[0]} > {args[1]}')}, {t[0]}, {t[1]})"
         if f == "wp.min" and len(args) == 2:
-            return f"wp.where({args[0]} < {args[1]}, {t[0]}, {t[1]})"
+            return f"wp.where({self.coef(f'{args[0]} < {args[1]}')}, {t[0]}, {t[1]})"
         if f == "wp.clamp" and len(args) == 3:
             x, lo, hi = args
-            return f"wp.where(wp.max({lo}, {x}) < {hi}, wp.where({lo} > {x}, {t[1]}, {t[0]}), {t[2]})"
+            inside, low = self.coef(f"wp.max({lo}, {x}) < {hi}"), self.coef(f"{lo} > {x}")
+            return f"wp.where({inside}, wp.where({low}, {t[1]}, {t[0]}), {t[2]})"
         if f == "wp.abs" and len(args) == 1:
-            return f"wp.where({args[0]} < _zero, -({t[0]}), {t[0]})"
+            return f"wp.where({self.coef(f'{args[0]} < _zero')}, -({t[0]}), {t[0]})"
         if f == "wp.where" and len(args) == 3:
             return f"wp.where({args[0]}, {t[1]}, {t[2]})"
         if f in _CONSTANT_FUNCS:
