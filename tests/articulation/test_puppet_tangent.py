@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from dmarionette.articulation.solver import BallDescription, build_articulation_model
+from dmarionette.articulation.solver import BallDescription, SolverArticulation, build_articulation_model
 from dmarionette.kernels.articulation_codegen import LIMIT_BAND, build_articulation_kernels
 from dmarionette.kernels.articulation_tangent import (
     TangentError,
@@ -310,3 +310,62 @@ def test_tangent_matches_reverse_mode_at_exact_ties(setup):
         terms_r = np.concatenate([(jtu[n] * v[n][p]).ravel() for n in KERNELS[name][1]])
         scale = max(np.abs(terms_f).sum(), np.abs(terms_r).sum())
         assert abs(terms_f.sum() - terms_r.sum()) <= 1e-10 * scale, p
+
+
+def test_rollout_jvp_matches_reverse_mode(setup):
+    """JVP of a 10-step rollout (``ArticulationTangent``, P = 3) against the tape's VJP of the same
+    rollout of ``SolverArticulation.step``: d(final q, qd) / d(initial q, qd, joint forces)."""
+    from dmarionette.articulation.tangent import ArticulationTangent
+
+    m = setup.model
+    solver = SolverArticulation(m, optimization_level=0)
+    P, steps, dt = 3, 10, 0.01
+    jvp_stepper = ArticulationTangent(solver, P, WORLDS, optimization_level=0)
+    rng = np.random.default_rng(5)
+    v_q = rng.normal(size=(P, WORLDS, m.q_count))
+    v_qd = rng.normal(size=(P, WORLDS, m.qd_count))
+    v_f = rng.normal(size=(P, WORLDS, m.qd_count)) * 0.01
+    f = setup.joint_f
+
+    states = [m.state(WORLDS, requires_grad=True) for _ in range(steps + 1)]
+    control = m.control(WORLDS, requires_grad=True)
+    states[0].joint_q.assign(setup.q)
+    states[0].joint_qd.assign(setup.qd)
+    control.joint_f.assign(f)
+    tangents = [jvp_stepper.tangent_state() for _ in range(steps + 1)]
+    tangents[0].joint_q.assign(v_q)
+    tangents[0].joint_qd.assign(v_qd)
+    tan_f = wp.array(v_f, dtype=wp.float64)
+    for i in range(steps):
+        jvp_stepper.step(states[i], tangents[i], states[i + 1], tangents[i + 1], control, tan_f, dt)
+    q_end, qd_end = states[-1].joint_q.numpy(), states[-1].joint_qd.numpy()
+    jq, jqd = tangents[-1].joint_q.numpy(), tangents[-1].joint_qd.numpy()
+
+    taped = [m.state(WORLDS, requires_grad=True) for _ in range(steps + 1)]
+    taped[0].joint_q.assign(setup.q)
+    taped[0].joint_qd.assign(setup.qd)
+    tape = wp.Tape()
+    with tape:
+        for i in range(steps):
+            solver.step(taped[i], taped[i + 1], control, dt, tape=tape)
+    np.testing.assert_array_equal(taped[-1].joint_q.numpy(), q_end)  # the tangent steps' primal is the step
+    np.testing.assert_array_equal(taped[-1].joint_qd.numpy(), qd_end)
+    u_q, u_qd = rng.normal(size=q_end.shape), rng.normal(size=qd_end.shape)
+    tape.backward(grads={taped[-1].joint_q: wp.array(u_q, dtype=wp.float64),
+                         taped[-1].joint_qd: wp.array(u_qd, dtype=wp.float64)})
+    g_q, g_qd, g_f = (taped[0].joint_q.grad.numpy(), taped[0].joint_qd.grad.numpy(), control.joint_f.grad.numpy())
+    for p in range(P):
+        terms_f = np.concatenate([(u_q * jq[p]).ravel(), (u_qd * jqd[p]).ravel()])
+        terms_r = np.concatenate([(g_q * v_q[p]).ravel(), (g_qd * v_qd[p]).ravel(), (g_f * v_f[p]).ravel()])
+        scale = max(np.abs(terms_f).sum(), np.abs(terms_r).sum())
+        print(f"rollout p={p}: <u, Jv> = {terms_f.sum():.15e}, <J^T u, v> = {terms_r.sum():.15e}, "
+              f"|diff| / scale = {abs(terms_f.sum() - terms_r.sum()) / scale:.1e}")
+        assert abs(terms_f.sum() - terms_r.sum()) <= 1e-10 * scale, p
+
+
+def test_rollout_jvp_refuses_what_has_no_tangent():
+    from dmarionette.articulation.tangent import ArticulationTangent
+
+    model = build_articulation_model(load_puppet(), springs=(("head", 300.0, 2.0),))
+    with pytest.raises(ValueError, match="no tangent yet"):
+        ArticulationTangent(SolverArticulation(model, optimization_level=0), 2)
