@@ -11,7 +11,7 @@ with issue 13's target ``1 + 0.5 P``.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_puppet_tangent.py [--worlds 16] [--opt 2] [--count 200] [--repeats 9]
+    .venv/bin/python benchmarks/bench_puppet_tangent.py [--worlds 16] [--opt 2] [--count 200] [--repeats 9] [--per-kernel]
 
 The tangent module compiles once per topology and optimisation level (cached on disk).
 """
@@ -79,6 +79,7 @@ def main() -> None:
     parser.add_argument("--count", type=int, default=200, help="steps per captured graph")
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--directions", type=int, nargs="+", default=[1, 4, 12, 16])
+    parser.add_argument("--per-kernel", action="store_true", help="also each kernel alone (largest P)")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
@@ -109,6 +110,14 @@ def main() -> None:
         ta = _tangent_arrays(base, P, rng)
         cost = graph_cost(step_fn(tangent, ta, "_tangent"), args.count, args.repeats)
         print(f"| tangent, P = {P} | {cost * 1e6:.1f} | {cost / one:.2f} | {1 + 0.5 * P:.1f} |", flush=True)
+    if args.per_kernel:
+        P = args.directions[-1]
+        ta = _tangent_arrays(base, P, rng)
+        print(f"\nper kernel, P = {P}:\n| kernel | primal us | tangent us | x primal |\n| --- | --- | --- | --- |")
+        for n in ("eval_body_kinematics", "solve_body_dynamics", "integrate_joint_coordinates"):
+            a = graph_cost(_launcher(getattr(primal, n), base, args.worlds), args.count, args.repeats)
+            b = graph_cost(_launcher(getattr(tangent, n + "_tangent"), ta, args.worlds), args.count, args.repeats)
+            print(f"| {n} | {a * 1e6:.1f} | {b * 1e6:.1f} | {b / a:.2f} |", flush=True)
 
 
 if __name__ == "__main__":
