@@ -29,7 +29,7 @@ __all__ = [
     "compute_quat_integrate_tangent",
     "compute_rotation_motion_tangent",
     "compute_smooth_norm_tangent",
-    "compute_spatial_inertia_tangent",
+    "compute_spatial_inertia_tangent_pose",
     "quat_from_axis_angle_tangent",
     "quat_normalize_tangent",
     "quat_rotate_tangent",
@@ -81,31 +81,29 @@ def compute_rotation_motion_tangent(axis: wp.vec3d, point: wp.vec3d, axis_t: wp.
 
 @wp.func
 def _quat_to_matrix_tangent(q: wp.quatd, q_t: wp.quatd) -> wp.mat33d:
-    """Tangent of ``quat_to_matrix`` (Warp builds its columns with ``quat_rotate``)."""
-    z = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    one = wp.float64(1.0)
-    zero = wp.float64(0.0)
-    c0 = quat_rotate_tangent(q, wp.vec3d(one, zero, zero), q_t, z)
-    c1 = quat_rotate_tangent(q, wp.vec3d(zero, one, zero), q_t, z)
-    c2 = quat_rotate_tangent(q, wp.vec3d(zero, zero, one), q_t, z)
-    return wp.matrix_from_cols(c0, c1, c2)
+    """Tangent of ``quat_to_matrix`` (Warp builds its columns with ``quat_rotate``, i.e. the matrix
+    ``(2 w^2 - 1) I + 2 u u^T + 2 w [u]x``)."""
+    two = wp.float64(2.0)
+    u = wp.vec3d(q[0], q[1], q[2])
+    u_t = wp.vec3d(q_t[0], q_t[1], q_t[2])
+    uu = wp.outer(u_t, u)
+    return (wp.identity(n=3, dtype=wp.float64) * (wp.float64(4.0) * q[3] * q_t[3]) + (uu + wp.transpose(uu)) * two
+            + wp.skew(u) * (two * q_t[3]) + wp.skew(u_t) * (two * q[3]))
 
 
 @wp.func
-def compute_spatial_inertia_tangent(mass: wp.float64, inertia: wp.vec3d, rot: wp.quatd, com: wp.vec3d,
-                                    mass_t: wp.float64, inertia_t: wp.vec3d, rot_t: wp.quatd,
-                                    com_t: wp.vec3d) -> spatial66:
-    """Tangent of ``compute_spatial_inertia`` (all four arguments)."""
+def compute_spatial_inertia_tangent_pose(mass: wp.float64, inertia: wp.vec3d, rot: wp.quatd, com: wp.vec3d,
+                                         rot_t: wp.quatd, com_t: wp.vec3d) -> spatial66:
+    """Tangent of ``compute_spatial_inertia`` along the pose only (mass and inertia constant):
+    ``Ic' = X + X^T`` with ``X = R' D R^T``, and ``(C' C + C C')= Y + Y^T`` with ``Y = C' C``."""
     R = wp.quat_to_matrix(rot)
-    R_t = _quat_to_matrix_tangent(rot, rot_t)
-    D = wp.diag(inertia)
-    Ic_t = R_t * D * wp.transpose(R) + R * wp.diag(inertia_t) * wp.transpose(R) + R * D * wp.transpose(R_t)
-    C = wp.skew(com)
+    X = _quat_to_matrix_tangent(rot, rot_t) * (wp.diag(inertia) * wp.transpose(R))
     C_t = wp.skew(com_t)
-    top_left = Ic_t - mass_t * C * C - mass * (C_t * C + C * C_t)
-    top_right = mass_t * C + mass * C_t
-    return compute_spatial_blocks(top_left, top_right, wp.transpose(top_right),
-                                  wp.diag(wp.vec3d(mass_t, mass_t, mass_t)))
+    Y = C_t * wp.skew(com)
+    top_right = mass * C_t
+    zero = wp.float64(0.0)
+    return compute_spatial_blocks(X + wp.transpose(X) - mass * (Y + wp.transpose(Y)), top_right,
+                                  wp.transpose(top_right), wp.diag(wp.vec3d(zero, zero, zero)))
 
 
 @wp.func

@@ -37,9 +37,10 @@ with Warp's adjoint of the same kernel to rounding):
   ``compute_cross_force``): product rule;
 - ``wp.sqrt``, ``wp.atan2``: closed form (as Warp's adjoints);
 - ``wp.quat_rotate``, ``wp.quat_from_axis_angle``, ``compute_rotation_motion``,
-  ``compute_spatial_inertia``, ``compute_quat_from_mj``, ``compute_quat_integrate``,
-  ``compute_smooth_norm``: the ``@wp.func`` ``<name>_tangent`` of
-  :mod:`articulation_math_tangent` (one rule per function, written once);
+  ``compute_quat_from_mj``, ``compute_quat_integrate``, ``compute_smooth_norm``: the
+  ``@wp.func`` ``<name>_tangent`` of :mod:`articulation_math_tangent` (one rule per
+  function, written once); ``compute_spatial_inertia``: ``..._tangent_pose``, along the
+  pose only (mass and inertia are model constants; an active one raises);
 - switches ``wp.max``, ``wp.min``, ``wp.clamp``, ``wp.abs``, ``wp.where`` (scalar
   float64 operands): the tangent of the branch taken, with ties broken as Warp's adjoints
   break them (``max(a, b)``: ``a`` if ``a > b`` else ``b``; ``min``: ``a`` if ``a < b``
@@ -49,9 +50,10 @@ with Warp's adjoint of the same kernel to rounding):
 
 Values the rules need that depend on the primal only (``1 / b`` of a division, ``0.5 / y``
 of a square root, the branch a switch takes, and the partial derivatives of a
-``<name>_tangent`` function whose active arguments are all scalars, e.g. the hinge
-quaternion's derivative in its angle) are computed once, before the direction loop, as
-``_c<n>``: the loop holds only what is linear in the tangents.
+``<name>_tangent`` function whose active arguments have at most 4 scalar components, e.g.
+the hinge quaternion's derivative in its angle, or ``quat_rotate(r, a)``'s 3x4 Jacobian in
+``r`` for a constant ``a``) are computed once, before the direction loop, as ``_c<n>``:
+the loop holds only what is linear in the tangents.
 
 Anything else (another statement kind, operator or function, keyword arguments, an
 active index, ``wp.float64(...)`` of an active value) raises
@@ -89,7 +91,7 @@ from dmarionette.kernels.articulation_math import (
 )
 from dmarionette.kernels.articulation_math_tangent import (
     quat_rotate_tangent, quat_from_axis_angle_tangent, compute_rotation_motion_tangent,
-    compute_spatial_inertia_tangent, compute_quat_from_mj_tangent,
+    compute_spatial_inertia_tangent_pose, compute_quat_from_mj_tangent,
     compute_quat_integrate_tangent, compute_smooth_norm_tangent,
 )
 '''
@@ -113,12 +115,27 @@ _TANGENT_FUNC = {
     "wp.quat_rotate": ("quat_rotate_tangent", ("wp.quatd", "wp.vec3d")),
     "wp.quat_from_axis_angle": ("quat_from_axis_angle_tangent", ("wp.vec3d", "wp.float64")),
     "compute_rotation_motion": ("compute_rotation_motion_tangent", ("wp.vec3d", "wp.vec3d")),
-    "compute_spatial_inertia": ("compute_spatial_inertia_tangent",
-                                ("wp.float64", "wp.vec3d", "wp.quatd", "wp.vec3d")),
+    "compute_spatial_inertia": (None, ("wp.float64", "wp.vec3d", "wp.quatd", "wp.vec3d")),  # see _CONSTANT_ARGS
     "compute_quat_from_mj": ("compute_quat_from_mj_tangent", ("wp.float64",) * 4),
     "compute_quat_integrate": ("compute_quat_integrate_tangent", ("wp.quatd", "wp.vec3d", "wp.float64")),
     "compute_smooth_norm": ("compute_smooth_norm_tangent", ("wp.vec3d",)),
 }
+# Functions whose tangent rule holds some arguments constant: name -> (tangent function, constant argument
+# indices); it takes the primal arguments, then the tangents of the others.
+_CONSTANT_ARGS = {"compute_spatial_inertia": ("compute_spatial_inertia_tangent_pose", (0, 1))}
+# Scalar components per type; at most _PARTIALS_MAX active components: partial derivatives hoisted.
+_DIM = {"wp.float64": 1, "wp.vec3d": 3, "wp.quatd": 4}
+_PARTIALS_MAX = 4
+
+
+def _unit(ty: str, k: int) -> str:
+    """The k-th unit value of a type (``wp.float64``: one)."""
+    if ty == "wp.float64":
+        return "wp.float64(1.0)"
+    comps = ["wp.float64(1.0)" if i == k else "_zero" for i in range(_DIM[ty])]
+    return f"{ty}({', '.join(comps)})"
+
+
 _CONSTANT_FUNCS = ("wp.tid", "wp.float64")  # results carry no tangent (their arguments must be constant)
 
 
@@ -286,14 +303,19 @@ class _Kernel:
             name, types = _TANGENT_FUNC[f]
             if len(args) != len(types):
                 _fail(node, f"{f} with {len(args)} arguments (rule for {len(types)})")
-            if all(ty == "wp.float64" for t, ty in zip(tans, types) if t is not None):
-                # scalar active arguments: the partial derivatives once, then sum_i d_i x_i_t
+            if f in _CONSTANT_ARGS:
+                name, constant = _CONSTANT_ARGS[f]
+                if any(tans[i] is not None for i in constant):
+                    _fail(node, f"an active argument {[args[i] for i in constant]} (model constants here)")
+                return f"{name}({', '.join(args + [t or _ZERO[ty] for i, (t, ty) in enumerate(zip(tans, types)) if i not in constant])})"
+            if sum(_DIM[ty] for t, ty in zip(tans, types) if t is not None) <= _PARTIALS_MAX:
+                # few active scalar components: the partial derivatives once, then sum_k d_k x_t[k]
                 terms = []
-                for i, t in enumerate(tans):
-                    if t is not None:
-                        unit = ["wp.float64(1.0)" if k == i else _ZERO[ty] for k, ty in enumerate(types)]
+                for i, (t, ty) in enumerate(zip(tans, types)):
+                    for k in range(_DIM[ty] if t is not None else 0):
+                        unit = [_unit(ty2, k) if j == i else _ZERO[ty2] for j, ty2 in enumerate(types)]
                         partial = self.coef(f"{name}({', '.join(args + unit)})")
-                        terms.append(f"{partial} * {t}")
+                        terms.append(f"{partial} * {t}" if ty == "wp.float64" else f"{partial} * {t}[{k}]")
                 return _sum(terms)
             zeros = [t if t is not None else _ZERO[ty] for t, ty in zip(tans, types)]
             return f"{name}({', '.join(args + zeros)})"
