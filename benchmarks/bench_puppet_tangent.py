@@ -11,7 +11,8 @@ with issue 13's target ``1 + 0.5 P``.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_puppet_tangent.py [--worlds 16] [--opt 2] [--count 200] [--repeats 9] [--per-kernel]
+    .venv/bin/python benchmarks/bench_puppet_tangent.py [--worlds 16] [--opt 2] [--count 200] [--repeats 9] \\
+        [--directions 1 4 12 16] [--per-kernel]
 
 The tangent module compiles once per topology and optimisation level (cached on disk).
 """

@@ -149,6 +149,7 @@ class _Emitter:
     def __init__(self, topo: ArticulationTopology):
         self.t = topo
         self.lines: list[str] = []
+        self.solve: dict | None = None  # the last kernel's linear solve (see _factor_and_solve)
 
     def __call__(self, line: str) -> None:
         self.lines.append("    " + line)
@@ -156,6 +157,7 @@ class _Emitter:
     def begin(self, constants: bool = True) -> None:
         """Starts a kernel body: the thread index ``w`` and (``constants``) float64 ``zero``, ``one``."""
         self.lines = []
+        self.solve = None
         self("w = wp.tid()")
         if constants:
             self("zero = wp.float64(0.0)")
@@ -420,10 +422,17 @@ def solve_body_dynamics(
                         H[d + k, d + m] = f"Hb{d + k}_{d + m}"
 
     def _factor_and_solve(self, H: dict, tau: dict) -> None:
-        """Tree-sparse L^T L factorisation of H and the two triangular solves."""
+        """Tree-sparse L^T L factorisation of H and the two triangular solves.
+
+        Records in ``self.solve`` what ``articulation_tangent`` needs to differentiate the solve
+        as a whole (``H qdd = tau``: ``qdd' = H^-1 (tau' - H' qdd)`` with this ``L``): the names of
+        H's entries (``H``, lower triangle), of the right-hand side (``b``), of ``L``, of the
+        solution (``x``), the dof parents (``lam``) and the names this part defines (``internal``).
+        """
         e = self
         n = self.t.qd_count
         lam = self.t.dof_parent()
+        first = len(self.lines)
 
         def anc(i):
             while i >= 0:
@@ -467,6 +476,9 @@ def solve_body_dynamics(
         for i in range(n):
             terms = " - ".join([x[i]] + [f"L{i}_{j} * qdd{j}" for j in anc(lam[i])])
             e(f"qdd{i} = ({terms}) / L{i}_{i}")
+        internal = [line.strip().split(" = ", 1)[0] for line in self.lines[first:]]
+        self.solve = dict(H=dict(H), b=dict(tau), L=L, x={i: f"qdd{i}" for i in range(n)}, lam=lam,
+                          internal=internal)
 
     # -------------------------------------------------------------- integration
     def integrate(self) -> str:

@@ -99,6 +99,7 @@ from dmarionette.kernels.articulation_math_tangent import (
 _PREFIX = "tan_"
 _TEMP = "_a"
 _COEF = "_c"
+_SOLVE = "_s"
 
 # Zero of a type, as a name the tangent kernel defines first.
 _ZERO = {"wp.float64": "_zero", "wp.vec3d": "_zero3", "wp.quatd": "_zeroq", "spatial6": "spatial6()",
@@ -154,15 +155,18 @@ def _fail(node: ast.AST, why: str):
 class _Kernel:
     """One kernel's transformation (see the module doc)."""
 
-    def __init__(self, source: str):
+    def __init__(self, source: str, solve: dict | None = None):
         tree = ast.parse(source)
+        self.solve = solve
+        self.forbidden: set[str] = set()  # defined inside the linear solve; no tangent of their own
         if len(tree.body) != 1 or not isinstance(tree.body[0], ast.FunctionDef):
             raise TangentError("articulation_tangent: expected the source of one kernel")
         self.fn = tree.body[0]
         self.groups = _parameter_groups(source)  # [(group, [(name, annotation)])]
         self.params = {n: a for _, ps in self.groups for n, a in ps}
         used = {n.id for n in ast.walk(self.fn) if isinstance(n, ast.Name)} | set(self.params)
-        clash = sorted(n for n in used if n.startswith((_PREFIX, _TEMP, _COEF, "_zero")) or n in ("p", "direction_count"))
+        clash = sorted(n for n in used
+                       if n.startswith((_PREFIX, _TEMP, _COEF, _SOLVE, "_zero")) or n in ("p", "direction_count"))
         if clash:
             raise TangentError(f"articulation_tangent: names {clash} clash with the tangent kernel's own")
         self.active: set[str] = {n for n in TANGENT_INPUTS if n in self.params}
@@ -178,6 +182,8 @@ class _Kernel:
 
     def is_active(self, node: ast.AST) -> bool:
         if isinstance(node, ast.Name):
+            if node.id in self.forbidden:
+                _fail(node, "a value inside the linear solve (only its solution has a tangent)")
             return node.id in self.active and not self.is_array(node.id)
         if isinstance(node, ast.Constant) or isinstance(node, ast.Compare):
             return False
@@ -307,7 +313,8 @@ class _Kernel:
                 name, constant = _CONSTANT_ARGS[f]
                 if any(tans[i] is not None for i in constant):
                     _fail(node, f"an active argument {[args[i] for i in constant]} (model constants here)")
-                return f"{name}({', '.join(args + [t or _ZERO[ty] for i, (t, ty) in enumerate(zip(tans, types)) if i not in constant])})"
+                rest = [t or _ZERO[ty] for i, (t, ty) in enumerate(zip(tans, types)) if i not in constant]
+                return f"{name}({', '.join(args + rest)})"
             if sum(_DIM[ty] for t, ty in zip(tans, types) if t is not None) <= _PARTIALS_MAX:
                 # few active scalar components: the partial derivatives once, then sum_k d_k x_t[k]
                 terms = []
@@ -347,11 +354,17 @@ class _Kernel:
         doc = ""
         if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
             doc, body = body[0].value.value, body[1:]
+        internal = self.solve["internal"] if self.solve else []
         for st in body:
             if not (isinstance(st, ast.Assign) and len(st.targets) == 1):
                 _fail(st, f"statement kind {type(st).__name__} (only single assignments)")
             target = st.targets[0]
-            if isinstance(target, ast.Name):
+            if isinstance(target, ast.Name) and target.id in internal:
+                self.primal.append(_src(st))  # the factorisation and solves: primal only
+                self.forbidden.add(target.id)
+                if target.id == internal[-1]:
+                    self.solve_tangent()
+            elif isinstance(target, ast.Name):
                 self.assign(target.id, st.value)
             elif (isinstance(target, ast.Subscript) and isinstance(target.value, ast.Name)
                   and self.is_array(target.value.id)):
@@ -359,6 +372,52 @@ class _Kernel:
             else:
                 _fail(st, "assignment target (a name or an array element)")
         return self.emit(doc)
+
+    def solve_tangent(self) -> None:
+        """The tangent of the solution of ``H x = b`` (``L^T L`` factorisation ``L`` already computed):
+        ``x' = H^-1 (b' - H' x)``, by the same two triangular solves with ``L``."""
+        sv = self.solve
+        lam, L, x = sv["lam"], sv["L"], sv["x"]
+        n = len(x)
+
+        def anc(i):
+            while i >= 0:
+                yield i
+                i = lam[i]
+
+        def tan_of(name):
+            return self.tan(ast.Name(name))
+
+        inv = {i: self.coef(f"wp.float64(1.0) / {L[i, i]}") for i in range(n)}
+        self.primal += self.pending
+        self.pending = []
+        y, version = {}, {}
+
+        def fresh(i):
+            version[i] = version.get(i, 0) + 1
+            return f"{_PREFIX}{_SOLVE}{i}_{version[i]}"
+
+        for i in range(n):  # b' - H' x (H symmetric, its lower triangle stored)
+            terms = [f"{t} * {x[k]}" for (j, k), h in sv["H"].items() if j == i and (t := tan_of(h))]
+            terms += [f"{t} * {x[j]}" for (j, k), h in sv["H"].items() if k == i != j and (t := tan_of(h))]
+            tb = tan_of(sv["b"][i])
+            if tb is None and not terms:
+                _fail(ast.Name(x[i]), "a solve with a constant row (internal)")
+            y[i] = fresh(i)
+            self.tangent.append(f"{y[i]} = {tb or '_zero'} - ({' + '.join(terms) or '_zero'})")
+        for i in reversed(range(n)):
+            name = fresh(i)
+            self.tangent.append(f"{name} = {y[i]} * {inv[i]}")
+            y[i] = name
+            for j in anc(lam[i]):
+                name = fresh(j)
+                self.tangent.append(f"{name} = {y[j]} - {L[i, j]} * {y[i]}")
+                y[j] = name
+        for i in range(n):
+            terms = " - ".join([y[i]] + [f"{L[i, j]} * {_PREFIX}{x[j]}" for j in anc(lam[i])])
+            self.tangent.append(f"{_PREFIX}{x[i]} = ({terms}) * {inv[i]}")
+            self.forbidden.discard(x[i])
+            self.active.add(x[i])
 
     def write(self, target: ast.Subscript, value: ast.AST) -> None:
         arr = target.value.id
@@ -442,9 +501,15 @@ def _parameter_groups(source: str) -> list:
     return groups
 
 
-def tangent_kernel_source(source: str) -> str:
-    """The source of ``<name>_tangent`` for the source of one generated straight-line kernel."""
-    return _Kernel(source).transform()
+def tangent_kernel_source(source: str, solve: dict | None = None) -> str:
+    """The source of ``<name>_tangent`` for the source of one generated straight-line kernel.
+
+    Args:
+        source: the kernel's source (decorator, signature with its parameter groups, body).
+        solve: a linear solve in it, as ``_Emitter`` records it (``_factor_and_solve``), to
+            differentiate as a whole (or None: every statement by its rule).
+    """
+    return _Kernel(source, solve).transform()
 
 
 def articulation_tangent_source(topo: ArticulationTopology, optimization_level: int = 1) -> str:
@@ -453,8 +518,10 @@ def articulation_tangent_source(topo: ArticulationTopology, optimization_level: 
     # no adjoint code: the tangent kernels are not differentiated again (and compile in half the time)
     options = (f'wp.set_module_options({{"optimization_level": {int(optimization_level)}, '
                f'"enable_backward": False}})\n')
-    kernels = [em.kinematics(), em.dynamics(), em.integrate(), em.mass_matrix()]
-    return "\n\n".join([_HEADER + options] + [tangent_kernel_source(k) for k in kernels])
+    kernels = [(em.kinematics(), None)]
+    kernels.append((em.dynamics(), em.solve))
+    kernels += [(em.integrate(), None), (em.mass_matrix(), None)]
+    return "\n\n".join([_HEADER + options] + [tangent_kernel_source(k, solve) for k, solve in kernels])
 
 
 def build_articulation_tangent_kernels(topo: ArticulationTopology, optimization_level: int = 1):

@@ -19,6 +19,7 @@ a limit (penalty spring on), and the neck's ball past its cone.
 from __future__ import annotations
 
 import re
+import zlib
 
 import numpy as np
 import pytest
@@ -144,7 +145,8 @@ class Setup:
 
 
 KERNELS = {  # name: (values method, active inputs, outputs)
-    "eval_body_kinematics": ("kinematics_values", ("joint_q", "joint_qd"), ("body_pos", "body_rot", "body_w", "body_v")),
+    "eval_body_kinematics": ("kinematics_values", ("joint_q", "joint_qd"),
+                             ("body_pos", "body_rot", "body_w", "body_v")),
     "solve_body_dynamics": ("dynamics_values", ("joint_q", "joint_qd", "body_pos", "body_rot", "body_w", "body_v",
                                                 "body_wrench", "body_stiffness", "joint_f"),
                             ("joint_qdd", "joint_qd_out")),
@@ -191,7 +193,8 @@ def vjp(setup, name, values, adjoints):
 
 
 def _directions(setup, name, values, P):
-    v = {n: setup.rng.normal(size=(P,) + np.shape(values[n])) for n in KERNELS[name][1]}
+    rng = np.random.default_rng([zlib.crc32(name.encode()), P])  # the same directions however tests are selected
+    v = {n: rng.normal(size=(P,) + np.shape(values[n])) for n in KERNELS[name][1]}
     if "body_stiffness" in v:  # symmetric and at the scale of the stiffness: H stays positive definite along it
         s = v["body_stiffness"]
         v["body_stiffness"] = (s + np.swapaxes(s, -1, -2)) * 1e-4
@@ -237,10 +240,13 @@ def test_tangent_matches_finite_differences(setup, name):
     err = [np.linalg.norm((f(e) - f(-e)) / (2 * e) - ref) / np.linalg.norm(ref) for e in steps]
     print(name, "relative FD error per step:", ", ".join(f"{e:.0e}: {x:.1e}" for e, x in zip(steps, err)))
     # truncation regime: eps^2, 100x per decade (>= 50x allowed for the next-order terms)
-    # (the dynamics' curvature is large: a 30 g arm's inertia, so its truncation regime reaches 1e-6)
     assert all(err[i + 1] <= err[i] / 50 for i in range(3)), err
-    # at the best step, truncation and rounding meet (~1e-16^(2/3) ~ 1e-11 for unit curvature)
-    assert min(err) <= 1e-9, err
+    # at the best step the error is what central differences can give: truncation (eps^2, scaled from
+    # eps = 1e-3) plus rounding (1/eps, scaled from eps = 1e-8, where rounding dominates), within 3x
+    # (the dynamics' curvature is large: a 25 g forearm's inertia, so its best error is ~1e-9)
+    best = min(err[1] * (e / steps[1]) ** 2 + err[-1] * steps[-1] / e for e in steps)
+    print(f"best central-difference error expected: {best:.1e}")
+    assert min(err) <= 3 * best, (err, best)
 
 
 def test_limit_state_exercises_the_switches(setup):
