@@ -31,6 +31,12 @@ with Warp's adjoint of the same kernel to rounding):
 - ``*``: product rule ``a_t b + a b_t`` (every ``*`` in the generated code is bilinear:
   scalar x scalar/vector/quaternion/matrix, matrix x vector, quaternion x quaternion,
   spatial66 x spatial6); ``/``: ``y = a / b`` with a scalar ``b``: ``(a_t - y b_t) / b``;
+- the dynamics' tree-sparse ``L^T L`` factorisation and two triangular solves of
+  ``H qdd = tau`` (the statements ``_Emitter._factor_and_solve`` records as ``solve``):
+  differentiated as a whole, ``qdd_t = H^-1 (tau_t - H_t qdd)`` by the same two solves
+  with the primal's ``L`` (``H_t`` and ``tau_t`` from their statements' rules); no value
+  inside the solve has a tangent of its own (a rule needing one raises). This is the
+  same derivative with a quarter of the work of differentiating the factorisation;
 - linear functions (``wp.vec3d``, ``wp.quatd``, ``spatial6`` constructors from scalars,
   ``compute_spatial``, ``compute_top``, ``compute_bottom``): the function of the
   tangents; bilinear ones (``wp.cross``, ``wp.dot``, ``compute_cross_motion``,
@@ -55,6 +61,13 @@ the hinge quaternion's derivative in its angle, or ``quat_rotate(r, a)``'s 3x4 J
 ``r`` for a constant ``a``) are computed once, before the direction loop, as ``_c<n>``:
 the loop holds only what is linear in the tangents.
 
+Cost (``benchmarks/bench_puppet_tangent.py``, CPU, -O2, 16 worlds, the shipped puppet):
+one tangent step costs about 2-3 primal steps for P = 1 and about 1.3-1.4 more per
+direction (P = 16: about 20-24x), above issue 13's target ``1 + 0.5 P``: the loop is
+scalar code, about as many floating-point operations per direction as the primal (the
+product rule doubles the bilinear terms); reaching 0.5 per direction needs the
+directions packed into SIMD lanes (vector-valued tangents), not done.
+
 Anything else (another statement kind, operator or function, keyword arguments, an
 active index, ``wp.float64(...)`` of an active value) raises
 :class:`TangentError` naming the construct: no term is ever dropped silently.
@@ -64,7 +77,9 @@ forces (``kernels/articulation_forces.py``), the string-body coupling and the ba
 feedback. They are hand-written Warp kernels with loops and branches, not SSA code; their
 tangents would need hand-written tangent kernels (or this transformer extended to
 ``if``/``for`` with per-iteration tangents). Here the tangents of their outputs
-(``body_wrench``, ``body_stiffness``) are inputs of the dynamics tangent.
+(``body_wrench``, ``body_stiffness``) are inputs of the dynamics tangent
+(:class:`~dmarionette.articulation.tangent.ArticulationTangent` refuses models and
+controls that need them).
 """
 
 from __future__ import annotations
@@ -75,7 +90,13 @@ import re
 
 from dmarionette.kernels.articulation_codegen import ArticulationTopology, _Emitter, _import_generated
 
-__all__ = ["TANGENT_INPUTS", "TangentError", "build_articulation_tangent_kernels", "tangent_kernel_source"]
+__all__ = [
+    "TANGENT_INPUTS",
+    "TangentError",
+    "articulation_tangent_source",
+    "build_articulation_tangent_kernels",
+    "tangent_kernel_source",
+]
 
 # Inputs whose tangents the kernels take (every other input is a constant).
 TANGENT_INPUTS = ("joint_q", "joint_qd", "body_pos", "body_rot", "body_w", "body_v",
