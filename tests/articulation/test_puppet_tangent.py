@@ -104,7 +104,7 @@ class Setup:
 
     # ------------------------------------------------------------ kernel argument values
     def kinematics_values(self, q, qd):
-        m, nb = self.model, self.model.body_count
+        nb = self.model.body_count
         return dict(joint_q=q, joint_qd=qd, body_pos=np.zeros((WORLDS, nb, 3)), body_rot=np.zeros((WORLDS, nb, 4)),
                     body_w=np.zeros((WORLDS, nb, 3)), body_v=np.zeros((WORLDS, nb, 3)))
 
