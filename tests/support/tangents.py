@@ -1,0 +1,109 @@
+"""Checks of the interleaved tangent kernels (``kernels/kernel_tangent``) against Warp's reverse
+mode of the same kernel and against central finite differences.
+
+The dot-product identity ``<u, J v> = <J^T u, v>``: ``J v`` from the tangent kernel (P
+directions ``v`` at once), ``J^T u`` from ``wp.Tape`` on the primal kernel. Both sides are
+sums of float64 products, each rounded to ~1e-16 of its size; the tolerance, 1e-10 of the
+sum of the absolute values of the terms, leaves room for ~1e5 terms' rounding, far more
+than a test kernel has, and is far below any missing or wrong term.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from dmarionette.kernels.kernel_tangent import tangent_kernel
+
+RTOL = 1e-10
+
+
+def _components(dtype) -> int:
+    return int(np.prod(getattr(dtype, "_shape_", ()))) or 1
+
+
+def _random_like(a: wp.array, rng, lead=()) -> np.ndarray:
+    return rng.standard_normal((*lead, *a.shape, _components(a.dtype)))
+
+
+def _as_array(values: np.ndarray, dtype) -> wp.array:
+    """A Warp array from ``(*shape, components)`` values."""
+    inner = getattr(dtype, "_shape_", ())
+    return wp.array(values.reshape(*values.shape[:-1], *inner), dtype=dtype, device="cpu")
+
+
+def _numpy(a: wp.array) -> np.ndarray:
+    n = a.numpy()
+    return n.reshape(*a.shape, _components(a.dtype))
+
+
+def launch_tangent(kernel, dim, args: dict, tangents: dict, P: int) -> tuple[dict, dict]:
+    """Runs the tangent kernel of ``kernel`` on copies of ``args`` (name -> value; outputs hold their
+    initial values) with the input tangents ``tangents`` (name -> numpy ``(P, *shape, comps)``; the
+    output tangents start at zero). Returns (primal outputs, output tangents) as numpy arrays."""
+    tk = tangent_kernel(kernel)
+    values = {n: (wp.clone(v) if isinstance(v, wp.array) else v) for n, v in args.items()}
+    tan = {n: _as_array(tangents[n], args[n].dtype) for n in tk.tangent_inputs}
+    for n in tk.tangent_outputs:
+        a = args[n]
+        tan[n] = _as_array(np.zeros((P, *a.shape, _components(a.dtype))), a.dtype)
+    tk.launch(dim, P, [values[n] for n in tk.params], tan)
+    return ({n: _numpy(values[n]) for n in tk.tangent_outputs},
+            {n: tan[n].numpy().reshape(P, *args[n].shape, -1) for n in tk.tangent_outputs})
+
+
+def dot_product_check(kernel, dim, args: dict, P: int, rng) -> list[tuple[float, float, float]]:
+    """The dot-product identity per direction: ``[(<u, J v_p>, <J^T u, v_p>, scale)]``; also asserts
+    that the tangent kernel's primal outputs equal the primal kernel's bit for bit."""
+    tk = tangent_kernel(kernel)
+    v = {n: _random_like(args[n], rng, (P,)) for n in tk.tangent_inputs}
+    prim, jv = launch_tangent(kernel, dim, args, v, P)
+    taped = {n: (wp.clone(a, requires_grad=a.dtype not in (wp.int32, wp.int64)) if isinstance(a, wp.array) else a)
+             for n, a in args.items()}
+    tape = wp.Tape()
+    with tape:
+        wp.launch(kernel, dim=dim, inputs=[taped[n] for n in tk.params], device="cpu")
+    for n in tk.tangent_outputs:
+        np.testing.assert_array_equal(prim[n], _numpy(taped[n]), err_msg=f"{kernel.key}: primal output {n}")
+    u = {n: _random_like(args[n], rng) for n in tk.tangent_outputs}
+    tape.backward(grads={taped[n]: _as_array(u[n], args[n].dtype) for n in tk.tangent_outputs})
+    jtu = {n: _numpy(taped[n].grad) for n in tk.tangent_inputs}
+    out = []
+    for p in range(P):
+        terms = np.concatenate([(u[n] * jv[n][p]).ravel() for n in tk.tangent_outputs])
+        rhs = sum(float(np.sum(jtu[n] * v[n][p])) for n in tk.tangent_inputs)
+        out.append((float(terms.sum()), rhs, float(np.abs(terms).sum())))
+    return out
+
+
+def assert_dot_product(kernel, dim, args: dict, P: int, rng) -> None:
+    for lhs, rhs, scale in dot_product_check(kernel, dim, args, P, rng):
+        assert scale > 0.0, f"{kernel.key}: the tangent is zero (nothing checked)"
+        assert abs(lhs - rhs) <= RTOL * scale, f"{kernel.key}: <u, Jv> = {lhs!r}, <J^T u, v> = {rhs!r}"
+
+
+def central_difference_study(kernel, dim, args: dict, rng, steps=(1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7)):
+    """Tangent (one random direction, scaled per input by ``scale``) against central differences of the
+    primal kernel at each step: returns ``[(step, max abs error, max abs tangent)]``."""
+    tk = tangent_kernel(kernel)
+    v = {n: _random_like(args[n], rng, (1,)) for n in tk.tangent_inputs}
+    _, jv = launch_tangent(kernel, dim, args, v, 1)
+
+    def run(eps):
+        vals = {}
+        for n, a in args.items():
+            if n in tk.tangent_inputs:
+                vals[n] = _as_array(_numpy(a) + eps * v[n][0], a.dtype)
+            elif isinstance(a, wp.array):
+                vals[n] = wp.clone(a)
+            else:
+                vals[n] = a
+        wp.launch(kernel, dim=dim, inputs=[vals[n] for n in tk.params], device="cpu")
+        return {n: _numpy(vals[n]) for n in tk.tangent_outputs}
+
+    study = []
+    for eps in steps:
+        plus, minus = run(eps), run(-eps)
+        err = max(float(np.max(np.abs((plus[n] - minus[n]) / (2 * eps) - jv[n][0]))) for n in tk.tangent_outputs)
+        study.append((eps, err, max(float(np.max(np.abs(jv[n][0]))) for n in tk.tangent_outputs)))
+    return study
