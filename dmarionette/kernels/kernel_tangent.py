@@ -173,9 +173,13 @@ class _Transform:
         clash = sorted(n for n in self.locals if n.startswith((_PREFIX, _TMP, _GLB)) or n == _DIR)
         if clash:
             raise TangentError(f"kernel_tangent: {self.where}: names {clash} clash with the tangent code's own")
+        # Annotations are evaluated where the function is defined (a closure's are not cells): their objects.
+        self.annotation = {}
+        for a in fn.args.args:
+            ann = pyfunc.__annotations__.get(a.arg)
+            self.annotation[a.arg] = eval(ann, scope) if isinstance(ann, str) else ann  # noqa: S307 (the source's own)
         self._resolve(scope)
-        self.annotation = {a.arg: a.annotation for a in fn.args.args}
-        self.arrays = {n for n, a in self.annotation.items() if self._is_array_annotation(a)}
+        self.arrays = {n for n, a in self.annotation.items() if isinstance(a, wp.array)}
         if kernel:
             self.active_arrays = {n for n in self.arrays if n in tangent_names}
             self.active = set()
@@ -231,12 +235,28 @@ class _Transform:
                     return node
                 raise TangentError(f"kernel_tangent: cannot resolve the name {node.id}")
 
+        for a in self.fn.args.args:
+            a.annotation = None  # written from the evaluated annotations (annotation_source)
         self.fn.decorator_list = []
         self.fn.returns = None
         self.fn = Resolver().visit(self.fn)
 
-    def _is_array_annotation(self, a) -> bool:
-        return (isinstance(a, ast.Call) and _src(a.func) in ("wp.array", "wp.array1d", "wp.array2d", "wp.array3d"))
+    def annotation_source(self, name: str, lead: int = 0) -> str:
+        """The type of parameter ``name`` (an array type: with ``lead`` more leading dimensions)."""
+        a = self.annotation[name]
+        if isinstance(a, wp.array):
+            return f"wp.array{a.ndim + lead}d(dtype={self._type_source(a.dtype)})"
+        if lead:
+            raise TangentError(f"kernel_tangent: {self.where}: a tangent of the non-array {name}")
+        return self._type_source(a)
+
+    def _type_source(self, t) -> str:
+        for n in ("float64", "float32", "int32", "vec3d", "quatd", "mat33d"):
+            if t is getattr(wp, n):
+                return f"wp.{n}"
+        if t is int:
+            return "int"
+        return self.b.alias(t)
 
     def _object(self, node: ast.AST):
         """The object a (resolved) name refers to, or None."""
@@ -604,19 +624,19 @@ class _Transform:
 
     # ------------------------------------------------------------ definitions
     def _signature(self, extra: list[str]) -> list[str]:
-        return [f"{a.arg}: {_src(a.annotation)}" for a in self.fn.args.args] + extra
+        return [f"{n}: {self.annotation_source(n)}" for n in self.params] + extra
 
     def emit_function(self, name: str) -> str:
         self.statements(self.fn.body, 1)
-        extra = [f"{self.tan(a.arg)}: {_src(a.annotation)}" for a in self.fn.args.args if a.arg in self.active]
+        extra = [f"{self.tan(n)}: {self.annotation_source(n)}" for n in self.params if n in self.active]
         head = ["@wp.func", f"def {name}(" + ", ".join(self._signature(extra)) + "):"]
         return "\n".join(head + self.lines) + "\n"
 
     def emit_kernel(self, name: str) -> str:
         self.statements(self.fn.body, 1)
-        extra = [f"{self.tan(a.arg)}: {_tangent_annotation(a.annotation)}" for a in self.fn.args.args
-                 if a.arg in self.active_arrays and a.arg not in self.outputs]
-        extra += [f"{self.tan(n)}: {_tangent_annotation(self.annotation[n])}" for n in self.outputs]
+        extra = [f"{self.tan(n)}: {self.annotation_source(n, 1)}" for n in self.params
+                 if n in self.active_arrays and n not in self.outputs]
+        extra += [f"{self.tan(n)}: {self.annotation_source(n, 1)}" for n in self.outputs]
         head = ["@wp.kernel", f"def {name}(", *[f"    {s}," for s in self._signature(extra)], "):"]
         return "\n".join(head + self.lines) + "\n"
 
@@ -633,12 +653,6 @@ def _plus(a: str | None, b: str | None) -> str | None:
     if b is None:
         return a
     return f"({a}) + ({b})"
-
-
-def _tangent_annotation(a: ast.AST) -> str:
-    """The type of a tangent array: one more (leading) dimension."""
-    dims = {"wp.array": 1, "wp.array1d": 1, "wp.array2d": 2, "wp.array3d": 3}[_src(a.func)]
-    return f"wp.array{dims + 1}d({', '.join(_src(x) for x in a.args + a.keywords)})"
 
 
 class TangentKernel:
