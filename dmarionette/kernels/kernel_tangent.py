@@ -84,7 +84,8 @@ TANGENT_NAMES = frozenset({
     "body_force", "body_torque", "spring_anchor_pos", "spring_anchor_vel", "spring_stiffness", "spring_damping",
     # the strings: particle state, tie forces and path, their constants
     "particle_q", "particle_qd", "tie_force", "tie_q", "tie_qd", "tie_target", "point_end",
-    "string_stiffness", "string_tie_stiffness", "string_tie_damping",
+    "string_stiffness", "string_rest_length", "string_internal_friction", "string_tie_stiffness",
+    "string_tie_damping",
     # the bars
     "bar_q", "bar_qd",
 })

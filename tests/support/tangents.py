@@ -115,12 +115,14 @@ FD_RTOL = 100 * np.finfo(np.float64).eps ** (2.0 / 3.0)
 
 
 def assert_central_differences(study, what: str) -> None:
-    """The study of :func:`central_difference_study` (steps a decade apart from 1e-2 down): the error
-    falls like eps^2 between 1e-3 and 1e-4 (100x, 50x to 200x allowed), and the best step's error is
-    within :data:`FD_RTOL` of the tangent's scale."""
+    """The study of :func:`central_difference_study` (steps a decade apart from 1e-2 down): where the
+    truncation error is visible at eps 1e-3 (above 100 :data:`FD_RTOL` of the scale; a kernel nearly
+    linear in its inputs has none), it falls like eps^2 to 1e-4 (100x; 50x to 200x allowed); the best
+    step's error is within :data:`FD_RTOL` of the tangent's scale."""
     errors = {eps: err for eps, err, _ in study}
     scale = max(s for _, _, s in study)
-    ratio = errors[1e-3] / errors[1e-4]
-    assert 50.0 <= ratio <= 200.0, f"{what}: the error fell {ratio:.1f}x from eps 1e-3 to 1e-4 (eps^2: 100x)"
+    if errors[1e-3] > 100 * FD_RTOL * scale:
+        ratio = errors[1e-3] / errors[1e-4]
+        assert 50.0 <= ratio <= 200.0, f"{what}: the error fell {ratio:.1f}x from eps 1e-3 to 1e-4 (eps^2: 100x)"
     best = min(errors.values())
     assert best <= FD_RTOL * scale, f"{what}: best central difference error {best:.3e} (|Jv| {scale:.3e})"
