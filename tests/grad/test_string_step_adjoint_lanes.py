@@ -144,7 +144,7 @@ def test_laned_taped_step_equals_the_scalar_one(effects):
 def test_the_laned_taped_step_is_the_laned_kernel():
     """The comparison above compares two different kernels: lanes on writes the laned keep arrays into
     a lean workspace (``particle_dv`` and the lane arrays: no scalar arrays at all); lanes off the
-    scalar ones. A lean workspace stepped after lanes were turned off gets the scalar arrays and
+    scalar keep arrays (and not the five passes' blocks). A lean workspace stepped after lanes were turned off gets the scalar arrays and
     ends where a scalar workspace does."""
     model = _model(ALL_ON)
     solver = SolverStringImplicit(model)
@@ -161,6 +161,7 @@ def test_the_laned_taped_step_is_the_laned_kernel():
     with tape:
         solver.step(a, b, model.control(), DT, tape=tape, workspace=scalar_ws)
     assert scalar_ws.lane_inverse is None and np.any(scalar_ws.scratch_inverse.numpy() != 0.0)
+    assert scalar_ws.system_diag is None and scalar_ws.segment_jacobian is None  # the scalar keep step's only
     with tape:
         solver.step(a, c, model.control(), DT, tape=tape, workspace=ws)  # the lean one, lanes now off
     np.testing.assert_array_equal(ws.scratch_inverse.numpy(), scalar_ws.scratch_inverse.numpy())
