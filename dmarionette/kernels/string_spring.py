@@ -282,7 +282,8 @@ def string_spring_tangent_functions(scalar) -> SimpleNamespace:
         stretch = length - rest_length
         alpha_dot = -stiffness_dot * (one - geometric) + stiffness * geometric_dot
         beta_dot = -stiffness_dot * geometric - stiffness * geometric_dot
-        f_dot = -(stiffness_dot * stretch + stiffness * (length_dot - rest_length_dot)) * u - (stiffness * stretch) * u_dot
+        f_dot = (-(stiffness_dot * stretch + stiffness * (length_dot - rest_length_dot)) * u
+                 - (stiffness * stretch) * u_dot)
         return u, -stiffness * (one - geometric), -stiffness * geometric, u_dot, alpha_dot, beta_dot, f_dot
 
     @wp.func

@@ -31,9 +31,10 @@ Printed springs only: the tension-only springs' step (an active-set solve) has n
 Layout: one thread per (direction, string), ``dim = (P, S)``, so P directions are one launch; the
 tangents have a leading direction axis (``(P, particle_count)``, ``(P, string_count)`` of vec3;
 the constants ``(P, string_count, 10)`` in :data:`CONSTANTS` order). Each thread re-evaluates the
-primal spring parts it needs (cheaper than storing them: no 3x3 inverse, two sweeps of
-matrix-vector products); the forward substitution's ``y`` is kept in ``particle_qd_out_dot`` and
-overwritten by the back substitution. Each term is the derivative of the forward's
+primal spring parts it needs (each segment's spring and its tangent twice, once per row it
+touches; nothing stored by the forward beyond its factorisation and ``dv``); no 3x3 inverse, two
+sweeps of matrix-vector products. The forward substitution's ``y`` is kept in
+``particle_qd_out_dot`` and overwritten by the back substitution. Each term is the derivative of the forward's
 (``string_system.compute_string_system_row``, ``string_terms``, ``string_tie``); the springs' is
 ``string_spring_tangent_functions``. A change to a term must be mirrored here and in the adjoint:
 ``tests/grad/test_string_step_tangent.py`` checks the two against each other (the dot-product
@@ -108,10 +109,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         """Row ``p`` (``j = p - start``; ``is_last``: the chain's last particle) of direction ``k``:
         ``r = b' - A' dv`` (its two segments' springs and their tangents evaluated here) and its
         forward substitution ``y = inv_p (r - A_{p,p-1} y_prev)`` into ``solve_dot``; returns ``y``.
-        Everything is read from the arrays: nothing but ``y`` is carried from row to row (a row
-        function returning the carried segment, 15 values, through the dynamic loop gave results
-        that changed with unrelated edits of the function under Warp 1.19's CPU build; not
-        pursued, the second spring evaluation per row is cheap)."""
+        Everything is read from the arrays: nothing but ``y`` is carried from row to row. (A first
+        version carried the segment below to the next row, 15 values returned through the dynamic
+        loop, as the forward carries 8: the rows after the loop came out wrong, by amounts that
+        changed with unrelated edits of this function (Warp 1.19, CPU); not pursued.)"""
         zero = scalar(0.0)
         h2 = dt * dt
         stiffness_dot = c_dot[0]
