@@ -179,13 +179,13 @@ def test_rollout_tangent_and_reverse_mode_satisfy_the_dot_product_identity(probl
                                                         scale, strict=True)]
     grads = _reverse(start, controls, u)
     for k, (group, v) in enumerate(zip(GROUPS, directions, strict=True)):
-        left_terms = np.concatenate([(u[0] * result.tie_force_dot[k]).ravel(), (u[1] * result.particle_q_dot[k]).ravel(),
-                                     (u[2] * result.particle_qd_dot[k]).ravel()])
+        jv = (result.tie_force_dot[k], result.particle_q_dot[k], result.particle_qd_dot[k])
+        left_terms = np.concatenate([(ui * jvi).ravel() for ui, jvi in zip(u, jv, strict=True)])
         right_terms = np.concatenate([(grads[name] * v[name]).ravel() for name in GROUPS])
         left, right = left_terms.sum(), right_terms.sum()
         size = max(np.abs(left_terms).sum(), np.abs(right_terms).sum())
-        print(f"{group}: <u, Jv> = {left:.9e}, <J^T u, v> = {right:.9e}, gap {abs(left - right) / max(size, 1e-300):.1e}"
-              f" of {size:.2e}")
+        gap = abs(left - right) / max(size, 1e-300)
+        print(f"{group}: <u, Jv> = {left:.9e}, <J^T u, v> = {right:.9e}, gap {gap:.1e} of {size:.2e}")
         if group in GROUND:
             assert left == 0.0 and right == 0.0, group
             continue
