@@ -72,7 +72,7 @@ class StringStepTangent:
         self.solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
         wp.launch(
             self.kernel,
-            dim=(self.directions, m.string_count),
+            dim=m.string_count,
             inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
                     m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
                     m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,

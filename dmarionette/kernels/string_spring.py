@@ -264,15 +264,12 @@ def string_spring_tangent_functions(scalar) -> SimpleNamespace:
     vec3 = wp.types.vector(3, scalar)
 
     @wp.func
-    def compute_spring_tangent(x_a: vec3, x_b: vec3, e_dot: vec3, stiffness: scalar, rest_length: scalar,
-                               stiffness_dot: scalar, rest_length_dot: scalar):
-        """Tangent of the spring of ``e = x_a - x_b`` along ``e' = e_dot``, ``k_s'``, ``d'``: returns
-        ``(u, alpha, beta, u', alpha', beta', f_a')``."""
+    def compute_spring_tangent(u: vec3, length: scalar, ratio: scalar, stiffness: scalar, rest_length: scalar,
+                               e_dot: vec3, stiffness_dot: scalar, rest_length_dot: scalar):
+        """Tangent of the spring of ``e = x_a - x_b`` (its parts ``u, l, 1 - d/l`` from
+        ``string_spring_adjoint_functions``' ``compute_spring_parts``) along ``e' = e_dot``, ``k_s'``,
+        ``d'``: returns ``(u', alpha', beta', f_a')``."""
         one = scalar(1.0)
-        e = x_a - x_b
-        length = wp.length(e)
-        u = e / length
-        ratio = one - rest_length / length
         geometric = wp.max(ratio, scalar(0.0))
         length_dot = wp.dot(u, e_dot)
         u_dot = (e_dot - length_dot * u) / length
@@ -284,7 +281,7 @@ def string_spring_tangent_functions(scalar) -> SimpleNamespace:
         beta_dot = -stiffness_dot * geometric - stiffness * geometric_dot
         f_dot = (-(stiffness_dot * stretch + stiffness * (length_dot - rest_length_dot)) * u
                  - (stiffness * stretch) * u_dot)
-        return u, -stiffness * (one - geometric), -stiffness * geometric, u_dot, alpha_dot, beta_dot, f_dot
+        return u_dot, alpha_dot, beta_dot, f_dot
 
     @wp.func
     def compute_jacobian_product(u: vec3, alpha: scalar, beta: scalar, r: vec3):
