@@ -28,15 +28,21 @@ compressed, ``string_spring.string_spring_tangent_functions``). The taut flag ha
 Printed springs only: the tension-only springs' step (an active-set solve) has no tangent here
 (``grad.string_tangent`` refuses such a model).
 
-Layout: one thread per (direction, string), ``dim = (P, S)``, so P directions are one launch; the
-tangents have a leading direction axis (``(P, particle_count)``, ``(P, string_count)`` of vec3;
-the constants ``(P, string_count, 10)`` in :data:`CONSTANTS` order). Each thread re-evaluates the
-primal spring parts it needs (each segment's spring and its tangent twice, once per row it
-touches; nothing stored by the forward beyond its factorisation and ``dv``); no 3x3 inverse, two
-sweeps of matrix-vector products. The forward substitution's ``y`` is kept in
-``particle_qd_out_dot`` and overwritten by the back substitution. Each term is the derivative of the forward's
-(``string_system.compute_string_system_row``, ``string_terms``, ``string_tie``); the springs' is
-``string_spring_tangent_functions``. A change to a term must be mirrored here and in the adjoint:
+Layout: one thread per string, ``dim = S``, looping over the P directions inside each row, so
+that the row's primal (both segments' spring parts, the branches, the pivot inverse) is evaluated
+once for all P (at P = 16 about 1.2-1.5x faster than a thread per (direction, string) recomputing
+it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The tangents have a leading direction axis
+(``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
+:data:`CONSTANTS` order). The spring parts are recomputed from the positions in each row (each
+segment twice, nothing stored by the forward beyond its factorisation and ``dv``); a segment's
+tangent likewise, once per direction and row. The forward substitution's ``y`` is kept in
+``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution, then ``v1'``.
+Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles): a direction
+costs about 0.7-0.9x a scalar one-launch step, about 2x the laned step (the default plain step),
+short of the issue's 0.5x: the tangent is scalar float64 code (no SIMD lanes across directions).
+
+Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
+``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change to a term must be mirrored here and in the adjoint:
 ``tests/grad/test_string_step_tangent.py`` checks the two against each other (the dot-product
 identity) and against central differences.
 """
