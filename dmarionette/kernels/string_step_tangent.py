@@ -42,9 +42,9 @@ costs about 0.7-0.9x a scalar one-launch step, about 2x the laned step (the defa
 short of the issue's 0.5x: the tangent is scalar float64 code (no SIMD lanes across directions).
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
-``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change to a term must be mirrored here and in the adjoint:
-``tests/grad/test_string_step_tangent.py`` checks the two against each other (the dot-product
-identity) and against central differences.
+``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
+to a term must be mirrored here and in the adjoint: ``tests/grad/test_string_step_tangent.py``
+checks the two against each other (the dot-product identity) and against central differences.
 """
 
 import functools
