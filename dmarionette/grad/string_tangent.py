@@ -1,10 +1,11 @@
 """Forward-mode sensitivities (JVPs) of string steps and string rollouts, P directions at once.
 
 Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback have no tangent yet).
-:class:`StringStepTangent` runs one step of a :class:`SolverStringImplicit` forward (the one-launch
-scalar step built with ``keep``: its pivot inverses, ``C'`` and ``dv``) and then the step's
-tangent-linear model for P directions in one launch (``kernels/string_step_tangent``: a
-substitution with the stored factorisation). :class:`StringRolloutTangent` carries P tangents
+:class:`StringStepTangent` runs one step of a :class:`SolverStringImplicit` forward keeping its
+factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` unpacked into the scalar
+layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
+the step's tangent-linear model for P directions in one launch (``kernels/string_step_tangent``:
+a substitution with the stored factorisation). :class:`StringRolloutTangent` carries P tangents
 through ``T`` steps with prescribed motion (tops and tie targets given per step), as
 ``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
 
@@ -13,6 +14,11 @@ velocities, the particle masses, each string's constants (``kernels.string_step_
 order) and, per step, the tops, the tie targets and their velocities. The outputs' tangents
 (:class:`StringTangentResult`): the tie forces after every step and the final state. Printed
 springs only (a tension-only model is refused: the active-set step has no tangent here).
+
+Checked against reverse mode (the taped steps) by the dot-product identity and against central
+differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
+``benchmarks/bench_string_tangent.py`` (P tangents cost about 1 + 2 P laned forward rollouts,
+short of the issue's 1 + 0.5 P).
 """
 
 from __future__ import annotations
@@ -23,7 +29,9 @@ import numpy as np
 import warp as wp
 
 from dmarionette.capture import CapturedChunk
-from dmarionette.kernels.string_step_tangent import CONSTANTS, string_step_tangent_kernel
+from dmarionette.kernels.string_step_lanes import LANES
+from dmarionette.kernels.string_step_tangent import (CONSTANTS, string_step_tangent_kernel,
+                                                     unpack_lane_factorisation_kernel)
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
@@ -51,6 +59,7 @@ class StringStepTangent:
         self.directions = int(directions)
         self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple())
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
+        self._unpack = unpack_lane_factorisation_kernel(LANES) if solver.lanes else None
 
     def zeros(self, count: int, dtype=None) -> wp.array:
         """A ``(P, count)`` tangent array (vec3 by default)."""
@@ -61,15 +70,24 @@ class StringStepTangent:
              q_dot: wp.array, qd_dot: wp.array, q_out_dot: wp.array, qd_out_dot: wp.array, tie_force_dot: wp.array,
              top_q_dot: wp.array, tie_q_dot: wp.array, tie_qd_dot: wp.array, mass_dot: wp.array,
              constants_dot: wp.array) -> None:
-        """Advances ``state_in`` into ``state_out`` (the plain step's numbers: the scalar one-launch
-        step, bit for bit the laned one) and the tangents ``(q_dot, qd_dot)`` (``(P, N)`` vec3) into
+        """Advances ``state_in`` into ``state_out`` (the plain step's numbers: the laned step where the
+        solver's :attr:`~SolverStringImplicit.lanes` are on, else the scalar one-launch step) and the tangents ``(q_dot, qd_dot)`` (``(P, N)`` vec3) into
         ``(q_out_dot, qd_out_dot)``, the tie forces' into ``tie_force_dot`` (``(P, S)``), given the
         control's tangents (``(P, S)`` each), the masses' (``(P, N)``) and the constants'
         (``(P, S, 10)``). The tangents out must be other arrays than those in."""
         m = self.model
         h = m.scalar(dt)
         ws = self.workspace
-        self.solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
+        if self.solver.lanes:
+            # The laned step keeping its factorisation (the scalar step's numbers bit for bit, about 2x
+            # faster), unpacked into the scalar layout the tangent reads (the solver's lane plan).
+            self.solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
+            groups = self.solver._lane_plan[0]
+            wp.launch(self._unpack, dim=(groups[1].shape[0], LANES),
+                      inputs=[*groups, m.string_start, ws.lane_inverse, ws.lane_c],
+                      outputs=[ws.scratch_inverse, ws.scratch_c], device=m.device, record_tape=False)
+        else:
+            self.solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
         wp.launch(
             self.kernel,
             dim=m.string_count,

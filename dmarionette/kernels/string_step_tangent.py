@@ -53,7 +53,7 @@ import warp as wp
 
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
 
-__all__ = ["CONSTANTS", "string_step_tangent_kernel"]
+__all__ = ["CONSTANTS", "string_step_tangent_kernel", "unpack_lane_factorisation_kernel"]
 
 # The per-string constants whose tangents the kernel reads, in the order of its ``string_constants_dot``.
 CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction", "string_air_drag",
@@ -304,3 +304,41 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                                    - tie_damping * (tie_qd_dot[k, s] - particle_qd_out_dot[k, last]))
 
     return integrate_string_implicit_tangent
+
+
+@functools.cache
+def unpack_lane_factorisation_kernel(lanes: int):
+    """Builds ``unpack_lane_factorisation``: the laned step's kept pivot inverses and ``C'``
+    (``string_step_lanes`` with ``keep``: row ``base + j`` of a group, entry ``(i, m)`` of lane ``l`` at
+    ``[3 i + m, l]``) into the scalar step's layout (one ``mat33d`` per particle), which the tangent
+    reads: one thread per (group, lane), the real lanes only. Lets a tangent rollout run the laned
+    forward (the same numbers bit for bit as the scalar one, ``string_step_lanes``' doc)."""
+    lmat = wp.types.matrix((9, lanes), wp.float64)
+    ivec = wp.types.vector(lanes, wp.int32)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def unpack_lane_factorisation(
+        group_string: wp.array(dtype=ivec),
+        group_real: wp.array(dtype=wp.int32),
+        group_base: wp.array(dtype=wp.int32),
+        string_start: wp.array(dtype=wp.int32),
+        lane_inverse: wp.array(dtype=lmat),
+        lane_c: wp.array(dtype=lmat),
+        pivot_inverse: wp.array(dtype=wp.mat33d),
+        scratch_c: wp.array(dtype=wp.mat33d),
+    ):
+        g, l = wp.tid()
+        if l >= group_real[g]:
+            return
+        s = group_string[g][l]
+        start = string_start[s]
+        base = group_base[g]
+        for j in range(1, string_start[s + 1] - start):
+            a = lane_inverse[base + j]
+            c = lane_c[base + j]
+            pivot_inverse[start + j] = wp.mat33d(a[0, l], a[1, l], a[2, l], a[3, l], a[4, l], a[5, l], a[6, l],
+                                                 a[7, l], a[8, l])
+            scratch_c[start + j] = wp.mat33d(c[0, l], c[1, l], c[2, l], c[3, l], c[4, l], c[5, l], c[6, l],
+                                             c[7, l], c[8, l])
+
+    return unpack_lane_factorisation

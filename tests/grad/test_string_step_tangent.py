@@ -101,9 +101,11 @@ def _directions(model, scale, groups_per_direction, rng):
     return out
 
 
-def _tangent(model, problem, directions):
-    """The tangent kernel: (x1', v1', F') per direction, and the step's outputs."""
+def _tangent(model, problem, directions, lanes=True):
+    """The tangent kernel: (x1', v1', F') per direction, and the step's outputs (the forward: the
+    laned step, its factorisation unpacked, or the scalar one)."""
     solver = SolverStringImplicit(model)
+    solver.lanes = lanes
     p = len(directions)
     stepper = StringStepTangent(solver, p)
     s0 = model.state(problem["q"], problem["qd"])
@@ -143,10 +145,10 @@ def _adjoint(model, problem, cotangents):
     return {k: v.numpy().copy() for k, v in grads.items()}
 
 
-def _check_identity(model, problem, scale, groups_per_direction, seed):
+def _check_identity(model, problem, scale, groups_per_direction, seed, lanes=True):
     rng = np.random.default_rng(seed)
     directions = _directions(model, scale, groups_per_direction, rng)
-    jv, outputs = _tangent(model, problem, directions)
+    jv, outputs = _tangent(model, problem, directions, lanes)
     u = [rng.normal(size=o.shape) / max(np.max(np.abs(o)), 1e-12) for o in outputs]
     jtu = _adjoint(model, problem, u)
     for k, v in enumerate(directions):
@@ -168,10 +170,11 @@ def test_tangent_and_adjoint_satisfy_the_dot_product_identity(directions):
     _check_identity(model, problem, scale, [GROUPS] * directions, seed=directions)
 
 
-def test_tangent_and_adjoint_agree_in_each_input_group():
+@pytest.mark.parametrize("lanes", [True, False], ids=["laned-forward", "scalar-forward"])
+def test_tangent_and_adjoint_agree_in_each_input_group(lanes):
     model = _model()
     problem, scale = _problem(model)
-    _check_identity(model, problem, scale, [(name,) for name in GROUPS], seed=17)
+    _check_identity(model, problem, scale, [(name,) for name in GROUPS], seed=17, lanes=lanes)
 
 
 def _plain_outputs(model, problem, v, t):
