@@ -71,10 +71,11 @@ class StringStepTangent:
              top_q_dot: wp.array, tie_q_dot: wp.array, tie_qd_dot: wp.array, mass_dot: wp.array,
              constants_dot: wp.array) -> None:
         """Advances ``state_in`` into ``state_out`` (the plain step's numbers: the laned step where the
-        solver's :attr:`~SolverStringImplicit.lanes` are on, else the scalar one-launch step) and the tangents ``(q_dot, qd_dot)`` (``(P, N)`` vec3) into
-        ``(q_out_dot, qd_out_dot)``, the tie forces' into ``tie_force_dot`` (``(P, S)``), given the
-        control's tangents (``(P, S)`` each), the masses' (``(P, N)``) and the constants'
-        (``(P, S, 10)``). The tangents out must be other arrays than those in."""
+        solver's :attr:`~SolverStringImplicit.lanes` are on, else the scalar one-launch step) and the
+        tangents ``(q_dot, qd_dot)`` (``(P, N)`` vec3) into ``(q_out_dot, qd_out_dot)``, the tie forces'
+        into ``tie_force_dot`` (``(P, S)``), given the control's tangents (``(P, S)`` each), the
+        masses' (``(P, N)``) and the constants' (``(P, S, 10)``). The tangents out must be other
+        arrays than those in."""
         m = self.model
         h = m.scalar(dt)
         ws = self.workspace
