@@ -84,7 +84,7 @@ class StringStepTangent:
             # faster), unpacked into the scalar layout the tangent reads (the solver's lane plan).
             self.solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
             groups = self.solver._lane_plan[0]
-            wp.launch(self._unpack, dim=(groups[1].shape[0], LANES),
+            wp.launch(self._unpack, dim=groups[1].shape[0],
                       inputs=[*groups, m.string_start, ws.lane_inverse, ws.lane_c],
                       outputs=[ws.scratch_inverse, ws.scratch_c], device=m.device, record_tape=False)
         else:

@@ -311,8 +311,10 @@ def unpack_lane_factorisation_kernel(lanes: int):
     """Builds ``unpack_lane_factorisation``: the laned step's kept pivot inverses and ``C'``
     (``string_step_lanes`` with ``keep``: row ``base + j`` of a group, entry ``(i, m)`` of lane ``l`` at
     ``[3 i + m, l]``) into the scalar step's layout (one ``mat33d`` per particle), which the tangent
-    reads: one thread per (group, lane), the real lanes only. Lets a tangent rollout run the laned
-    forward (the same numbers bit for bit as the scalar one, ``string_step_lanes``' doc)."""
+    reads: one thread per group (each laned row read once: a thread per lane, reading every row 4
+    times, cost about as much as the laned forward), the real lanes only. Lets a tangent rollout
+    run the laned forward (the same numbers bit for bit as the scalar one, ``string_step_lanes``'
+    doc), about 2x faster than the scalar one."""
     lmat = wp.types.matrix((9, lanes), wp.float64)
     ivec = wp.types.vector(lanes, wp.int32)
 
@@ -327,18 +329,17 @@ def unpack_lane_factorisation_kernel(lanes: int):
         pivot_inverse: wp.array(dtype=wp.mat33d),
         scratch_c: wp.array(dtype=wp.mat33d),
     ):
-        g, l = wp.tid()
-        if l >= group_real[g]:
-            return
-        s = group_string[g][l]
-        start = string_start[s]
+        g = wp.tid()
+        first = group_string[g][0]
         base = group_base[g]
-        for j in range(1, string_start[s + 1] - start):
-            a = lane_inverse[base + j]
+        for j in range(1, string_start[first + 1] - string_start[first]):
+            a = lane_inverse[base + j]  # each laned row read once, for all its lanes
             c = lane_c[base + j]
-            pivot_inverse[start + j] = wp.mat33d(a[0, l], a[1, l], a[2, l], a[3, l], a[4, l], a[5, l], a[6, l],
-                                                 a[7, l], a[8, l])
-            scratch_c[start + j] = wp.mat33d(c[0, l], c[1, l], c[2, l], c[3, l], c[4, l], c[5, l], c[6, l],
-                                             c[7, l], c[8, l])
+            for l in range(group_real[g]):
+                p = string_start[group_string[g][l]] + j
+                pivot_inverse[p] = wp.mat33d(a[0, l], a[1, l], a[2, l], a[3, l], a[4, l], a[5, l], a[6, l], a[7, l],
+                                             a[8, l])
+                scratch_c[p] = wp.mat33d(c[0, l], c[1, l], c[2, l], c[3, l], c[4, l], c[5, l], c[6, l], c[7, l],
+                                         c[8, l])
 
     return unpack_lane_factorisation
