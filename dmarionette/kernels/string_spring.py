@@ -264,18 +264,18 @@ def string_spring_tangent_functions(scalar) -> SimpleNamespace:
     vec3 = wp.types.vector(3, scalar)
 
     @wp.func
-    def compute_spring_tangent(u: vec3, length: scalar, ratio: scalar, stiffness: scalar, rest_length: scalar,
-                               e_dot: vec3, stiffness_dot: scalar, rest_length_dot: scalar):
+    def compute_spring_tangent(u: vec3, length: scalar, inv_length: scalar, ratio: scalar, stiffness: scalar,
+                               rest_length: scalar, e_dot: vec3, stiffness_dot: scalar, rest_length_dot: scalar):
         """Tangent of the spring of ``e = x_a - x_b`` (its parts ``u, l, 1 - d/l`` from
-        ``string_spring_adjoint_functions``' ``compute_spring_parts``) along ``e' = e_dot``, ``k_s'``,
-        ``d'``: returns ``(u', alpha', beta', f_a')``."""
+        ``string_spring_adjoint_functions``' ``compute_spring_parts``, and ``1 / l``: a caller with many
+        directions divides once) along ``e' = e_dot``, ``k_s'``, ``d'``: returns ``(u', alpha', beta', f_a')``."""
         one = scalar(1.0)
         geometric = wp.max(ratio, scalar(0.0))
         length_dot = wp.dot(u, e_dot)
-        u_dot = (e_dot - length_dot * u) / length
+        u_dot = (e_dot - length_dot * u) * inv_length
         geometric_dot = scalar(0.0)
         if ratio > scalar(0.0):
-            geometric_dot = (rest_length * length_dot / length - rest_length_dot) / length
+            geometric_dot = (rest_length * length_dot * inv_length - rest_length_dot) * inv_length
         stretch = length - rest_length
         alpha_dot = -stiffness_dot * (one - geometric) + stiffness * geometric_dot
         beta_dot = -stiffness_dot * geometric - stiffness * geometric_dot

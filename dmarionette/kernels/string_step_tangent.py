@@ -155,6 +155,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             dv = particle_dv[p]
             inv = pivot_inverse[p]
             u_a, l_a, ratio_a, alpha_a, beta_a = compute_spring_parts(x_prev, x, stiffness, rest_length)
+            inv_l_a = scalar(1.0) / l_a
             # The springs' parts of b' - A' dv, one K' product per segment:
             # K_a' (w_prev + h^2 (dv - dv_prev)) + K_a w_prev' (+ the same for the segment below).
             w_prev = h2 * (v - v_prev)
@@ -167,6 +168,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             dv_next = vec3(zero)
             u_b = vec3(zero)
             l_b = scalar(1.0)
+            inv_l_b = scalar(1.0)
             ratio_b = zero
             alpha_b = zero
             beta_b = zero
@@ -175,6 +177,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 v_next = particle_qd[p + 1]
                 dv_next = particle_dv[p + 1]
                 u_b, l_b, ratio_b, alpha_b, beta_b = compute_spring_parts(x, x_next, stiffness, rest_length)
+                inv_l_b = scalar(1.0) / l_b
             s_next = h2 * (v - v_next) + h2 * (dv - dv_next)
             below = False
             if wp.static(GROUND):
@@ -193,8 +196,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 v_dot = particle_qd_dot[k, p]
                 v_prev_dot = particle_qd_dot[k, p - 1]
                 u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
-                    u_a, l_a, ratio_a, stiffness, rest_length, particle_q_dot[k, p - 1] - x_dot, stiffness_dot,
-                    rest_dot)
+                    u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length, particle_q_dot[k, p - 1] - x_dot,
+                    stiffness_dot, rest_dot)
                 force_dot = -f_a_dot
                 w_prev_dot = h2 * (v_dot - v_prev_dot)
                 if j == 1:
@@ -206,7 +209,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     x_next_dot = particle_q_dot[k, p + 1]
                     v_next_dot = particle_qd_dot[k, p + 1]
                     u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
-                        u_b, l_b, ratio_b, stiffness, rest_length, x_dot - x_next_dot, stiffness_dot, rest_dot)
+                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, x_dot - x_next_dot, stiffness_dot,
+                        rest_dot)
                     force_dot = force_dot + f_b_dot
                     r = r + k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next) + k_product(
                         u_b, alpha_b, beta_b, h2 * (v_dot - v_next_dot))
