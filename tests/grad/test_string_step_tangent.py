@@ -19,6 +19,8 @@ least a margin from zero, asserted), so that the step is smooth in a neighbourho
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -250,3 +252,10 @@ def test_float32_tangent_follows_the_float64_one():
         gap = np.max(np.abs(a - b)) / np.max(np.abs(b))
         print(f"float32 against float64: {gap:.1e}")
         assert gap < 1e-4
+
+
+def test_tension_only_springs_are_refused():
+    """The tension-only springs' step (an active-set solve) has no tangent: a clear error, not a wrong answer."""
+    model = make_model([spec(name="a", particle_count=5)], effects=dataclasses.replace(ALL_ON, tension_only=True))
+    with pytest.raises(NotImplementedError, match="tension-only"):
+        StringStepTangent(SolverStringImplicit(model), 2)
