@@ -17,8 +17,8 @@ springs only (a tension-only model is refused: the active-set step has no tangen
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
 differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py`` (P tangents cost about 1 + 2 P laned forward rollouts,
-short of the issue's 1 + 0.5 P).
+``benchmarks/bench_string_tangent.py`` (measured under load: P = 1, 4, 12, 16 tangents cost 3.8-4.0,
+7-10, 17-22, 21-30 laned forward rollouts, short of the issue's 1 + 0.5 P = 1.5, 3, 7, 9).
 """
 
 from __future__ import annotations

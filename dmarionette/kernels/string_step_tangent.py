@@ -37,9 +37,10 @@ it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The t
 segment twice, nothing stored by the forward beyond its factorisation and ``dv``); a segment's
 tangent likewise, once per direction and row. The forward substitution's ``y`` is kept in
 ``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution, then ``v1'``.
-Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles): a direction
-costs about 0.7-0.9x a scalar one-launch step, about 2x the laned step (the default plain step),
-short of the issue's 0.5x: the tangent is scalar float64 code (no SIMD lanes across directions).
+Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, at P = 16 on a
+loaded 2-core machine): a direction costs 0.6-0.9x a scalar one-launch step, 1.2-1.8x the laned
+step (the default plain step), short of the issue's 0.5x: the tangent is scalar float64 code (no
+SIMD lanes across directions), and each row's primal costs about as much again at P = 1.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
