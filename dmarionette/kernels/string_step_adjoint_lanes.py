@@ -16,7 +16,10 @@ It reads what the laned keep step (``string_step_lanes.integrate_string_lanes_ke
 stored: the pivot inverses and ``C'`` in the laned layout (``lane_inverse``, ``lane_c``: group
 ``g``'s row ``j`` at ``group_base[g] + j``), and ``particle_dv`` per particle. Its forward
 substitution goes to laned scratch (``lane_bar``, and its terms of the particles' gradients
-``lane_x_bar``, ``lane_r``). Padding lanes (a group of fewer than ``K`` strings repeats one of its
+``lane_x_bar``, ``lane_r``), and so do the spring parts of every segment it computes
+(``lane_parts``: the back substitution reads them instead of computing them again, a square root
+and four divisions per row; computed by the same function from the same positions, so the same
+bits). Padding lanes (a group of fewer than ``K`` strings repeats one of its
 strings) compute and write nothing: every gradient is read, added to and written back for the real
 lanes only, and each string's particles and constants belong to one lane of one thread. A
 particle's gradient gets the same terms in the same order as in the scalar adjoint, but summed in

@@ -77,7 +77,8 @@ def lane_types(lanes: int = LANES):
 def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
     """The laned step's ``@wp.func`` helpers for ``lanes`` strings per thread, shared by the laned
     step (``integrate_string_lanes``) and its adjoint (``string_step_adjoint_lanes``): gathers from
-    and scatters to the simulator's arrays (a scatter writes the real lanes only), the scalar
+    and scatters to the simulator's arrays (``lane_ops.native_lane_memory``; a scatter writes the
+    real lanes only), the scalar
     kernel's vector and matrix operations on lanes in its order and rounding, and the printed
     spring (``compute_lane_spring``)."""
     LANES_ = lanes
