@@ -7,6 +7,10 @@ makes of it: with Warp's default CPU flags the SLP vectorizer computed one lane 
 with Warp's own ``+``, ``wp.cw_mul`` wrongly, ``docs/simd_probe.md``). CPU only: the snippets are
 Clang C++, not CUDA. Used by ``string_step_lanes``; moved here from the probes
 (``benchmarks/probe_simd_lanes.py`` imports them; the whole-step probe, since removed, did too).
+
+``native_lane_memory``: the laned kernels' gathers from and scatters to the simulator's per-particle
+and per-string arrays, as snippets too (Warp's own indexing wraps negative indices, integer work on
+every lane of every access; measured in ``docs/lanes_status.md``, "Fewer instructions").
 """
 
 import functools
