@@ -9,10 +9,10 @@ fresh kernel cache (a temporary folder, so the object file is the one just built
 each kernel's ``cpu_forward`` function (``objdump -d``) and counts its instructions and those that
 address the stack (``(%rsp)`` or ``(%rbp)``: register spills and reloads, and the kernel's arguments),
 in the whole function and in each loop (the instructions from a loop head to its farthest backward
-jump; only innermost loops of more than 200 instructions). Warp builds each kernel twice (its CPU dispatch
-is a template of two instances), so every loop is listed twice. In the adjoint the two largest
-loops are the forward substitution and the back substitution's rows between the first and the last
-(one row of ``K`` particles per iteration). Nothing here is used by the simulator; the findings are
+jump; loops of at least 200 instructions that hold no other such loop). Warp builds each kernel
+twice (its CPU dispatch is a template of two instances), so most loops are listed twice. In the
+adjoint the two largest are the forward substitution and the back substitution's rows between the
+first and the last (one row of ``K`` particles per iteration). Nothing here is used by the simulator; the findings are
 in ``docs/lanes_status.md``, "Fewer instructions in the laned adjoint".
 """
 
@@ -72,11 +72,10 @@ def main() -> None:
     for name, kernel in kernels.items():
         instructions = _instructions(kernel)
         print(f"{name}: {len(instructions)} instructions, {_stack(instructions)} stack references")
-        loops = _loops(instructions)
+        loops = [(first, last) for first, last in _loops(instructions) if last - first >= MIN_LOOP]
         for first, last in loops:
             body = instructions[first:last + 1]
-            innermost = not any(first < other <= last for other, _last in loops)
-            if innermost and len(body) > MIN_LOOP:
+            if not any(first < other <= last for other, _last in loops):  # not a loop around a listed one
                 print(f"  loop at {instructions[first][0]:#x}: {len(body)} instructions, "
                       f"{_stack(body)} stack references")
 
