@@ -12,8 +12,8 @@ in the whole function and in each loop (the instructions from a loop head to its
 jump; loops of at least 200 instructions that hold no other such loop). Warp builds each kernel
 twice (its CPU dispatch is a template of two instances), so most loops are listed twice. In the
 adjoint the two largest are the forward substitution and the back substitution's rows between the
-first and the last (one row of ``K`` particles per iteration). Nothing here is used by the simulator; the findings are
-in ``docs/lanes_status.md``, "Fewer instructions in the laned adjoint".
+first and the last (one row of ``K`` particles per iteration). Nothing here is used by the
+simulator; the findings are in ``docs/lanes_status.md``, "Fewer instructions in the laned adjoint".
 """
 
 from __future__ import annotations
