@@ -78,10 +78,8 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
     """The laned step's ``@wp.func`` helpers for ``lanes`` strings per thread, shared by the laned
     step (``integrate_string_lanes``) and its adjoint (``string_step_adjoint_lanes``): gathers from
     and scatters to the simulator's arrays (``lane_ops.native_lane_memory``; a scatter writes the
-    real lanes only), the scalar
-    kernel's vector and matrix operations on lanes in its order and rounding, and the printed
-    spring (``compute_lane_spring``)."""
-    LANES_ = lanes
+    real lanes only), the scalar kernel's vector and matrix operations on lanes in its order and
+    rounding, and the printed spring (``compute_lane_spring``)."""
     lane, ivec, lvec, lmat = lane_types(lanes)
     vec3 = wp.vec3d
     nat = native_lane_ops(lanes)
