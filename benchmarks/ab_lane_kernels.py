@@ -19,7 +19,9 @@ calling thread's CPU time (Warp runs a CPU graph on the calling thread).
 from __future__ import annotations
 
 import argparse
+import atexit
 import itertools
+import shutil
 import statistics
 import subprocess
 import sys
@@ -45,6 +47,7 @@ LAUNCHES = 100
 def _revision_modules(rev: str):
     """The revision's three kernel modules, imported from a temporary folder."""
     folder = Path(tempfile.mkdtemp(prefix="ab_lane_kernels_"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
     for name, alias in MODULES.items():
         text = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:dmarionette/kernels/{name}.py"],
                               capture_output=True, text=True, check=True).stdout
