@@ -50,7 +50,7 @@ from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_syst
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
 from dmarionette.kernels.string_step_lanes import LANES, integrate_string_lanes_kernel, lane_groups, lane_types
 from dmarionette.kernels.string_step_adjoint import string_step_adjoint_kernel
-from dmarionette.kernels.string_step_adjoint_lanes import string_step_adjoint_lanes_kernel
+from dmarionette.kernels.string_step_adjoint_lanes import lane_parts_type, string_step_adjoint_lanes_kernel
 from dmarionette.kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
 
@@ -330,15 +330,16 @@ class SolverStringImplicit:
     def _new_lane_plan(self) -> tuple[list[wp.array], list[wp.array]]:
         """The laned step's group table (``string_step_lanes.lane_groups``: string indices, real
         lanes, scratch offsets per group) and its laned scratch: ``C'``, ``d'`` of each group's rows
-        (a plain step's), and the laned adjoint's forward substitution and its terms of the
-        particles' gradients (each read only within its launch)."""
+        (a plain step's), and the laned adjoint's forward substitution, its terms of the
+        particles' gradients and the segments' spring parts (each read only within its launch)."""
         m = self.model
         group_string, group_real, group_base, rows = lane_groups(m.string_start.numpy(), LANES)
         _lane, ivec, lvec, lmat = lane_types(LANES)
         with wp.ScopedDevice(m.device):
             return ([wp.array(group_string, dtype=ivec), wp.array(group_real, dtype=wp.int32),
                      wp.array(group_base, dtype=wp.int32)],
-                    [wp.zeros(rows, dtype=lmat), *[wp.zeros(rows, dtype=lvec) for _ in range(4)]])
+                    [wp.zeros(rows, dtype=lmat), *[wp.zeros(rows, dtype=lvec) for _ in range(4)],
+                     wp.zeros(rows, dtype=lane_parts_type(LANES))])
 
     def _add_lane_keep(self, ws: StringWorkspace) -> None:
         """``ws.lane_inverse``, ``ws.lane_c``: a taped laned step's own, as many rows as the plan's."""
