@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import warp as wp
 from tests.grad.test_string_step_adjoint import ALL_ON
-from tests.support.strings import make_model, spec
+from tests.support.strings import make_model, spec, three_strings
 
 from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
 from dmarionette.strings.model import StringControl
@@ -46,14 +46,7 @@ LINEAR_GROUPS = ("particle_qd", "top_q", "tie_q", "tie_qd")  # b is linear in th
 
 def _model():
     return make_model(
-        [spec(name="ground", particle_count=9, top=(0.0, 0.15, 0.0), bottom=(0.5, 0.02, 0.0), length=0.6,
-              internal_friction=0.3, air_drag=0.05, ground_stiffness=2000.0, ground_absorption=5.0,
-              ground_friction=2.0),
-         spec(name="tied", particle_count=7, top=(0.5, 1.0, 0.0), bottom=(0.5, 0.6, 0.0), length=0.4,
-              internal_friction=0.2, air_drag=0.02, tied=True, tie_point=(0.6, 0.55, 0.1), tie_stiffness=300.0,
-              tie_damping=3.0),
-         spec(name="slack", particle_count=6, top=(1.0, 1.0, 0.0), bottom=(1.0, 0.75, 0.05), length=0.35,
-              load_mass=0.02)],
+        three_strings(),
         effects=ALL_ON, requires_grad=True)
 
 

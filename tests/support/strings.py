@@ -56,6 +56,18 @@ def swung_controls(model, steps: int, dt: float):
         yield StringControl.from_numpy(model, top, tie, tie_v)
 
 
+def three_strings() -> list[StringSpec]:
+    """The gradient tests' strings: one swinging onto the ground, one tied to a point, one slack at the top."""
+    return [spec(name="ground", particle_count=9, top=(0.0, 0.15, 0.0), bottom=(0.5, 0.02, 0.0), length=0.6,
+                 internal_friction=0.3, air_drag=0.05, ground_stiffness=2000.0, ground_absorption=5.0,
+                 ground_friction=2.0),
+            spec(name="tied", particle_count=7, top=(0.5, 1.0, 0.0), bottom=(0.5, 0.6, 0.0), length=0.4,
+                 internal_friction=0.2, air_drag=0.02, tied=True, tie_point=(0.6, 0.55, 0.1), tie_stiffness=300.0,
+                 tie_damping=3.0),
+            spec(name="slack", particle_count=6, top=(1.0, 1.0, 0.0), bottom=(1.0, 0.75, 0.05), length=0.35,
+                 load_mass=0.02)]
+
+
 def wiggled_controls(model, steps: int, dt: float) -> list[StringControl]:
     """The gradient tests' controls: tops swung a few cm and raised 3 cm/s, ties circling 5 cm at 4 rad/s."""
     t = dt * np.arange(1, steps + 1)[:, None]
