@@ -149,6 +149,7 @@ class _Emitter:
     def __init__(self, topo: ArticulationTopology):
         self.t = topo
         self.lines: list[str] = []
+        self.solve: dict | None = None  # the last kernel's linear solve (see _factor_and_solve)
 
     def __call__(self, line: str) -> None:
         self.lines.append("    " + line)
@@ -156,6 +157,7 @@ class _Emitter:
     def begin(self, constants: bool = True) -> None:
         """Starts a kernel body: the thread index ``w`` and (``constants``) float64 ``zero``, ``one``."""
         self.lines = []
+        self.solve = None
         self("w = wp.tid()")
         if constants:
             self("zero = wp.float64(0.0)")
@@ -420,10 +422,17 @@ def solve_body_dynamics(
                         H[d + k, d + m] = f"Hb{d + k}_{d + m}"
 
     def _factor_and_solve(self, H: dict, tau: dict) -> None:
-        """Tree-sparse L^T L factorisation of H and the two triangular solves."""
+        """Tree-sparse L^T L factorisation of H and the two triangular solves.
+
+        Records in ``self.solve`` what ``articulation_tangent`` needs to differentiate the solve
+        as a whole (``H qdd = tau``: ``qdd' = H^-1 (tau' - H' qdd)`` with this ``L``): the names of
+        H's entries (``H``, lower triangle), of the right-hand side (``b``), of ``L``, of the
+        solution (``x``), the dof parents (``lam``) and the names this part defines (``internal``).
+        """
         e = self
         n = self.t.qd_count
         lam = self.t.dof_parent()
+        first = len(self.lines)
 
         def anc(i):
             while i >= 0:
@@ -467,6 +476,9 @@ def solve_body_dynamics(
         for i in range(n):
             terms = " - ".join([x[i]] + [f"L{i}_{j} * qdd{j}" for j in anc(lam[i])])
             e(f"qdd{i} = ({terms}) / L{i}_{i}")
+        internal = [line.strip().split(" = ", 1)[0] for line in self.lines[first:]]
+        self.solve = dict(H=dict(H), b=dict(tau), L=L, x={i: f"qdd{i}" for i in range(n)}, lam=lam,
+                          internal=internal)
 
     # -------------------------------------------------------------- integration
     def integrate(self) -> str:
@@ -522,9 +534,14 @@ def build_articulation_kernels(topo: ArticulationTopology, optimization_level: i
     options = f'wp.set_module_options({{"optimization_level": {int(optimization_level)}}})\n'
     source = "\n\n".join([_HEADER + options, em.kinematics(), em.dynamics(), em.integrate(), em.mass_matrix()])
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
-    if digest in _CACHE:
-        return _CACHE[digest]
-    name = f"dmarionette_articulation_{digest}"
+    return _import_generated(f"dmarionette_articulation_{digest}", source)
+
+
+def _import_generated(name: str, source: str):
+    """Writes ``source`` to the cache folder as ``name.py`` (unless there already) and imports it (once
+    per process); ``name`` carries the source's hash."""
+    if name in _CACHE:
+        return _CACHE[name]
     path = _cache_dir() / f"{name}.py"
     if not path.exists() or path.read_text() != source:
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
@@ -534,5 +551,5 @@ def build_articulation_kernels(topo: ArticulationTopology, optimization_level: i
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
-    _CACHE[digest] = module
+    _CACHE[name] = module
     return module

@@ -46,6 +46,7 @@ def test_generated_articulation_kernels_are_clean(tmp_path, monkeypatch):
     monkeypatch.setenv("DMARIONETTE_CACHE", str(tmp_path))
     from dmarionette.kernels.articulation_codegen import (ArticulationTopology, JointTopology,
                                                           build_articulation_kernels)
+    from dmarionette.kernels.articulation_tangent import build_articulation_tangent_kernels
 
     joints = (JointTopology("free", -1, 0, 0), JointTopology("ball", 0, 7, 6, lower=(0.0,), upper=(1.0,)),
               JointTopology("universal", 0, 11, 9, axes=((1, 0, 0), (0, 0, 1)), lower=(-1, -1), upper=(1, 1)),
@@ -55,6 +56,9 @@ def test_generated_articulation_kernels_are_clean(tmp_path, monkeypatch):
         problems = lint.lint_paths([Path(module.__file__)])
         assert not problems, "\n".join(map(str, problems))
         assert sum(1 for line in Path(module.__file__).read_text().splitlines() if line == "@wp.kernel") == 4
+        tangent = build_articulation_tangent_kernels(ArticulationTopology(joints, joint_limits=limits))
+        problems = lint.lint_paths([Path(tangent.__file__)])
+        assert not problems, "\n".join(map(str, problems))
 
 
 GOOD = """
