@@ -393,8 +393,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         tie_q: wp.array(dtype=vec3),
         tie_qd: wp.array(dtype=vec3),
         dt: f64,
-        # State out (laned scratch: the forward substitution, its terms of the particles' gradients,
-        # the segments' spring parts):
+        # State out (laned scratch: forward substitution, gradient terms, spring parts):
         lane_bar: wp.array(dtype=lvec),
         lane_x_bar: wp.array(dtype=lvec),
         lane_r: wp.array(dtype=lvec),

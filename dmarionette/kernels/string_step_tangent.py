@@ -105,7 +105,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         tie_q: wp.array(dtype=vec3),
         tie_qd: wp.array(dtype=vec3),
         dt: scalar,
-        # Tangents in (leading axis: the direction):
+        # Tangent in (leading axis: the direction):
         particle_q_dot: wp.array2d(dtype=vec3),
         particle_qd_dot: wp.array2d(dtype=vec3),
         top_q_dot: wp.array2d(dtype=vec3),
@@ -113,7 +113,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         tie_qd_dot: wp.array2d(dtype=vec3),
         particle_mass_dot: wp.array2d(dtype=scalar),
         string_constants_dot: wp.array3d(dtype=scalar),
-        # Tangents out:
+        # Tangent out:
         particle_q_out_dot: wp.array2d(dtype=vec3),
         particle_qd_out_dot: wp.array2d(dtype=vec3),
         tie_force_dot: wp.array2d(dtype=vec3),
@@ -325,12 +325,15 @@ def unpack_lane_factorisation_kernel(lanes: int):
 
     @wp.kernel(module="unique", enable_backward=False)
     def unpack_lane_factorisation(
+        # Model:
         group_string: wp.array(dtype=ivec),
         group_real: wp.array(dtype=wp.int32),
         group_base: wp.array(dtype=wp.int32),
         string_start: wp.array(dtype=wp.int32),
+        # State in:
         lane_inverse: wp.array(dtype=lmat),
         lane_c: wp.array(dtype=lmat),
+        # State out:
         pivot_inverse: wp.array(dtype=wp.mat33d),
         scratch_c: wp.array(dtype=wp.mat33d),
     ):
