@@ -83,7 +83,7 @@ class StringStepTangent:
             # The laned step keeping its factorisation (the scalar step's numbers bit for bit, about 2x
             # faster), unpacked into the scalar layout the tangent reads (the solver's lane plan).
             self.solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
-            groups = self.solver._lane_plan[0]
+            groups = self.solver.lane_group_arrays
             wp.launch(self._unpack, dim=groups[1].shape[0],
                       inputs=[*groups, m.string_start, ws.lane_inverse, ws.lane_c],
                       outputs=[ws.scratch_inverse, ws.scratch_c], device=m.device, record_tape=False)

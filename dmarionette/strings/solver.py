@@ -327,6 +327,12 @@ class SolverStringImplicit:
             record_tape=False,
         )
 
+    @property
+    def lane_group_arrays(self) -> list[wp.array]:
+        """The laned kernels' group table (string indices, real lanes, scratch offsets per group;
+        ``string_step_lanes.lane_groups``), for kernels that read laned arrays; None with lanes off."""
+        return None if self._lane_plan is None else self._lane_plan[0]
+
     def _new_lane_plan(self) -> tuple[list[wp.array], list[wp.array]]:
         """The laned step's group table (``string_step_lanes.lane_groups``: string indices, real
         lanes, scratch offsets per group) and its laned scratch: ``C'``, ``d'`` of each group's rows

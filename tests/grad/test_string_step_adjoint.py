@@ -25,18 +25,16 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, three_strings, wiggled_controls
+from tests.support.strings import ALL_ON, make_model, three_strings, wiggled_controls
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.marionette.solver import MarionetteModel
-from dmarionette.strings.model import StringEffects
 from dmarionette.strings.solver import SolverStringImplicit
 
 STEPS = 400
 DT = 1e-3
 TOLERANCE = 1e-10
-ALL_ON = StringEffects(gravity=True, internal_friction=True, air_drag=True, ground_contact=True, ground_friction=True)
 CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
              "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
              "string_tie_stiffness", "string_tie_damping", "string_tied"]

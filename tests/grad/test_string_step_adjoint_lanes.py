@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, repeated_specs, wiggled_controls
+from tests.support.strings import ALL_ON, make_model, repeated_specs, wiggled_controls
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
@@ -31,7 +31,6 @@ from dmarionette.strings.solver import SolverStringImplicit
 
 STEPS = 200
 DT = 1e-3
-ALL_ON = StringEffects(gravity=True, internal_friction=True, air_drag=True, ground_contact=True, ground_friction=True)
 CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
              "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
              "string_tie_stiffness", "string_tie_damping", "string_tied"]

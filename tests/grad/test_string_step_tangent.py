@@ -24,8 +24,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.grad.test_string_step_adjoint import ALL_ON
-from tests.support.strings import make_model, spec, three_strings
+from tests.support.strings import ALL_ON, make_model, spec, three_strings
 
 from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
 from dmarionette.strings.model import StringControl

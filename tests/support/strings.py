@@ -11,6 +11,7 @@ wp.config.log_level = wp.LOG_WARNING
 
 ONLY_GRAVITY = StringEffects(gravity=True, internal_friction=False, air_drag=False,
                              ground_contact=False, ground_friction=False)
+ALL_ON = StringEffects(gravity=True, internal_friction=True, air_drag=True, ground_contact=True, ground_friction=True)
 NOTHING = StringEffects(gravity=False, internal_friction=False, air_drag=False,
                         ground_contact=False, ground_friction=False)
 G = 9.81
