@@ -18,13 +18,15 @@ What it checks, for every function decorated with ``@wp.kernel`` / ``@wp.kernel(
        # State in:           the state read (input)
        # Control:            controls, and the step ``dt``/``h`` (input)
        # Adjoint in:         adjoints read by a hand-written adjoint kernel (input)
+       # Tangent in:         tangents read by a tangent-linear (forward-mode) kernel (input)
        # State in and out:   arrays read and updated in place (output)
        # State out:          what the kernel writes (output)
        # Adjoint in and out: adjoints read, then consumed (zeroed) (output)
        # Adjoint out:        adjoints the kernel writes or accumulates into (output)
+       # Tangent out:        tangents a tangent-linear kernel writes (output)
 
    A group comment may carry a remark in parentheses before its colon, e.g.
-   ``# State out (accumulated):``. The first four groups are *inputs*, the last four
+   ``# State out (accumulated):``. The first five groups are *inputs*, the last five
    *outputs*; the order puts every input before every output (what Warp's ``gradcheck``
    and ``jax_kernel`` need).
 2. **No defaults** on any parameter.
@@ -53,8 +55,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-INPUT_GROUPS = ("Model", "State in", "Control", "Adjoint in")
-OUTPUT_GROUPS = ("State in and out", "State out", "Adjoint in and out", "Adjoint out")
+INPUT_GROUPS = ("Model", "State in", "Control", "Adjoint in", "Tangent in")
+OUTPUT_GROUPS = ("State in and out", "State out", "Adjoint in and out", "Adjoint out", "Tangent out")
 GROUPS = INPUT_GROUPS + OUTPUT_GROUPS
 ATOMICS = {"atomic_add", "atomic_sub", "atomic_min", "atomic_max", "atomic_cas", "atomic_exch"}
 

@@ -29,7 +29,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["ArticulationTopology", "JointTopology", "build_articulation_kernels"]
+__all__ = ["ArticulationTopology", "Emitter", "JointTopology", "build_articulation_kernels", "import_generated"]
 
 _CACHE: dict[str, object] = {}
 
@@ -145,7 +145,7 @@ from dmarionette.kernels.articulation_math import (
 '''
 
 
-class _Emitter:
+class Emitter:
     def __init__(self, topo: ArticulationTopology):
         self.t = topo
         self.lines: list[str] = []
@@ -530,14 +530,14 @@ def build_articulation_kernels(topo: ArticulationTopology, optimization_level: i
         A module with ``eval_body_kinematics``, ``solve_body_dynamics``,
         ``integrate_joint_coordinates`` and ``eval_mass_matrix``.
     """
-    em = _Emitter(topo)
+    em = Emitter(topo)
     options = f'wp.set_module_options({{"optimization_level": {int(optimization_level)}}})\n'
     source = "\n\n".join([_HEADER + options, em.kinematics(), em.dynamics(), em.integrate(), em.mass_matrix()])
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
-    return _import_generated(f"dmarionette_articulation_{digest}", source)
+    return import_generated(f"dmarionette_articulation_{digest}", source)
 
 
-def _import_generated(name: str, source: str):
+def import_generated(name: str, source: str):
     """Writes ``source`` to the cache folder as ``name.py`` (unless there already) and imports it (once
     per process); ``name`` carries the source's hash."""
     if name in _CACHE:

@@ -17,7 +17,7 @@ import warp as wp
 spatial6 = wp.types.vector(length=6, dtype=wp.float64)
 spatial66 = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
 
-_EPS2 = wp.constant(wp.float64(1.0e-24))
+EPS2 = wp.constant(wp.float64(1.0e-24))
 
 
 @wp.func
@@ -122,7 +122,7 @@ def compute_quat_integrate(r: wp.quatd, omega_local: wp.vec3d, h: wp.float64) ->
     The rotation angle uses ``sqrt(|omega h|^2 + 1e-24)`` so that the gradient is finite
     at zero angular velocity (relative change of the result below 1e-24).
     """
-    phi = wp.sqrt(wp.dot(omega_local, omega_local) * h * h + _EPS2)
+    phi = wp.sqrt(wp.dot(omega_local, omega_local) * h * h + EPS2)
     s = wp.sin(wp.float64(0.5) * phi) / phi * h
     dq = wp.quatd(omega_local[0] * s, omega_local[1] * s, omega_local[2] * s, wp.cos(wp.float64(0.5) * phi))
     return wp.normalize(r * dq)
@@ -131,4 +131,4 @@ def compute_quat_integrate(r: wp.quatd, omega_local: wp.vec3d, h: wp.float64) ->
 @wp.func
 def compute_smooth_norm(v: wp.vec3d) -> wp.float64:
     """``sqrt(|v|^2 + 1e-24)``: a norm with a finite gradient at zero."""
-    return wp.sqrt(wp.dot(v, v) + _EPS2)
+    return wp.sqrt(wp.dot(v, v) + EPS2)

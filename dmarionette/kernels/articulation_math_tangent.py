@@ -17,7 +17,7 @@ from __future__ import annotations
 import warp as wp
 
 from dmarionette.kernels.articulation_math import (
-    _EPS2,
+    EPS2,
     compute_spatial,
     compute_spatial_blocks,
     spatial6,
@@ -119,7 +119,7 @@ def compute_quat_integrate_tangent(r: wp.quatd, omega_local: wp.vec3d, h: wp.flo
     """Tangent of ``compute_quat_integrate`` (``normalize(r * dq)``, the formula as written)."""
     half = wp.float64(0.5)
     om2 = wp.dot(omega_local, omega_local)
-    phi = wp.sqrt(om2 * h * h + _EPS2)
+    phi = wp.sqrt(om2 * h * h + EPS2)
     phi_t = (wp.dot(omega_local, omega_local_t) * h * h + om2 * h * h_t) / phi
     sh = wp.sin(half * phi)
     ch = wp.cos(half * phi)
@@ -134,4 +134,4 @@ def compute_quat_integrate_tangent(r: wp.quatd, omega_local: wp.vec3d, h: wp.flo
 @wp.func
 def compute_smooth_norm_tangent(v: wp.vec3d, v_t: wp.vec3d) -> wp.float64:
     """Tangent of ``compute_smooth_norm``."""
-    return wp.dot(v, v_t) / wp.sqrt(wp.dot(v, v) + _EPS2)
+    return wp.dot(v, v_t) / wp.sqrt(wp.dot(v, v) + EPS2)

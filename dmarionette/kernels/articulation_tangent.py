@@ -32,7 +32,7 @@ with Warp's adjoint of the same kernel to rounding):
   scalar x scalar/vector/quaternion/matrix, matrix x vector, quaternion x quaternion,
   spatial66 x spatial6); ``/``: ``y = a / b`` with a scalar ``b``: ``(a_t - y b_t) / b``;
 - the dynamics' tree-sparse ``L^T L`` factorisation and two triangular solves of
-  ``H qdd = tau`` (the statements ``_Emitter._factor_and_solve`` records as ``solve``):
+  ``H qdd = tau`` (the statements ``Emitter._factor_and_solve`` records as ``solve``):
   differentiated as a whole, ``qdd_t = H^-1 (tau_t - H_t qdd)`` by the same two solves
   with the primal's ``L`` (``H_t`` and ``tau_t`` from their statements' rules); no value
   inside the solve has a tangent of its own (a rule needing one raises). This is the
@@ -88,7 +88,7 @@ import ast
 import hashlib
 import re
 
-from dmarionette.kernels.articulation_codegen import ArticulationTopology, _Emitter, _import_generated
+from dmarionette.kernels.articulation_codegen import ArticulationTopology, Emitter, import_generated
 
 __all__ = [
     "TANGENT_INPUTS",
@@ -527,7 +527,7 @@ def tangent_kernel_source(source: str, solve: dict | None = None) -> str:
 
     Args:
         source: the kernel's source (decorator, signature with its parameter groups, body).
-        solve: a linear solve in it, as ``_Emitter`` records it (``_factor_and_solve``), to
+        solve: a linear solve in it, as ``Emitter`` records it (``_factor_and_solve``), to
             differentiate as a whole (or None: every statement by its rule).
     """
     return _Kernel(source, solve).transform()
@@ -535,7 +535,7 @@ def tangent_kernel_source(source: str, solve: dict | None = None) -> str:
 
 def articulation_tangent_source(topo: ArticulationTopology, optimization_level: int = 1) -> str:
     """The tangent module's source for ``topo`` (see :func:`build_articulation_tangent_kernels`)."""
-    em = _Emitter(topo)
+    em = Emitter(topo)
     # no adjoint code: the tangent kernels are not differentiated again (and compile in half the time)
     options = (f'wp.set_module_options({{"optimization_level": {int(optimization_level)}, '
                f'"enable_backward": False}})\n')
@@ -554,4 +554,4 @@ def build_articulation_tangent_kernels(topo: ArticulationTopology, optimization_
     """
     source = articulation_tangent_source(topo, optimization_level)
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
-    return _import_generated(f"dmarionette_articulation_tangent_{digest}", source)
+    return import_generated(f"dmarionette_articulation_tangent_{digest}", source)

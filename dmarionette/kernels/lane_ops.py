@@ -7,6 +7,10 @@ makes of it: with Warp's default CPU flags the SLP vectorizer computed one lane 
 with Warp's own ``+``, ``wp.cw_mul`` wrongly, ``docs/simd_probe.md``). CPU only: the snippets are
 Clang C++, not CUDA. Used by ``string_step_lanes``; moved here from the probes
 (``benchmarks/probe_simd_lanes.py`` imports them; the whole-step probe, since removed, did too).
+
+``native_lane_memory``: the laned kernels' gathers from and scatters to the simulator's per-particle
+and per-string arrays, as snippets too (Warp's own indexing wraps negative indices, integer work on
+every lane of every access; measured in ``docs/lanes_status.md``, "Fewer instructions").
 """
 
 import functools
@@ -79,3 +83,77 @@ def native_lane_ops(lanes: int) -> SimpleNamespace:
                            max=binary("__builtin_bit_cast(lanes_t, (__builtin_bit_cast(mask_t, x) & (x > y))"
                                       " | (__builtin_bit_cast(mask_t, y) & ~(x > y)))"),
                            sqrt=sqrt, where_less=where_less, fma=lane_fma(lanes))
+
+
+# Rows of a lane matrix from (or to) ``K`` array entries: ``a[index[k] + j]``, lane ``k``. Warp's own
+# ``a[i]`` also wraps a negative index (``i < 0: i += shape``), integer work (a sign, a mask, an add)
+# for every lane of every access that the row loops of the laned kernels pay and spill; these never
+# wrap (the kernels' indices are particle and string indices, never negative) and otherwise address
+# as Warp does (``data + i * strides[0]``).
+_ENTRY = "(({type}*)((char*)a.data + (long)(index.c[k] + j) * (long)a.strides[0]))"
+
+
+@functools.cache
+def native_lane_memory(lanes: int) -> SimpleNamespace:
+    """``gather3(a, index, j)``: the ``3 x K`` lane matrix of the ``vec3d`` entries
+    ``a[index[k] + j]``; ``gather(a, index, j)``: the lane vector of the ``float64`` entries;
+    ``scatter3(a, index, j, real, v)``: ``a[index[k] + j] = v[:, k]`` for the lanes ``k < real``;
+    ``scatter_add3``/``scatter_sub3``/``scatter_add``: ``a[...] = a[...] + v[:, k]`` (``-``,
+    the ``float64`` one), each rounded once, for the lanes ``k < real``."""
+    lane = wp.types.vector(lanes, wp.float64)
+    ivec = wp.types.vector(lanes, wp.int32)
+    lvec = wp.types.matrix((3, lanes), wp.float64)
+    vec3 = wp.vec3d
+    entry3 = entry = _ENTRY.format(type="double")
+
+    @wp.func_native(f"""
+    wp::mat_t<3, {lanes}, wp::float64> r;
+    for (int k = 0; k < {lanes}; ++k) {{
+        const double* p = {entry3};
+        r.data[0][k] = p[0];
+        r.data[1][k] = p[1];
+        r.data[2][k] = p[2];
+    }}
+    return r;
+    """)
+    def gather3(a: wp.array(dtype=vec3), index: ivec, j: int) -> lvec:
+        ...
+
+    @wp.func_native(f"""
+    wp::vec_t<{lanes}, wp::float64> r;
+    for (int k = 0; k < {lanes}; ++k)
+        r.c[k] = *{entry};
+    return r;
+    """)
+    def gather(a: wp.array(dtype=wp.float64), index: ivec, j: int) -> lane:
+        ...
+
+    def scatter3_op(op):
+        @wp.func_native(f"""
+        for (int k = 0; k < {lanes}; ++k) {{
+            if (k < real) {{
+                double* p = {entry3};
+                p[0] = {op.format(i=0)};
+                p[1] = {op.format(i=1)};
+                p[2] = {op.format(i=2)};
+            }}
+        }}
+        """)
+        def scatter3(a: wp.array(dtype=vec3), index: ivec, j: int, real: int, v: lvec):
+            ...
+        return scatter3
+
+    @wp.func_native(f"""
+    for (int k = 0; k < {lanes}; ++k) {{
+        if (k < real) {{
+            double* p = {entry};
+            *p = *p + v.c[k];
+        }}
+    }}
+    """)
+    def scatter_add(a: wp.array(dtype=wp.float64), index: ivec, j: int, real: int, v: lane):
+        ...
+
+    return SimpleNamespace(gather3=gather3, gather=gather, scatter3=scatter3_op("v.data[{i}][k]"),
+                           scatter_add3=scatter3_op("p[{i}] + v.data[{i}][k]"),
+                           scatter_sub3=scatter3_op("p[{i}] - v.data[{i}][k]"), scatter_add=scatter_add)

@@ -15,7 +15,9 @@ the tension-only springs (``string_solve``) adds the blocks this spring returns.
 Built per float type by :func:`string_spring_functions` (cached), as the other string terms
 (``string_terms``). :func:`string_spring_adjoint_functions` holds the printed spring's
 derivative as the string step's hand-written adjoint (``string_step_adjoint``) uses it: by
-its structure ``K = alpha u u^T + beta I``, next to the spring it differentiates.
+its structure ``K = alpha u u^T + beta I``, next to the spring it differentiates;
+:func:`string_spring_tangent_functions` its forward (tangent-linear) derivative, as the string
+step's tangent (``string_step_tangent``) uses it.
 """
 
 
@@ -24,7 +26,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-__all__ = ["string_spring_adjoint_functions", "string_spring_functions"]
+__all__ = ["string_spring_adjoint_functions", "string_spring_functions", "string_spring_tangent_functions"]
 
 
 @functools.cache
@@ -245,3 +247,54 @@ def string_spring_adjoint_functions(scalar) -> SimpleNamespace:
                            compute_spring_adjoint=compute_spring_adjoint,
                            compute_spring_parts_tension_only=compute_spring_parts_tension_only,
                            compute_spring_adjoint_tension_only=compute_spring_adjoint_tension_only)
+
+
+@functools.cache
+def string_spring_tangent_functions(scalar) -> SimpleNamespace:
+    """Builds the printed spring's forward derivative (``compute_string_spring_printed``), as the
+    string step's tangent-linear kernel uses it (``string_step_tangent``): the transpose of
+    :func:`string_spring_adjoint_functions`' ``compute_spring_adjoint``.
+
+    With ``K = alpha u u^T + beta I`` (``alpha = -k_s (1 - g)``, ``beta = -k_s g``,
+    ``g = max(1 - d/l, 0)``), the tangent of ``K r`` for a fixed ``r`` is
+    ``alpha' u (u . r) + alpha (u' (u . r) + u (u' . r)) + beta' r`` (``compute_jacobian_tangent_product``);
+    ``K`` is never formed. ``g' = 0`` while the segment is compressed (``1 - d/l <= 0``: the
+    clamp's flat side, as the adjoint and Warp's adjoint of ``max`` take it at the switch).
+    """
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.func
+    def compute_spring_tangent(u: vec3, length: scalar, inv_length: scalar, ratio: scalar, stiffness: scalar,
+                               rest_length: scalar, e_dot: vec3, stiffness_dot: scalar, rest_length_dot: scalar):
+        """Tangent of the spring of ``e = x_a - x_b`` (its parts ``u, l, 1 - d/l`` from
+        ``string_spring_adjoint_functions``' ``compute_spring_parts``, and ``1 / l``: a caller with many
+        directions divides once) along ``e' = e_dot``, ``k_s'``, ``d'``: returns ``(u', alpha', beta', f_a')``."""
+        one = scalar(1.0)
+        geometric = wp.max(ratio, scalar(0.0))
+        length_dot = wp.dot(u, e_dot)
+        u_dot = (e_dot - length_dot * u) * inv_length
+        geometric_dot = scalar(0.0)
+        if ratio > scalar(0.0):
+            geometric_dot = (rest_length * length_dot * inv_length - rest_length_dot) * inv_length
+        stretch = length - rest_length
+        alpha_dot = -stiffness_dot * (one - geometric) + stiffness * geometric_dot
+        beta_dot = -stiffness_dot * geometric - stiffness * geometric_dot
+        f_dot = (-(stiffness_dot * stretch + stiffness * (length_dot - rest_length_dot)) * u
+                 - (stiffness * stretch) * u_dot)
+        return u_dot, alpha_dot, beta_dot, f_dot
+
+    @wp.func
+    def compute_jacobian_product(u: vec3, alpha: scalar, beta: scalar, r: vec3):
+        """``K r = alpha u (u . r) + beta r``."""
+        return (alpha * wp.dot(u, r)) * u + beta * r
+
+    @wp.func
+    def compute_jacobian_tangent_product(u: vec3, alpha: scalar, u_dot: vec3, alpha_dot: scalar, beta_dot: scalar,
+                                         r: vec3):
+        """``K' r`` for a fixed ``r`` (the namespace's doc)."""
+        ur = wp.dot(u, r)
+        return (alpha_dot * ur) * u + alpha * (ur * u_dot + wp.dot(u_dot, r) * u) + beta_dot * r
+
+    return SimpleNamespace(compute_spring_tangent=compute_spring_tangent,
+                           compute_jacobian_product=compute_jacobian_product,
+                           compute_jacobian_tangent_product=compute_jacobian_tangent_product)

@@ -16,7 +16,10 @@ It reads what the laned keep step (``string_step_lanes.integrate_string_lanes_ke
 stored: the pivot inverses and ``C'`` in the laned layout (``lane_inverse``, ``lane_c``: group
 ``g``'s row ``j`` at ``group_base[g] + j``), and ``particle_dv`` per particle. Its forward
 substitution goes to laned scratch (``lane_bar``, and its terms of the particles' gradients
-``lane_x_bar``, ``lane_r``). Padding lanes (a group of fewer than ``K`` strings repeats one of its
+``lane_x_bar``, ``lane_r``), and so do the spring parts of every segment it computes
+(``lane_parts``: the back substitution reads them instead of computing them again, a square root
+and four divisions per row; computed by the same function from the same positions, so the same
+bits). Padding lanes (a group of fewer than ``K`` strings repeats one of its
 strings) compute and write nothing: every gradient is read, added to and written back for the real
 lanes only, and each string's particles and constants belong to one lane of one thread. A
 particle's gradient gets the same terms in the same order as in the scalar adjoint, but summed in
@@ -29,12 +32,20 @@ import functools
 
 import warp as wp
 
-from .lane_ops import native_lane_ops
+from .lane_ops import native_lane_memory, native_lane_ops
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 
-__all__ = ["string_step_adjoint_lanes_kernel"]
+__all__ = ["lane_parts_type", "string_step_adjoint_lanes_kernel"]
 
 f64 = wp.float64
+
+
+@functools.cache
+def lane_parts_type(lanes: int = LANES):
+    """A row of the laned scratch ``lane_parts``: the spring parts ``(u, l, 1 - d/l, alpha, beta)``
+    (``compute_spring_parts``) of the segment above the row's particle, ``8 x K`` (rows 0-2 ``u``,
+    3 ``l``, 4 ``1 - d/l``, 5 ``alpha``, 6 ``beta``, 7 unused: a row is four 64-byte lines for K = 4)."""
+    return wp.types.matrix((8, lanes), f64)
 
 
 @functools.cache
@@ -45,6 +56,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     LANES_ = lanes
     lane, ivec, lvec, lmat = lane_types(lanes)
     lacc = wp.types.matrix((21, lanes), f64)  # a row's running sums, as the scalar adjoint's acc_t
+    lparts = lane_parts_type(lanes)
     vec3 = wp.vec3d
     nat = native_lane_ops(lanes)
     ladd, lsub, lmul, ldiv, lsqrt, lmax, lselect_less = (
@@ -56,29 +68,22 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
 
     # --- accumulation into the gradients, real lanes only ---------------------------------------
 
+    mem = native_lane_memory(lanes)
+
     @wp.func
     def scatter_add3(a: wp.array(dtype=vec3), index: ivec, j: int, real: int, v: lvec):
         """``a[index[k] + j] = a[index[k] + j] + v[:, k]`` for the real lanes."""
-        for k in range(LANES_):
-            if k < real:
-                i = index[k] + j
-                a[i] = a[i] + vec3(v[0, k], v[1, k], v[2, k])
+        mem.scatter_add3(a, index, j, real, v)
 
     @wp.func
     def scatter_sub3(a: wp.array(dtype=vec3), index: ivec, j: int, real: int, v: lvec):
         """``a[index[k] + j] = a[index[k] + j] - v[:, k]`` for the real lanes."""
-        for k in range(LANES_):
-            if k < real:
-                i = index[k] + j
-                a[i] = a[i] - vec3(v[0, k], v[1, k], v[2, k])
+        mem.scatter_sub3(a, index, j, real, v)
 
     @wp.func
     def scatter_add(a: wp.array(dtype=f64), index: ivec, j: int, real: int, v: lane):
         """``a[index[k] + j] = a[index[k] + j] + v[k]`` for the real lanes."""
-        for k in range(LANES_):
-            if k < real:
-                i = index[k] + j
-                a[i] = a[i] + v[k]
+        mem.scatter_add(a, index, j, real, v)
 
     # --- the scalar adjoint's operations on lanes ------------------------------------------------
 
@@ -115,6 +120,29 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
                 lmul(neg_k, geometric))
 
     @wp.func
+    def store_parts(a: wp.array(dtype=lparts), row: int, u: lvec, length: lane, ratio: lane, alpha: lane,
+                    beta: lane):
+        p = lparts()
+        p[0] = u[0]
+        p[1] = u[1]
+        p[2] = u[2]
+        p[3] = length
+        p[4] = ratio
+        p[5] = alpha
+        p[6] = beta
+        a[row] = p
+
+    @wp.func
+    def load_parts(a: wp.array(dtype=lparts), row: int):
+        """The spring parts ``(u, l, 1 - d/l, alpha, beta)`` of the segment above row ``row``'s particle."""
+        p = a[row]
+        u = lvec()
+        u[0] = p[0]
+        u[1] = p[1]
+        u[2] = p[2]
+        return u, p[3], p[4], p[5], p[6]
+
+    @wp.func
     def compute_lane_outer_moments(a: lvec, b: lvec, u: lvec):
         """``compute_outer_moments``: for ``M = a b^T``, ``(u^T M u, tr M, (M + M^T) u)``."""
         ua = ldot(u, a)
@@ -148,14 +176,14 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         first: bool, is_last: bool, starts: ivec, j: int, row: int, real: int,
         particle_q: wp.array(dtype=vec3), particle_qd: wp.array(dtype=vec3),
         particle_dv: wp.array(dtype=vec3), lane_c: wp.array(dtype=lmat), lane_bar: wp.array(dtype=lvec),
-        lane_x_bar: wp.array(dtype=lvec), lane_r: wp.array(dtype=lvec),
+        lane_x_bar: wp.array(dtype=lvec), lane_r: wp.array(dtype=lvec), lane_parts: wp.array(dtype=lparts),
         particle_q_grad: wp.array(dtype=vec3), particle_qd_grad: wp.array(dtype=vec3),
         particle_mass_grad: wp.array(dtype=f64),
         stiffness: lane, rest_length: lane, friction: lane, air_drag: lane, ground_stiffness: lane,
         ground_absorption: lane, ground_friction: lane, tie_stiffness: lane, tie_damping: lane, tie_x: lvec,
         tie_v: lvec, gravity: vec3, ground_height: f64, dt: f64, top_dx: lvec, top_dv: lvec,
-        x: lvec, v: lvec, v_next: lvec, lam_next: lvec, dv_next: lvec, u_n: lvec, l_n: lane, ratio_n: lane,
-        alpha_n: lane, beta_n: lane, f_bar_n: lvec, uu_n: lane, tr_n: lane, sym_n: lvec, acc: lacc,
+        v: lvec, v_next: lvec, lam_next: lvec, dv_next: lvec, f_bar_n: lvec, uu_n: lane, tr_n: lane, sym_n: lvec,
+        acc: lacc,
         q_pend: lvec, qd_pend: lvec, qd_carry: lvec,
     ):
         """``compute_row_adjoint`` for row ``j`` of the group's strings (``first``: ``j == 1``),
@@ -183,9 +211,9 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         tie_v_bar = acc_vec(acc, 12)
         top_dx_bar = acc_vec(acc, 15)
         top_dv_bar = acc_vec(acc, 18)
-        x_prev = gather_particle3(particle_q, starts, j - 1)
+        x = gather_particle3(particle_q, starts, j)
         v_prev = gather_particle3(particle_qd, starts, j - 1)
-        u_p, l_p, ratio_p, alpha_p, beta_p = compute_lane_spring_parts(x_prev, x, stiffness, rest_length)
+        u_p, _l_p, _ratio_p, alpha_p, beta_p = load_parts(lane_parts, row)  # the segment above
         lam = lane_bar[row]
         if not is_last:
             lam = vsub(lam, lmul_vec(lane_c[row], lam_next))
@@ -275,6 +303,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         if not is_last:
             # The segment below, then its spring's adjoint (it is complete).
             neg_h2 = lneg(h2)
+            u_n, l_n, ratio_n, alpha_n, beta_n = load_parts(lane_parts, row + 1)
             f_bar_n = vadd(f_bar_n, force_row_bar)
             uu, tr, sym = compute_lane_outer_moments(lscale(h2, lam), dv, u_n)
             uu_n = ladd(uu_n, uu)
@@ -328,8 +357,8 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             acc_out[15 + i] = top_dx_bar[i]
             acc_out[18 + i] = top_dv_bar[i]
         # Row j - 1 is next: segment j - 1 becomes the one below.
-        return (x_prev, v_prev, v, lam, dv, u_p, l_p, ratio_p, alpha_p, beta_p, -force_row_bar, uu_p, tr_p, sym_p,
-                acc_out, q_pend_out, qd_pend_out, qd_carry_out)
+        return (v_prev, v, lam, dv, -force_row_bar, uu_p, tr_p, sym_p, acc_out, q_pend_out, qd_pend_out,
+                qd_carry_out)
 
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_lanes_adjoint(
@@ -364,10 +393,11 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         tie_q: wp.array(dtype=vec3),
         tie_qd: wp.array(dtype=vec3),
         dt: f64,
-        # State out (laned scratch: the forward substitution, its terms of the particles' gradients):
+        # State out (laned scratch: forward substitution, gradient terms, spring parts):
         lane_bar: wp.array(dtype=lvec),
         lane_x_bar: wp.array(dtype=lvec),
         lane_r: wp.array(dtype=lvec),
+        lane_parts: wp.array(dtype=lparts),
         # Adjoint in and out (read, then consumed: zeroed):
         particle_q_out_grad: wp.array(dtype=vec3),
         particle_qd_out_grad: wp.array(dtype=vec3),
@@ -452,8 +482,10 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             r = vadd(v_bar, lscale(hl, x_bar))  # dv_bar: x1 = x0 + h (v0 + dv)
             lane_x_bar[base + j] = x_bar  # the particle's first gradient terms, added in step 3
             lane_r[base + j] = r
+            # The segment above (every segment's parts, read again by the back substitution).
+            u, length, ratio, alpha, beta = compute_lane_spring_parts(x_prev, x, stiffness, rest_length)
+            store_parts(lane_parts, base + j, u, length, ratio, alpha, beta)
             if j > 1:
-                u, _l, _ratio, alpha, beta = compute_lane_spring_parts(x_prev, x, stiffness, rest_length)
                 r = vsub(r, vadd(lscale(lmul(h2, lmul(alpha, ldot(u, y_prev))), u),
                                  lscale(ladd(lmul(h2, beta), g_upper), y_prev)))
             y_prev = lmul_vec(lane_inverse[base + j], r)
@@ -466,13 +498,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         lam_next = zv
         dv_next = zv
         v_next = zv
-        x = gather_particle3(particle_q, starts, last)
         v = gather_particle3(particle_qd, starts, last)
-        u_n = zv
-        l_n = zero
-        ratio_n = zero
-        alpha_n = zero
-        beta_n = zero
         f_bar_n = zv
         uu_n = zero
         tr_n = zero
@@ -480,31 +506,29 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         q_pend = zv  # (no particle below the last row)
         qd_pend = zv
         qd_carry = vadd(gather_particle3(particle_qd_grad, starts, last), lane_r[base + last])
-        (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend,
-         qd_pend, qd_carry) = compute_lane_row_adjoint(
+        (v, v_next, lam_next, dv_next, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend,
+         qd_carry) = compute_lane_row_adjoint(
             last == 1, True, starts, last, base + last, real, particle_q, particle_qd, particle_dv,
-            lane_c, lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
-            rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
-            tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next,
-            u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend, qd_carry)
+            lane_c, lane_bar, lane_x_bar, lane_r, lane_parts, particle_q_grad, particle_qd_grad, particle_mass_grad,
+            stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
+            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, v, v_next,
+            lam_next, dv_next, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend, qd_carry)
         for i in range(last - 2):
-            (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
-             q_pend, qd_pend, qd_carry) = compute_lane_row_adjoint(
+            (v, v_next, lam_next, dv_next, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend,
+             qd_carry) = compute_lane_row_adjoint(
                 False, False, starts, last - 1 - i, base + last - 1 - i, real, particle_q, particle_qd,
-                particle_dv, lane_c, lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad,
+                particle_dv, lane_c, lane_bar, lane_x_bar, lane_r, lane_parts, particle_q_grad, particle_qd_grad,
                 particle_mass_grad, stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption,
                 ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv,
-                x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
-                q_pend, qd_pend, qd_carry)
+                v, v_next, lam_next, dv_next, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend, qd_carry)
         if last > 1:
-            (x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc,
-             q_pend, qd_pend, qd_carry) = compute_lane_row_adjoint(
+            (v, v_next, lam_next, dv_next, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend,
+             qd_carry) = compute_lane_row_adjoint(
                 True, False, starts, 1, base + 1, real, particle_q, particle_qd, particle_dv, lane_c,
-                lane_bar, lane_x_bar, lane_r, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
-                rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
-                tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
-                dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend,
-                qd_carry)
+                lane_bar, lane_x_bar, lane_r, lane_parts, particle_q_grad, particle_qd_grad, particle_mass_grad,
+                stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
+                tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, v, v_next,
+                lam_next, dv_next, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend, qd_carry)
         stiffness_bar = acc[0]
         rest_bar = acc[1]
         friction_bar = acc[2]
@@ -519,6 +543,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         top_dx_bar = acc_vec(acc, 15)
         top_dv_bar = acc_vec(acc, 18)
         # The top segment (the top particle at the start of the step to particle 1).
+        u_n, l_n, ratio_n, alpha_n, _beta_n = load_parts(lane_parts, base + 1)
         e_bar, k_s_bar, d_bar = compute_lane_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
                                                             f_bar_n, uu_n, tr_n, sym_n)
         stiffness_bar = ladd(stiffness_bar, k_s_bar)

@@ -38,7 +38,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from .lane_ops import native_lane_ops
+from .lane_ops import native_lane_memory, native_lane_ops
 
 f64 = wp.float64
 
@@ -77,57 +77,37 @@ def lane_types(lanes: int = LANES):
 def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
     """The laned step's ``@wp.func`` helpers for ``lanes`` strings per thread, shared by the laned
     step (``integrate_string_lanes``) and its adjoint (``string_step_adjoint_lanes``): gathers from
-    and scatters to the simulator's arrays (a scatter writes the real lanes only), the scalar
-    kernel's vector and matrix operations on lanes in its order and rounding, and the printed
-    spring (``compute_lane_spring``)."""
-    LANES_ = lanes
+    and scatters to the simulator's arrays (``lane_ops.native_lane_memory``; a scatter writes the
+    real lanes only), the scalar kernel's vector and matrix operations on lanes in its order and
+    rounding, and the printed spring (``compute_lane_spring``)."""
     lane, ivec, lvec, lmat = lane_types(lanes)
     vec3 = wp.vec3d
     nat = native_lane_ops(lanes)
     ladd, lsub, lmul, ldiv, lsqrt, lmax, fma = nat.add, nat.sub, nat.mul, nat.div, nat.sqrt, nat.max, nat.fma
+    mem = native_lane_memory(lanes)
 
-    # --- gathers from and scatters to the simulator's arrays ---------------------------------
+    # --- gathers from and scatters to the simulator's arrays (lane_ops.native_lane_memory) ------
 
     @wp.func
     def gather_string(a: wp.array(dtype=f64), strings: ivec):
-        r = lane()
-        for k in range(LANES_):
-            r[k] = a[strings[k]]
-        return r
+        return mem.gather(a, strings, 0)
 
     @wp.func
     def gather_string3(a: wp.array(dtype=vec3), strings: ivec):
-        r = lvec()
-        for k in range(LANES_):
-            x = a[strings[k]]
-            r[0, k] = x[0]
-            r[1, k] = x[1]
-            r[2, k] = x[2]
-        return r
+        return mem.gather3(a, strings, 0)
 
     @wp.func
     def gather_particle(a: wp.array(dtype=f64), starts: ivec, j: int):
-        r = lane()
-        for k in range(LANES_):
-            r[k] = a[starts[k] + j]
-        return r
+        return mem.gather(a, starts, j)
 
     @wp.func
     def gather_particle3(a: wp.array(dtype=vec3), starts: ivec, j: int):
-        r = lvec()
-        for k in range(LANES_):
-            x = a[starts[k] + j]
-            r[0, k] = x[0]
-            r[1, k] = x[1]
-            r[2, k] = x[2]
-        return r
+        return mem.gather3(a, starts, j)
 
     @wp.func
     def scatter3(a: wp.array(dtype=vec3), index: ivec, j: int, real: int, v: lvec):
         """``a[index[k] + j] = v[:, k]`` for the real lanes ``k < real``."""
-        for k in range(LANES_):
-            if k < real:
-                a[index[k] + j] = vec3(v[0, k], v[1, k], v[2, k])
+        mem.scatter3(a, index, j, real, v)
 
     # --- the scalar kernel's operations on lanes ----------------------------------------------
 

@@ -50,7 +50,7 @@ from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_syst
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
 from dmarionette.kernels.string_step_lanes import LANES, integrate_string_lanes_kernel, lane_groups, lane_types
 from dmarionette.kernels.string_step_adjoint import string_step_adjoint_kernel
-from dmarionette.kernels.string_step_adjoint_lanes import string_step_adjoint_lanes_kernel
+from dmarionette.kernels.string_step_adjoint_lanes import lane_parts_type, string_step_adjoint_lanes_kernel
 from dmarionette.kernels.string_system import eval_string_spring_kernel, eval_string_system_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
 
@@ -61,10 +61,11 @@ __all__ = ["SolverStringImplicit", "StringWorkspace"]
 class StringWorkspace:
     """Intermediate arrays of one step (segment springs, block rows of ``A``, ``b``, ``dv``, scratch).
 
-    A *lean* workspace (:meth:`allocate` with ``lean``) has only ``particle_dv``: the laned steps
-    write nothing else of it (their pivot inverses and ``C'`` go to lane arrays), so a taped laned
-    step's workspace is ``particle_dv`` and ``lane_inverse``/``lane_c``. The other fields are None
-    until a scalar pass given the workspace fills them (``SolverStringImplicit._scalar_arrays``)."""
+    A *lean* workspace (:meth:`allocate` with ``lean``) has only what a taped step with the
+    hand-written adjoint writes and reads: ``particle_dv`` (laned steps: their pivot inverses and
+    ``C'`` go to ``lane_inverse``/``lane_c``), and for the scalar one-launch step also
+    ``KEPT_SCALAR``. The other fields are None until a pass that needs them is given the workspace
+    (``SolverStringImplicit._scalar_arrays`` fills them)."""
 
     segment_force: wp.array | None
     segment_jacobian: wp.array | None
@@ -84,20 +85,30 @@ class StringWorkspace:
     lane_inverse: wp.array | None = None
     lane_c: wp.array | None = None
 
+    # What the scalar one-launch step with ``keep`` and its hand-written adjoint write and read.
+    KEPT_SCALAR = ("scratch_inverse", "scratch_c", "scratch_d", "scratch_rhs_bar")
+    # What the five passes (and the tension-only kept step) use besides those.
+    PASSES = ("segment_force", "segment_jacobian", "segment_jacobian_active", "segment_active", "system_diag",
+              "system_upper", "system_rhs")
+
     @classmethod
     def allocate(cls, model: StringModel, requires_grad: bool, active_set: bool = False,
-                 lean: bool = False) -> StringWorkspace:
+                 lean: bool = False, kept_scalar: bool = False) -> StringWorkspace:
         """Arrays for one step's intermediates (``requires_grad``: for a step on a tape;
         ``active_set``: with the unrecorded active-set pass's own, for taped tension-only springs;
-        ``lean``: ``particle_dv`` alone, the class doc)."""
+        ``lean``: ``particle_dv`` alone, and with ``kept_scalar`` also ``KEPT_SCALAR``: the class doc)."""
         n = model.particle_count
         with wp.ScopedDevice(model.device):
             def zeros(dtype, grad):
                 return wp.zeros(n, dtype=dtype, requires_grad=grad)
 
             if lean:
-                others = [f.name for f in dataclasses.fields(cls) if f.name != "particle_dv"]
-                return cls(particle_dv=zeros(model.vec3, False), **dict.fromkeys(others))
+                ws = cls(particle_dv=zeros(model.vec3, False),
+                         **dict.fromkeys(f.name for f in dataclasses.fields(cls) if f.name != "particle_dv"))
+                if kept_scalar:
+                    ws.scratch_inverse, ws.scratch_c = zeros(model.mat33, False), zeros(model.mat33, False)
+                    ws.scratch_d, ws.scratch_rhs_bar = zeros(model.vec3, False), zeros(model.vec3, False)
+                return ws
             return cls(
                 segment_force=zeros(model.vec3, requires_grad),
                 segment_jacobian=zeros(model.mat33, requires_grad),
@@ -159,18 +170,21 @@ class SolverStringImplicit:
         """A workspace of one step's own (``taped``: with gradients where the five passes are
         recorded (not for the hand-written adjoint, which needs none), for tension-only
         springs the active-set pass's arrays, and with :attr:`lanes` the laned step's pivot
-        inverses and ``C'``)."""
+        inverses and ``C'``; the scalar one-launch step's: a lean workspace with ``KEPT_SCALAR``)."""
         if taped and self.hand_adjoint and self.lanes:
             ws = StringWorkspace.allocate(self.model, requires_grad=False, lean=True)  # what the laned path writes
             self._add_lane_keep(ws)
             return ws
+        if taped and self.hand_adjoint and not self._tension_only:
+            return StringWorkspace.allocate(self.model, requires_grad=False, lean=True, kept_scalar=True)
         return StringWorkspace.allocate(self.model, requires_grad=taped and not self.hand_adjoint,
                                         active_set=taped and self._tension_only)
 
-    def _scalar_arrays(self, ws: StringWorkspace) -> None:
-        """A scalar pass given a lean workspace fills it first (a launch with a missing array would
-        write through a null pointer)."""
-        if ws.scratch_c is None:
+    def _scalar_arrays(self, ws: StringWorkspace,
+                       needs: tuple[str, ...] = StringWorkspace.KEPT_SCALAR + StringWorkspace.PASSES) -> None:
+        """A scalar pass given a lean workspace that lacks arrays it ``needs`` fills it first (a
+        launch with a missing array would write through a null pointer)."""
+        if any(getattr(ws, name) is None for name in needs):
             self._fill_workspace(ws, taped=True)
 
     def _fill_workspace(self, ws: StringWorkspace, taped: bool) -> None:
@@ -239,7 +253,7 @@ class SolverStringImplicit:
         ``particle_dv`` (not the blocks of ``A``, which it never stores); ``keep``: also the pivot
         inverses (``scratch_inverse``), for the hand-written adjoint. Never recorded."""
         m = self.model
-        self._scalar_arrays(ws)
+        self._scalar_arrays(ws, StringWorkspace.KEPT_SCALAR)
         wp.launch(
             self._integrate_implicit_keep if keep else self._integrate_implicit,
             dim=m.string_count,
@@ -313,18 +327,25 @@ class SolverStringImplicit:
             record_tape=False,
         )
 
+    @property
+    def lane_group_arrays(self) -> list[wp.array]:
+        """The laned kernels' group table (string indices, real lanes, scratch offsets per group;
+        ``string_step_lanes.lane_groups``), for kernels that read laned arrays; None with lanes off."""
+        return None if self._lane_plan is None else self._lane_plan[0]
+
     def _new_lane_plan(self) -> tuple[list[wp.array], list[wp.array]]:
         """The laned step's group table (``string_step_lanes.lane_groups``: string indices, real
         lanes, scratch offsets per group) and its laned scratch: ``C'``, ``d'`` of each group's rows
-        (a plain step's), and the laned adjoint's forward substitution and its terms of the
-        particles' gradients (each read only within its launch)."""
+        (a plain step's), and the laned adjoint's forward substitution, its terms of the
+        particles' gradients and the segments' spring parts (each read only within its launch)."""
         m = self.model
         group_string, group_real, group_base, rows = lane_groups(m.string_start.numpy(), LANES)
         _lane, ivec, lvec, lmat = lane_types(LANES)
         with wp.ScopedDevice(m.device):
             return ([wp.array(group_string, dtype=ivec), wp.array(group_real, dtype=wp.int32),
                      wp.array(group_base, dtype=wp.int32)],
-                    [wp.zeros(rows, dtype=lmat), *[wp.zeros(rows, dtype=lvec) for _ in range(4)]])
+                    [wp.zeros(rows, dtype=lmat), *[wp.zeros(rows, dtype=lvec) for _ in range(4)],
+                     wp.zeros(rows, dtype=lane_parts_type(LANES))])
 
     def _add_lane_keep(self, ws: StringWorkspace) -> None:
         """``ws.lane_inverse``, ``ws.lane_c``: a taped laned step's own, as many rows as the plan's."""
@@ -371,7 +392,7 @@ class SolverStringImplicit:
         if lanes:
             self._record_step_adjoint_lanes(state_in, state_out, control, h, ws, tape)
             return
-        self._scalar_arrays(ws)
+        self._scalar_arrays(ws, StringWorkspace.KEPT_SCALAR)
         forced = self._none_forced if forced is None else forced
         params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
 

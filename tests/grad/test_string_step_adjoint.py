@@ -25,18 +25,16 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, spec, wiggled_controls
+from tests.support.strings import ALL_ON, make_model, three_strings, wiggled_controls
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.marionette.solver import MarionetteModel
-from dmarionette.strings.model import StringEffects
 from dmarionette.strings.solver import SolverStringImplicit
 
 STEPS = 400
 DT = 1e-3
 TOLERANCE = 1e-10
-ALL_ON = StringEffects(gravity=True, internal_friction=True, air_drag=True, ground_contact=True, ground_friction=True)
 CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
              "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
              "string_tie_stiffness", "string_tie_damping", "string_tied"]
@@ -51,14 +49,7 @@ def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss:
 def _model(tension_only: bool):
     """Three strings: one swinging onto the ground, one tied to a circling point, one slack at the top."""
     return make_model(
-        [spec(name="ground", particle_count=9, top=(0.0, 0.15, 0.0), bottom=(0.5, 0.02, 0.0), length=0.6,
-              internal_friction=0.3, air_drag=0.05, ground_stiffness=2000.0, ground_absorption=5.0,
-              ground_friction=2.0),
-         spec(name="tied", particle_count=7, top=(0.5, 1.0, 0.0), bottom=(0.5, 0.6, 0.0), length=0.4,
-              internal_friction=0.2, air_drag=0.02, tied=True, tie_point=(0.6, 0.55, 0.1), tie_stiffness=300.0,
-              tie_damping=3.0),
-         spec(name="slack", particle_count=6, top=(1.0, 1.0, 0.0), bottom=(1.0, 0.75, 0.05), length=0.35,
-              load_mass=0.02)],
+        three_strings(),
         effects=dataclasses.replace(ALL_ON, tension_only=tension_only), requires_grad=True)
 
 

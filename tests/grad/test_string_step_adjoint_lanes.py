@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, repeated_specs, wiggled_controls
+from tests.support.strings import ALL_ON, make_model, repeated_specs, wiggled_controls
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
@@ -31,7 +31,6 @@ from dmarionette.strings.solver import SolverStringImplicit
 
 STEPS = 200
 DT = 1e-3
-ALL_ON = StringEffects(gravity=True, internal_friction=True, air_drag=True, ground_contact=True, ground_friction=True)
 CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
              "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
              "string_tie_stiffness", "string_tie_damping", "string_tied"]
@@ -144,7 +143,7 @@ def test_laned_taped_step_equals_the_scalar_one(effects):
 def test_the_laned_taped_step_is_the_laned_kernel():
     """The comparison above compares two different kernels: lanes on writes the laned keep arrays into
     a lean workspace (``particle_dv`` and the lane arrays: no scalar arrays at all); lanes off the
-    scalar ones. A lean workspace stepped after lanes were turned off gets the scalar arrays and
+    scalar keep arrays (and not the five passes' blocks). A lean workspace stepped after lanes were turned off gets the scalar arrays and
     ends where a scalar workspace does."""
     model = _model(ALL_ON)
     solver = SolverStringImplicit(model)
@@ -161,6 +160,7 @@ def test_the_laned_taped_step_is_the_laned_kernel():
     with tape:
         solver.step(a, b, model.control(), DT, tape=tape, workspace=scalar_ws)
     assert scalar_ws.lane_inverse is None and np.any(scalar_ws.scratch_inverse.numpy() != 0.0)
+    assert scalar_ws.system_diag is None and scalar_ws.segment_jacobian is None  # the scalar keep step's only
     with tape:
         solver.step(a, c, model.control(), DT, tape=tape, workspace=ws)  # the lean one, lanes now off
     np.testing.assert_array_equal(ws.scratch_inverse.numpy(), scalar_ws.scratch_inverse.numpy())

@@ -125,6 +125,33 @@ def test_a_write_to_an_input_is_caught(body, expected):
     assert expected in _problems(source)
 
 
+@pytest.mark.parametrize("body, expected", [
+    ("q_out_dot[p, i] = q_dot[p, i]", []),
+    ("q_dot[p, i] = 0.0", ["writes its input 'q_dot' (Tangent in)"]),
+])
+def test_tangent_groups(body, expected):
+    """A tangent-linear kernel's tangents stand in their own groups, an input and an output one."""
+    source = f"""
+    import warp as wp
+
+    @wp.kernel
+    def eval_tangent(
+        # State in:
+        q: wp.array(dtype=float),
+        # Tangent in (leading axis: the direction):
+        q_dot: wp.array2d(dtype=float),
+        # State out:
+        q_out: wp.array(dtype=float),
+        # Tangent out:
+        q_out_dot: wp.array2d(dtype=float),
+    ):
+        p, i = wp.tid()
+        q_out[i] = q[i]
+        {body}
+    """
+    assert [problem for problem in _problems(source) if "Tangent" in problem] == expected
+
+
 def test_a_kernel_inside_a_factory_is_checked():
     source = """
     import warp as wp

@@ -11,6 +11,7 @@ wp.config.log_level = wp.LOG_WARNING
 
 ONLY_GRAVITY = StringEffects(gravity=True, internal_friction=False, air_drag=False,
                              ground_contact=False, ground_friction=False)
+ALL_ON = StringEffects(gravity=True, internal_friction=True, air_drag=True, ground_contact=True, ground_friction=True)
 NOTHING = StringEffects(gravity=False, internal_friction=False, air_drag=False,
                         ground_contact=False, ground_friction=False)
 G = 9.81
@@ -54,6 +55,18 @@ def swung_controls(model, steps: int, dt: float):
         tie = ties + 0.05 * np.array([np.sin(6 * t), 0.0, np.cos(6 * t) - 1.0])
         tie_v = 0.3 * np.array([np.cos(6 * t), 0.0, -np.sin(6 * t)]) * np.ones_like(ties)
         yield StringControl.from_numpy(model, top, tie, tie_v)
+
+
+def three_strings() -> list[StringSpec]:
+    """The gradient tests' strings: one swinging onto the ground, one tied to a point, one slack at the top."""
+    return [spec(name="ground", particle_count=9, top=(0.0, 0.15, 0.0), bottom=(0.5, 0.02, 0.0), length=0.6,
+                 internal_friction=0.3, air_drag=0.05, ground_stiffness=2000.0, ground_absorption=5.0,
+                 ground_friction=2.0),
+            spec(name="tied", particle_count=7, top=(0.5, 1.0, 0.0), bottom=(0.5, 0.6, 0.0), length=0.4,
+                 internal_friction=0.2, air_drag=0.02, tied=True, tie_point=(0.6, 0.55, 0.1), tie_stiffness=300.0,
+                 tie_damping=3.0),
+            spec(name="slack", particle_count=6, top=(1.0, 1.0, 0.0), bottom=(1.0, 0.75, 0.05), length=0.35,
+                 load_mass=0.02)]
 
 
 def wiggled_controls(model, steps: int, dt: float) -> list[StringControl]:

@@ -1,0 +1,104 @@
+"""Forward-mode cost of string rollouts: P tangents against one plain forward rollout (issue 13, item 4).
+
+Run:  python benchmarks/bench_string_tangent.py [--repeats 5] [--steps 1000] [--clock wall|cpu]
+
+The strings of the built-in ``strings`` scene (six strings of 50 particles, every effect on, the
+two hand strings tied as in ``tests/grad/test_string_rollout_tangent.py``), 1 kHz, tops swaying.
+Timed (median of ``--repeats`` runs after an untimed warm-up, spread printed):
+
+- the plain forward rollout (``StringRollout``, captured chunks of 100 steps), with the laned step
+  (the default) and with the scalar one-launch step (``lanes = False``);
+- ``StringRolloutTangent`` with P = 1, 4, 12, 16 directions (every input group: initial state,
+  masses, constants, tops and tie targets per step): the forward (the laned step with ``keep``,
+  its factorisation unpacked) and the P tangents (one launch per step), in captured chunks of 100
+  steps, including the upload of the per-step tangents and the download of the tie forces' tangents.
+
+The issue's target: P tangents cost at most (1 + 0.5 P) x one forward rollout (P <= 16). The
+ratio is printed against both forwards (the laned default is the harder reference).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dmarionette.grad.string_tangent import CONSTANTS, StringRolloutTangent, StringTangentInputs  # noqa: E402
+from dmarionette.strings.rollout import StringRollout  # noqa: E402
+from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
+from tests.grad.test_string_rollout_tangent import DT, scene_controls, scene_model  # noqa: E402
+
+CHUNK = 100
+DIRECTIONS = (1, 4, 12, 16)
+
+
+def _timed(run, repeats: int, clock) -> tuple[float, float]:
+    run()  # warm-up (compiles, captures)
+    times = []
+    for _ in range(repeats):
+        start = clock()
+        run()
+        times.append(clock() - start)
+    median = statistics.median(times)
+    return median, (max(times) - min(times)) / median
+
+
+def _tangents(model, p: int, steps: int, rng) -> StringTangentInputs:
+    n, s = model.particle_count, model.string_count
+    return StringTangentInputs(
+        particle_q=1e-3 * rng.normal(size=(p, n, 3)), particle_qd=1e-2 * rng.normal(size=(p, n, 3)),
+        particle_mass=1e-4 * rng.normal(size=(p, n)), constants=rng.normal(size=(p, s, len(CONSTANTS))),
+        top_q=1e-3 * rng.normal(size=(p, steps, s, 3)), tie_q=1e-3 * rng.normal(size=(p, steps, s, 3)),
+        tie_qd=1e-2 * rng.normal(size=(p, steps, s, 3)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                        help="wall: wall-clock time (default); cpu: the thread's CPU time (shared machines)")
+    args = parser.parse_args()
+    clock = time.perf_counter if args.clock == "wall" else time.thread_time
+    steps = CHUNK * max(1, args.steps // CHUNK)
+    model = scene_model()
+    tops, tie, tie_v = scene_controls(model, steps)
+    print(f"# String tangent benchmark — {platform.processor() or platform.machine()}, Python "
+          f"{platform.python_version()}, Warp {wp.config.version}; {model.string_count} strings, "
+          f"{model.particle_count} particles, {steps} steps at {1 / DT:g} Hz; median of {args.repeats} runs"
+          f"{'' if args.clock == 'wall' else ', thread CPU time'}; load average {os.getloadavg()[0]:.2f}\n")
+
+    forward = {}
+    for lanes in (True, False):
+        solver = SolverStringImplicit(model)
+        solver.lanes = lanes
+        rollout = StringRollout(solver, DT, chunk_steps=CHUNK)
+        forward[lanes] = _timed(lambda r=rollout: r.run(model.state(), tops, tie, tie_v), args.repeats, clock)
+        print(f"forward rollout, {'laned step (default)' if lanes else 'scalar step'}: "
+              f"{forward[lanes][0] * 1e3:.1f} ms (spread {forward[lanes][1]:.0%})")
+    print()
+    print("| P | tangent rollout [ms] | spread | / laned forward | / scalar forward | target 1 + 0.5 P |")
+    print("|---|---|---|---|---|---|")
+    rng = np.random.default_rng(0)
+    for p in DIRECTIONS:
+        rollout = StringRolloutTangent(SolverStringImplicit(model), DT, p, chunk_steps=CHUNK)
+        tangents = _tangents(model, p, steps, rng)
+        median, spread = _timed(lambda r=rollout, v=tangents: r.run(model.state(), tops, tie, tie_v, v),
+                                args.repeats, clock)
+        print(f"| {p} | {median * 1e3:.1f} | {spread:.0%} | {median / forward[True][0]:.2f} | "
+              f"{median / forward[False][0]:.2f} | {1 + 0.5 * p:.1f} |")
+    print(f"\nload average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

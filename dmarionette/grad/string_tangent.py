@@ -1,0 +1,256 @@
+"""Forward-mode sensitivities (JVPs) of string steps and string rollouts, P directions at once.
+
+Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback have no tangent yet).
+:class:`StringStepTangent` runs one step of a :class:`SolverStringImplicit` forward keeping its
+factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` unpacked into the scalar
+layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
+the step's tangent-linear model for P directions in one launch (``kernels/string_step_tangent``:
+a substitution with the stored factorisation). :class:`StringRolloutTangent` carries P tangents
+through ``T`` steps with prescribed motion (tops and tie targets given per step), as
+``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
+
+What is differentiated, per direction (:class:`StringTangentInputs`): the initial positions and
+velocities, the particle masses, each string's constants (``kernels.string_step_tangent.CONSTANTS``
+order) and, per step, the tops, the tie targets and their velocities. The outputs' tangents
+(:class:`StringTangentResult`): the tie forces after every step and the final state. Printed
+springs only (a tension-only model is refused: the active-set step has no tangent here).
+
+Checked against reverse mode (the taped steps) by the dot-product identity and against central
+differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
+``benchmarks/bench_string_tangent.py`` (measured under load: P = 1, 4, 12, 16 tangents cost 3.8-4.0,
+7-10, 17-22, 21-30 laned forward rollouts, short of the issue's 1 + 0.5 P = 1.5, 3, 7, 9).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import warp as wp
+
+from dmarionette.capture import CapturedChunk
+from dmarionette.kernels.string_step_lanes import LANES
+from dmarionette.kernels.string_step_tangent import (CONSTANTS, string_step_tangent_kernel,
+                                                     unpack_lane_factorisation_kernel)
+from dmarionette.strings.model import StringControl, StringModel, StringState
+from dmarionette.strings.rollout import upload_values
+from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
+
+__all__ = ["CONSTANTS", "StringRolloutTangent", "StringStepTangent", "StringTangentInputs", "StringTangentResult"]
+
+
+class StringStepTangent:
+    """One string step and its tangent-linear model for ``directions`` tangents.
+
+    Args:
+        solver: the stepper (printed springs; its effects choose the kernels).
+        directions: the number of tangent directions ``P``.
+    """
+
+    def __init__(self, solver: SolverStringImplicit, directions: int):
+        model = solver.model
+        if model.effects.tension_only:
+            raise NotImplementedError("string tangents: tension-only springs (StringEffects.tension_only) have no "
+                                      "tangent-linear step; use the printed spring, or reverse mode (a tape)")
+        if directions < 1:
+            raise ValueError(f"directions: got {directions}; expected an integer >= 1")
+        self.solver = solver
+        self.model: StringModel = model
+        self.directions = int(directions)
+        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple())
+        self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
+        self._unpack = unpack_lane_factorisation_kernel(LANES) if solver.lanes else None
+
+    def zeros(self, count: int, dtype=None) -> wp.array:
+        """A ``(P, count)`` tangent array (vec3 by default)."""
+        m = self.model
+        return wp.zeros((self.directions, count), dtype=dtype or m.vec3, device=m.device)
+
+    def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float,
+             q_dot: wp.array, qd_dot: wp.array, q_out_dot: wp.array, qd_out_dot: wp.array, tie_force_dot: wp.array,
+             top_q_dot: wp.array, tie_q_dot: wp.array, tie_qd_dot: wp.array, mass_dot: wp.array,
+             constants_dot: wp.array) -> None:
+        """Advances ``state_in`` into ``state_out`` (the plain step's numbers: the laned step where the
+        solver's :attr:`~SolverStringImplicit.lanes` are on, else the scalar one-launch step) and the
+        tangents ``(q_dot, qd_dot)`` (``(P, N)`` vec3) into ``(q_out_dot, qd_out_dot)``, the tie forces'
+        into ``tie_force_dot`` (``(P, S)``), given the control's tangents (``(P, S)`` each), the
+        masses' (``(P, N)``) and the constants' (``(P, S, 10)``). The tangents out must be other
+        arrays than those in."""
+        m = self.model
+        h = m.scalar(dt)
+        ws = self.workspace
+        if self.solver.lanes:
+            # The laned step keeping its factorisation (the scalar step's numbers bit for bit, about 2x
+            # faster), unpacked into the scalar layout the tangent reads (the solver's lane plan).
+            self.solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
+            groups = self.solver.lane_group_arrays
+            wp.launch(self._unpack, dim=groups[1].shape[0],
+                      inputs=[*groups, m.string_start, ws.lane_inverse, ws.lane_c],
+                      outputs=[ws.scratch_inverse, ws.scratch_c], device=m.device, record_tape=False)
+        else:
+            self.solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
+        wp.launch(
+            self.kernel,
+            dim=m.string_count,
+            inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                    m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
+                    m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
+                    m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
+                    state_in.particle_q, state_in.particle_qd, ws.scratch_inverse, ws.scratch_c, ws.particle_dv,
+                    state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
+                    q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot],
+            outputs=[q_out_dot, qd_out_dot, tie_force_dot],
+            device=m.device,
+            record_tape=False,
+        )
+
+
+@dataclasses.dataclass
+class StringTangentInputs:
+    """P directions in a string rollout's inputs (NumPy; None: zero). ``P`` directions, ``N``
+    particles, ``S`` strings, ``T`` steps.
+
+    Attributes:
+        particle_q, particle_qd: the initial state's [m], [m/s], ``(P, N, 3)``.
+        particle_mass: [kg], ``(P, N)``.
+        constants: each string's constants, ``(P, S, 10)`` in ``CONSTANTS`` order.
+        top_q, tie_q, tie_qd: the tops, tie targets and their velocities per step, ``(P, T, S, 3)``.
+    """
+
+    particle_q: np.ndarray | None = None
+    particle_qd: np.ndarray | None = None
+    particle_mass: np.ndarray | None = None
+    constants: np.ndarray | None = None
+    top_q: np.ndarray | None = None
+    tie_q: np.ndarray | None = None
+    tie_qd: np.ndarray | None = None
+
+
+@dataclasses.dataclass
+class StringTangentResult:
+    """A rollout's outputs and their tangents.
+
+    Attributes:
+        tie_force: the ties' forces on their bodies after every step [N], ``(T, S, 3)``.
+        particle_q, particle_qd: the final state, ``(N, 3)``.
+        tie_force_dot: ``(P, T, S, 3)``; particle_q_dot, particle_qd_dot: ``(P, N, 3)``.
+    """
+
+    tie_force: np.ndarray
+    particle_q: np.ndarray
+    particle_qd: np.ndarray
+    tie_force_dot: np.ndarray
+    particle_q_dot: np.ndarray
+    particle_qd_dot: np.ndarray
+
+
+class _Carry:
+    """A rollout's carried state and its tangents (``ping_pong``'s state)."""
+
+    def __init__(self, stepper: StringStepTangent):
+        self.state = stepper.model.state()
+        self.q_dot = stepper.zeros(stepper.model.particle_count)
+        self.qd_dot = stepper.zeros(stepper.model.particle_count)
+
+    def assign(self, other: _Carry) -> None:
+        self.state.assign(other.state)
+        wp.copy(self.q_dot, other.q_dot)
+        wp.copy(self.qd_dot, other.qd_dot)
+
+
+class StringRolloutTangent:
+    """``T`` steps of prescribed motion with ``P`` tangents carried alongside, in captured chunks.
+
+    Args:
+        solver: the stepper (printed springs).
+        dt: string step [s].
+        directions: the number of tangent directions ``P``.
+        chunk_steps: steps per captured graph (``T`` must be a multiple).
+    """
+
+    def __init__(self, solver: SolverStringImplicit, dt: float, directions: int, chunk_steps: int = 50):
+        self.stepper = StringStepTangent(solver, directions)
+        m = self.model = solver.model
+        self.dt = float(dt)
+        self.directions = int(directions)
+        self.chunk_steps = int(chunk_steps)
+        c, p, s, n = self.chunk_steps, self.directions, m.string_count, m.particle_count
+        with wp.ScopedDevice(m.device):
+            self._top_q, self._tie_q, self._tie_qd, self._tie_force = (wp.zeros((c, s), dtype=m.vec3) for _ in range(4))
+            self._top_q_dot, self._tie_q_dot, self._tie_qd_dot, self._tie_force_dot = (
+                wp.zeros((c, p, s), dtype=m.vec3) for _ in range(4))
+            self._mass_dot = wp.zeros((p, n), dtype=m.scalar)
+            self._constants_dot = wp.zeros((p, s, len(CONSTANTS)), dtype=m.scalar)
+        self._controls = [StringControl(self._top_q[k], self._tie_q[k], self._tie_qd[k]) for k in range(c)]
+        self._carry = _Carry(self.stepper)
+        self._spare = _Carry(self.stepper)
+        self._chunk = CapturedChunk(self._launch, m.device, warm_up=self._warm_up)
+
+    def _step(self, k: int, a: _Carry, b: _Carry) -> None:
+        self.stepper.step(a.state, b.state, self._controls[k], self.dt, a.q_dot, a.qd_dot, b.q_dot, b.qd_dot,
+                          self._tie_force_dot[k], self._top_q_dot[k], self._tie_q_dot[k], self._tie_qd_dot[k],
+                          self._mass_dot, self._constants_dot)
+        wp.copy(self._tie_force[k], b.state.tie_force)
+
+    def _launch(self) -> None:
+        pair = (self._carry, self._spare)
+        for k in range(self.chunk_steps):
+            self._step(k, pair[k % 2], pair[(k + 1) % 2])
+        if self.chunk_steps % 2 == 1:
+            self._carry.assign(self._spare)
+
+    def _warm_up(self) -> None:
+        # One eager step on scratch arrays loads every module before capture begins.
+        self._step(0, self._spare, _Carry(self.stepper))
+
+    def run(self, state: StringState, top_q: np.ndarray, tie_q: np.ndarray | None = None,
+            tie_qd: np.ndarray | None = None, tangents: StringTangentInputs | None = None) -> StringTangentResult:
+        """Runs ``T`` steps from ``state`` (left unchanged) with the tops ``top_q`` (``(T, S, 3)``), the
+        tie targets ``tie_q`` (default: the model's tie points) and velocities ``tie_qd`` (default:
+        zero), carrying the directions ``tangents``; returns the outputs and their tangents."""
+        m = self.model
+        tangents = tangents or StringTangentInputs()
+        top_q = np.asarray(top_q, dtype=np.float64)
+        steps = top_q.shape[0]
+        p, s, n, c = self.directions, m.string_count, m.particle_count, self.chunk_steps
+        expected = (steps, s, 3)
+        if top_q.shape != expected or steps % c != 0:
+            raise ValueError(f"top_q: got shape {top_q.shape}; expected {expected} with T a multiple of "
+                             f"chunk_steps={c}")
+        tie_q = np.broadcast_to(m.tie_points(), expected) if tie_q is None else np.asarray(tie_q, dtype=np.float64)
+        tie_qd = np.zeros(expected) if tie_qd is None else np.asarray(tie_qd, dtype=np.float64)
+
+        def given(value, shape):
+            if value is None:
+                return np.zeros(shape)
+            value = np.asarray(value, dtype=np.float64)
+            if value.shape != shape:
+                raise ValueError(f"tangent: got shape {value.shape}; expected {shape}")
+            return value
+
+        q_dot = given(tangents.particle_q, (p, n, 3))
+        qd_dot = given(tangents.particle_qd, (p, n, 3))
+        upload_values(self._mass_dot, given(tangents.particle_mass, (p, n)))
+        upload_values(self._constants_dot, given(tangents.constants, (p, s, len(CONSTANTS))))
+        # Per step, direction-major in the chunk buffers: (P, T, S, 3) -> (T, P, S, 3).
+        top_dot, tie_dot, tie_v_dot = (np.moveaxis(given(v, (p, steps, s, 3)), 0, 1)
+                                       for v in (tangents.top_q, tangents.tie_q, tangents.tie_qd))
+        self._carry.state.assign(state)
+        upload_values(self._carry.q_dot, q_dot)
+        upload_values(self._carry.qd_dot, qd_dot)
+        tie_force = np.zeros(expected)
+        tie_force_dot = np.zeros((steps, p, s, 3))
+        for k in range(steps // c):
+            rows = slice(k * c, (k + 1) * c)
+            for dst, values in ((self._top_q, top_q), (self._tie_q, tie_q), (self._tie_qd, tie_qd),
+                                (self._top_q_dot, top_dot), (self._tie_q_dot, tie_dot),
+                                (self._tie_qd_dot, tie_v_dot)):
+                upload_values(dst, values[rows])
+            self._chunk.run()
+            tie_force[rows] = self._tie_force.numpy()
+            tie_force_dot[rows] = self._tie_force_dot.numpy()
+        final = self._carry
+        return StringTangentResult(
+            tie_force=tie_force, particle_q=final.state.particle_q.numpy().copy(),
+            particle_qd=final.state.particle_qd.numpy().copy(), tie_force_dot=np.moveaxis(tie_force_dot, 1, 0),
+            particle_q_dot=final.q_dot.numpy().copy(), particle_qd_dot=final.qd_dot.numpy().copy())

@@ -1,0 +1,353 @@
+"""The tangent-linear (forward-mode) model of the whole implicit string step, for P directions.
+
+Issue 13, item 4: Jacobian-vector products of the string step, for many tangent directions in
+one launch (Warp 1.19 has no forward mode, so it is written by hand, as the reverse one is). It
+is the exact transpose of ``string_step_adjoint`` (whose module doc states the step): with
+``A`` symmetric and factorised by the forward (``string_step`` built with ``keep``: the pivot
+inverses and ``C'``, and ``dv``),
+
+    A(x0, v0) dv = b(x0, v0, top, tie)   =>   A dv' = b' - A' dv
+
+so each direction costs one assembly of ``r = b' - A' dv`` per row and two substitutions with
+the stored factorisation (no 3x3 inverse), then
+
+    v1' = v0' + dv',  x1' = x0' + h v1'     top particle: x1' = top',  v1' = (top' - x0_top') / h
+    F' = -k_t' (x_tie - x1_last) - k_t (x_tie' - x1_last') - k_dt' (v_tie - v1_last) - k_dt (v_tie' - v1_last')
+
+Differentiated (every input the adjoint differentiates): the start state ``x0``, ``v0`` (the top
+particle's too: it enters through ``top_dx = top - x0_top``, ``top_dv = top_dx / h - v0_top`` and the
+top segment), the tops, the tie targets and their velocities, the particle masses and each
+string's constants ``k_s``, ``d``, ``k_f``, ``k_air``, ground repulsion, absorption and friction,
+tie ``k``, ``k_d`` and the ``tied`` flag (``k_t = tied k``, ``k_dt = tied k_d``).
+``gravity``, ``ground_height`` and ``dt`` are kernel values (no tangent), as in the adjoint.
+
+Branches, as the forward takes them and the adjoint differentiates them: the ground term where a
+particle starts below the ground (``x0_y < ground_height``; no tangent of the switch), and the
+clamp of the spring's geometric stiffness ``g = max(1 - d/l, 0)`` (``g' = 0`` while the segment is
+compressed, ``string_spring.string_spring_tangent_functions``). The taut flag has no tangent.
+Printed springs only: the tension-only springs' step (an active-set solve) has no tangent here
+(``grad.string_tangent`` refuses such a model).
+
+Layout: one thread per string, ``dim = S``, looping over the P directions inside each row, so
+that the row's primal (both segments' spring parts, the branches, the pivot inverse) is evaluated
+once for all P (at P = 16 about 1.2-1.5x faster than a thread per (direction, string) recomputing
+it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The tangents have a leading direction axis
+(``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
+:data:`CONSTANTS` order). The spring parts are recomputed from the positions in each row (each
+segment twice, nothing stored by the forward beyond its factorisation and ``dv``); a segment's
+tangent likewise, once per direction and row. The forward substitution's ``y`` is kept in
+``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution, then ``v1'``.
+Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, at P = 16 on a
+loaded 2-core machine): a direction costs 0.6-0.9x a scalar one-launch step, 1.2-1.8x the laned
+step (the default plain step), short of the issue's 0.5x: the tangent is scalar float64 code (no
+SIMD lanes across directions), and each row's primal costs about as much again at P = 1.
+
+Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
+``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
+to a term must be mirrored here and in the adjoint: ``tests/grad/test_string_step_tangent.py``
+checks the two against each other (the dot-product identity) and against central differences.
+"""
+
+import functools
+
+import warp as wp
+
+from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
+
+__all__ = ["CONSTANTS", "string_step_tangent_kernel", "unpack_lane_factorisation_kernel"]
+
+# The per-string constants whose tangents the kernel reads, in the order of its ``string_constants_dot``.
+CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction", "string_air_drag",
+             "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
+             "string_tie_stiffness", "string_tie_damping", "string_tied")
+
+
+@functools.cache
+def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool]):
+    """Builds ``integrate_string_implicit_tangent`` for a float type and an effect set
+    (``effects`` as ``integrate_string_implicit_kernel``'s), printed springs."""
+    GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
+    vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+    compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
+    spring = string_spring_tangent_functions(scalar)
+    compute_spring_tangent = spring.compute_spring_tangent
+    k_product = spring.compute_jacobian_product
+    k_tangent_product = spring.compute_jacobian_tangent_product
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def integrate_string_implicit_tangent(
+        # Model:
+        string_start: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
+        string_stiffness: wp.array(dtype=scalar),
+        string_rest_length: wp.array(dtype=scalar),
+        string_internal_friction: wp.array(dtype=scalar),
+        string_air_drag: wp.array(dtype=scalar),
+        string_ground_stiffness: wp.array(dtype=scalar),
+        string_ground_absorption: wp.array(dtype=scalar),
+        string_ground_friction: wp.array(dtype=scalar),
+        string_tie_stiffness: wp.array(dtype=scalar),
+        string_tie_damping: wp.array(dtype=scalar),
+        string_tied: wp.array(dtype=scalar),
+        gravity: vec3,
+        ground_height: scalar,
+        # State in (the step's start, then what the forward, built with ``keep``, wrote):
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        pivot_inverse: wp.array(dtype=mat33),
+        scratch_c: wp.array(dtype=mat33),
+        particle_dv: wp.array(dtype=vec3),
+        particle_q_out: wp.array(dtype=vec3),
+        particle_qd_out: wp.array(dtype=vec3),
+        # Control:
+        top_q: wp.array(dtype=vec3),
+        tie_q: wp.array(dtype=vec3),
+        tie_qd: wp.array(dtype=vec3),
+        dt: scalar,
+        # Tangent in (leading axis: the direction):
+        particle_q_dot: wp.array2d(dtype=vec3),
+        particle_qd_dot: wp.array2d(dtype=vec3),
+        top_q_dot: wp.array2d(dtype=vec3),
+        tie_q_dot: wp.array2d(dtype=vec3),
+        tie_qd_dot: wp.array2d(dtype=vec3),
+        particle_mass_dot: wp.array2d(dtype=scalar),
+        string_constants_dot: wp.array3d(dtype=scalar),
+        # Tangent out:
+        particle_q_out_dot: wp.array2d(dtype=vec3),
+        particle_qd_out_dot: wp.array2d(dtype=vec3),
+        tie_force_dot: wp.array2d(dtype=vec3),
+    ):
+        s = wp.tid()
+        directions = particle_q_dot.shape[0]
+        start = string_start[s]
+        last = string_start[s + 1] - 1
+        zero = scalar(0.0)
+        h2 = dt * dt
+        stiffness = string_stiffness[s]
+        rest_length = string_rest_length[s]
+        friction = string_internal_friction[s]
+        air_drag = string_air_drag[s]
+        ground_stiffness = string_ground_stiffness[s]
+        ground_absorption = string_ground_absorption[s]
+        ground_friction = string_ground_friction[s]
+        tied = string_tied[s]
+        tie_stiffness = tied * string_tie_stiffness[s]
+        tie_damping = tied * string_tie_damping[s]
+        tie_x = tie_q[s]
+        tie_v = tie_qd[s]
+        top = top_q[s]
+        top_dx = top - particle_q[start]
+        top_dv = top_dx / dt - particle_qd[start]
+        g_upper = zero  # the friction's part of A_{p,p+1}: h D = -h k_f I
+        if wp.static(FRICTION):
+            g_upper = -dt * friction
+
+        # Forward sweep, row by row; in each row the primal (both segments' springs, the row's
+        # branches) once, then every direction's r = b' - A' dv and its forward substitution
+        # y = inv_p (r - A_{p,p-1} y_prev), y kept in particle_qd_out_dot.
+        for p in range(start + 1, last + 1):
+            j = p - start
+            is_last = p == last
+            x_prev = particle_q[p - 1]
+            x = particle_q[p]
+            v_prev = particle_qd[p - 1]
+            v = particle_qd[p]
+            dv = particle_dv[p]
+            inv = pivot_inverse[p]
+            u_a, l_a, ratio_a, alpha_a, beta_a = compute_spring_parts(x_prev, x, stiffness, rest_length)
+            inv_l_a = scalar(1.0) / l_a
+            # The springs' parts of b' - A' dv, one K' product per segment:
+            # K_a' (w_prev + h^2 (dv - dv_prev)) + K_a w_prev' (+ the same for the segment below).
+            w_prev = h2 * (v - v_prev)
+            s_prev = w_prev + h2 * (dv - particle_dv[p - 1])
+            if j == 1:
+                w_prev = h2 * v - dt * top_dx  # next to the top: h K_j0 dx_0, no lower block
+                s_prev = w_prev + h2 * dv
+            x_next = x
+            v_next = vec3(zero)
+            dv_next = vec3(zero)
+            u_b = vec3(zero)
+            l_b = scalar(1.0)
+            inv_l_b = scalar(1.0)
+            ratio_b = zero
+            alpha_b = zero
+            beta_b = zero
+            if not is_last:
+                x_next = particle_q[p + 1]
+                v_next = particle_qd[p + 1]
+                dv_next = particle_dv[p + 1]
+                u_b, l_b, ratio_b, alpha_b, beta_b = compute_spring_parts(x, x_next, stiffness, rest_length)
+                inv_l_b = scalar(1.0) / l_b
+            s_next = h2 * (v - v_next) + h2 * (dv - dv_next)
+            below = False
+            if wp.static(GROUND):
+                below = x[1] < ground_height
+            k_c = zero
+            if is_last:
+                k_c = -tie_stiffness
+            k_y = zero
+            if below:
+                k_y = -ground_stiffness
+            for k in range(directions):
+                stiffness_dot = string_constants_dot[k, s, 0]
+                rest_dot = string_constants_dot[k, s, 1]
+                mass_dot = particle_mass_dot[k, p]
+                x_dot = particle_q_dot[k, p]
+                v_dot = particle_qd_dot[k, p]
+                v_prev_dot = particle_qd_dot[k, p - 1]
+                u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
+                    u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length, particle_q_dot[k, p - 1] - x_dot,
+                    stiffness_dot, rest_dot)
+                force_dot = -f_a_dot
+                w_prev_dot = h2 * (v_dot - v_prev_dot)
+                if j == 1:
+                    w_prev_dot = h2 * v_dot - dt * (top_q_dot[k, s] - particle_q_dot[k, start])
+                r = k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_prev) + k_product(
+                    u_a, alpha_a, beta_a, w_prev_dot)
+                v_next_dot = vec3(zero)
+                if not is_last:
+                    x_next_dot = particle_q_dot[k, p + 1]
+                    v_next_dot = particle_qd_dot[k, p + 1]
+                    u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
+                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, x_dot - x_next_dot, stiffness_dot,
+                        rest_dot)
+                    force_dot = force_dot + f_b_dot
+                    r = r + k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next) + k_product(
+                        u_b, alpha_b, beta_b, h2 * (v_dot - v_next_dot))
+                # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
+                # diag(k_c, k_c + k_y, k_c); their tangents.
+                d_xz_dot = zero
+                k_c_dot = zero
+                k_y_dot = zero
+                if wp.static(FRICTION):
+                    # f = -k_f (v - v_prev) (- k_f (v - v_next)); D = -k_f I each; the off-diagonal blocks' -h k_f I.
+                    friction_dot = string_constants_dot[k, s, 2]
+                    force_dot = force_dot - friction_dot * (v - v_prev) - friction * (v_dot - v_prev_dot)
+                    d_xz_dot = d_xz_dot - friction_dot
+                    if j == 1:  # rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top
+                        top_dv_dot = (top_q_dot[k, s] - particle_q_dot[k, start]) / dt - particle_qd_dot[k, start]
+                        r = r + dt * (friction_dot * top_dv + friction * top_dv_dot)
+                    else:
+                        r = r + (dt * friction_dot) * particle_dv[p - 1]
+                    if not is_last:
+                        force_dot = force_dot - friction_dot * (v - v_next) - friction * (v_dot - v_next_dot)
+                        d_xz_dot = d_xz_dot - friction_dot
+                        r = r + (dt * friction_dot) * dv_next
+                if wp.static(GRAVITY):
+                    force_dot = force_dot + mass_dot * gravity
+                if wp.static(AIR):
+                    air_dot = string_constants_dot[k, s, 3]
+                    force_dot = force_dot - air_dot * v - air_drag * v_dot
+                    d_xz_dot = d_xz_dot - air_dot
+                d_y_dot = d_xz_dot
+                if wp.static(GROUND):
+                    if below:
+                        # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
+                        ground_stiffness_dot = string_constants_dot[k, s, 4]
+                        ground_absorption_dot = string_constants_dot[k, s, 5]
+                        force_dot = force_dot + vec3(
+                            zero, ground_stiffness_dot * (ground_height - x[1]) - ground_stiffness * x_dot[1]
+                            - ground_absorption_dot * v[1] - ground_absorption * v_dot[1], zero)
+                        k_y_dot = -ground_stiffness_dot
+                        d_y_dot = d_y_dot - ground_absorption_dot
+                        if wp.static(GROUND_FRICTION):
+                            ground_friction_dot = string_constants_dot[k, s, 6]
+                            force_dot = force_dot + vec3(-ground_friction_dot * v[0] - ground_friction * v_dot[0], zero,
+                                                         -ground_friction_dot * v[2] - ground_friction * v_dot[2])
+                            d_xz_dot = d_xz_dot - ground_friction_dot
+                if is_last:
+                    # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;
+                    # k_t = tied k, k_dt = tied k_d.
+                    tied_dot = string_constants_dot[k, s, 9]
+                    tie_stiffness_dot = tied_dot * string_tie_stiffness[s] + tied * string_constants_dot[k, s, 7]
+                    tie_damping_dot = tied_dot * string_tie_damping[s] + tied * string_constants_dot[k, s, 8]
+                    force_dot = (force_dot + tie_stiffness_dot * (tie_x - x) + tie_stiffness * (tie_q_dot[k, s] - x_dot)
+                                 + tie_damping_dot * (tie_v - v) + tie_damping * (tie_qd_dot[k, s] - v_dot))
+                    k_c_dot = -tie_stiffness_dot
+                    d_xz_dot = d_xz_dot - tie_damping_dot
+                    d_y_dot = d_y_dot - tie_damping_dot
+                # a = M - h D - h^2 K on the diagonal; b's h f and h^2 K v0 of the diagonal terms.
+                a_xz_dot = mass_dot - dt * d_xz_dot - h2 * k_c_dot
+                a_y_dot = mass_dot - dt * d_y_dot - h2 * (k_c_dot + k_y_dot)
+                r = r + dt * force_dot + h2 * vec3(
+                    k_c_dot * v[0] + k_c * v_dot[0],
+                    (k_c_dot + k_y_dot) * v[1] + (k_c + k_y) * v_dot[1],
+                    k_c_dot * v[2] + k_c * v_dot[2]) - vec3(a_xz_dot * dv[0], a_y_dot * dv[1], a_xz_dot * dv[2])
+                # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p} = h^2 K_a - h k_f I.
+                if j > 1:
+                    y_prev = particle_qd_out_dot[k, p - 1]
+                    r = r - (h2 * k_product(u_a, alpha_a, beta_a, y_prev) + g_upper * y_prev)
+                particle_qd_out_dot[k, p] = inv * r
+
+        # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
+        for i in range(last - start - 1):
+            p = last - 1 - i
+            c = scratch_c[p]
+            for k in range(directions):
+                particle_qd_out_dot[k, p] = particle_qd_out_dot[k, p] - c * particle_qd_out_dot[k, p + 1]
+        # v1' = v0' + dv', x1' = x0' + h v1'; the top particle, x1' = top', v1' = (top' - x0_top') / h;
+        # the tie force on the new state (eq. 2, ``string_integrate.compute_string_outputs``).
+        tie_stiffness_k = string_tie_stiffness[s]
+        tie_damping_k = string_tie_damping[s]
+        x_last = particle_q_out[last]
+        v_last = particle_qd_out[last]
+        for k in range(directions):
+            for p in range(start + 1, last + 1):
+                v1_dot = particle_qd_dot[k, p] + particle_qd_out_dot[k, p]
+                particle_qd_out_dot[k, p] = v1_dot
+                particle_q_out_dot[k, p] = particle_q_dot[k, p] + dt * v1_dot
+            top_dot = top_q_dot[k, s]
+            particle_q_out_dot[k, start] = top_dot
+            particle_qd_out_dot[k, start] = (top_dot - particle_q_dot[k, start]) / dt
+            tied_dot = string_constants_dot[k, s, 9]
+            tie_stiffness_dot = tied_dot * tie_stiffness_k + tied * string_constants_dot[k, s, 7]
+            tie_damping_dot = tied_dot * tie_damping_k + tied * string_constants_dot[k, s, 8]
+            tie_force_dot[k, s] = (-tie_stiffness_dot * (tie_x - x_last)
+                                   - tie_stiffness * (tie_q_dot[k, s] - particle_q_out_dot[k, last])
+                                   - tie_damping_dot * (tie_v - v_last)
+                                   - tie_damping * (tie_qd_dot[k, s] - particle_qd_out_dot[k, last]))
+
+    return integrate_string_implicit_tangent
+
+
+@functools.cache
+def unpack_lane_factorisation_kernel(lanes: int):
+    """Builds ``unpack_lane_factorisation``: the laned step's kept pivot inverses and ``C'``
+    (``string_step_lanes`` with ``keep``: row ``base + j`` of a group, entry ``(i, m)`` of lane ``l`` at
+    ``[3 i + m, l]``) into the scalar step's layout (one ``mat33d`` per particle), which the tangent
+    reads: one thread per group (each laned row read once: a thread per lane, reading every row 4
+    times, cost about as much as the laned forward), the real lanes only. Lets a tangent rollout
+    run the laned forward (the same numbers bit for bit as the scalar one, ``string_step_lanes``'
+    doc), about 2x faster than the scalar one."""
+    lmat = wp.types.matrix((9, lanes), wp.float64)
+    ivec = wp.types.vector(lanes, wp.int32)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def unpack_lane_factorisation(
+        # Model:
+        group_string: wp.array(dtype=ivec),
+        group_real: wp.array(dtype=wp.int32),
+        group_base: wp.array(dtype=wp.int32),
+        string_start: wp.array(dtype=wp.int32),
+        # State in:
+        lane_inverse: wp.array(dtype=lmat),
+        lane_c: wp.array(dtype=lmat),
+        # State out:
+        pivot_inverse: wp.array(dtype=wp.mat33d),
+        scratch_c: wp.array(dtype=wp.mat33d),
+    ):
+        g = wp.tid()
+        first = group_string[g][0]
+        base = group_base[g]
+        for j in range(1, string_start[first + 1] - string_start[first]):
+            a = lane_inverse[base + j]  # each laned row read once, for all its lanes
+            c = lane_c[base + j]
+            for l in range(group_real[g]):
+                p = string_start[group_string[g][l]] + j
+                pivot_inverse[p] = wp.mat33d(a[0, l], a[1, l], a[2, l], a[3, l], a[4, l], a[5, l], a[6, l], a[7, l],
+                                             a[8, l])
+                scratch_c[p] = wp.mat33d(c[0, l], c[1, l], c[2, l], c[3, l], c[4, l], c[5, l], c[6, l], c[7, l],
+                                         c[8, l])
+
+    return unpack_lane_factorisation
