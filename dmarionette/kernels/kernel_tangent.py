@@ -15,10 +15,12 @@ force of ``body_contact``, the strings' float type, ``wp.static`` constants) are
 to the objects the closure holds. The source written is kept in the cache folder
 (``DMARIONETTE_CACHE``, as the generated articulation kernels).
 
-Tangent kernel signature: the primal kernel's parameters, then ``tan_<name>`` for every
-array parameter named in ``tangent_names`` (default :data:`TANGENT_NAMES`) that the kernel
-reads, then ``tan_<name>`` for every array it writes (plain writes and ``wp.atomic_add``);
-each tangent array has a leading direction axis (``wp.array2d`` -> ``wp.array3d``, same
+Tangent kernel signature: the primal kernel's parameters in their groups, with a ``Tangent
+in`` group after the input groups holding ``tan_<name>`` for every array parameter named in
+``tangent_names`` (default :data:`TANGENT_NAMES`) that the kernel reads, and a last group
+``Tangent out`` holding ``tan_<name>`` for every array it writes (plain writes and
+``wp.atomic_add``); :meth:`TangentKernel.launch` takes the arguments by name. Each tangent
+array has a leading direction axis (``wp.array2d`` -> ``wp.array3d``, same
 dtype). The tangent kernel also writes the primal outputs (the direction-0 threads
 only), so one launch gives the pass and its P directional derivatives; an output that the
 primal accumulates (``wp.atomic_add``) is accumulated in its tangent too, so the caller
@@ -133,7 +135,8 @@ class _Builder:
         self.env: dict[str, object] = {}
         self.alias_of: dict[int, str] = {}
         self.funcs: list[str] = []
-        self.jvp: dict[tuple, tuple[str, tuple]] = {}  # (id(function), active mask) -> (name, output mask)
+        self.analysed: dict[tuple, _Transform] = {}  # (id(function), active mask) -> its analysed transform
+        self.jvp: dict[tuple, str] = {}  # (id(function), active mask) -> the name of its emitted jvp function
         self.count = 0
 
     def alias(self, obj) -> str:
@@ -143,15 +146,23 @@ class _Builder:
             self.env[name] = obj
         return self.alias_of[id(obj)]
 
-    def function_jvp(self, fn, mask: tuple) -> tuple[str, tuple]:
+    def analysis(self, fn, mask: tuple) -> _Transform:
+        """The transform of ``fn`` with the arguments of ``mask`` active, analysed (not emitted)."""
         key = (id(fn), mask)
+        if key not in self.analysed:
+            self.analysed[key] = _Transform(self, fn.func, {i for i, a in enumerate(mask) if a}, kernel=False)
+        return self.analysed[key]
+
+    def function_jvp(self, fn, mask: tuple) -> tuple[str, tuple]:
+        """(name, output mask) of the jvp function of ``fn`` for ``mask``, emitted once (after its callees)."""
+        key = (id(fn), mask)
+        t = self.analysis(fn, mask)
         if key not in self.jvp:
-            t = _Transform(self, fn.func, {i for i, a in enumerate(mask) if a}, kernel=False)
             self.count += 1
             name = f"{fn.func.__name__}_jvp{self.count}"
+            self.jvp[key] = name
             self.funcs.append(t.emit_function(name))
-            self.jvp[key] = (name, t.out_mask)
-        return self.jvp[key]
+        return self.jvp[key], t.out_mask
 
 
 class _Transform:
@@ -354,7 +365,7 @@ class _Transform:
         if _is_project(obj):
             if call.keywords:
                 _fail(self.where, call, "keyword arguments")
-            return self.b.function_jvp(obj, mask)[1]
+            return self.b.analysis(obj, mask).out_mask
         return (True,)
 
     # ------------------------------------------------------------ emission
@@ -633,13 +644,48 @@ class _Transform:
         head = ["@wp.func", f"def {name}(" + ", ".join(self._signature(extra)) + "):"]
         return "\n".join(head + self.lines) + "\n"
 
-    def emit_kernel(self, name: str) -> str:
+    def emit_kernel(self, name: str, groups: dict) -> str:
+        """The tangent kernel: the primal's parameters in their groups (``groups``: name -> group of the
+        primal's signature comments), ``Tangent in`` after the input groups, ``Tangent out`` last (the
+        order ``tools/lint_kernels.py`` asks for); :attr:`arguments` records the order."""
         self.statements(self.fn.body, 1)
-        extra = [f"{self.tan(n)}: {self.annotation_source(n, 1)}" for n in self.params
-                 if n in self.active_arrays and n not in self.outputs]
-        extra += [f"{self.tan(n)}: {self.annotation_source(n, 1)}" for n in self.outputs]
-        head = ["@wp.kernel", f"def {name}(", *[f"    {s}," for s in self._signature(extra)], "):"]
+        tan_in = [n for n in self.params if n in self.active_arrays and n not in self.outputs]
+        inputs = [n for n in self.params if groups.get(n) in _INPUT_GROUPS]
+        outputs = [n for n in self.params if n not in inputs]
+        order = [(groups.get(n), n) for n in inputs] + [("Tangent in", self.tan(n)) for n in tan_in]
+        order += [(groups.get(n), n) for n in outputs] + [("Tangent out", self.tan(n)) for n in self.outputs]
+        self.arguments = [n for _, n in order]
+        head = ["@wp.kernel", f"def {name}("]
+        group = None
+        for g, n in order:
+            if g != group and g is not None:
+                head.append(f"    # {g}:")
+            group = g
+            ann = (self.annotation_source(n[len(_PREFIX):], 1) if n.startswith(_PREFIX) and n not in self.params
+                   else self.annotation_source(n))
+            head.append(f"    {n}: {ann},")
+        head.append("):")
         return "\n".join(head + self.lines) + "\n"
+
+
+_INPUT_GROUPS = ("Model", "State in", "Control", "Adjoint in", "Tangent in")
+
+
+def _parameter_groups(pyfunc) -> dict:
+    """name -> group of a kernel's parameters, from the comment lines of its signature (``# State in:``;
+    a remark in parentheses dropped); empty where the signature has none."""
+    lines = textwrap.dedent(inspect.getsource(pyfunc)).splitlines()
+    groups, group = {}, None
+    start = next(i for i, line in enumerate(lines) if line.lstrip().startswith("def "))
+    for line in lines[start + 1:]:
+        text = line.strip()
+        if text.startswith("):") or text.startswith(")"):
+            break
+        if text.startswith("#"):
+            group = text[1:].split(":")[0].split("(")[0].strip()
+        elif ":" in text and group is not None:
+            groups[text.split(":")[0].strip()] = group
+    return groups
 
 
 def _is_project(obj) -> bool:
@@ -667,9 +713,10 @@ class TangentKernel:
         source: the generated source.
     """
 
-    def __init__(self, kernel, params, tangent_inputs, tangent_outputs, source):
+    def __init__(self, kernel, params, arguments, tangent_inputs, tangent_outputs, source):
         self.kernel = kernel
         self.params = params
+        self.arguments = arguments
         self.tangent_inputs = tangent_inputs
         self.tangent_outputs = tangent_outputs
         self.source = source
@@ -684,8 +731,10 @@ class TangentKernel:
         missing = [n for n in self.tangent_inputs + self.tangent_outputs if n not in tangents]
         if missing:
             raise ValueError(f"{self.kernel.key}: no tangent arrays for {missing}")
-        wp.launch(self.kernel, dim=(int(directions), *dim),
-                  inputs=[*args, *(tangents[n] for n in self.tangent_inputs + self.tangent_outputs)], device=device)
+        values = dict(zip(self.params, args))
+        values.update({f"{_PREFIX}{n}": a for n, a in tangents.items()})
+        wp.launch(self.kernel, dim=(int(directions), *dim), inputs=[values[n] for n in self.arguments],
+                  device=device)
 
 
 _CACHE: dict = {}
@@ -712,7 +761,7 @@ def tangent_kernel(kernel, tangent_names=TANGENT_NAMES) -> TangentKernel:
     b = _Builder()
     t = _Transform(b, kernel.func, set(), kernel=True, tangent_names=frozenset(tangent_names))
     name = f"{kernel.key}_tangent"
-    body = t.emit_kernel(name)
+    body = t.emit_kernel(name, _parameter_groups(kernel.func))
     described = "".join(f"# {a} = {_describe(o)}\n" for a, o in b.env.items())
     source = ("# Generated by dmarionette.kernels.kernel_tangent; do not edit.\n" + described
               + "import warp as wp\n\nwp.set_module_options({'enable_backward': False})\n\n\n"
@@ -730,6 +779,6 @@ def tangent_kernel(kernel, tangent_names=TANGENT_NAMES) -> TangentKernel:
     sys.modules[mod_name] = module
     spec.loader.exec_module(module)
     ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
-    result = TangentKernel(getattr(module, name), t.params, ins, list(t.outputs), source)
+    result = TangentKernel(getattr(module, name), t.params, t.arguments, ins, list(t.outputs), source)
     _CACHE[key] = result
     return result

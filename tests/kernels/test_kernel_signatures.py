@@ -214,3 +214,33 @@ def test_the_command_reports_and_fails(tmp_path):
     assert result.returncode == 1
     line = next(n for n, text in enumerate(bad.read_text().splitlines(), 1) if "q[i] = q[i]" in text)
     assert result.stdout.strip() == f"{bad}:{line} eval_good: writes its input 'q' (State in)"
+
+
+def test_generated_kernel_tangents_are_clean(tmp_path, monkeypatch):
+    """The tangent kernels ``kernel_tangent`` writes out for the hand-written puppet-side kernels."""
+    monkeypatch.setenv("DMARIONETTE_CACHE", str(tmp_path))
+    from types import SimpleNamespace
+
+    import warp as wp
+
+    from dmarionette.kernels.articulation_forces import eval_body_point_springs
+    from dmarionette.kernels.bar_feedback import eval_bar_feedback_kernel
+    from dmarionette.kernels.kernel_tangent import tangent_kernel
+    from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anchors_kernel,
+                                                          eval_string_response_kernel, eval_tie_path)
+
+    from dmarionette.kernels.body_contact import ContactSet, ContactSettings
+
+    model = SimpleNamespace(device="cpu", contacts=ContactSettings(ground=True, chair=((0, 0, 0), (1, 1, 1)), ball=True),
+                            body_shape=[("box", (0.2, 0.2, 0.2)), ("sphere", (0.1,))], body_contact=[True, True],
+                            body_mass=wp.array([1.0, 0.3], dtype=wp.float64, device="cpu"),
+                            body_names=["torso", "ball"], ball=SimpleNamespace(radius=0.1))
+    ground, box, ball = ContactSet(model).kernels
+    kernels = [eval_body_point_springs, ground, box, ball, eval_tie_path, apply_string_forces_to_anchors_kernel(3),
+               eval_string_response_kernel(wp.float64, True, 3), eval_bar_feedback_kernel(wp.float64, True)]
+    for kernel in kernels:
+        tangent = tangent_kernel(kernel, frozenset({"body_pos", "particle_q", "tie_q", "tie_target"}))
+        path = Path(sys.modules[tangent.kernel.func.__module__].__file__)
+        problems = lint.lint_paths([path])
+        assert not problems, "\n".join(map(str, problems))
+        assert "    # Tangent in:" in path.read_text() and "    # Tangent out:" in path.read_text()
