@@ -1,0 +1,172 @@
+"""Forward-mode (tangent-linear) step of the whole puppet step, point springs and contact included.
+
+:class:`PuppetStepTangent` runs one :meth:`SolverArticulation.step
+<dmarionette.articulation.solver.SolverArticulation.step>` and its P directional derivatives,
+pass by pass in the step's order: body kinematics and the dynamics and integration with
+the generated tangent kernels (:mod:`dmarionette.kernels.articulation_tangent`, a
+direction loop per world), the applied forces, the point springs (paper eq. 2 against the
+coupling's anchors) and the compiled-in contacts with the interleaved tangent kernels of
+the hand-written kernels (:mod:`dmarionette.kernels.kernel_tangent`, a thread per
+direction and item). Each tangent launch writes the pass's primal outputs too, so the
+step's numbers are the solver's.
+
+What is differentiated (:class:`PuppetControlTangent`, all with a leading direction axis
+``P``): the state (``joint_q``, ``joint_qd``; :class:`~dmarionette.articulation.tangent.TangentState`),
+the joint forces, the applied body forces and torques, the springs' anchors and anchor
+velocities, and the springs' stiffness and damping (the calibrated tie constants ``k``,
+``k_d``; one row per spring, or per world and spring where the model has per-world
+constants). Constant: masses, inertias, joint damping and limits, gravity, the contact
+constants, the spring points, ``dt``.
+
+This is :class:`~dmarionette.articulation.tangent.ArticulationTangent` (the puppet's own
+step, which refuses springs and contact) with the hand-written passes added; it is a class of
+its own because that module belongs to another piece of work (the two could be one).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from dmarionette.articulation.solver import ArticulationControl, ArticulationState, SolverArticulation
+from dmarionette.articulation.tangent import TangentState
+from dmarionette.kernels.articulation_forces import eval_body_external_forces, eval_body_point_springs
+from dmarionette.kernels.articulation_tangent import build_articulation_tangent_kernels
+from dmarionette.kernels.kernel_tangent import tangent_kernel
+
+__all__ = ["PuppetControlTangent", "PuppetStepTangent"]
+
+
+class PuppetControlTangent:
+    """P tangents of an :class:`ArticulationControl` and of the spring constants (zeros).
+
+    Attributes:
+        joint_f: (P, world_count, qd_count).
+        body_force, body_torque: (P, world_count, body_count) vec3d.
+        spring_anchor_pos, spring_anchor_vel: (P, world_count, spring_count) vec3d.
+        spring_stiffness, spring_damping: (P, rows) with the model's rows of constants.
+    """
+
+    def __init__(self, model, direction_count: int, world_count: int):
+        P, n, dev = direction_count, world_count, model.device
+        self.joint_f = wp.zeros((P, n, model.qd_count), dtype=wp.float64, device=dev)
+        self.body_force = wp.zeros((P, n, model.body_count), dtype=wp.vec3d, device=dev)
+        self.body_torque = wp.zeros((P, n, model.body_count), dtype=wp.vec3d, device=dev)
+        springs = max(model.spring_count, 1)
+        self.spring_anchor_pos = wp.zeros((P, n, springs), dtype=wp.vec3d, device=dev)
+        self.spring_anchor_vel = wp.zeros((P, n, springs), dtype=wp.vec3d, device=dev)
+        rows = max(model.spring_stiffness.shape[0], 1)
+        self.spring_stiffness = wp.zeros((P, rows), dtype=wp.float64, device=dev)
+        self.spring_damping = wp.zeros((P, rows), dtype=wp.float64, device=dev)
+
+
+def _launch(kernel, dim, values: dict, device) -> None:
+    """Launches a generated articulation tangent kernel with its arguments taken by parameter name."""
+    wp.launch(kernel, dim=dim, inputs=[values[a.label] for a in kernel.adj.args], device=device)
+
+
+class PuppetStepTangent:
+    """Steps a puppet state and P tangents of it (module doc).
+
+    Args:
+        solver: the primal solver (model, contacts, implicit or explicit).
+        direction_count: P.
+        world_count: worlds of the states stepped.
+        optimization_level: C++ optimisation of the generated articulation tangent kernels.
+    """
+
+    def __init__(self, solver: SolverArticulation, direction_count: int, world_count: int = 1,
+                 optimization_level: int = 2):
+        m = solver.model
+        self.solver = solver
+        self.model = m
+        self.direction_count = int(direction_count)
+        self.world_count = int(world_count)
+        self.kernels = build_articulation_tangent_kernels(m.topology, optimization_level)
+        self.workspace = m.workspace(world_count)
+        ws = self.workspace
+        shape = (self.direction_count, self.world_count)
+        self.tan_body = {n: wp.zeros(shape + (m.body_count,), dtype=getattr(ws, n).dtype, device=m.device)
+                         for n in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")}
+        self.tan_spring_force = wp.zeros(shape + (max(m.spring_count, 1),), dtype=wp.vec3d, device=m.device)
+        self._forces = tangent_kernel(eval_body_external_forces)
+        self._springs = tangent_kernel(eval_body_point_springs)
+        contacts = solver.contacts
+        self._contacts = [tangent_kernel(k) for k in contacts.kernels] if contacts.any else []
+
+    def tangent_state(self) -> TangentState:
+        """Zero tangents for a state of this model."""
+        return TangentState(self.model, self.direction_count, self.world_count)
+
+    def control_tangent(self) -> PuppetControlTangent:
+        """Zero tangents of a control and of the spring constants."""
+        return PuppetControlTangent(self.model, self.direction_count, self.world_count)
+
+    def step(self, state_in: ArticulationState, tangent_in: TangentState, state_out: ArticulationState,
+             tangent_out: TangentState, control: ArticulationControl, tangent_control: PuppetControlTangent,
+             dt: float) -> None:
+        """One step of the state (the solver's step, pass for pass) and of its P tangents.
+
+        Raises:
+            ValueError: what :meth:`SolverArticulation.check_step` raises.
+        """
+        s, m, ws = self.solver, self.model, self.workspace
+        s.check_step(state_in, state_out, control, dt)
+        h, hi = s.step_sizes(dt)
+        P, n, dev = self.direction_count, state_in.world_count, m.device
+        tb, tc = self.tan_body, tangent_control
+        body = {k: getattr(ws, k) for k in ("body_pos", "body_rot", "body_w", "body_v")}
+        tan = {"tan_" + k: v for k, v in tb.items()}
+        _launch(self.kernels.eval_body_kinematics_tangent, n, dict(
+            joint_q=state_in.joint_q, joint_qd=state_in.joint_qd, direction_count=P,
+            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_in.joint_qd, **body, **tan), dev)
+        self._forces.launch((n, m.body_count), P, [ws.body_pos, control.body_force, control.body_torque,
+                                                   ws.body_wrench, ws.body_stiffness],
+                            {"body_pos": tb["body_pos"], "body_force": tc.body_force, "body_torque": tc.body_torque,
+                             "body_wrench": tb["body_wrench"], "body_stiffness": tb["body_stiffness"]}, dev)
+        if m.spring_count:
+            self._springs.launch(
+                (n, m.spring_count), P,
+                [m.spring_body, m.spring_point, m.spring_stiffness, m.spring_damping, *body.values(),
+                 control.spring_anchor_pos, control.spring_anchor_vel, hi, ws.spring_force, ws.body_wrench,
+                 ws.body_stiffness],
+                {**{k: tb[k] for k in body}, "spring_stiffness": tc.spring_stiffness,
+                 "spring_damping": tc.spring_damping, "spring_anchor_pos": tc.spring_anchor_pos,
+                 "spring_anchor_vel": tc.spring_anchor_vel, "spring_force": self.tan_spring_force,
+                 "body_wrench": tb["body_wrench"], "body_stiffness": tb["body_stiffness"]}, dev)
+        self._eval_contacts(ws, hi, tb, P)
+        limits = {}
+        if m.topology.joint_limits:
+            limits = dict(dof_limit_lower=m.dof_limit_lower, dof_limit_upper=m.dof_limit_upper,
+                          limit_stiffness=wp.float64(m.limit_stiffness), limit_damping=wp.float64(m.limit_damping))
+        _launch(self.kernels.solve_body_dynamics_tangent, n, dict(
+            body_mass=m.body_mass, body_inertia=m.body_inertia, dof_damping=m.dof_damping, gravity=m.gravity,
+            **limits, joint_q=state_in.joint_q, joint_qd=state_in.joint_qd, **body, body_wrench=ws.body_wrench,
+            body_stiffness=ws.body_stiffness, joint_f=control.joint_f, h=h, h_implicit=hi, direction_count=P,
+            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_in.joint_qd, **tan,
+            tan_joint_f=tc.joint_f, joint_qdd=state_out.joint_qdd, joint_qd_out=state_out.joint_qd,
+            tan_joint_qdd=tangent_out.joint_qdd, tan_joint_qd_out=tangent_out.joint_qd), dev)
+        _launch(self.kernels.integrate_joint_coordinates_tangent, n, dict(
+            joint_q=state_in.joint_q, joint_qd=state_out.joint_qd, h=h, direction_count=P,
+            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_out.joint_qd, joint_q_out=state_out.joint_q,
+            tan_joint_q_out=tangent_out.joint_q), dev)
+
+    def _eval_contacts(self, ws, h, tb: dict, P: int) -> None:
+        """The compiled-in contacts and their tangents (``ContactSet.eval``'s launches)."""
+        cs = self.solver.contacts
+        if not cs.any:
+            return
+        s = cs.settings
+        ground, box, ball = self._contacts
+        bodies = [ws.body_pos, ws.body_rot, ws.body_w, ws.body_v]
+        out = [ws.body_wrench, ws.body_stiffness]
+        tans = {k: tb[k] for k in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")}
+        pts = [cs.point_body, cs.point_local, cs.point_radius, cs.constants]
+        n, dev = ws.world_count, self.model.device
+        if s.ground:
+            ground.launch((n, cs.point_count), P, [*pts, cs.ground, *bodies, h, *out], tans, dev)
+        if s.chair is not None:
+            box.launch((n, cs.point_count), P, [*pts, cs.chair, *bodies, h, *out], tans, dev)
+        if s.ball and cs.ball_body >= 0:
+            ball.launch((n, cs.pair_count), P,
+                        [cs.pair_body, cs.pair_is_sphere, cs.pair_half, cs.pair_mass, cs.ball_body,
+                         wp.float64(self.model.ball.radius), cs.constants, *bodies, h, *out], tans, dev)
