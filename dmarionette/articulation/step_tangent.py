@@ -83,10 +83,7 @@ class PuppetStepTangent:
         self.world_count = int(world_count)
         self.kernels = build_articulation_tangent_kernels(m.topology, optimization_level)
         self.workspace = m.workspace(world_count)
-        ws = self.workspace
-        shape = (self.direction_count, self.world_count)
-        self.tan_body = {n: wp.zeros(shape + (m.body_count,), dtype=getattr(ws, n).dtype, device=m.device)
-                         for n in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")}
+        self.tan_body = self.body_tangents()
         self.tan_spring_force = wp.zeros(shape + (max(m.spring_count, 1),), dtype=wp.vec3d, device=m.device)
         self._forces = tangent_kernel(eval_body_external_forces)
         self._springs = tangent_kernel(eval_body_point_springs)
@@ -109,49 +106,86 @@ class PuppetStepTangent:
         Raises:
             ValueError: what :meth:`SolverArticulation.check_step` raises.
         """
-        s, m, ws = self.solver, self.model, self.workspace
+        s, ws = self.solver, self.workspace
         s.check_step(state_in, state_out, control, dt)
         h, hi = s.step_sizes(dt)
-        P, n, dev = self.direction_count, state_in.world_count, m.device
-        tb, tc = self.tan_body, tangent_control
-        body = {k: getattr(ws, k) for k in ("body_pos", "body_rot", "body_w", "body_v")}
-        tan = {"tan_" + k: v for k, v in tb.items()}
-        _launch(self.kernels.eval_body_kinematics_tangent, n, dict(
-            joint_q=state_in.joint_q, joint_qd=state_in.joint_qd, direction_count=P,
-            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_in.joint_qd, **body, **tan), dev)
-        self._forces.launch((n, m.body_count), P, [ws.body_pos, control.body_force, control.body_torque,
-                                                   ws.body_wrench, ws.body_stiffness],
+        self.eval_kinematics(state_in, tangent_in, ws, self.tan_body)
+        self.eval_external_forces(ws, self.tan_body, control, tangent_control)
+        self.eval_point_springs(ws, self.tan_body, control, tangent_control, hi)
+        self.eval_contacts(ws, self.tan_body, hi)
+        self.solve_dynamics(state_in, tangent_in, state_out, tangent_out, control, tangent_control, ws,
+                            self.tan_body, h, hi)
+        self.integrate(state_in, tangent_in, state_out, tangent_out, h)
+
+    def body_tangents(self, world_count: int | None = None) -> dict:
+        """Zero tangents of a workspace's body kinematics and loads: name -> (P, world_count, body_count)."""
+        m, ws = self.model, self.workspace
+        shape = (self.direction_count, world_count or self.world_count, m.body_count)
+        return {n: wp.zeros(shape, dtype=getattr(ws, n).dtype, device=m.device)
+                for n in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")}
+
+    # ------------------------------------------------------------------ passes (SolverArticulation's)
+    def eval_kinematics(self, state, tangent: TangentState, out, tan_out: dict) -> None:
+        """Body kinematics of ``state`` into ``out`` (a workspace or kinematics), tangents into ``tan_out``."""
+        _launch(self.kernels.eval_body_kinematics_tangent, state.world_count, dict(
+            joint_q=state.joint_q, joint_qd=state.joint_qd, direction_count=self.direction_count,
+            tan_joint_q=tangent.joint_q, tan_joint_qd=tangent.joint_qd,
+            **{k: getattr(out, k) for k in ("body_pos", "body_rot", "body_w", "body_v")},
+            **{"tan_" + k: tan_out[k] for k in ("body_pos", "body_rot", "body_w", "body_v")}), self.model.device)
+
+    def eval_external_forces(self, ws, tb: dict, control, tc: PuppetControlTangent) -> None:
+        """Applied forces (resets the wrench and stiffness, and their tangents)."""
+        self._forces.launch((ws.world_count, self.model.body_count), self.direction_count,
+                            [ws.body_pos, control.body_force, control.body_torque, ws.body_wrench, ws.body_stiffness],
                             {"body_pos": tb["body_pos"], "body_force": tc.body_force, "body_torque": tc.body_torque,
-                             "body_wrench": tb["body_wrench"], "body_stiffness": tb["body_stiffness"]}, dev)
-        if m.spring_count:
-            self._springs.launch(
-                (n, m.spring_count), P,
-                [m.spring_body, m.spring_point, m.spring_stiffness, m.spring_damping, *body.values(),
-                 control.spring_anchor_pos, control.spring_anchor_vel, hi, ws.spring_force, ws.body_wrench,
-                 ws.body_stiffness],
-                {**{k: tb[k] for k in body}, "spring_stiffness": tc.spring_stiffness,
-                 "spring_damping": tc.spring_damping, "spring_anchor_pos": tc.spring_anchor_pos,
-                 "spring_anchor_vel": tc.spring_anchor_vel, "spring_force": self.tan_spring_force,
-                 "body_wrench": tb["body_wrench"], "body_stiffness": tb["body_stiffness"]}, dev)
-        self._eval_contacts(ws, hi, tb, P)
+                             "body_wrench": tb["body_wrench"], "body_stiffness": tb["body_stiffness"]},
+                            self.model.device)
+
+    def eval_point_springs(self, ws, tb: dict, control, tc: PuppetControlTangent, h) -> None:
+        """The point springs (eq. 2) against the anchors, implicit over ``h``."""
+        m = self.model
+        if not m.spring_count:
+            return
+        body = [ws.body_pos, ws.body_rot, ws.body_w, ws.body_v]
+        self._springs.launch(
+            (ws.world_count, m.spring_count), self.direction_count,
+            [m.spring_body, m.spring_point, m.spring_stiffness, m.spring_damping, *body,
+             control.spring_anchor_pos, control.spring_anchor_vel, h, ws.spring_force, ws.body_wrench,
+             ws.body_stiffness],
+            {**{k: tb[k] for k in ("body_pos", "body_rot", "body_w", "body_v")},
+             "spring_stiffness": tc.spring_stiffness, "spring_damping": tc.spring_damping,
+             "spring_anchor_pos": tc.spring_anchor_pos, "spring_anchor_vel": tc.spring_anchor_vel,
+             "spring_force": self.tan_spring_force, "body_wrench": tb["body_wrench"],
+             "body_stiffness": tb["body_stiffness"]}, m.device)
+
+    def solve_dynamics(self, state_in, tangent_in: TangentState, state_out, tangent_out: TangentState, control,
+                       tc: PuppetControlTangent, ws, tb: dict, h, h_implicit) -> None:
+        """``(M + h D + h^2 K) qdd = tau`` and its tangent."""
+        m = self.model
         limits = {}
         if m.topology.joint_limits:
             limits = dict(dof_limit_lower=m.dof_limit_lower, dof_limit_upper=m.dof_limit_upper,
                           limit_stiffness=wp.float64(m.limit_stiffness), limit_damping=wp.float64(m.limit_damping))
-        _launch(self.kernels.solve_body_dynamics_tangent, n, dict(
+        _launch(self.kernels.solve_body_dynamics_tangent, state_in.world_count, dict(
             body_mass=m.body_mass, body_inertia=m.body_inertia, dof_damping=m.dof_damping, gravity=m.gravity,
-            **limits, joint_q=state_in.joint_q, joint_qd=state_in.joint_qd, **body, body_wrench=ws.body_wrench,
-            body_stiffness=ws.body_stiffness, joint_f=control.joint_f, h=h, h_implicit=hi, direction_count=P,
-            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_in.joint_qd, **tan,
+            **limits, joint_q=state_in.joint_q, joint_qd=state_in.joint_qd,
+            **{k: getattr(ws, k) for k in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench",
+                                           "body_stiffness")},
+            joint_f=control.joint_f, h=h, h_implicit=h_implicit, direction_count=self.direction_count,
+            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_in.joint_qd, **{"tan_" + k: v for k, v in tb.items()},
             tan_joint_f=tc.joint_f, joint_qdd=state_out.joint_qdd, joint_qd_out=state_out.joint_qd,
-            tan_joint_qdd=tangent_out.joint_qdd, tan_joint_qd_out=tangent_out.joint_qd), dev)
-        _launch(self.kernels.integrate_joint_coordinates_tangent, n, dict(
-            joint_q=state_in.joint_q, joint_qd=state_out.joint_qd, h=h, direction_count=P,
-            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_out.joint_qd, joint_q_out=state_out.joint_q,
-            tan_joint_q_out=tangent_out.joint_q), dev)
+            tan_joint_qdd=tangent_out.joint_qdd, tan_joint_qd_out=tangent_out.joint_qd), m.device)
 
-    def _eval_contacts(self, ws, h, tb: dict, P: int) -> None:
+    def integrate(self, state_in, tangent_in: TangentState, state_out, tangent_out: TangentState, h) -> None:
+        """``q' = q (+) h qd'`` and its tangent."""
+        _launch(self.kernels.integrate_joint_coordinates_tangent, state_in.world_count, dict(
+            joint_q=state_in.joint_q, joint_qd=state_out.joint_qd, h=h, direction_count=self.direction_count,
+            tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_out.joint_qd, joint_q_out=state_out.joint_q,
+            tan_joint_q_out=tangent_out.joint_q), self.model.device)
+
+    def eval_contacts(self, ws, tb: dict, h) -> None:
         """The compiled-in contacts and their tangents (``ContactSet.eval``'s launches)."""
+        P = self.direction_count
         cs = self.solver.contacts
         if not cs.any:
             return
