@@ -1,0 +1,238 @@
+"""Forward-mode (tangent-linear) step of the marionette: one :meth:`SolverMarionette.step
+<dmarionette.marionette.solver.SolverMarionette.step>` and its P directional derivatives.
+
+:class:`MarionetteTangent` runs the step's passes in the solver's order, each with its
+tangent (one launch per pass for all P directions, which also computes the pass's primal):
+
+- ``begin_step``: the input's body points (primal only: nothing of the step reads them),
+  the trial puppet step (kinematics, applied forces, the strings' linearised pull
+  ``eval_string_response``, contacts, dynamics, integration: :class:`PuppetStepTangent`'s
+  passes and the interleaved tangent of the coupling kernel), its body points at
+  ``t0 + H``, the tie path;
+- ``n`` string steps (:class:`~dmarionette.grad.string_tangent.StringStepTangent`, the string
+  step keeping its factorisation and its tangent-linear model), each followed by the bar
+  feedback (eq. 4 and the exact reaction);
+- ``end_step``: the anchors (mean tie force, the tie around the path) and the puppet step
+  with its point springs (:class:`~dmarionette.articulation.step_tangent.PuppetStepTangent`).
+
+What is differentiated (:class:`MarionetteTangentState`, :class:`MarionetteControlTangent`,
+leading direction axis ``P``): the state (the puppet's ``joint_q``, ``joint_qd``; the strings'
+particle positions and velocities; the previous step's tie forces; the tie target) and the
+control (the string tops and the bars' eq. 4 proxies ``bar_q``, ``bar_qd`` over the step).
+The model constants are constants here (string and tie constants included: the string
+tangent takes their directions, ``StringStepTangent``'s ``constants_dot``, but the puppet's
+spring constants ``k``, ``k_d`` are the same calibrated numbers in another array, and that
+mapping is not done). Float64 strings with the printed spring only (float32 strings and
+tension-only springs are refused).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from dmarionette.articulation.step_tangent import PuppetStepTangent
+from dmarionette.articulation.tangent import TangentState
+from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
+from dmarionette.kernels.articulation_forces import eval_body_points
+from dmarionette.kernels.kernel_tangent import tangent_kernel
+from dmarionette.kernels.bar_feedback import eval_bar_feedback_kernel
+from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anchors_kernel,
+                                                      eval_string_response_kernel, eval_tie_path)
+from dmarionette.marionette.solver import MarionetteControl, MarionetteState, SolverMarionette
+from dmarionette.marionette.workspace import StringStepOutput
+
+__all__ = ["MarionetteControlTangent", "MarionetteTangent", "MarionetteTangentState"]
+
+
+class MarionetteTangentState:
+    """P tangents of a :class:`MarionetteState` (zeros).
+
+    Attributes:
+        puppet: the puppet state's (``joint_q``, ``joint_qd``, ``joint_qdd``).
+        particle_q, particle_qd: ``(P, particles)`` vec3d.
+        tie_force: ``(P, n, S)``; tie_target: ``(P, S)``.
+        bar_feedback, bar_reaction: ``(P, n, W B)``.
+    """
+
+    def __init__(self, model, direction_count: int):
+        P, n, dev = direction_count, model.substeps, model.device
+        s, b = model.strings.string_count, model.bar_rows * model.world_count
+        self.puppet = TangentState(model.puppet, P, model.world_count)
+        self.particle_q = wp.zeros((P, model.strings.particle_count), dtype=wp.vec3d, device=dev)
+        self.particle_qd = wp.zeros((P, model.strings.particle_count), dtype=wp.vec3d, device=dev)
+        self.tie_force = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
+        self.tie_target = wp.zeros((P, s), dtype=wp.vec3d, device=dev)
+        self.bar_feedback = wp.zeros((P, n, max(b, 1)), dtype=wp.vec3d, device=dev)
+        self.bar_reaction = wp.zeros((P, n, max(b, 1)), dtype=wp.vec3d, device=dev)
+
+
+class MarionetteControlTangent:
+    """P tangents of a :class:`MarionetteControl` (zeros): top_q ``(P, n, S)``, bar_q and bar_qd
+    ``(P, n, W B)``."""
+
+    def __init__(self, model, direction_count: int):
+        P, n, dev = direction_count, model.substeps, model.device
+        s, b = model.strings.string_count, model.bar_rows * model.world_count
+        self.top_q = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
+        self.bar_q = wp.zeros((P, n, max(b, 1)), dtype=wp.vec3d, device=dev)
+        self.bar_qd = wp.zeros((P, n, max(b, 1)), dtype=wp.vec3d, device=dev)
+
+
+class MarionetteTangent:
+    """Steps a marionette state and P tangents of it (module doc).
+
+    Args:
+        solver: the marionette's solver (float64 strings, printed springs).
+        direction_count: P.
+        optimization_level: C++ optimisation of the generated puppet tangent kernels.
+    """
+
+    def __init__(self, solver: SolverMarionette, direction_count: int, optimization_level: int = 2):
+        m = solver.model
+        if m.precision != "float64":
+            raise NotImplementedError("MarionetteTangent: float32 strings (the precision boundary has no tangent "
+                                      "here); use [solver] precision = \"float64\"")
+        self.solver = solver
+        self.model = m
+        self.direction_count = P = int(direction_count)
+        self.puppet = PuppetStepTangent(m.puppet_solver, P, m.world_count, optimization_level)
+        self.strings = StringStepTangent(m.string_solver, P)
+        self.workspace = solver.new_workspace(taped=False)
+        self.trial = self.puppet.tangent_state()
+        self.trial_body = self.puppet.body_tangents()
+        self.points_body = self.puppet.body_tangents()
+        points = len(m.puppet.point_names)
+        dev, n, s = m.device, m.substeps, m.strings.string_count
+        self.trial_point_q = wp.zeros((P, m.world_count, points), dtype=wp.vec3d, device=dev)
+        self.trial_point_qd = wp.zeros((P, m.world_count, points), dtype=wp.vec3d, device=dev)
+        self.tie_q = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
+        self.tie_qd = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
+        self.particles = [(wp.zeros((P, m.strings.particle_count), dtype=wp.vec3d, device=dev),
+                           wp.zeros((P, m.strings.particle_count), dtype=wp.vec3d, device=dev)) for _ in range(2)]
+        self.mass_dot = wp.zeros((P, m.strings.particle_count), dtype=m.strings.scalar, device=dev)
+        self.constants_dot = wp.zeros((P, s, len(CONSTANTS)), dtype=m.strings.scalar, device=dev)
+        self.puppet_control = self.puppet.control_tangent()  # zero but for the anchors
+        self._zeros: dict = {}
+        self._points = tangent_kernel(eval_body_points)
+        self._tie_path = tangent_kernel(eval_tie_path)
+        self._anchors = tangent_kernel(apply_string_forces_to_anchors_kernel(m.substeps))
+        effects = m.scene.effects
+        # the solver's kernels (the factories are cached: the same kernel objects)
+        self._response = (tangent_kernel(eval_string_response_kernel(m.strings.scalar, effects.internal_friction,
+                                                                     m.substeps)) if len(m.spring_string) else None)
+        self._feedback = (tangent_kernel(eval_bar_feedback_kernel(m.strings.scalar, effects.internal_friction,
+                                                                  effects.tension_only, bar_scalar=wp.float64))
+                          if m.scene.body_effects["feedback"] and m.bar_count else None)
+
+    def tangent_state(self) -> MarionetteTangentState:
+        return MarionetteTangentState(self.model, self.direction_count)
+
+    def control_tangent(self) -> MarionetteControlTangent:
+        return MarionetteControlTangent(self.model, self.direction_count)
+
+    def step(self, state_in: MarionetteState, tangent_in: MarionetteTangentState, state_out: MarionetteState,
+             tangent_out: MarionetteTangentState, control: MarionetteControl,
+             tangent_control: MarionetteControlTangent) -> None:
+        """One puppet step of the state and of its P tangents (``tangent_out`` other arrays than
+        ``tangent_in``)."""
+        m, sv, ws, P = self.model, self.solver, self.workspace, self.direction_count
+        dev = m.device
+        # ---- begin_step
+        sv.eval_body_points(state_in, ws.points)
+        self._predict(state_in, tangent_in, ws)
+        self._tie_path.launch((m.substeps, m.strings.string_count), P,
+                              [m.string_point_wp, wp.int32(m.strings_per_world), ws.trial_points.point_q,
+                               state_in.tie_target, wp.float64(m.string_dt), ws.tie_q, ws.tie_qd, state_out.tie_target],
+                              {"point_end": self.trial_point_q, "tie_target": tangent_in.tie_target,
+                               "tie_q": self.tie_q, "tie_qd": self.tie_qd, "tie_target_out": tangent_out.tie_target},
+                              dev)
+        if self._feedback is not None:
+            for a in (state_out.bar_feedback, state_out.bar_reaction, tangent_out.bar_feedback,
+                      tangent_out.bar_reaction):
+                a.zero_()
+        # ---- the string steps
+        controls = sv.string_controls(control, workspace=ws)
+        q_dot, qd_dot = tangent_in.particle_q, tangent_in.particle_qd
+        for j in range(m.substeps):
+            previous = state_in.strings if j == 0 else sv.string_state_after(state_out, j - 1, workspace=ws)
+            particles = sv.string_state_after(state_out, j, workspace=ws)
+            nxt = StringStepOutput(particles.particle_q, particles.particle_qd, state_out.tie_force[j],
+                                   state_out.string_taut[j])
+            q_out, qd_out = ((tangent_out.particle_q, tangent_out.particle_qd) if j == m.substeps - 1
+                             else self.particles[j % 2])
+            self.strings.step(previous, nxt, controls[j], m.string_dt, q_dot, qd_dot, q_out, qd_out,
+                              tangent_out.tie_force[:, j], tangent_control.top_q[:, j], self.tie_q[:, j],
+                              self.tie_qd[:, j], self.mass_dot, self.constants_dot)
+            if self._feedback is not None:
+                self._eval_feedback(nxt, q_out, qd_out, control, tangent_control, state_out, tangent_out, j)
+            q_dot, qd_dot = q_out, qd_out
+        # ---- end_step
+        if len(m.spring_string):
+            self._anchors.launch((m.world_count, len(m.spring_string)), P,
+                                 [m.spring_string_wp, wp.int32(m.strings_per_world), m.string_tie_stiffness,
+                                  state_out.tie_force, ws.tie_q, ws.tie_qd, wp.float64(m.string_dt),
+                                  ws.puppet_control.spring_anchor_pos, ws.puppet_control.spring_anchor_vel],
+                                 {"tie_force": tangent_out.tie_force, "tie_q": self.tie_q, "tie_qd": self.tie_qd,
+                                  "string_tie_stiffness": self._zero_constant("string_tie_stiffness",
+                                                                              m.string_tie_stiffness),
+                                  "spring_anchor_pos": self.puppet_control.spring_anchor_pos,
+                                  "spring_anchor_vel": self.puppet_control.spring_anchor_vel}, dev)
+        self.puppet.step(state_in.puppet, tangent_in.puppet, state_out.puppet, tangent_out.puppet,
+                         ws.puppet_control, self.puppet_control, m.puppet_dt)
+
+    def _predict(self, state_in, tangent_in: MarionetteTangentState, ws) -> None:
+        """The trial puppet step (``SolverMarionette.predict_body_points``) and its tangent."""
+        m, pt, P = self.model, self.puppet, self.direction_count
+        ps, tw, puppet, tb = m.puppet_solver, ws.trial_workspace, state_in.puppet, self.trial_body
+        h, hi = ps.step_sizes(m.puppet_dt)
+        pt.eval_kinematics(puppet, tangent_in.puppet, tw, tb)
+        pt.eval_external_forces(tw, tb, ws.puppet_control, self.puppet_control)
+        if self._response is not None:
+            s = m.strings
+            self._response.launch(
+                (tw.world_count, len(m.spring_string)), P,
+                [m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp, wp.int32(m.strings_per_world),
+                 s.string_start, s.string_stiffness, s.string_rest_length, s.string_tie_stiffness,
+                 s.string_taut_distance, s.string_internal_friction, tw.body_pos, tw.body_rot, tw.body_w, tw.body_v,
+                 state_in.strings.particle_q, state_in.tie_force, hi, tw.body_wrench, tw.body_stiffness],
+                {**{k: tb[k] for k in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")},
+                 "particle_q": tangent_in.particle_q, "tie_force": tangent_in.tie_force,
+                 **{k: self._zero_constant(k) for k in self._response.tangent_inputs if k.startswith("string_")}},
+                m.device)
+        pt.eval_contacts(tw, tb, hi)
+        pt.solve_dynamics(puppet, tangent_in.puppet, ws.trial, self.trial, ws.puppet_control, self.puppet_control,
+                          tw, tb, h, hi)
+        pt.integrate(puppet, tangent_in.puppet, ws.trial, self.trial, h)
+        kin, pb = ws.trial_points.kinematics, self.points_body
+        pt.eval_kinematics(ws.trial, self.trial, kin, pb)
+        self._points.launch((m.world_count, len(m.puppet.point_names)), P,
+                            [m.puppet.point_body, m.puppet.point_local, kin.body_pos, kin.body_rot, kin.body_w,
+                             kin.body_v, ws.trial_points.point_q, ws.trial_points.point_qd],
+                            {**{k: pb[k] for k in ("body_pos", "body_rot", "body_w", "body_v")},
+                             "point_pos": self.trial_point_q, "point_vel": self.trial_point_qd}, m.device)
+
+    def _zero_constant(self, name: str, array: wp.array | None = None) -> wp.array:
+        """A zero tangent of a string constant (``model.strings``' array of that name, or ``array``):
+        constants are constants of this JVP."""
+        a = getattr(self.model.strings, name) if array is None else array
+        key = (name, a.shape, a.dtype)
+        if key not in self._zeros:
+            self._zeros[key] = wp.zeros((self.direction_count, *a.shape), dtype=a.dtype, device=self.model.device)
+        return self._zeros[key]
+
+    def _eval_feedback(self, strings, q_dot, qd_dot, control, tc: MarionetteControlTangent, state_out,
+                       tangent_out: MarionetteTangentState, j: int) -> None:
+        m = self.model
+        s = m.strings
+        weight = wp.vec3d(*(m.puppet_mass * np.asarray(m.scene.gravity)))
+        self._feedback.launch(
+            s.string_count, self.direction_count,
+            [s.string_start, m.string_bar_wp, s.string_stiffness, s.string_rest_length, s.string_internal_friction,
+             wp.float64(m.scene.feedback_stiffness), wp.float64(m.scene.feedback_damping), weight,
+             strings.particle_q, strings.particle_qd, strings.string_taut, control.bar_q[j], control.bar_qd[j],
+             state_out.bar_feedback[j], state_out.bar_reaction[j]],
+            {"particle_q": q_dot, "particle_qd": qd_dot, "bar_q": tc.bar_q[:, j], "bar_qd": tc.bar_qd[:, j],
+             "bar_feedback": tangent_out.bar_feedback[:, j], "bar_reaction": tangent_out.bar_reaction[:, j],
+             **{k: self._zero_constant(k) for k in self._feedback.tangent_inputs if k.startswith("string_")}},
+            m.device)
