@@ -51,6 +51,22 @@ same kernel to rounding, also at a switch):
 A value that is active somewhere (the analysis is flow-insensitive) but assigned a
 constant elsewhere gets the tangent ``y - y``, zero of its type (finite ``y``).
 
+Covered (each checked against the tape by the dot-product identity, at and away from its
+switches, and against central differences): ``articulation_forces`` (``eval_body_external_forces``,
+``eval_body_point_springs``, ``eval_body_points``, ``compute_point_state``), ``body_contact``
+(ground, chair box and ball, hard and smooth), ``string_body_coupling``
+(``eval_string_response``, ``eval_tie_path``, ``apply_string_forces_to_anchors``) and
+``bar_feedback`` (eq. 4 and the exact reaction, printed and tension-only springs); their
+users are :class:`~dmarionette.articulation.step_tangent.PuppetStepTangent` and
+:class:`~dmarionette.grad.marionette_tangent.MarionetteTangent`.
+
+Why interleaved and not hand-written tangents: no derivative to keep in sync by hand (a
+change of a kernel changes its tangent), and the transformer is the one place where a rule
+lives. Why one thread per (direction, thread), not a direction loop: loops and branches stay
+as they are, with no per-direction storage of the loop's values; the price is the primal
+recomputed per direction (these kernels are a small part of a step: the dynamics and the
+string solve, which have their own tangents, dominate).
+
 Anything else (another builtin, ``**``, keyword arguments on an active call, an active
 ``if`` condition or index, a tuple returned into an expression) raises
 :class:`~dmarionette.kernels.articulation_tangent.TangentError` naming the construct: no
