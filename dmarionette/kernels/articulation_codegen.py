@@ -537,9 +537,10 @@ def build_articulation_kernels(topo: ArticulationTopology, optimization_level: i
     return import_generated(f"dmarionette_articulation_{digest}", source)
 
 
-def import_generated(name: str, source: str):
+def import_generated(name: str, source: str, namespace: dict | None = None):
     """Writes ``source`` to the cache folder as ``name.py`` (unless there already) and imports it (once
-    per process); ``name`` carries the source's hash."""
+    per process); ``name`` carries the source's hash. ``namespace``: globals the module is given before
+    it runs (objects its source refers to by name but cannot import, e.g. a closure's values)."""
     if name in _CACHE:
         return _CACHE[name]
     path = _cache_dir() / f"{name}.py"
@@ -549,6 +550,7 @@ def import_generated(name: str, source: str):
         os.replace(tmp, path)
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
+    module.__dict__.update(namespace or {})
     sys.modules[name] = module
     spec.loader.exec_module(module)
     _CACHE[name] = module

@@ -13,7 +13,8 @@ with an active argument are transformed recursively into ``<name>_jvp<n>`` funct
 then the tangents of the active ones; a closure's free names (the hard or smooth normal
 force of ``body_contact``, the strings' float type, ``wp.static`` constants) are resolved
 to the objects the closure holds. The source written is kept in the cache folder
-(``DMARIONETTE_CACHE``, as the generated articulation kernels).
+(``DMARIONETTE_CACHE``; ``articulation_codegen.import_generated``, as the generated articulation
+kernels), the closures' objects handed to the module as its globals.
 
 Tangent kernel signature: the primal kernel's parameters in their groups, with a ``Tangent
 in`` group after the input groups holding ``tan_<name>`` for every array parameter named in
@@ -78,16 +79,13 @@ from __future__ import annotations
 import ast
 import builtins
 import hashlib
-import importlib.util
 import inspect
-import os
-import sys
 import textwrap
 import typing
-from pathlib import Path
 
 import warp as wp
 
+from dmarionette.kernels.articulation_codegen import import_generated
 from dmarionette.kernels.articulation_math import compute_spatial
 from dmarionette.kernels.articulation_math_tangent import quat_rotate_tangent
 from dmarionette.kernels.articulation_tangent import TangentError
@@ -756,14 +754,6 @@ class TangentKernel:
 _CACHE: dict = {}
 
 
-def _cache_dir() -> Path:
-    root = os.environ.get("DMARIONETTE_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "dmarionette")
-    path = Path(root) / "generated"
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
 def tangent_kernel(kernel, tangent_names=TANGENT_NAMES) -> TangentKernel:
     """The tangent kernel of a Warp kernel (cached per kernel and set of tangent names).
 
@@ -783,17 +773,7 @@ def tangent_kernel(kernel, tangent_names=TANGENT_NAMES) -> TangentKernel:
               + "import warp as wp\n\nwp.set_module_options({'enable_backward': False})\n\n\n"
               + "\n\n".join(b.funcs + [body]))
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
-    mod_name = f"dmarionette_tangent_{kernel.key}_{digest}"
-    path = _cache_dir() / f"{mod_name}.py"
-    if not path.exists() or path.read_text() != source:
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(source)
-        os.replace(tmp, path)
-    spec = importlib.util.spec_from_file_location(mod_name, path)
-    module = importlib.util.module_from_spec(spec)
-    module.__dict__.update(b.env)
-    sys.modules[mod_name] = module
-    spec.loader.exec_module(module)
+    module = import_generated(f"dmarionette_tangent_{kernel.key}_{digest}", source, b.env)
     ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
     result = TangentKernel(getattr(module, name), t.params, t.arguments, ins, list(t.outputs), source)
     _CACHE[key] = result
