@@ -18,12 +18,14 @@ tangent (one launch per pass for all P directions, which also computes the pass'
 What is differentiated (:class:`MarionetteTangentState`, :class:`MarionetteControlTangent`,
 leading direction axis ``P``): the state (the puppet's ``joint_q``, ``joint_qd``; the strings'
 particle positions and velocities; the previous step's tie forces; the tie target) and the
-control (the string tops and the bars' eq. 4 proxies ``bar_q``, ``bar_qd`` over the step).
-The model constants are constants here (string and tie constants included: the string
-tangent takes their directions, ``StringStepTangent``'s ``constants_dot``, but the puppet's
-spring constants ``k``, ``k_d`` are the same calibrated numbers in another array, and that
-mapping is not done). Float64 strings with the printed spring only (float32 strings and
-tension-only springs are refused).
+control (the string tops and the bars' eq. 4 proxies ``bar_q``, ``bar_qd`` over the step), and
+optionally (:class:`MarionetteConstantsTangent`) the constants calibration fits, per string:
+the tie's ``k`` and ``k_d`` (eq. 2, on both sides: the strings' tie, the trial's response, the
+anchors' ``F / k`` and the puppet's point springs, whose rows are the tied strings') and the
+segment stiffness ``k_s`` (the strings, the response's tension and axial stiffness, the
+exact reaction). Every other model constant is a constant of this JVP (masses, lengths,
+friction, drag, ground constants, the puppet's). Float64 strings with the printed spring
+only (float32 strings and tension-only springs are refused).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anc
 from dmarionette.marionette.solver import MarionetteControl, MarionetteState, SolverMarionette
 from dmarionette.marionette.workspace import StringStepOutput
 
-__all__ = ["MarionetteControlTangent", "MarionetteTangent", "MarionetteTangentState"]
+__all__ = ["MarionetteConstantsTangent", "MarionetteControlTangent", "MarionetteTangent", "MarionetteTangentState"]
 
 
 class MarionetteTangentState:
@@ -77,6 +79,18 @@ class MarionetteControlTangent:
         self.top_q = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
         self.bar_q = wp.zeros((P, n, max(b, 1)), dtype=wp.vec3d, device=dev)
         self.bar_qd = wp.zeros((P, n, max(b, 1)), dtype=wp.vec3d, device=dev)
+
+
+class MarionetteConstantsTangent:
+    """P directions in the calibrated constants (zeros), per string of all worlds, as the kernels read
+    them: ``tie_stiffness`` ``k`` [N/m], ``tie_damping`` ``k_d`` [N s/m] and ``string_stiffness``, the
+    segment stiffness ``k_s`` [N/m] (``model.strings.string_stiffness``); each ``(P, W S)``."""
+
+    def __init__(self, model, direction_count: int):
+        shape, dev = (direction_count, model.strings.string_count), model.device
+        self.tie_stiffness = wp.zeros(shape, dtype=wp.float64, device=dev)
+        self.tie_damping = wp.zeros(shape, dtype=wp.float64, device=dev)
+        self.string_stiffness = wp.zeros(shape, dtype=wp.float64, device=dev)
 
 
 class MarionetteTangent:
@@ -114,6 +128,7 @@ class MarionetteTangent:
         self.constants_dot = wp.zeros((P, s, len(CONSTANTS)), dtype=m.strings.scalar, device=dev)
         self.puppet_control = self.puppet.control_tangent()  # zero but for the anchors
         self._zeros: dict = {}
+        self._constants: dict = {}
         self._points = tangent_kernel(eval_body_points)
         self._tie_path = tangent_kernel(eval_tie_path)
         self._anchors = tangent_kernel(apply_string_forces_to_anchors_kernel(m.substeps))
@@ -131,13 +146,41 @@ class MarionetteTangent:
     def control_tangent(self) -> MarionetteControlTangent:
         return MarionetteControlTangent(self.model, self.direction_count)
 
+    def constants_tangent(self) -> MarionetteConstantsTangent:
+        return MarionetteConstantsTangent(self.model, self.direction_count)
+
+    def _spread_constants(self, tk: MarionetteConstantsTangent | None) -> dict:
+        """The constants' directions where each pass reads them: the string step's ``constants_dot``
+        columns, the puppet springs' rows (spring ``i`` of world ``w`` is string ``w S + spring_string[i]``);
+        returns the coupling kernels' tangent arrays by name."""
+        m, P = self.model, self.direction_count
+        if tk is None:
+            self.constants_dot.zero_()
+            self.puppet_control.spring_stiffness.zero_()
+            self.puppet_control.spring_damping.zero_()
+            return {}
+        c = np.zeros((P, m.strings.string_count, len(CONSTANTS)))
+        k, kd, ks = tk.tie_stiffness.numpy(), tk.tie_damping.numpy(), tk.string_stiffness.numpy()
+        c[..., CONSTANTS.index("string_tie_stiffness")] = k
+        c[..., CONSTANTS.index("string_tie_damping")] = kd
+        c[..., CONSTANTS.index("string_stiffness")] = ks
+        self.constants_dot.assign(c)
+        if len(m.spring_string):
+            worlds = m.puppet.spring_stiffness.shape[0] // len(m.spring_string)
+            rows = np.concatenate([w * m.strings_per_world + m.spring_string for w in range(worlds)])
+            self.puppet_control.spring_stiffness.assign(k[:, rows])
+            self.puppet_control.spring_damping.assign(kd[:, rows])
+        return {"string_tie_stiffness": tk.tie_stiffness, "string_stiffness": tk.string_stiffness}
+
     def step(self, state_in: MarionetteState, tangent_in: MarionetteTangentState, state_out: MarionetteState,
              tangent_out: MarionetteTangentState, control: MarionetteControl,
-             tangent_control: MarionetteControlTangent) -> None:
+             tangent_control: MarionetteControlTangent,
+             tangent_constants: MarionetteConstantsTangent | None = None) -> None:
         """One puppet step of the state and of its P tangents (``tangent_out`` other arrays than
-        ``tangent_in``)."""
+        ``tangent_in``); ``tangent_constants``: directions in the calibrated constants (None: zero)."""
         m, sv, ws, P = self.model, self.solver, self.workspace, self.direction_count
         dev = m.device
+        self._constants = self._spread_constants(tangent_constants)
         # ---- begin_step
         sv.eval_body_points(state_in, ws.points)
         self._predict(state_in, tangent_in, ws)
@@ -174,8 +217,7 @@ class MarionetteTangent:
                                   state_out.tie_force, ws.tie_q, ws.tie_qd, wp.float64(m.string_dt),
                                   ws.puppet_control.spring_anchor_pos, ws.puppet_control.spring_anchor_vel],
                                  {"tie_force": tangent_out.tie_force, "tie_q": self.tie_q, "tie_qd": self.tie_qd,
-                                  "string_tie_stiffness": self._zero_constant("string_tie_stiffness",
-                                                                              m.string_tie_stiffness),
+                                  "string_tie_stiffness": self._constant("string_tie_stiffness"),
                                   "spring_anchor_pos": self.puppet_control.spring_anchor_pos,
                                   "spring_anchor_vel": self.puppet_control.spring_anchor_vel}, dev)
         self.puppet.step(state_in.puppet, tangent_in.puppet, state_out.puppet, tangent_out.puppet,
@@ -198,7 +240,7 @@ class MarionetteTangent:
                  state_in.strings.particle_q, state_in.tie_force, hi, tw.body_wrench, tw.body_stiffness],
                 {**{k: tb[k] for k in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")},
                  "particle_q": tangent_in.particle_q, "tie_force": tangent_in.tie_force,
-                 **{k: self._zero_constant(k) for k in self._response.tangent_inputs if k.startswith("string_")}},
+                 **{k: self._constant(k) for k in self._response.tangent_inputs if k.startswith("string_")}},
                 m.device)
         pt.eval_contacts(tw, tb, hi)
         pt.solve_dynamics(puppet, tangent_in.puppet, ws.trial, self.trial, ws.puppet_control, self.puppet_control,
@@ -212,14 +254,16 @@ class MarionetteTangent:
                             {**{k: pb[k] for k in ("body_pos", "body_rot", "body_w", "body_v")},
                              "point_pos": self.trial_point_q, "point_vel": self.trial_point_qd}, m.device)
 
-    def _zero_constant(self, name: str, array: wp.array | None = None) -> wp.array:
-        """A zero tangent of a string constant (``model.strings``' array of that name, or ``array``):
-        constants are constants of this JVP."""
-        a = getattr(self.model.strings, name) if array is None else array
-        key = (name, a.shape, a.dtype)
-        if key not in self._zeros:
-            self._zeros[key] = wp.zeros((self.direction_count, *a.shape), dtype=a.dtype, device=self.model.device)
-        return self._zeros[key]
+    def _constant(self, name: str) -> wp.array:
+        """The tangent of string constant ``name`` in this step (zero unless a calibrated one is moved)."""
+        return self._constants[name] if name in self._constants else self._zero_constant(name)
+
+    def _zero_constant(self, name: str) -> wp.array:
+        """A zero tangent of the string constant ``name`` (``model.strings``' array)."""
+        a = getattr(self.model.strings, name)
+        if name not in self._zeros:
+            self._zeros[name] = wp.zeros((self.direction_count, *a.shape), dtype=a.dtype, device=self.model.device)
+        return self._zeros[name]
 
     def _eval_feedback(self, strings, q_dot, qd_dot, control, tc: MarionetteControlTangent, state_out,
                        tangent_out: MarionetteTangentState, j: int) -> None:
@@ -234,5 +278,5 @@ class MarionetteTangent:
              state_out.bar_feedback[j], state_out.bar_reaction[j]],
             {"particle_q": q_dot, "particle_qd": qd_dot, "bar_q": tc.bar_q[:, j], "bar_qd": tc.bar_qd[:, j],
              "bar_feedback": tangent_out.bar_feedback[:, j], "bar_reaction": tangent_out.bar_reaction[:, j],
-             **{k: self._zero_constant(k) for k in self._feedback.tangent_inputs if k.startswith("string_")}},
+             **{k: self._constant(k) for k in self._feedback.tangent_inputs if k.startswith("string_")}},
             m.device)

@@ -5,7 +5,8 @@ ground contact, joint limits, bar feedback).
 
 Directions in every input the tangent takes: the initial state (the puppet's ``joint_q``,
 ``joint_qd``; the strings' particles; the previous step's tie forces; the tie target) and each
-step's control (tops, bar proxies). Outputs: the final state and the last step's bar feedback
+step's control (tops, bar proxies), and the calibrated constants (each string's tie ``k``,
+``k_d`` and segment stiffness ``k_s``). Outputs: the final state and the last step's bar feedback
 and reaction. Tolerance: 1e-10 of the sum of the terms' magnitudes, as the kernels' and the
 puppet rollout's tests (measured: ~1e-15; a wrong or missing term of any pass is far above it).
 """
@@ -63,10 +64,17 @@ def test_marionette_step_jvp_matches_reverse_mode():
         for n in CONTROL:
             v[(n, i)] = _direction(getattr(tc, n), rng, 1e-3)
 
+    tk = jvp.constants_tangent()  # the calibrated constants, at 1e-3 of their values
+    s = model.strings
+    for n, values in (("tie_stiffness", s.string_tie_stiffness), ("tie_damping", s.string_tie_damping),
+                      ("string_stiffness", s.string_stiffness)):
+        v[n] = rng.normal(size=(P, s.string_count, 1)) * 1e-3 * values.numpy()[None, :, None]
+        getattr(tk, n).assign(v[n][..., 0])
+
     states = [s0] + [MarionetteState(model) for _ in range(STEPS)]
     tangents = [t0] + [jvp.tangent_state() for _ in range(STEPS)]
     for i in range(STEPS):
-        jvp.step(states[i], tangents[i], states[i + 1], tangents[i + 1], controls[i], tcs[i])
+        jvp.step(states[i], tangents[i], states[i + 1], tangents[i + 1], controls[i], tcs[i], tk)
 
     taped = [s0] + [MarionetteState(model, requires_grad=True) for _ in range(STEPS)]
     tape = wp.Tape()
@@ -89,6 +97,13 @@ def test_marionette_step_jvp_matches_reverse_mode():
          "particle_q": _numpy(s0.strings.particle_q.grad), "particle_qd": _numpy(s0.strings.particle_qd.grad),
          "tie_force": _numpy(s0.tie_force.grad), "tie_target": _numpy(s0.tie_target.grad),
          **{(n, i): _numpy(getattr(controls[i], n).grad) for n in CONTROL for i in range(STEPS)}}
+    # k and k_d act on both sides: the strings' arrays and the puppet's springs (one per tied string)
+    pup = model.puppet
+    g["tie_stiffness"] = _numpy(s.string_tie_stiffness.grad).copy()
+    g["tie_damping"] = _numpy(s.string_tie_damping.grad).copy()
+    np.add.at(g["tie_stiffness"], model.spring_string, _numpy(pup.spring_stiffness.grad))
+    np.add.at(g["tie_damping"], model.spring_string, _numpy(pup.spring_damping.grad))
+    g["string_stiffness"] = _numpy(s.string_stiffness.grad)
     for p in range(P):
         terms_f = np.concatenate([(u[n] * _numpy(t)[p]).ravel() for n, (_, t) in outputs.items()])
         terms_r = np.concatenate([(g[k] * v[k][p]).ravel() for k in g])
