@@ -84,7 +84,8 @@ class PuppetStepTangent:
         self.kernels = build_articulation_tangent_kernels(m.topology, optimization_level)
         self.workspace = m.workspace(world_count)
         self.tan_body = self.body_tangents()
-        self.tan_spring_force = wp.zeros((self.direction_count, self.world_count, max(m.spring_count, 1)), dtype=wp.vec3d, device=m.device)
+        self.tan_spring_force = wp.zeros((self.direction_count, self.world_count, max(m.spring_count, 1)),
+                                         dtype=wp.vec3d, device=m.device)
         self._forces = tangent_kernel(eval_body_external_forces)
         self._springs = tangent_kernel(eval_body_point_springs)
         contacts = solver.contacts

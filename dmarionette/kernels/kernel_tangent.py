@@ -463,8 +463,8 @@ class _Transform:
                 _fail(self.where, node, "a function of several results in an expression")
             atoms = [self.atom(a, indent) for a in node.args]
             res = self.temp()
-            self.emit(f"{res}, {self.tan(res)} = {name}({', '.join([a for a, _ in atoms] + [t for _, t in atoms if t])})",
-                      indent)
+            call = ", ".join([a for a, _ in atoms] + [t for _, t in atoms if t])
+            self.emit(f"{res}, {self.tan(res)} = {name}({call})", indent)
             return res, self.tan(res)
         atoms = [self.atom(a, indent) for a in node.args]
         args = [a for a, _ in atoms]

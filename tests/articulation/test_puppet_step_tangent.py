@@ -49,7 +49,8 @@ def test_puppet_rollout_jvp_with_springs_and_contact(smooth):
     S, B = m.spring_count, m.body_count
     control = m.control(WORLDS, requires_grad=True)
     values = {"joint_f": 0.02 * rng.normal(size=(WORLDS, m.qd_count)),
-              "body_force": 0.1 * rng.normal(size=(WORLDS, B, 3)), "body_torque": 0.01 * rng.normal(size=(WORLDS, B, 3)),
+              "body_force": 0.1 * rng.normal(size=(WORLDS, B, 3)),
+              "body_torque": 0.01 * rng.normal(size=(WORLDS, B, 3)),
               "spring_anchor_pos": np.array([[0.0, 0.62, 0.02], [0.12, 0.3, 0.05]])[None].repeat(WORLDS, 0),
               "spring_anchor_vel": 0.1 * rng.normal(size=(WORLDS, S, 3))}
     for n, v in values.items():

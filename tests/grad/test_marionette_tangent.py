@@ -82,7 +82,8 @@ def test_marionette_step_jvp_matches_reverse_mode():
         for i in range(STEPS):
             solver.step(taped[i], taped[i + 1], controls[i], tape=tape, workspace=solver.new_workspace())
     end, tend = taped[-1], tangents[-1]
-    outputs = {"joint_q": (end.puppet.joint_q, tend.puppet.joint_q), "joint_qd": (end.puppet.joint_qd, tend.puppet.joint_qd),
+    outputs = {"joint_q": (end.puppet.joint_q, tend.puppet.joint_q),
+               "joint_qd": (end.puppet.joint_qd, tend.puppet.joint_qd),
                "particle_q": (end.strings.particle_q, tend.particle_q),
                "particle_qd": (end.strings.particle_qd, tend.particle_qd),
                **{n: (getattr(end, n), getattr(tend, n)) for n in ("tie_force", "tie_target", "bar_feedback",

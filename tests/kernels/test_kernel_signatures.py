@@ -231,7 +231,8 @@ def test_generated_kernel_tangents_are_clean(tmp_path, monkeypatch):
 
     from dmarionette.kernels.body_contact import ContactSet, ContactSettings
 
-    model = SimpleNamespace(device="cpu", contacts=ContactSettings(ground=True, chair=((0, 0, 0), (1, 1, 1)), ball=True),
+    contacts = ContactSettings(ground=True, chair=((0, 0, 0), (1, 1, 1)), ball=True)
+    model = SimpleNamespace(device="cpu", contacts=contacts,
                             body_shape=[("box", (0.2, 0.2, 0.2)), ("sphere", (0.1,))], body_contact=[True, True],
                             body_mass=wp.array([1.0, 0.3], dtype=wp.float64, device="cpu"),
                             body_names=["torso", "ball"], ball=SimpleNamespace(radius=0.1))
