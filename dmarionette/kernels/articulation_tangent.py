@@ -72,14 +72,12 @@ Anything else (another statement kind, operator or function, keyword arguments, 
 active index, ``wp.float64(...)`` of an active value) raises
 :class:`TangentError` naming the construct: no term is ever dropped silently.
 
-Not covered: body contact (``kernels/body_contact.py``), the point springs and external
-forces (``kernels/articulation_forces.py``), the string-body coupling and the bar
-feedback. They are hand-written Warp kernels with loops and branches, not SSA code; their
-tangents would need hand-written tangent kernels (or this transformer extended to
-``if``/``for`` with per-iteration tangents). Here the tangents of their outputs
-(``body_wrench``, ``body_stiffness``) are inputs of the dynamics tangent
-(:class:`~dmarionette.articulation.tangent.ArticulationTangent` refuses models and
-controls that need them).
+The hand-written kernels of a puppet step (body contact, the point springs and external
+forces) and of the coupling and the feedback have loops and branches, not SSA code: their
+tangents come from the interleaved transformer of :mod:`dmarionette.kernels.kernel_tangent`
+(a thread per direction). Here the tangents of their outputs (``body_wrench``,
+``body_stiffness``) are inputs of the dynamics tangent; the whole puppet step is
+:class:`~dmarionette.articulation.step_tangent.PuppetStepTangent`.
 """
 
 from __future__ import annotations
