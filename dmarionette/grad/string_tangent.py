@@ -30,13 +30,14 @@ import warp as wp
 
 from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
-from dmarionette.kernels.string_step_tangent import (CONSTANTS, string_step_tangent_kernel,
+from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, string_step_tangent_kernel,
                                                      unpack_lane_factorisation_kernel)
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
 
-__all__ = ["CONSTANTS", "StringRolloutTangent", "StringStepTangent", "StringTangentInputs", "StringTangentResult"]
+__all__ = ["CONSTANTS", "DIRECTION_LANES", "StringRolloutTangent", "StringStepTangent", "StringTangentInputs",
+           "StringTangentResult"]
 
 
 class StringStepTangent:
@@ -45,9 +46,12 @@ class StringStepTangent:
     Args:
         solver: the stepper (printed springs; its effects choose the kernels).
         directions: the number of tangent directions ``P``.
+        lanes: the tangent kernel with ``DIRECTION_LANES`` directions in SIMD lanes
+            (``kernels/tangent_directions``; float64 on the CPU, where it is the default; the same
+            tangents to rounding), else one direction at a time.
     """
 
-    def __init__(self, solver: SolverStringImplicit, directions: int):
+    def __init__(self, solver: SolverStringImplicit, directions: int, lanes: bool | None = None):
         model = solver.model
         if model.effects.tension_only:
             raise NotImplementedError("string tangents: tension-only springs (StringEffects.tension_only) have no "
@@ -57,7 +61,12 @@ class StringStepTangent:
         self.solver = solver
         self.model: StringModel = model
         self.directions = int(directions)
-        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple())
+        supported = model.scalar is wp.float64 and model.device.is_cpu
+        if lanes and not supported:
+            raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
+        self.lanes = supported if lanes is None else bool(lanes)
+        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(),
+                                                 DIRECTION_LANES if self.lanes else 1)
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
         self._unpack = unpack_lane_factorisation_kernel(LANES) if solver.lanes else None
 
@@ -166,10 +175,12 @@ class StringRolloutTangent:
         dt: string step [s].
         directions: the number of tangent directions ``P``.
         chunk_steps: steps per captured graph (``T`` must be a multiple).
+        lanes: the tangent directions in SIMD lanes (:class:`StringStepTangent`; default: where supported).
     """
 
-    def __init__(self, solver: SolverStringImplicit, dt: float, directions: int, chunk_steps: int = 50):
-        self.stepper = StringStepTangent(solver, directions)
+    def __init__(self, solver: SolverStringImplicit, dt: float, directions: int, chunk_steps: int = 50,
+                 lanes: bool | None = None):
+        self.stepper = StringStepTangent(solver, directions, lanes)
         m = self.model = solver.model
         self.dt = float(dt)
         self.directions = int(directions)

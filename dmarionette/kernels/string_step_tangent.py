@@ -53,8 +53,12 @@ import functools
 import warp as wp
 
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
+from .tangent_directions import tangent_directions
 
-__all__ = ["CONSTANTS", "string_step_tangent_kernel", "unpack_lane_factorisation_kernel"]
+__all__ = ["CONSTANTS", "DIRECTION_LANES", "string_step_tangent_kernel", "unpack_lane_factorisation_kernel"]
+
+# Tangent directions per SIMD lane vector with ``lanes`` (4 doubles: one AVX2 register).
+DIRECTION_LANES = 4
 
 # The per-string constants whose tangents the kernel reads, in the order of its ``string_constants_dot``.
 CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction", "string_air_drag",
@@ -63,14 +67,20 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 
 
 @functools.cache
-def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool]):
-    """Builds ``integrate_string_implicit_tangent`` for a float type and an effect set
-    (``effects`` as ``integrate_string_implicit_kernel``'s), printed springs."""
+def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1):
+    """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
+    ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
+    any float type and device; 4: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
+    printed springs."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
-    spring = string_spring_tangent_functions(scalar)
+    t = tangent_directions(scalar, lanes)
+    TS, TV, STEP = t.TS, t.TV, t.step
+    load, load_constant, load3, store3, outer, dot, tvec = (t.load, t.load_constant, t.load3, t.store3, t.outer,
+                                                            t.dot, t.tvec)
+    spring = string_spring_tangent_functions(scalar, lanes)
     compute_spring_tangent = spring.compute_spring_tangent
     k_product = spring.compute_jacobian_product
     k_tangent_product = spring.compute_jacobian_tangent_product
@@ -189,26 +199,28 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             k_y = zero
             if below:
                 k_y = -ground_stiffness
-            for k in range(directions):
-                stiffness_dot = string_constants_dot[k, s, 0]
-                rest_dot = string_constants_dot[k, s, 1]
-                mass_dot = particle_mass_dot[k, p]
-                x_dot = particle_q_dot[k, p]
-                v_dot = particle_qd_dot[k, p]
-                v_prev_dot = particle_qd_dot[k, p - 1]
+            for k in range(0, directions, STEP):
+                stiffness_dot = load_constant(string_constants_dot, k, directions, s, 0)
+                rest_dot = load_constant(string_constants_dot, k, directions, s, 1)
+                mass_dot = load(particle_mass_dot, k, directions, p)
+                x_dot = load3(particle_q_dot, k, directions, p)
+                v_dot = load3(particle_qd_dot, k, directions, p)
+                v_prev_dot = load3(particle_qd_dot, k, directions, p - 1)
                 u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
-                    u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length, particle_q_dot[k, p - 1] - x_dot,
+                    u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length,
+                    load3(particle_q_dot, k, directions, p - 1) - x_dot,
                     stiffness_dot, rest_dot)
                 force_dot = -f_a_dot
                 w_prev_dot = h2 * (v_dot - v_prev_dot)
                 if j == 1:
-                    w_prev_dot = h2 * v_dot - dt * (top_q_dot[k, s] - particle_q_dot[k, start])
+                    w_prev_dot = h2 * v_dot - dt * (load3(top_q_dot, k, directions, s)
+                                                    - load3(particle_q_dot, k, directions, start))
                 r = k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_prev) + k_product(
                     u_a, alpha_a, beta_a, w_prev_dot)
-                v_next_dot = vec3(zero)
+                v_next_dot = TV(zero)
                 if not is_last:
-                    x_next_dot = particle_q_dot[k, p + 1]
-                    v_next_dot = particle_qd_dot[k, p + 1]
+                    x_next_dot = load3(particle_q_dot, k, directions, p + 1)
+                    v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
                     u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
                         u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, x_dot - x_next_dot, stiffness_dot,
                         rest_dot)
@@ -217,96 +229,108 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                         u_b, alpha_b, beta_b, h2 * (v_dot - v_next_dot))
                 # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
                 # diag(k_c, k_c + k_y, k_c); their tangents.
-                d_xz_dot = zero
-                k_c_dot = zero
-                k_y_dot = zero
+                d_xz_dot = TS(zero)
+                k_c_dot = TS(zero)
+                k_y_dot = TS(zero)
                 if wp.static(FRICTION):
                     # f = -k_f (v - v_prev) (- k_f (v - v_next)); D = -k_f I each; the off-diagonal blocks' -h k_f I.
-                    friction_dot = string_constants_dot[k, s, 2]
-                    force_dot = force_dot - friction_dot * (v - v_prev) - friction * (v_dot - v_prev_dot)
+                    friction_dot = load_constant(string_constants_dot, k, directions, s, 2)
+                    force_dot = force_dot - outer(v - v_prev, friction_dot) - friction * (v_dot - v_prev_dot)
                     d_xz_dot = d_xz_dot - friction_dot
                     if j == 1:  # rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top
-                        top_dv_dot = (top_q_dot[k, s] - particle_q_dot[k, start]) / dt - particle_qd_dot[k, start]
-                        r = r + dt * (friction_dot * top_dv + friction * top_dv_dot)
+                        top_dv_dot = ((load3(top_q_dot, k, directions, s) - load3(particle_q_dot, k, directions, start))
+                                      / dt - load3(particle_qd_dot, k, directions, start))
+                        r = r + dt * (outer(top_dv, friction_dot) + friction * top_dv_dot)
                     else:
-                        r = r + (dt * friction_dot) * particle_dv[p - 1]
+                        r = r + outer(particle_dv[p - 1], dt * friction_dot)
                     if not is_last:
-                        force_dot = force_dot - friction_dot * (v - v_next) - friction * (v_dot - v_next_dot)
+                        force_dot = force_dot - outer(v - v_next, friction_dot) - friction * (v_dot - v_next_dot)
                         d_xz_dot = d_xz_dot - friction_dot
-                        r = r + (dt * friction_dot) * dv_next
+                        r = r + outer(dv_next, dt * friction_dot)
                 if wp.static(GRAVITY):
-                    force_dot = force_dot + mass_dot * gravity
+                    force_dot = force_dot + outer(gravity, mass_dot)
                 if wp.static(AIR):
-                    air_dot = string_constants_dot[k, s, 3]
-                    force_dot = force_dot - air_dot * v - air_drag * v_dot
+                    air_dot = load_constant(string_constants_dot, k, directions, s, 3)
+                    force_dot = force_dot - outer(v, air_dot) - air_drag * v_dot
                     d_xz_dot = d_xz_dot - air_dot
                 d_y_dot = d_xz_dot
                 if wp.static(GROUND):
                     if below:
                         # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
-                        ground_stiffness_dot = string_constants_dot[k, s, 4]
-                        ground_absorption_dot = string_constants_dot[k, s, 5]
-                        force_dot = force_dot + vec3(
-                            zero, ground_stiffness_dot * (ground_height - x[1]) - ground_stiffness * x_dot[1]
-                            - ground_absorption_dot * v[1] - ground_absorption * v_dot[1], zero)
+                        ground_stiffness_dot = load_constant(string_constants_dot, k, directions, s, 4)
+                        ground_absorption_dot = load_constant(string_constants_dot, k, directions, s, 5)
+                        force_dot = force_dot + tvec(
+                            TS(zero), ground_stiffness_dot * (ground_height - x[1]) - ground_stiffness * x_dot[1]
+                            - ground_absorption_dot * v[1] - ground_absorption * v_dot[1], TS(zero))
                         k_y_dot = -ground_stiffness_dot
                         d_y_dot = d_y_dot - ground_absorption_dot
                         if wp.static(GROUND_FRICTION):
-                            ground_friction_dot = string_constants_dot[k, s, 6]
-                            force_dot = force_dot + vec3(-ground_friction_dot * v[0] - ground_friction * v_dot[0], zero,
+                            ground_friction_dot = load_constant(string_constants_dot, k, directions, s, 6)
+                            force_dot = force_dot + tvec(-ground_friction_dot * v[0] - ground_friction * v_dot[0],
+                                                         TS(zero),
                                                          -ground_friction_dot * v[2] - ground_friction * v_dot[2])
                             d_xz_dot = d_xz_dot - ground_friction_dot
                 if is_last:
                     # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;
                     # k_t = tied k, k_dt = tied k_d.
-                    tied_dot = string_constants_dot[k, s, 9]
-                    tie_stiffness_dot = tied_dot * string_tie_stiffness[s] + tied * string_constants_dot[k, s, 7]
-                    tie_damping_dot = tied_dot * string_tie_damping[s] + tied * string_constants_dot[k, s, 8]
-                    force_dot = (force_dot + tie_stiffness_dot * (tie_x - x) + tie_stiffness * (tie_q_dot[k, s] - x_dot)
-                                 + tie_damping_dot * (tie_v - v) + tie_damping * (tie_qd_dot[k, s] - v_dot))
+                    tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
+                    tie_stiffness_dot = (tied_dot * string_tie_stiffness[s]
+                                         + tied * load_constant(string_constants_dot, k, directions, s, 7))
+                    tie_damping_dot = (tied_dot * string_tie_damping[s]
+                                       + tied * load_constant(string_constants_dot, k, directions, s, 8))
+                    force_dot = (force_dot + outer(tie_x - x, tie_stiffness_dot)
+                                 + tie_stiffness * (load3(tie_q_dot, k, directions, s) - x_dot)
+                                 + outer(tie_v - v, tie_damping_dot)
+                                 + tie_damping * (load3(tie_qd_dot, k, directions, s) - v_dot))
                     k_c_dot = -tie_stiffness_dot
                     d_xz_dot = d_xz_dot - tie_damping_dot
                     d_y_dot = d_y_dot - tie_damping_dot
                 # a = M - h D - h^2 K on the diagonal; b's h f and h^2 K v0 of the diagonal terms.
                 a_xz_dot = mass_dot - dt * d_xz_dot - h2 * k_c_dot
                 a_y_dot = mass_dot - dt * d_y_dot - h2 * (k_c_dot + k_y_dot)
-                r = r + dt * force_dot + h2 * vec3(
+                r = r + dt * force_dot + h2 * tvec(
                     k_c_dot * v[0] + k_c * v_dot[0],
                     (k_c_dot + k_y_dot) * v[1] + (k_c + k_y) * v_dot[1],
-                    k_c_dot * v[2] + k_c * v_dot[2]) - vec3(a_xz_dot * dv[0], a_y_dot * dv[1], a_xz_dot * dv[2])
+                    k_c_dot * v[2] + k_c * v_dot[2]) - tvec(a_xz_dot * dv[0], a_y_dot * dv[1], a_xz_dot * dv[2])
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p} = h^2 K_a - h k_f I.
                 if j > 1:
-                    y_prev = particle_qd_out_dot[k, p - 1]
+                    y_prev = load3(particle_qd_out_dot, k, directions, p - 1)
                     r = r - (h2 * k_product(u_a, alpha_a, beta_a, y_prev) + g_upper * y_prev)
-                particle_qd_out_dot[k, p] = inv * r
+                store3(particle_qd_out_dot, k, directions, p, inv * r)
 
         # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
         for i in range(last - start - 1):
             p = last - 1 - i
             c = scratch_c[p]
-            for k in range(directions):
-                particle_qd_out_dot[k, p] = particle_qd_out_dot[k, p] - c * particle_qd_out_dot[k, p + 1]
+            for k in range(0, directions, STEP):
+                store3(particle_qd_out_dot, k, directions, p, load3(particle_qd_out_dot, k, directions, p)
+                       - c * load3(particle_qd_out_dot, k, directions, p + 1))
         # v1' = v0' + dv', x1' = x0' + h v1'; the top particle, x1' = top', v1' = (top' - x0_top') / h;
         # the tie force on the new state (eq. 2, ``string_integrate.compute_string_outputs``).
         tie_stiffness_k = string_tie_stiffness[s]
         tie_damping_k = string_tie_damping[s]
         x_last = particle_q_out[last]
         v_last = particle_qd_out[last]
-        for k in range(directions):
+        for k in range(0, directions, STEP):
             for p in range(start + 1, last + 1):
-                v1_dot = particle_qd_dot[k, p] + particle_qd_out_dot[k, p]
-                particle_qd_out_dot[k, p] = v1_dot
-                particle_q_out_dot[k, p] = particle_q_dot[k, p] + dt * v1_dot
-            top_dot = top_q_dot[k, s]
-            particle_q_out_dot[k, start] = top_dot
-            particle_qd_out_dot[k, start] = (top_dot - particle_q_dot[k, start]) / dt
-            tied_dot = string_constants_dot[k, s, 9]
-            tie_stiffness_dot = tied_dot * tie_stiffness_k + tied * string_constants_dot[k, s, 7]
-            tie_damping_dot = tied_dot * tie_damping_k + tied * string_constants_dot[k, s, 8]
-            tie_force_dot[k, s] = (-tie_stiffness_dot * (tie_x - x_last)
-                                   - tie_stiffness * (tie_q_dot[k, s] - particle_q_out_dot[k, last])
-                                   - tie_damping_dot * (tie_v - v_last)
-                                   - tie_damping * (tie_qd_dot[k, s] - particle_qd_out_dot[k, last]))
+                v1_dot = load3(particle_qd_dot, k, directions, p) + load3(particle_qd_out_dot, k, directions, p)
+                store3(particle_qd_out_dot, k, directions, p, v1_dot)
+                store3(particle_q_out_dot, k, directions, p, load3(particle_q_dot, k, directions, p) + dt * v1_dot)
+            top_dot = load3(top_q_dot, k, directions, s)
+            store3(particle_q_out_dot, k, directions, start, top_dot)
+            store3(particle_qd_out_dot, k, directions, start,
+                   (top_dot - load3(particle_q_dot, k, directions, start)) / dt)
+            tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
+            tie_stiffness_dot = (tied_dot * tie_stiffness_k
+                                 + tied * load_constant(string_constants_dot, k, directions, s, 7))
+            tie_damping_dot = tied_dot * tie_damping_k + tied * load_constant(string_constants_dot, k, directions, s, 8)
+            store3(tie_force_dot, k, directions, s,
+                   outer(tie_x - x_last, -tie_stiffness_dot)
+                   - tie_stiffness * (load3(tie_q_dot, k, directions, s)
+                                      - load3(particle_q_out_dot, k, directions, last))
+                   - outer(tie_v - v_last, tie_damping_dot)
+                   - tie_damping * (load3(tie_qd_dot, k, directions, s)
+                                    - load3(particle_qd_out_dot, k, directions, last)))
 
     return integrate_string_implicit_tangent
 
