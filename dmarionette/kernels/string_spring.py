@@ -268,6 +268,7 @@ def string_spring_tangent_functions(scalar, lanes: int = 1) -> SimpleNamespace:
     vec3 = wp.types.vector(3, scalar)
     t = tangent_directions(scalar, lanes)
     TS, TV, outer, dot = t.TS, t.TV, t.outer, t.dot
+    vadd, vsub, vscl, sadd, ssub, sneg, sscl = t.vadd, t.vsub, t.vscl, t.sadd, t.ssub, t.sneg, t.sscl
 
     @wp.func
     def compute_spring_tangent(u: vec3, length: scalar, inv_length: scalar, ratio: scalar, stiffness: scalar,
@@ -278,28 +279,30 @@ def string_spring_tangent_functions(scalar, lanes: int = 1) -> SimpleNamespace:
         one = scalar(1.0)
         geometric = wp.max(ratio, scalar(0.0))
         length_dot = dot(u, e_dot)
-        u_dot = (e_dot - outer(u, length_dot)) * inv_length
+        u_dot = vscl(inv_length, vsub(e_dot, outer(u, length_dot)))  # (e' - l' u) / l
         geometric_dot = TS(scalar(0.0))
-        if ratio > scalar(0.0):
-            geometric_dot = (rest_length * length_dot * inv_length - rest_length_dot) * inv_length
+        if ratio > scalar(0.0):  # (d l' / l - d') / l
+            geometric_dot = sscl(inv_length, ssub(sscl(inv_length, sscl(rest_length, length_dot)), rest_length_dot))
         stretch = length - rest_length
-        alpha_dot = -stiffness_dot * (one - geometric) + stiffness * geometric_dot
-        beta_dot = -stiffness_dot * geometric - stiffness * geometric_dot
-        f_dot = (outer(u, -(stiffness_dot * stretch + stiffness * (length_dot - rest_length_dot)))
-                 - (stiffness * stretch) * u_dot)
+        alpha_dot = sadd(sscl(-(one - geometric), stiffness_dot), sscl(stiffness, geometric_dot))
+        beta_dot = ssub(sscl(-geometric, stiffness_dot), sscl(stiffness, geometric_dot))
+        # f_a' = -(k_s' (l - d) + k_s (l' - d')) u - k_s (l - d) u'
+        f_dot = vsub(outer(u, sneg(sadd(sscl(stretch, stiffness_dot), sscl(stiffness, ssub(length_dot, rest_length_dot))))),
+                     vscl(stiffness * stretch, u_dot))
         return u_dot, alpha_dot, beta_dot, f_dot
 
     @wp.func
     def compute_jacobian_product(u: vec3, alpha: scalar, beta: scalar, r: TV):
         """``K r = alpha u (u . r) + beta r``."""
-        return outer(u, alpha * dot(u, r)) + beta * r
+        return vadd(outer(u, sscl(alpha, dot(u, r))), vscl(beta, r))
 
     @wp.func
     def compute_jacobian_tangent_product(u: vec3, alpha: scalar, u_dot: TV, alpha_dot: TS, beta_dot: TS,
                                          r: vec3):
         """``K' r`` for a fixed ``r`` (the namespace's doc)."""
         ur = wp.dot(u, r)
-        return outer(u, alpha_dot * ur) + alpha * (ur * u_dot + outer(u, dot(r, u_dot))) + outer(r, beta_dot)
+        return vadd(vadd(outer(u, sscl(ur, alpha_dot)), vscl(alpha, vadd(vscl(ur, u_dot), outer(u, dot(r, u_dot))))),
+                    outer(r, beta_dot))
 
     return SimpleNamespace(compute_spring_tangent=compute_spring_tangent,
                            compute_jacobian_product=compute_jacobian_product,

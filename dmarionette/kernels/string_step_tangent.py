@@ -78,8 +78,9 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
     t = tangent_directions(scalar, lanes)
     TS, TV, STEP = t.TS, t.TV, t.step
-    load, load_constant, load3, store3, outer, dot, tvec = (t.load, t.load_constant, t.load3, t.store3, t.outer,
-                                                            t.dot, t.tvec)
+    load, load_constant, load3, store3 = t.load, t.load_constant, t.load3, t.store3
+    vadd, vsub, vneg, vscl, sadd, ssub, sneg, sscl = t.vadd, t.vsub, t.vneg, t.vscl, t.sadd, t.ssub, t.sneg, t.sscl
+    outer, dot, mat, tvec = t.outer, t.dot, t.mat, t.tvec
     spring = string_spring_tangent_functions(scalar, lanes)
     compute_spring_tangent = spring.compute_spring_tangent
     k_product = spring.compute_jacobian_product
@@ -150,6 +151,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_dx = top - particle_q[start]
         top_dv = top_dx / dt - particle_qd[start]
         g_upper = zero  # the friction's part of A_{p,p+1}: h D = -h k_f I
+        inv_dt = scalar(1.0) / dt  # (a product per direction, not a division: not the forward's rounding)
         if wp.static(FRICTION):
             g_upper = -dt * friction
 
@@ -208,25 +210,25 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 v_prev_dot = load3(particle_qd_dot, k, directions, p - 1)
                 u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
                     u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length,
-                    load3(particle_q_dot, k, directions, p - 1) - x_dot,
-                    stiffness_dot, rest_dot)
-                force_dot = -f_a_dot
-                w_prev_dot = h2 * (v_dot - v_prev_dot)
-                if j == 1:
-                    w_prev_dot = h2 * v_dot - dt * (load3(top_q_dot, k, directions, s)
-                                                    - load3(particle_q_dot, k, directions, start))
-                r = k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_prev) + k_product(
-                    u_a, alpha_a, beta_a, w_prev_dot)
+                    vsub(load3(particle_q_dot, k, directions, p - 1), x_dot), stiffness_dot, rest_dot)
+                force_dot = vneg(f_a_dot)
+                w_prev_dot = vscl(h2, vsub(v_dot, v_prev_dot))
+                top_dx_dot = TV(zero)
+                if j == 1:  # top_dx' = top' - x0_top'
+                    top_dx_dot = vsub(load3(top_q_dot, k, directions, s), load3(particle_q_dot, k, directions, start))
+                    w_prev_dot = vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot))
+                r = vadd(k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_prev),
+                         k_product(u_a, alpha_a, beta_a, w_prev_dot))
                 v_next_dot = TV(zero)
                 if not is_last:
                     x_next_dot = load3(particle_q_dot, k, directions, p + 1)
                     v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
                     u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
-                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, x_dot - x_next_dot, stiffness_dot,
+                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, vsub(x_dot, x_next_dot), stiffness_dot,
                         rest_dot)
-                    force_dot = force_dot + f_b_dot
-                    r = r + k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next) + k_product(
-                        u_b, alpha_b, beta_b, h2 * (v_dot - v_next_dot))
+                    force_dot = vadd(force_dot, f_b_dot)
+                    r = vadd(vadd(r, k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next)),
+                             k_product(u_b, alpha_b, beta_b, vscl(h2, vsub(v_dot, v_next_dot))))
                 # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
                 # diag(k_c, k_c + k_y, k_c); their tangents.
                 d_xz_dot = TS(zero)
@@ -235,76 +237,80 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 if wp.static(FRICTION):
                     # f = -k_f (v - v_prev) (- k_f (v - v_next)); D = -k_f I each; the off-diagonal blocks' -h k_f I.
                     friction_dot = load_constant(string_constants_dot, k, directions, s, 2)
-                    force_dot = force_dot - outer(v - v_prev, friction_dot) - friction * (v_dot - v_prev_dot)
-                    d_xz_dot = d_xz_dot - friction_dot
+                    force_dot = vsub(vsub(force_dot, outer(v - v_prev, friction_dot)),
+                                     vscl(friction, vsub(v_dot, v_prev_dot)))
+                    d_xz_dot = ssub(d_xz_dot, friction_dot)
                     if j == 1:  # rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top
-                        top_dv_dot = ((load3(top_q_dot, k, directions, s) - load3(particle_q_dot, k, directions, start))
-                                      / dt - load3(particle_qd_dot, k, directions, start))
-                        r = r + dt * (outer(top_dv, friction_dot) + friction * top_dv_dot)
+                        top_dv_dot = vsub(vscl(inv_dt, top_dx_dot), load3(particle_qd_dot, k, directions, start))
+                        r = vadd(r, vscl(dt, vadd(outer(top_dv, friction_dot), vscl(friction, top_dv_dot))))
                     else:
-                        r = r + outer(particle_dv[p - 1], dt * friction_dot)
+                        r = vadd(r, outer(particle_dv[p - 1], sscl(dt, friction_dot)))
                     if not is_last:
-                        force_dot = force_dot - outer(v - v_next, friction_dot) - friction * (v_dot - v_next_dot)
-                        d_xz_dot = d_xz_dot - friction_dot
-                        r = r + outer(dv_next, dt * friction_dot)
+                        force_dot = vsub(vsub(force_dot, outer(v - v_next, friction_dot)),
+                                         vscl(friction, vsub(v_dot, v_next_dot)))
+                        d_xz_dot = ssub(d_xz_dot, friction_dot)
+                        r = vadd(r, outer(dv_next, sscl(dt, friction_dot)))
                 if wp.static(GRAVITY):
-                    force_dot = force_dot + outer(gravity, mass_dot)
+                    force_dot = vadd(force_dot, outer(gravity, mass_dot))
                 if wp.static(AIR):
                     air_dot = load_constant(string_constants_dot, k, directions, s, 3)
-                    force_dot = force_dot - outer(v, air_dot) - air_drag * v_dot
-                    d_xz_dot = d_xz_dot - air_dot
+                    force_dot = vsub(vsub(force_dot, outer(v, air_dot)), vscl(air_drag, v_dot))
+                    d_xz_dot = ssub(d_xz_dot, air_dot)
                 d_y_dot = d_xz_dot
                 if wp.static(GROUND):
                     if below:
                         # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
                         ground_stiffness_dot = load_constant(string_constants_dot, k, directions, s, 4)
                         ground_absorption_dot = load_constant(string_constants_dot, k, directions, s, 5)
-                        force_dot = force_dot + tvec(
-                            TS(zero), ground_stiffness_dot * (ground_height - x[1]) - ground_stiffness * x_dot[1]
-                            - ground_absorption_dot * v[1] - ground_absorption * v_dot[1], TS(zero))
-                        k_y_dot = -ground_stiffness_dot
-                        d_y_dot = d_y_dot - ground_absorption_dot
+                        force_dot = vadd(force_dot, tvec(TS(zero), ssub(ssub(ssub(
+                            sscl(ground_height - x[1], ground_stiffness_dot), sscl(ground_stiffness, x_dot[1])),
+                            sscl(v[1], ground_absorption_dot)), sscl(ground_absorption, v_dot[1])), TS(zero)))
+                        k_y_dot = sneg(ground_stiffness_dot)
+                        d_y_dot = ssub(d_y_dot, ground_absorption_dot)
                         if wp.static(GROUND_FRICTION):
                             ground_friction_dot = load_constant(string_constants_dot, k, directions, s, 6)
-                            force_dot = force_dot + tvec(-ground_friction_dot * v[0] - ground_friction * v_dot[0],
-                                                         TS(zero),
-                                                         -ground_friction_dot * v[2] - ground_friction * v_dot[2])
-                            d_xz_dot = d_xz_dot - ground_friction_dot
+                            force_dot = vadd(force_dot, tvec(
+                                ssub(sscl(-v[0], ground_friction_dot), sscl(ground_friction, v_dot[0])), TS(zero),
+                                ssub(sscl(-v[2], ground_friction_dot), sscl(ground_friction, v_dot[2]))))
+                            d_xz_dot = ssub(d_xz_dot, ground_friction_dot)
                 if is_last:
                     # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;
                     # k_t = tied k, k_dt = tied k_d.
                     tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
-                    tie_stiffness_dot = (tied_dot * string_tie_stiffness[s]
-                                         + tied * load_constant(string_constants_dot, k, directions, s, 7))
-                    tie_damping_dot = (tied_dot * string_tie_damping[s]
-                                       + tied * load_constant(string_constants_dot, k, directions, s, 8))
-                    force_dot = (force_dot + outer(tie_x - x, tie_stiffness_dot)
-                                 + tie_stiffness * (load3(tie_q_dot, k, directions, s) - x_dot)
-                                 + outer(tie_v - v, tie_damping_dot)
-                                 + tie_damping * (load3(tie_qd_dot, k, directions, s) - v_dot))
-                    k_c_dot = -tie_stiffness_dot
-                    d_xz_dot = d_xz_dot - tie_damping_dot
-                    d_y_dot = d_y_dot - tie_damping_dot
+                    tie_stiffness_dot = sadd(sscl(string_tie_stiffness[s], tied_dot),
+                                             sscl(tied, load_constant(string_constants_dot, k, directions, s, 7)))
+                    tie_damping_dot = sadd(sscl(string_tie_damping[s], tied_dot),
+                                           sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
+                    force_dot = vadd(vadd(vadd(vadd(
+                        force_dot, outer(tie_x - x, tie_stiffness_dot)),
+                        vscl(tie_stiffness, vsub(load3(tie_q_dot, k, directions, s), x_dot))),
+                        outer(tie_v - v, tie_damping_dot)),
+                        vscl(tie_damping, vsub(load3(tie_qd_dot, k, directions, s), v_dot)))
+                    k_c_dot = sneg(tie_stiffness_dot)
+                    d_xz_dot = ssub(d_xz_dot, tie_damping_dot)
+                    d_y_dot = ssub(d_y_dot, tie_damping_dot)
                 # a = M - h D - h^2 K on the diagonal; b's h f and h^2 K v0 of the diagonal terms.
-                a_xz_dot = mass_dot - dt * d_xz_dot - h2 * k_c_dot
-                a_y_dot = mass_dot - dt * d_y_dot - h2 * (k_c_dot + k_y_dot)
-                r = r + dt * force_dot + h2 * tvec(
-                    k_c_dot * v[0] + k_c * v_dot[0],
-                    (k_c_dot + k_y_dot) * v[1] + (k_c + k_y) * v_dot[1],
-                    k_c_dot * v[2] + k_c * v_dot[2]) - tvec(a_xz_dot * dv[0], a_y_dot * dv[1], a_xz_dot * dv[2])
+                a_xz_dot = ssub(ssub(mass_dot, sscl(dt, d_xz_dot)), sscl(h2, k_c_dot))
+                k_cy_dot = sadd(k_c_dot, k_y_dot)
+                a_y_dot = ssub(ssub(mass_dot, sscl(dt, d_y_dot)), sscl(h2, k_cy_dot))
+                r = vsub(vadd(vadd(r, vscl(dt, force_dot)), vscl(h2, tvec(
+                    sadd(sscl(v[0], k_c_dot), sscl(k_c, v_dot[0])),
+                    sadd(sscl(v[1], k_cy_dot), sscl(k_c + k_y, v_dot[1])),
+                    sadd(sscl(v[2], k_c_dot), sscl(k_c, v_dot[2]))))),
+                    tvec(sscl(dv[0], a_xz_dot), sscl(dv[1], a_y_dot), sscl(dv[2], a_xz_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p} = h^2 K_a - h k_f I.
                 if j > 1:
                     y_prev = load3(particle_qd_out_dot, k, directions, p - 1)
-                    r = r - (h2 * k_product(u_a, alpha_a, beta_a, y_prev) + g_upper * y_prev)
-                store3(particle_qd_out_dot, k, directions, p, inv * r)
+                    r = vsub(r, vadd(vscl(h2, k_product(u_a, alpha_a, beta_a, y_prev)), vscl(g_upper, y_prev)))
+                store3(particle_qd_out_dot, k, directions, p, mat(inv, r))
 
         # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
         for i in range(last - start - 1):
             p = last - 1 - i
             c = scratch_c[p]
             for k in range(0, directions, STEP):
-                store3(particle_qd_out_dot, k, directions, p, load3(particle_qd_out_dot, k, directions, p)
-                       - c * load3(particle_qd_out_dot, k, directions, p + 1))
+                store3(particle_qd_out_dot, k, directions, p, vsub(load3(particle_qd_out_dot, k, directions, p),
+                                                                  mat(c, load3(particle_qd_out_dot, k, directions, p + 1))))
         # v1' = v0' + dv', x1' = x0' + h v1'; the top particle, x1' = top', v1' = (top' - x0_top') / h;
         # the tie force on the new state (eq. 2, ``string_integrate.compute_string_outputs``).
         tie_stiffness_k = string_tie_stiffness[s]
@@ -313,24 +319,27 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         v_last = particle_qd_out[last]
         for k in range(0, directions, STEP):
             for p in range(start + 1, last + 1):
-                v1_dot = load3(particle_qd_dot, k, directions, p) + load3(particle_qd_out_dot, k, directions, p)
+                v1_dot = vadd(load3(particle_qd_dot, k, directions, p), load3(particle_qd_out_dot, k, directions, p))
                 store3(particle_qd_out_dot, k, directions, p, v1_dot)
-                store3(particle_q_out_dot, k, directions, p, load3(particle_q_dot, k, directions, p) + dt * v1_dot)
+                store3(particle_q_out_dot, k, directions, p, vadd(load3(particle_q_dot, k, directions, p),
+                                                                 vscl(dt, v1_dot)))
             top_dot = load3(top_q_dot, k, directions, s)
             store3(particle_q_out_dot, k, directions, start, top_dot)
             store3(particle_qd_out_dot, k, directions, start,
-                   (top_dot - load3(particle_q_dot, k, directions, start)) / dt)
+                   vscl(inv_dt, vsub(top_dot, load3(particle_q_dot, k, directions, start))))
             tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
-            tie_stiffness_dot = (tied_dot * tie_stiffness_k
-                                 + tied * load_constant(string_constants_dot, k, directions, s, 7))
-            tie_damping_dot = tied_dot * tie_damping_k + tied * load_constant(string_constants_dot, k, directions, s, 8)
-            store3(tie_force_dot, k, directions, s,
-                   outer(tie_x - x_last, -tie_stiffness_dot)
-                   - tie_stiffness * (load3(tie_q_dot, k, directions, s)
-                                      - load3(particle_q_out_dot, k, directions, last))
-                   - outer(tie_v - v_last, tie_damping_dot)
-                   - tie_damping * (load3(tie_qd_dot, k, directions, s)
-                                    - load3(particle_qd_out_dot, k, directions, last)))
+            tie_stiffness_dot = sadd(sscl(tie_stiffness_k, tied_dot),
+                                     sscl(tied, load_constant(string_constants_dot, k, directions, s, 7)))
+            tie_damping_dot = sadd(sscl(tie_damping_k, tied_dot),
+                                   sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
+            # F' = -k_t' (x_tie - x1) - k_t (x_tie' - x1') - k_dt' (v_tie - v1) - k_dt (v_tie' - v1')
+            store3(tie_force_dot, k, directions, s, vsub(vsub(vsub(
+                outer(tie_x - x_last, sneg(tie_stiffness_dot)),
+                vscl(tie_stiffness, vsub(load3(tie_q_dot, k, directions, s),
+                                         load3(particle_q_out_dot, k, directions, last)))),
+                outer(tie_v - v_last, tie_damping_dot)),
+                vscl(tie_damping, vsub(load3(tie_qd_dot, k, directions, s),
+                                       load3(particle_qd_out_dot, k, directions, last)))))
 
     return integrate_string_implicit_tangent
 

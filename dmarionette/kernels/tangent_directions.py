@@ -49,6 +49,7 @@ def tangent_directions(scalar, lanes: int = 1) -> SimpleNamespace:
 
 def _scalar_directions(scalar) -> SimpleNamespace:
     vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
 
     @wp.func
     def load(a: wp.array2d(dtype=scalar), k: int, directions: int, i: int):
@@ -67,6 +68,38 @@ def _scalar_directions(scalar) -> SimpleNamespace:
         a[k, i] = v
 
     @wp.func
+    def vadd(a: vec3, b: vec3):
+        return a + b
+
+    @wp.func
+    def vsub(a: vec3, b: vec3):
+        return a - b
+
+    @wp.func
+    def vneg(a: vec3):
+        return -a
+
+    @wp.func
+    def vscl(c: scalar, a: vec3):
+        return c * a
+
+    @wp.func
+    def sadd(a: scalar, b: scalar):
+        return a + b
+
+    @wp.func
+    def ssub(a: scalar, b: scalar):
+        return a - b
+
+    @wp.func
+    def sneg(a: scalar):
+        return -a
+
+    @wp.func
+    def sscl(c: scalar, a: scalar):
+        return c * a
+
+    @wp.func
     def outer(v: vec3, a: scalar):
         return a * v
 
@@ -75,11 +108,34 @@ def _scalar_directions(scalar) -> SimpleNamespace:
         return wp.dot(u, r)
 
     @wp.func
+    def mat(m: mat33, r: vec3):
+        return m * r
+
+    @wp.func
     def tvec(a: scalar, b: scalar, c: scalar):
         return vec3(a, b, c)
 
     return SimpleNamespace(TS=scalar, TV=vec3, step=1, load=load, load_constant=load_constant, load3=load3,
-                           store3=store3, outer=outer, dot=dot, tvec=tvec)
+                           store3=store3, vadd=vadd, vsub=vsub, vneg=vneg, vscl=vscl, sadd=sadd, ssub=ssub,
+                           sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat, tvec=tvec)
+
+
+# Clang vector snippets (``lane_ops``' style): a tangent scalar's K lanes, a tangent vector's three rows.
+_TYPES = """
+    typedef double lanes_t __attribute__((ext_vector_type({lanes})));
+    """
+_S_IN = "lanes_t {name}; __builtin_memcpy(&{name}, {arg}.c, sizeof({name}));\n"
+_S_OUT = """
+    wp::vec_t<{lanes}, wp::float64> ret;
+    __builtin_memcpy(ret.c, &z, sizeof(z));
+    return ret;
+    """
+_V_IN = "lanes_t {name}[3]; for (int i = 0; i < 3; ++i) __builtin_memcpy(&{name}[i], {arg}.data[i], sizeof(lanes_t));\n"
+_V_OUT = """
+    wp::mat_t<3, {lanes}, wp::float64> ret;
+    for (int i = 0; i < 3; ++i) __builtin_memcpy(ret.data[i], &z[i], sizeof(lanes_t));
+    return ret;
+    """
 
 
 def _lane_directions(lanes: int) -> SimpleNamespace:
@@ -88,6 +144,17 @@ def _lane_directions(lanes: int) -> SimpleNamespace:
     lvec = wp.types.matrix((3, lanes), f64)
     vec3 = wp.vec3d
     mem = native_direction_memory(lanes)
+    head = _TYPES.format(lanes=lanes)
+    s_out = _S_OUT.format(lanes=lanes)
+    v_out = _V_OUT.format(lanes=lanes)
+
+    def s_in(*args):
+        return "".join(_S_IN.format(name=n, arg=a) for n, a in args)
+
+    def v_in(*args):
+        return "".join(_V_IN.format(name=n, arg=a) for n, a in args)
+
+    rows = "lanes_t z[3]; for (int i = 0; i < 3; ++i) z[i] = {};\n"
 
     @wp.func
     def load(a: wp.array2d(dtype=f64), k: int, directions: int, i: int):
@@ -105,17 +172,55 @@ def _lane_directions(lanes: int) -> SimpleNamespace:
     def store3(a: wp.array2d(dtype=vec3), k: int, directions: int, i: int, v: lvec):
         mem.scatter3(a, k, directions, i, v)
 
-    @wp.func
-    def outer(v: vec3, a: lane):
-        return wp.outer(v, a)
+    @wp.func_native(head + v_in(("x", "a"), ("y", "b")) + rows.format("x[i] + y[i]") + v_out)
+    def vadd(a: lvec, b: lvec) -> lvec:
+        ...
 
-    @wp.func
-    def dot(u: vec3, r: lvec):
-        return u * r  # the row vector u^T times the 3 x K matrix
+    @wp.func_native(head + v_in(("x", "a"), ("y", "b")) + rows.format("x[i] - y[i]") + v_out)
+    def vsub(a: lvec, b: lvec) -> lvec:
+        ...
+
+    @wp.func_native(head + v_in(("x", "a")) + rows.format("-x[i]") + v_out)
+    def vneg(a: lvec) -> lvec:
+        ...
+
+    @wp.func_native(head + v_in(("x", "a")) + rows.format("c * x[i]") + v_out)
+    def vscl(c: f64, a: lvec) -> lvec:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a"), ("y", "b")) + "lanes_t z = x + y;" + s_out)
+    def sadd(a: lane, b: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a"), ("y", "b")) + "lanes_t z = x - y;" + s_out)
+    def ssub(a: lane, b: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a")) + "lanes_t z = -x;" + s_out)
+    def sneg(a: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a")) + "lanes_t z = c * x;" + s_out)
+    def sscl(c: f64, a: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a")) + rows.format("v.c[i] * x") + v_out)
+    def outer(v: vec3, a: lane) -> lvec:
+        ...
+
+    @wp.func_native(head + v_in(("x", "r")) + "lanes_t z = u.c[0] * x[0] + u.c[1] * x[1] + u.c[2] * x[2];" + s_out)
+    def dot(u: vec3, r: lvec) -> lane:
+        ...
+
+    @wp.func_native(head + v_in(("x", "r"))
+                    + rows.format("m.data[i][0] * x[0] + m.data[i][1] * x[1] + m.data[i][2] * x[2]") + v_out)
+    def mat(m: wp.mat33d, r: lvec) -> lvec:
+        ...
 
     @wp.func
     def tvec(a: lane, b: lane, c: lane):
         return wp.matrix_from_rows(a, b, c)
 
     return SimpleNamespace(TS=lane, TV=lvec, step=lanes, load=load, load_constant=load_constant, load3=load3,
-                           store3=store3, outer=outer, dot=dot, tvec=tvec)
+                           store3=store3, vadd=vadd, vsub=vsub, vneg=vneg, vscl=vscl, sadd=sadd, ssub=ssub,
+                           sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat, tvec=tvec)
