@@ -287,8 +287,8 @@ def string_spring_tangent_functions(scalar, lanes: int = 1) -> SimpleNamespace:
         alpha_dot = sadd(sscl(-(one - geometric), stiffness_dot), sscl(stiffness, geometric_dot))
         beta_dot = ssub(sscl(-geometric, stiffness_dot), sscl(stiffness, geometric_dot))
         # f_a' = -(k_s' (l - d) + k_s (l' - d')) u - k_s (l - d) u'
-        f_dot = vsub(outer(u, sneg(sadd(sscl(stretch, stiffness_dot), sscl(stiffness, ssub(length_dot, rest_length_dot))))),
-                     vscl(stiffness * stretch, u_dot))
+        force_scale_dot = sadd(sscl(stretch, stiffness_dot), sscl(stiffness, ssub(length_dot, rest_length_dot)))
+        f_dot = vsub(outer(u, sneg(force_scale_dot)), vscl(stiffness * stretch, u_dot))
         return u_dot, alpha_dot, beta_dot, f_dot
 
     @wp.func

@@ -31,16 +31,33 @@ Printed springs only: the tension-only springs' step (an active-set solve) has n
 Layout: one thread per string, ``dim = S``, looping over the P directions inside each row, so
 that the row's primal (both segments' spring parts, the branches, the pivot inverse) is evaluated
 once for all P (at P = 16 about 1.2-1.5x faster than a thread per (direction, string) recomputing
-it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The tangents have a leading direction axis
-(``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
-:data:`CONSTANTS` order). The spring parts are recomputed from the positions in each row (each
-segment twice, nothing stored by the forward beyond its factorisation and ``dv``); a segment's
-tangent likewise, once per direction and row. The forward substitution's ``y`` is kept in
-``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution, then ``v1'``.
-Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, at P = 16 on a
-loaded 2-core machine): a direction costs 0.6-0.9x a scalar one-launch step, 1.2-1.8x the laned
-step (the default plain step), short of the issue's 0.5x: the tangent is scalar float64 code (no
-SIMD lanes across directions), and each row's primal costs about as much again at P = 1.
+it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The tangents have a
+leading direction axis (``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants
+``(P, string_count, 10)`` in :data:`CONSTANTS` order). The spring parts are recomputed from the
+positions in each row (each segment twice, nothing stored by the forward beyond its factorisation
+and ``dv``); a segment's tangent likewise, once per direction and row. The forward substitution's
+``y`` is kept in ``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution,
+then ``v1'``.
+
+Directions in SIMD lanes (``lanes = DIRECTION_LANES``, float64 on the CPU, the default of
+``grad.string_tangent``): the same body on ``tangent_directions``' values, each direction loop
+stepping by 4 directions, a tangent scalar a lane vector and a tangent vector a ``3 x 4`` lane
+matrix (Clang vector snippets: packed AVX2 instructions), the primal values scalars as before;
+P is padded up to a multiple of 4 (the padding lanes repeat the last direction and write
+nothing). The body is written with the namespace's functions (``vadd``, ``vscl``, ``outer``,
+...) rather than Warp's operators, so that both layouts share it; each is the scalar operation
+it stands for, in the scalar kernel's order, so the laned tangent agrees with the scalar one to
+rounding (bit for bit on the machine measured; ``tests/grad/test_string_step_tangent.py``
+asserts 1e-13). One deviation from a literal derivative of the forward's expressions: ``/ h``
+of the tangents is a product with ``1 / h`` (computed once), in both layouts.
+
+Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, thread CPU
+time, 2-core machine under load ~1): a rollout of P tangents costs COST_FIGURES
+laned forward rollouts (the issue's target 1 + 0.5 P: 1.5, 3, 7, 9). Where it goes (the tangent
+launch skipped, then also the unpack): the laned forward with ``keep`` ~1 forward, the unpack of
+its factorisation ~0.3-0.5, this kernel's per-row primal (scalar, P-independent) ~1.5, and each
+group of 4 directions ~3 (about 0.75 of a forward per direction, against the 0.5 the target
+needs; the kernel is register-bound, ~900 stack accesses in ~3,600 instructions).
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
@@ -309,8 +326,9 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             p = last - 1 - i
             c = scratch_c[p]
             for k in range(0, directions, STEP):
-                store3(particle_qd_out_dot, k, directions, p, vsub(load3(particle_qd_out_dot, k, directions, p),
-                                                                  mat(c, load3(particle_qd_out_dot, k, directions, p + 1))))
+                dv_below_dot = load3(particle_qd_out_dot, k, directions, p + 1)
+                store3(particle_qd_out_dot, k, directions, p,
+                       vsub(load3(particle_qd_out_dot, k, directions, p), mat(c, dv_below_dot)))
         # v1' = v0' + dv', x1' = x0' + h v1'; the top particle, x1' = top', v1' = (top' - x0_top') / h;
         # the tie force on the new state (eq. 2, ``string_integrate.compute_string_outputs``).
         tie_stiffness_k = string_tie_stiffness[s]
