@@ -5,7 +5,8 @@ Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback hav
 factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` unpacked into the scalar
 layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
 the step's tangent-linear model for P directions in one launch (``kernels/string_step_tangent``:
-a substitution with the stored factorisation). :class:`StringRolloutTangent` carries P tangents
+a substitution with the stored factorisation; on the CPU in float64, 4 directions per SIMD lane
+vector, ``kernels/tangent_directions``). :class:`StringRolloutTangent` carries P tangents
 through ``T`` steps with prescribed motion (tops and tie targets given per step), as
 ``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
 
@@ -17,8 +18,10 @@ springs only (a tension-only model is refused: the active-set step has no tangen
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
 differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py`` (measured under load: P = 1, 4, 12, 16 tangents cost 3.8-4.0,
-7-10, 17-22, 21-30 laned forward rollouts, short of the issue's 1 + 0.5 P = 1.5, 3, 7, 9).
+``benchmarks/bench_string_tangent.py`` (thread CPU time under load 1.3-1.7, medians of three
+interleaved runs: P = 1, 4, 12, 16 tangents cost 4.2, 6.5, 12.9, 16.2 laned forward rollouts with
+the directions in SIMD lanes for P >= 2, 4.2, 8.2, 23.4, 28.9 one direction at a time; short of
+the issue's 1 + 0.5 P = 1.5, 3, 7, 9: ``kernels/string_step_tangent``'s doc says where it goes).
 """
 
 from __future__ import annotations

@@ -52,12 +52,15 @@ asserts 1e-13). One deviation from a literal derivative of the forward's express
 of the tangents is a product with ``1 / h`` (computed once), in both layouts.
 
 Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, thread CPU
-time, 2-core machine under load ~1): a rollout of P tangents costs COST_FIGURES
-laned forward rollouts (the issue's target 1 + 0.5 P: 1.5, 3, 7, 9). Where it goes (the tangent
-launch skipped, then also the unpack): the laned forward with ``keep`` ~1 forward, the unpack of
-its factorisation ~0.3-0.5, this kernel's per-row primal (scalar, P-independent) ~1.5, and each
-group of 4 directions ~3 (about 0.75 of a forward per direction, against the 0.5 the target
-needs; the kernel is register-bound, ~900 stack accesses in ~3,600 instructions).
+time, 2-core machine under load 1.3-1.7, medians of three interleaved runs): a rollout of
+P = 4, 12, 16 tangents in lanes costs 6.5, 12.9, 16.2 laned forward rollouts (the scalar kernel
+8.2, 23.4, 28.9: lanes 1.4-1.75x faster), short of the issue's 1 + 0.5 P = 3, 7, 9. Where it goes
+(rollouts with this launch, then also the unpack, left out): the laned forward with ``keep``
+~1 forward, the unpack of its factorisation ~0.3-0.5, this kernel's per-row primal (scalar,
+P-independent) ~1.6, each group of 4 directions ~3.2 (0.8 of a forward per direction against the
+0.5 the target needs; the laned kernel is ~3,600 instructions, ~490 of them packed arithmetic,
+~900 stack accesses: register-bound). At P = 1 the scalar kernel is the faster (4.2 forwards
+against 4.7-7 for one direction in four lanes).
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
