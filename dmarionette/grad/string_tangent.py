@@ -52,7 +52,7 @@ class StringStepTangent:
         lanes: the tangent kernel with ``DIRECTION_LANES`` directions in SIMD lanes
             (``kernels/tangent_directions``: float64 on the CPU; the same tangents to rounding), else
             one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
-            alone would fill one lane of four: measured ~1.5x slower than the scalar kernel).
+            alone fills one lane of four: measured ~1.35x slower than the scalar kernel; P = 2 ties).
     """
 
     def __init__(self, solver: SolverStringImplicit, directions: int, lanes: bool | None = None):

@@ -59,8 +59,8 @@ P = 4, 12, 16 tangents in lanes costs 6.5, 12.9, 16.2 laned forward rollouts (th
 ~1 forward, the unpack of its factorisation ~0.3-0.5, this kernel's per-row primal (scalar,
 P-independent) ~1.6, each group of 4 directions ~3.2 (0.8 of a forward per direction against the
 0.5 the target needs; the laned kernel is ~3,600 instructions, ~490 of them packed arithmetic,
-~900 stack accesses: register-bound). At P = 1 the scalar kernel is the faster (4.2 forwards
-against 4.7-7 for one direction in four lanes).
+~900 stack accesses: register-bound). At P = 1 the scalar kernel is the faster (4.1-4.3 forwards
+against 5.6-5.9 for one direction in four lanes), at P = 2 they tie, from P = 3 the lanes win.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
