@@ -100,7 +100,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     TS, TV, STEP = t.TS, t.TV, t.step
     load, load_constant, load3, store3 = t.load, t.load_constant, t.load3, t.store3
     vadd, vsub, vneg, vscl, sadd, ssub, sneg, sscl = t.vadd, t.vsub, t.vneg, t.vscl, t.sadd, t.ssub, t.sneg, t.sscl
-    outer, dot, mat, tvec = t.outer, t.dot, t.mat, t.tvec
+    outer, mat, tvec = t.outer, t.mat, t.tvec
     spring = string_spring_tangent_functions(scalar, lanes)
     compute_spring_tangent = spring.compute_spring_tangent
     k_product = spring.compute_jacobian_product
