@@ -19,8 +19,8 @@ springs only (a tension-only model is refused: the active-set step has no tangen
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
 differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
 ``benchmarks/bench_string_tangent.py`` (thread CPU time under load 1.3-1.7, medians of three
-interleaved runs: P = 1, 4, 12, 16 tangents cost 4.2, 6.5, 12.9, 16.2 laned forward rollouts with
-the directions in SIMD lanes for P >= 2, 4.2, 8.2, 23.4, 28.9 one direction at a time; short of
+interleaved runs: P = 1, 4, 12, 16 tangents cost 4.2-4.7, 6.5, 12.9, 16.2 laned forward rollouts
+with the directions in SIMD lanes for P >= 2, 4.2, 8.2, 23.4, 28.9 one direction at a time; short of
 the issue's 1 + 0.5 P = 1.5, 3, 7, 9: ``kernels/string_step_tangent``'s doc says where it goes).
 """
 
