@@ -1,6 +1,6 @@
 """Forward-mode cost of string rollouts: P tangents against one plain forward rollout (issue 13, item 4).
 
-Run:  python benchmarks/bench_string_tangent.py [--repeats 5] [--steps 1000] [--clock wall|cpu]
+Run:  python benchmarks/bench_string_tangent.py [--repeats 5] [--steps 1000] [--clock wall|cpu] [--no-lanes]
 
 The strings of the built-in ``strings`` scene (six strings of 50 particles, every effect on, the
 two hand strings tied as in ``tests/grad/test_string_rollout_tangent.py``), 1 kHz, tops swaying.
@@ -11,7 +11,10 @@ Timed (median of ``--repeats`` runs after an untimed warm-up, spread printed):
 - ``StringRolloutTangent`` with P = 1, 4, 12, 16 directions (every input group: initial state,
   masses, constants, tops and tie targets per step): the forward (the laned step with ``keep``,
   its factorisation unpacked) and the P tangents (one launch per step), in captured chunks of 100
-  steps, including the upload of the per-step tangents and the download of the tie forces' tangents.
+  steps, including the upload of the per-step tangents and the download of the tie forces' tangents;
+  the tangent kernel as ``StringRolloutTangent`` chooses it (4 directions per SIMD lane vector
+  for P >= 2, the scalar kernel for P = 1), or with ``--no-lanes`` one direction at a time (the
+  scalar tangent kernel) for every P.
 
 The issue's target: P tangents cost at most (1 + 0.5 P) x one forward rollout (P <= 16). The
 ratio is printed against both forwards (the laned default is the harder reference).
@@ -68,6 +71,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                         help="wall: wall-clock time (default); cpu: the thread's CPU time (shared machines)")
+    parser.add_argument("--no-lanes", action="store_true",
+                        help="the scalar tangent kernel (one direction at a time) instead of directions in lanes")
     args = parser.parse_args()
     clock = time.perf_counter if args.clock == "wall" else time.thread_time
     steps = CHUNK * max(1, args.steps // CHUNK)
@@ -76,7 +81,9 @@ def main() -> None:
     print(f"# String tangent benchmark — {platform.processor() or platform.machine()}, Python "
           f"{platform.python_version()}, Warp {wp.config.version}; {model.string_count} strings, "
           f"{model.particle_count} particles, {steps} steps at {1 / DT:g} Hz; median of {args.repeats} runs"
-          f"{'' if args.clock == 'wall' else ', thread CPU time'}; load average {os.getloadavg()[0]:.2f}\n")
+          f"{'' if args.clock == 'wall' else ', thread CPU time'}; tangent directions "
+          f"{'one at a time (--no-lanes)' if args.no_lanes else 'in SIMD lanes (P >= 2)'}; "
+          f"load average {os.getloadavg()[0]:.2f}\n")
 
     forward = {}
     for lanes in (True, False):
@@ -91,7 +98,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     rng = np.random.default_rng(0)
     for p in DIRECTIONS:
-        rollout = StringRolloutTangent(SolverStringImplicit(model), DT, p, chunk_steps=CHUNK)
+        rollout = StringRolloutTangent(SolverStringImplicit(model), DT, p, chunk_steps=CHUNK,
+                                       lanes=False if args.no_lanes else None)
         tangents = _tangents(model, p, steps, rng)
         median, spread = _timed(lambda r=rollout, v=tangents: r.run(model.state(), tops, tie, tie_v, v),
                                 args.repeats, clock)

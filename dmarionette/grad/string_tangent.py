@@ -5,7 +5,8 @@ Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback hav
 factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` unpacked into the scalar
 layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
 the step's tangent-linear model for P directions in one launch (``kernels/string_step_tangent``:
-a substitution with the stored factorisation). :class:`StringRolloutTangent` carries P tangents
+a substitution with the stored factorisation; on the CPU in float64, 4 directions per SIMD lane
+vector, ``kernels/tangent_directions``). :class:`StringRolloutTangent` carries P tangents
 through ``T`` steps with prescribed motion (tops and tie targets given per step), as
 ``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
 
@@ -17,8 +18,10 @@ springs only (a tension-only model is refused: the active-set step has no tangen
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
 differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py`` (measured under load: P = 1, 4, 12, 16 tangents cost 3.8-4.0,
-7-10, 17-22, 21-30 laned forward rollouts, short of the issue's 1 + 0.5 P = 1.5, 3, 7, 9).
+``benchmarks/bench_string_tangent.py`` (thread CPU time under load 1.3-1.7, medians of three
+interleaved runs: P = 1, 4, 12, 16 tangents cost 4.2-4.7, 6.5, 12.9, 16.2 laned forward rollouts
+with the directions in SIMD lanes for P >= 2, 4.2, 8.2, 23.4, 28.9 one direction at a time; short of
+the issue's 1 + 0.5 P = 1.5, 3, 7, 9: ``kernels/string_step_tangent``'s doc says where it goes).
 """
 
 from __future__ import annotations
@@ -30,13 +33,14 @@ import warp as wp
 
 from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
-from dmarionette.kernels.string_step_tangent import (CONSTANTS, string_step_tangent_kernel,
+from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, string_step_tangent_kernel,
                                                      unpack_lane_factorisation_kernel)
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
 
-__all__ = ["CONSTANTS", "StringRolloutTangent", "StringStepTangent", "StringTangentInputs", "StringTangentResult"]
+__all__ = ["CONSTANTS", "DIRECTION_LANES", "StringRolloutTangent", "StringStepTangent", "StringTangentInputs",
+           "StringTangentResult"]
 
 
 class StringStepTangent:
@@ -45,9 +49,13 @@ class StringStepTangent:
     Args:
         solver: the stepper (printed springs; its effects choose the kernels).
         directions: the number of tangent directions ``P``.
+        lanes: the tangent kernel with ``DIRECTION_LANES`` directions in SIMD lanes
+            (``kernels/tangent_directions``: float64 on the CPU; the same tangents to rounding), else
+            one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
+            alone fills one lane of four: measured ~1.35x slower than the scalar kernel; P = 2 ties).
     """
 
-    def __init__(self, solver: SolverStringImplicit, directions: int):
+    def __init__(self, solver: SolverStringImplicit, directions: int, lanes: bool | None = None):
         model = solver.model
         if model.effects.tension_only:
             raise NotImplementedError("string tangents: tension-only springs (StringEffects.tension_only) have no "
@@ -57,7 +65,12 @@ class StringStepTangent:
         self.solver = solver
         self.model: StringModel = model
         self.directions = int(directions)
-        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple())
+        supported = model.scalar is wp.float64 and model.device.is_cpu
+        if lanes and not supported:
+            raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
+        self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
+        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(),
+                                                 DIRECTION_LANES if self.lanes else 1)
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
         self._unpack = unpack_lane_factorisation_kernel(LANES) if solver.lanes else None
 
@@ -166,10 +179,12 @@ class StringRolloutTangent:
         dt: string step [s].
         directions: the number of tangent directions ``P``.
         chunk_steps: steps per captured graph (``T`` must be a multiple).
+        lanes: the tangent directions in SIMD lanes (:class:`StringStepTangent`; default: where supported).
     """
 
-    def __init__(self, solver: SolverStringImplicit, dt: float, directions: int, chunk_steps: int = 50):
-        self.stepper = StringStepTangent(solver, directions)
+    def __init__(self, solver: SolverStringImplicit, dt: float, directions: int, chunk_steps: int = 50,
+                 lanes: bool | None = None):
+        self.stepper = StringStepTangent(solver, directions, lanes)
         m = self.model = solver.model
         self.dt = float(dt)
         self.directions = int(directions)

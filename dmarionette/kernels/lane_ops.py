@@ -157,3 +157,69 @@ def native_lane_memory(lanes: int) -> SimpleNamespace:
     return SimpleNamespace(gather3=gather3, gather=gather, scatter3=scatter3_op("v.data[{i}][k]"),
                            scatter_add3=scatter3_op("p[{i}] + v.data[{i}][k]"),
                            scatter_sub3=scatter3_op("p[{i}] - v.data[{i}][k]"), scatter_add=scatter_add)
+
+
+# An entry of a tangent array with a leading direction axis, ``a[d, i]`` (``a[d, s, c]``), direction
+# ``d = min(k + l, directions - 1)`` in lane ``l``: the padding lanes past the last direction read the
+# last one (finite values, computed, never written).
+_DIRECTION = "(k + l < directions ? k + l : directions - 1)"
+_ENTRY2 = f"((char*)a.data + (long)({_DIRECTION}) * (long)a.strides[0] + (long)i * (long)a.strides[1])"
+
+
+@functools.cache
+def native_direction_memory(lanes: int) -> SimpleNamespace:
+    """Gathers and scatters of ``K`` tangent directions, one per lane, from the tangent arrays with a
+    leading direction axis (``string_step_tangent`` with ``lanes``): ``gather3(a, k, directions, i)``,
+    the ``3 x K`` lane matrix of ``a[k + l, i]`` (``vec3d``); ``gather(a, k, directions, i)``, the lane
+    vector of ``a[k + l, i]`` (``float64``); ``gather_constant(a, k, directions, s, c)``, of
+    ``a[k + l, s, c]``; ``scatter3(a, k, directions, i, v)``: ``a[k + l, i] = v[:, l]`` for the lanes
+    ``k + l < directions``. A lane past the last direction reads the last one."""
+    lane = wp.types.vector(lanes, wp.float64)
+    lvec = wp.types.matrix((3, lanes), wp.float64)
+    vec3 = wp.vec3d
+
+    @wp.func_native(f"""
+    wp::mat_t<3, {lanes}, wp::float64> r;
+    for (int l = 0; l < {lanes}; ++l) {{
+        const double* p = (const double*){_ENTRY2};
+        r.data[0][l] = p[0];
+        r.data[1][l] = p[1];
+        r.data[2][l] = p[2];
+    }}
+    return r;
+    """)
+    def gather3(a: wp.array2d(dtype=vec3), k: int, directions: int, i: int) -> lvec:
+        ...
+
+    @wp.func_native(f"""
+    wp::vec_t<{lanes}, wp::float64> r;
+    for (int l = 0; l < {lanes}; ++l)
+        r.c[l] = *(const double*){_ENTRY2};
+    return r;
+    """)
+    def gather(a: wp.array2d(dtype=wp.float64), k: int, directions: int, i: int) -> lane:
+        ...
+
+    @wp.func_native(f"""
+    wp::vec_t<{lanes}, wp::float64> r;
+    for (int l = 0; l < {lanes}; ++l)
+        r.c[l] = *(const double*)({_ENTRY2} + (long)c * (long)a.strides[2]);
+    return r;
+    """)
+    def gather_constant(a: wp.array3d(dtype=wp.float64), k: int, directions: int, i: int, c: int) -> lane:
+        ...
+
+    @wp.func_native(f"""
+    for (int l = 0; l < {lanes}; ++l) {{
+        if (k + l < directions) {{
+            double* p = (double*){_ENTRY2};
+            p[0] = v.data[0][l];
+            p[1] = v.data[1][l];
+            p[2] = v.data[2][l];
+        }}
+    }}
+    """)
+    def scatter3(a: wp.array2d(dtype=vec3), k: int, directions: int, i: int, v: lvec):
+        ...
+
+    return SimpleNamespace(gather3=gather3, gather=gather, gather_constant=gather_constant, scatter3=scatter3)

@@ -26,6 +26,8 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from .tangent_directions import tangent_directions
+
 __all__ = ["string_spring_adjoint_functions", "string_spring_functions", "string_spring_tangent_functions"]
 
 
@@ -250,10 +252,12 @@ def string_spring_adjoint_functions(scalar) -> SimpleNamespace:
 
 
 @functools.cache
-def string_spring_tangent_functions(scalar) -> SimpleNamespace:
+def string_spring_tangent_functions(scalar, lanes: int = 1) -> SimpleNamespace:
     """Builds the printed spring's forward derivative (``compute_string_spring_printed``), as the
     string step's tangent-linear kernel uses it (``string_step_tangent``): the transpose of
-    :func:`string_spring_adjoint_functions`' ``compute_spring_adjoint``.
+    :func:`string_spring_adjoint_functions`' ``compute_spring_adjoint``. The tangents are
+    ``tangent_directions(scalar, lanes)``' values (one direction, or ``lanes`` directions in SIMD
+    lanes); the primal ones (``u``, ``l``, ``alpha``, ...) are scalars and ``vec3``.
 
     With ``K = alpha u u^T + beta I`` (``alpha = -k_s (1 - g)``, ``beta = -k_s g``,
     ``g = max(1 - d/l, 0)``), the tangent of ``K r`` for a fixed ``r`` is
@@ -262,38 +266,43 @@ def string_spring_tangent_functions(scalar) -> SimpleNamespace:
     clamp's flat side, as the adjoint and Warp's adjoint of ``max`` take it at the switch).
     """
     vec3 = wp.types.vector(3, scalar)
+    t = tangent_directions(scalar, lanes)
+    TS, TV, outer, dot = t.TS, t.TV, t.outer, t.dot
+    vadd, vsub, vscl, sadd, ssub, sneg, sscl = t.vadd, t.vsub, t.vscl, t.sadd, t.ssub, t.sneg, t.sscl
 
     @wp.func
     def compute_spring_tangent(u: vec3, length: scalar, inv_length: scalar, ratio: scalar, stiffness: scalar,
-                               rest_length: scalar, e_dot: vec3, stiffness_dot: scalar, rest_length_dot: scalar):
+                               rest_length: scalar, e_dot: TV, stiffness_dot: TS, rest_length_dot: TS):
         """Tangent of the spring of ``e = x_a - x_b`` (its parts ``u, l, 1 - d/l`` from
         ``string_spring_adjoint_functions``' ``compute_spring_parts``, and ``1 / l``: a caller with many
         directions divides once) along ``e' = e_dot``, ``k_s'``, ``d'``: returns ``(u', alpha', beta', f_a')``."""
         one = scalar(1.0)
         geometric = wp.max(ratio, scalar(0.0))
-        length_dot = wp.dot(u, e_dot)
-        u_dot = (e_dot - length_dot * u) * inv_length
-        geometric_dot = scalar(0.0)
-        if ratio > scalar(0.0):
-            geometric_dot = (rest_length * length_dot * inv_length - rest_length_dot) * inv_length
+        length_dot = dot(u, e_dot)
+        u_dot = vscl(inv_length, vsub(e_dot, outer(u, length_dot)))  # (e' - l' u) / l
+        geometric_dot = TS(scalar(0.0))
+        if ratio > scalar(0.0):  # (d l' / l - d') / l
+            geometric_dot = sscl(inv_length, ssub(sscl(inv_length, sscl(rest_length, length_dot)), rest_length_dot))
         stretch = length - rest_length
-        alpha_dot = -stiffness_dot * (one - geometric) + stiffness * geometric_dot
-        beta_dot = -stiffness_dot * geometric - stiffness * geometric_dot
-        f_dot = (-(stiffness_dot * stretch + stiffness * (length_dot - rest_length_dot)) * u
-                 - (stiffness * stretch) * u_dot)
+        alpha_dot = sadd(sscl(-(one - geometric), stiffness_dot), sscl(stiffness, geometric_dot))
+        beta_dot = ssub(sscl(-geometric, stiffness_dot), sscl(stiffness, geometric_dot))
+        # f_a' = -(k_s' (l - d) + k_s (l' - d')) u - k_s (l - d) u'
+        force_scale_dot = sadd(sscl(stretch, stiffness_dot), sscl(stiffness, ssub(length_dot, rest_length_dot)))
+        f_dot = vsub(outer(u, sneg(force_scale_dot)), vscl(stiffness * stretch, u_dot))
         return u_dot, alpha_dot, beta_dot, f_dot
 
     @wp.func
-    def compute_jacobian_product(u: vec3, alpha: scalar, beta: scalar, r: vec3):
+    def compute_jacobian_product(u: vec3, alpha: scalar, beta: scalar, r: TV):
         """``K r = alpha u (u . r) + beta r``."""
-        return (alpha * wp.dot(u, r)) * u + beta * r
+        return vadd(outer(u, sscl(alpha, dot(u, r))), vscl(beta, r))
 
     @wp.func
-    def compute_jacobian_tangent_product(u: vec3, alpha: scalar, u_dot: vec3, alpha_dot: scalar, beta_dot: scalar,
+    def compute_jacobian_tangent_product(u: vec3, alpha: scalar, u_dot: TV, alpha_dot: TS, beta_dot: TS,
                                          r: vec3):
         """``K' r`` for a fixed ``r`` (the namespace's doc)."""
         ur = wp.dot(u, r)
-        return (alpha_dot * ur) * u + alpha * (ur * u_dot + wp.dot(u_dot, r) * u) + beta_dot * r
+        return vadd(vadd(outer(u, sscl(ur, alpha_dot)), vscl(alpha, vadd(vscl(ur, u_dot), outer(u, dot(r, u_dot))))),
+                    outer(r, beta_dot))
 
     return SimpleNamespace(compute_spring_tangent=compute_spring_tangent,
                            compute_jacobian_product=compute_jacobian_product,

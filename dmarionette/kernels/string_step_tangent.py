@@ -31,16 +31,36 @@ Printed springs only: the tension-only springs' step (an active-set solve) has n
 Layout: one thread per string, ``dim = S``, looping over the P directions inside each row, so
 that the row's primal (both segments' spring parts, the branches, the pivot inverse) is evaluated
 once for all P (at P = 16 about 1.2-1.5x faster than a thread per (direction, string) recomputing
-it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The tangents have a leading direction axis
-(``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
-:data:`CONSTANTS` order). The spring parts are recomputed from the positions in each row (each
-segment twice, nothing stored by the forward beyond its factorisation and ``dv``); a segment's
-tangent likewise, once per direction and row. The forward substitution's ``y`` is kept in
-``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution, then ``v1'``.
-Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, at P = 16 on a
-loaded 2-core machine): a direction costs 0.6-0.9x a scalar one-launch step, 1.2-1.8x the laned
-step (the default plain step), short of the issue's 0.5x: the tangent is scalar float64 code (no
-SIMD lanes across directions), and each row's primal costs about as much again at P = 1.
+it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The tangents have a
+leading direction axis (``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants
+``(P, string_count, 10)`` in :data:`CONSTANTS` order). The spring parts are recomputed from the
+positions in each row (each segment twice, nothing stored by the forward beyond its factorisation
+and ``dv``); a segment's tangent likewise, once per direction and row. The forward substitution's
+``y`` is kept in ``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution,
+then ``v1'``.
+
+Directions in SIMD lanes (``lanes = DIRECTION_LANES``, float64 on the CPU, the default of
+``grad.string_tangent``): the same body on ``tangent_directions``' values, each direction loop
+stepping by 4 directions, a tangent scalar a lane vector and a tangent vector a ``3 x 4`` lane
+matrix (Clang vector snippets: packed AVX2 instructions), the primal values scalars as before;
+P is padded up to a multiple of 4 (the padding lanes repeat the last direction and write
+nothing). The body is written with the namespace's functions (``vadd``, ``vscl``, ``outer``,
+...) rather than Warp's operators, so that both layouts share it; each is the scalar operation
+it stands for, in the scalar kernel's order, so the laned tangent agrees with the scalar one to
+rounding (bit for bit on the machine measured; ``tests/grad/test_string_step_tangent.py``
+asserts 1e-13). One deviation from a literal derivative of the forward's expressions: ``/ h``
+of the tangents is a product with ``1 / h`` (computed once), in both layouts.
+
+Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, thread CPU
+time, 2-core machine under load 1.3-1.7, medians of three interleaved runs): a rollout of
+P = 4, 12, 16 tangents in lanes costs 6.5, 12.9, 16.2 laned forward rollouts (the scalar kernel
+8.2, 23.4, 28.9: lanes 1.4-1.75x faster), short of the issue's 1 + 0.5 P = 3, 7, 9. Where it goes
+(rollouts with this launch, then also the unpack, left out): the laned forward with ``keep``
+~1 forward, the unpack of its factorisation ~0.3-0.5, this kernel's per-row primal (scalar,
+P-independent) ~1.6, each group of 4 directions ~3.2 (0.8 of a forward per direction against the
+0.5 the target needs; the laned kernel is ~3,600 instructions, ~490 of them packed arithmetic,
+~900 stack accesses: register-bound). At P = 1 the scalar kernel is the faster (4.1-4.3 forwards
+against 5.6-5.9 for one direction in four lanes), at P = 2 they tie, from P = 3 the lanes win.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
@@ -53,8 +73,12 @@ import functools
 import warp as wp
 
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
+from .tangent_directions import tangent_directions
 
-__all__ = ["CONSTANTS", "string_step_tangent_kernel", "unpack_lane_factorisation_kernel"]
+__all__ = ["CONSTANTS", "DIRECTION_LANES", "string_step_tangent_kernel", "unpack_lane_factorisation_kernel"]
+
+# Tangent directions per SIMD lane vector with ``lanes`` (4 doubles: one AVX2 register).
+DIRECTION_LANES = 4
 
 # The per-string constants whose tangents the kernel reads, in the order of its ``string_constants_dot``.
 CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction", "string_air_drag",
@@ -63,14 +87,21 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 
 
 @functools.cache
-def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool]):
-    """Builds ``integrate_string_implicit_tangent`` for a float type and an effect set
-    (``effects`` as ``integrate_string_implicit_kernel``'s), printed springs."""
+def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1):
+    """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
+    ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
+    any float type and device; 4: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
+    printed springs."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
-    spring = string_spring_tangent_functions(scalar)
+    t = tangent_directions(scalar, lanes)
+    TS, TV, STEP = t.TS, t.TV, t.step
+    load, load_constant, load3, store3 = t.load, t.load_constant, t.load3, t.store3
+    vadd, vsub, vneg, vscl, sadd, ssub, sneg, sscl = t.vadd, t.vsub, t.vneg, t.vscl, t.sadd, t.ssub, t.sneg, t.sscl
+    outer, mat, tvec = t.outer, t.mat, t.tvec
+    spring = string_spring_tangent_functions(scalar, lanes)
     compute_spring_tangent = spring.compute_spring_tangent
     k_product = spring.compute_jacobian_product
     k_tangent_product = spring.compute_jacobian_tangent_product
@@ -140,6 +171,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_dx = top - particle_q[start]
         top_dv = top_dx / dt - particle_qd[start]
         g_upper = zero  # the friction's part of A_{p,p+1}: h D = -h k_f I
+        inv_dt = scalar(1.0) / dt  # (a product per direction, not a division: not the forward's rounding)
         if wp.static(FRICTION):
             g_upper = -dt * friction
 
@@ -189,124 +221,146 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             k_y = zero
             if below:
                 k_y = -ground_stiffness
-            for k in range(directions):
-                stiffness_dot = string_constants_dot[k, s, 0]
-                rest_dot = string_constants_dot[k, s, 1]
-                mass_dot = particle_mass_dot[k, p]
-                x_dot = particle_q_dot[k, p]
-                v_dot = particle_qd_dot[k, p]
-                v_prev_dot = particle_qd_dot[k, p - 1]
+            for k in range(0, directions, STEP):
+                stiffness_dot = load_constant(string_constants_dot, k, directions, s, 0)
+                rest_dot = load_constant(string_constants_dot, k, directions, s, 1)
+                mass_dot = load(particle_mass_dot, k, directions, p)
+                x_dot = load3(particle_q_dot, k, directions, p)
+                v_dot = load3(particle_qd_dot, k, directions, p)
+                v_prev_dot = load3(particle_qd_dot, k, directions, p - 1)
                 u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
-                    u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length, particle_q_dot[k, p - 1] - x_dot,
-                    stiffness_dot, rest_dot)
-                force_dot = -f_a_dot
-                w_prev_dot = h2 * (v_dot - v_prev_dot)
-                if j == 1:
-                    w_prev_dot = h2 * v_dot - dt * (top_q_dot[k, s] - particle_q_dot[k, start])
-                r = k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_prev) + k_product(
-                    u_a, alpha_a, beta_a, w_prev_dot)
-                v_next_dot = vec3(zero)
+                    u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length,
+                    vsub(load3(particle_q_dot, k, directions, p - 1), x_dot), stiffness_dot, rest_dot)
+                force_dot = vneg(f_a_dot)
+                w_prev_dot = vscl(h2, vsub(v_dot, v_prev_dot))
+                top_dx_dot = TV(zero)
+                if j == 1:  # top_dx' = top' - x0_top'
+                    top_dx_dot = vsub(load3(top_q_dot, k, directions, s), load3(particle_q_dot, k, directions, start))
+                    w_prev_dot = vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot))
+                r = vadd(k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_prev),
+                         k_product(u_a, alpha_a, beta_a, w_prev_dot))
+                v_next_dot = TV(zero)
                 if not is_last:
-                    x_next_dot = particle_q_dot[k, p + 1]
-                    v_next_dot = particle_qd_dot[k, p + 1]
+                    x_next_dot = load3(particle_q_dot, k, directions, p + 1)
+                    v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
                     u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
-                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, x_dot - x_next_dot, stiffness_dot,
+                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, vsub(x_dot, x_next_dot), stiffness_dot,
                         rest_dot)
-                    force_dot = force_dot + f_b_dot
-                    r = r + k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next) + k_product(
-                        u_b, alpha_b, beta_b, h2 * (v_dot - v_next_dot))
+                    force_dot = vadd(force_dot, f_b_dot)
+                    r = vadd(vadd(r, k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next)),
+                             k_product(u_b, alpha_b, beta_b, vscl(h2, vsub(v_dot, v_next_dot))))
                 # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
                 # diag(k_c, k_c + k_y, k_c); their tangents.
-                d_xz_dot = zero
-                k_c_dot = zero
-                k_y_dot = zero
+                d_xz_dot = TS(zero)
+                k_c_dot = TS(zero)
+                k_y_dot = TS(zero)
                 if wp.static(FRICTION):
                     # f = -k_f (v - v_prev) (- k_f (v - v_next)); D = -k_f I each; the off-diagonal blocks' -h k_f I.
-                    friction_dot = string_constants_dot[k, s, 2]
-                    force_dot = force_dot - friction_dot * (v - v_prev) - friction * (v_dot - v_prev_dot)
-                    d_xz_dot = d_xz_dot - friction_dot
+                    friction_dot = load_constant(string_constants_dot, k, directions, s, 2)
+                    force_dot = vsub(vsub(force_dot, outer(v - v_prev, friction_dot)),
+                                     vscl(friction, vsub(v_dot, v_prev_dot)))
+                    d_xz_dot = ssub(d_xz_dot, friction_dot)
                     if j == 1:  # rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top
-                        top_dv_dot = (top_q_dot[k, s] - particle_q_dot[k, start]) / dt - particle_qd_dot[k, start]
-                        r = r + dt * (friction_dot * top_dv + friction * top_dv_dot)
+                        top_dv_dot = vsub(vscl(inv_dt, top_dx_dot), load3(particle_qd_dot, k, directions, start))
+                        r = vadd(r, vscl(dt, vadd(outer(top_dv, friction_dot), vscl(friction, top_dv_dot))))
                     else:
-                        r = r + (dt * friction_dot) * particle_dv[p - 1]
+                        r = vadd(r, outer(particle_dv[p - 1], sscl(dt, friction_dot)))
                     if not is_last:
-                        force_dot = force_dot - friction_dot * (v - v_next) - friction * (v_dot - v_next_dot)
-                        d_xz_dot = d_xz_dot - friction_dot
-                        r = r + (dt * friction_dot) * dv_next
+                        force_dot = vsub(vsub(force_dot, outer(v - v_next, friction_dot)),
+                                         vscl(friction, vsub(v_dot, v_next_dot)))
+                        d_xz_dot = ssub(d_xz_dot, friction_dot)
+                        r = vadd(r, outer(dv_next, sscl(dt, friction_dot)))
                 if wp.static(GRAVITY):
-                    force_dot = force_dot + mass_dot * gravity
+                    force_dot = vadd(force_dot, outer(gravity, mass_dot))
                 if wp.static(AIR):
-                    air_dot = string_constants_dot[k, s, 3]
-                    force_dot = force_dot - air_dot * v - air_drag * v_dot
-                    d_xz_dot = d_xz_dot - air_dot
+                    air_dot = load_constant(string_constants_dot, k, directions, s, 3)
+                    force_dot = vsub(vsub(force_dot, outer(v, air_dot)), vscl(air_drag, v_dot))
+                    d_xz_dot = ssub(d_xz_dot, air_dot)
                 d_y_dot = d_xz_dot
                 if wp.static(GROUND):
                     if below:
                         # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
-                        ground_stiffness_dot = string_constants_dot[k, s, 4]
-                        ground_absorption_dot = string_constants_dot[k, s, 5]
-                        force_dot = force_dot + vec3(
-                            zero, ground_stiffness_dot * (ground_height - x[1]) - ground_stiffness * x_dot[1]
-                            - ground_absorption_dot * v[1] - ground_absorption * v_dot[1], zero)
-                        k_y_dot = -ground_stiffness_dot
-                        d_y_dot = d_y_dot - ground_absorption_dot
+                        ground_stiffness_dot = load_constant(string_constants_dot, k, directions, s, 4)
+                        ground_absorption_dot = load_constant(string_constants_dot, k, directions, s, 5)
+                        force_dot = vadd(force_dot, tvec(TS(zero), ssub(ssub(ssub(
+                            sscl(ground_height - x[1], ground_stiffness_dot), sscl(ground_stiffness, x_dot[1])),
+                            sscl(v[1], ground_absorption_dot)), sscl(ground_absorption, v_dot[1])), TS(zero)))
+                        k_y_dot = sneg(ground_stiffness_dot)
+                        d_y_dot = ssub(d_y_dot, ground_absorption_dot)
                         if wp.static(GROUND_FRICTION):
-                            ground_friction_dot = string_constants_dot[k, s, 6]
-                            force_dot = force_dot + vec3(-ground_friction_dot * v[0] - ground_friction * v_dot[0], zero,
-                                                         -ground_friction_dot * v[2] - ground_friction * v_dot[2])
-                            d_xz_dot = d_xz_dot - ground_friction_dot
+                            ground_friction_dot = load_constant(string_constants_dot, k, directions, s, 6)
+                            force_dot = vadd(force_dot, tvec(
+                                ssub(sscl(-v[0], ground_friction_dot), sscl(ground_friction, v_dot[0])), TS(zero),
+                                ssub(sscl(-v[2], ground_friction_dot), sscl(ground_friction, v_dot[2]))))
+                            d_xz_dot = ssub(d_xz_dot, ground_friction_dot)
                 if is_last:
                     # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;
                     # k_t = tied k, k_dt = tied k_d.
-                    tied_dot = string_constants_dot[k, s, 9]
-                    tie_stiffness_dot = tied_dot * string_tie_stiffness[s] + tied * string_constants_dot[k, s, 7]
-                    tie_damping_dot = tied_dot * string_tie_damping[s] + tied * string_constants_dot[k, s, 8]
-                    force_dot = (force_dot + tie_stiffness_dot * (tie_x - x) + tie_stiffness * (tie_q_dot[k, s] - x_dot)
-                                 + tie_damping_dot * (tie_v - v) + tie_damping * (tie_qd_dot[k, s] - v_dot))
-                    k_c_dot = -tie_stiffness_dot
-                    d_xz_dot = d_xz_dot - tie_damping_dot
-                    d_y_dot = d_y_dot - tie_damping_dot
+                    tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
+                    tie_stiffness_dot = sadd(sscl(string_tie_stiffness[s], tied_dot),
+                                             sscl(tied, load_constant(string_constants_dot, k, directions, s, 7)))
+                    tie_damping_dot = sadd(sscl(string_tie_damping[s], tied_dot),
+                                           sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
+                    force_dot = vadd(vadd(vadd(vadd(
+                        force_dot, outer(tie_x - x, tie_stiffness_dot)),
+                        vscl(tie_stiffness, vsub(load3(tie_q_dot, k, directions, s), x_dot))),
+                        outer(tie_v - v, tie_damping_dot)),
+                        vscl(tie_damping, vsub(load3(tie_qd_dot, k, directions, s), v_dot)))
+                    k_c_dot = sneg(tie_stiffness_dot)
+                    d_xz_dot = ssub(d_xz_dot, tie_damping_dot)
+                    d_y_dot = ssub(d_y_dot, tie_damping_dot)
                 # a = M - h D - h^2 K on the diagonal; b's h f and h^2 K v0 of the diagonal terms.
-                a_xz_dot = mass_dot - dt * d_xz_dot - h2 * k_c_dot
-                a_y_dot = mass_dot - dt * d_y_dot - h2 * (k_c_dot + k_y_dot)
-                r = r + dt * force_dot + h2 * vec3(
-                    k_c_dot * v[0] + k_c * v_dot[0],
-                    (k_c_dot + k_y_dot) * v[1] + (k_c + k_y) * v_dot[1],
-                    k_c_dot * v[2] + k_c * v_dot[2]) - vec3(a_xz_dot * dv[0], a_y_dot * dv[1], a_xz_dot * dv[2])
+                a_xz_dot = ssub(ssub(mass_dot, sscl(dt, d_xz_dot)), sscl(h2, k_c_dot))
+                k_cy_dot = sadd(k_c_dot, k_y_dot)
+                a_y_dot = ssub(ssub(mass_dot, sscl(dt, d_y_dot)), sscl(h2, k_cy_dot))
+                r = vsub(vadd(vadd(r, vscl(dt, force_dot)), vscl(h2, tvec(
+                    sadd(sscl(v[0], k_c_dot), sscl(k_c, v_dot[0])),
+                    sadd(sscl(v[1], k_cy_dot), sscl(k_c + k_y, v_dot[1])),
+                    sadd(sscl(v[2], k_c_dot), sscl(k_c, v_dot[2]))))),
+                    tvec(sscl(dv[0], a_xz_dot), sscl(dv[1], a_y_dot), sscl(dv[2], a_xz_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p} = h^2 K_a - h k_f I.
                 if j > 1:
-                    y_prev = particle_qd_out_dot[k, p - 1]
-                    r = r - (h2 * k_product(u_a, alpha_a, beta_a, y_prev) + g_upper * y_prev)
-                particle_qd_out_dot[k, p] = inv * r
+                    y_prev = load3(particle_qd_out_dot, k, directions, p - 1)
+                    r = vsub(r, vadd(vscl(h2, k_product(u_a, alpha_a, beta_a, y_prev)), vscl(g_upper, y_prev)))
+                store3(particle_qd_out_dot, k, directions, p, mat(inv, r))
 
         # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
         for i in range(last - start - 1):
             p = last - 1 - i
             c = scratch_c[p]
-            for k in range(directions):
-                particle_qd_out_dot[k, p] = particle_qd_out_dot[k, p] - c * particle_qd_out_dot[k, p + 1]
+            for k in range(0, directions, STEP):
+                dv_below_dot = load3(particle_qd_out_dot, k, directions, p + 1)
+                store3(particle_qd_out_dot, k, directions, p,
+                       vsub(load3(particle_qd_out_dot, k, directions, p), mat(c, dv_below_dot)))
         # v1' = v0' + dv', x1' = x0' + h v1'; the top particle, x1' = top', v1' = (top' - x0_top') / h;
         # the tie force on the new state (eq. 2, ``string_integrate.compute_string_outputs``).
         tie_stiffness_k = string_tie_stiffness[s]
         tie_damping_k = string_tie_damping[s]
         x_last = particle_q_out[last]
         v_last = particle_qd_out[last]
-        for k in range(directions):
+        for k in range(0, directions, STEP):
             for p in range(start + 1, last + 1):
-                v1_dot = particle_qd_dot[k, p] + particle_qd_out_dot[k, p]
-                particle_qd_out_dot[k, p] = v1_dot
-                particle_q_out_dot[k, p] = particle_q_dot[k, p] + dt * v1_dot
-            top_dot = top_q_dot[k, s]
-            particle_q_out_dot[k, start] = top_dot
-            particle_qd_out_dot[k, start] = (top_dot - particle_q_dot[k, start]) / dt
-            tied_dot = string_constants_dot[k, s, 9]
-            tie_stiffness_dot = tied_dot * tie_stiffness_k + tied * string_constants_dot[k, s, 7]
-            tie_damping_dot = tied_dot * tie_damping_k + tied * string_constants_dot[k, s, 8]
-            tie_force_dot[k, s] = (-tie_stiffness_dot * (tie_x - x_last)
-                                   - tie_stiffness * (tie_q_dot[k, s] - particle_q_out_dot[k, last])
-                                   - tie_damping_dot * (tie_v - v_last)
-                                   - tie_damping * (tie_qd_dot[k, s] - particle_qd_out_dot[k, last]))
+                v1_dot = vadd(load3(particle_qd_dot, k, directions, p), load3(particle_qd_out_dot, k, directions, p))
+                store3(particle_qd_out_dot, k, directions, p, v1_dot)
+                store3(particle_q_out_dot, k, directions, p, vadd(load3(particle_q_dot, k, directions, p),
+                                                                 vscl(dt, v1_dot)))
+            top_dot = load3(top_q_dot, k, directions, s)
+            store3(particle_q_out_dot, k, directions, start, top_dot)
+            store3(particle_qd_out_dot, k, directions, start,
+                   vscl(inv_dt, vsub(top_dot, load3(particle_q_dot, k, directions, start))))
+            tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
+            tie_stiffness_dot = sadd(sscl(tie_stiffness_k, tied_dot),
+                                     sscl(tied, load_constant(string_constants_dot, k, directions, s, 7)))
+            tie_damping_dot = sadd(sscl(tie_damping_k, tied_dot),
+                                   sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
+            # F' = -k_t' (x_tie - x1) - k_t (x_tie' - x1') - k_dt' (v_tie - v1) - k_dt (v_tie' - v1')
+            store3(tie_force_dot, k, directions, s, vsub(vsub(vsub(
+                outer(tie_x - x_last, sneg(tie_stiffness_dot)),
+                vscl(tie_stiffness, vsub(load3(tie_q_dot, k, directions, s),
+                                         load3(particle_q_out_dot, k, directions, last)))),
+                outer(tie_v - v_last, tie_damping_dot)),
+                vscl(tie_damping, vsub(load3(tie_qd_dot, k, directions, s),
+                                       load3(particle_qd_out_dot, k, directions, last)))))
 
     return integrate_string_implicit_tangent
 

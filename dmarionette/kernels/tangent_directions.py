@@ -1,0 +1,228 @@
+"""The values of the tangent-linear kernels: one direction per value, or ``K`` directions in SIMD lanes.
+
+A tangent kernel loops over its P directions; written against this namespace, one kernel body
+serves both layouts (``string_step_tangent``, issue 13 item 4):
+
+- ``lanes = 1`` (any float type, CPU or CUDA): a tangent scalar is a ``scalar``, a tangent vector a
+  ``vec3``; the loop steps by one direction; every function is the Warp operation it names.
+- ``lanes = K`` (float64, CPU only: Clang C++ snippets, ``lane_ops``' style): a tangent scalar is a
+  ``vector(K, float64)`` (lane ``l``: direction ``k + l``), a tangent vector a ``3 x K`` matrix
+  (column ``l``: direction ``k + l``; row ``i``, ``v[i]``, component ``i`` of the K directions); the
+  loop steps by K directions, the last group padded (its padding lanes read the last direction,
+  are computed and never written, ``lane_ops.native_direction_memory``). Each arithmetic function
+  is a snippet on Clang ``ext_vector_type`` values, so that the kernel gets packed instructions:
+  written with Warp's own operators on ``vector(4)``/``mat(3, 4)``, the string tangent compiled to
+  ~1,250 scalar and ~30 packed AVX2 operations and ran no faster than one direction at a time
+  (measured, ``bench_string_tangent``); with these, ~490 packed and ~70 scalar. The primal values
+  stay scalars, ``vec3`` and ``mat33``.
+
+Both give the same names, each the scalar operation it stands for (one rounding per operation, in
+the order written): ``TS``, ``TV`` (the types, also the zero constructors ``TS(zero)``,
+``TV(zero)``), ``step`` (directions per value), ``load(a, k, directions, i)`` (``a[k, i]`` of a
+``(P, n)`` scalar array), ``load_constant(a, k, directions, i, c)`` (``a[k, i, c]``), ``load3`` and
+``store3(a, k, directions, i, v)`` (of a ``(P, n)`` vec3 array; the store writes the real
+directions only); on tangent vectors ``vadd(a, b)``, ``vsub(a, b)``, ``vneg(a)``, ``vscl(c, a)``
+(``c`` a primal scalar), on tangent scalars ``sadd``, ``ssub``, ``sneg``, ``sscl``; ``outer(v, a)``
+(the primal vector ``v`` times the tangent scalar ``a``), ``dot(u, r)`` (the primal ``u`` dotted
+with the tangent vector ``r``), ``mat(m, r)`` (the primal ``mat33`` times ``r``), ``tvec(a, b, c)``
+(the tangent vector of three tangent scalars, component-wise).
+"""
+
+import functools
+
+from types import SimpleNamespace
+
+import warp as wp
+
+from .lane_ops import native_direction_memory
+
+__all__ = ["tangent_directions"]
+
+
+@functools.cache
+def tangent_directions(scalar, lanes: int = 1) -> SimpleNamespace:
+    """The namespace of the module doc for a float type and ``lanes`` directions per value."""
+    if lanes == 1:
+        return _scalar_directions(scalar)
+    if scalar is not wp.float64:
+        raise TypeError(f"tangent directions in lanes: float64 only (the lane snippets), got {scalar}")
+    return _lane_directions(lanes)
+
+
+def _scalar_directions(scalar) -> SimpleNamespace:
+    vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+
+    @wp.func
+    def load(a: wp.array2d(dtype=scalar), k: int, directions: int, i: int):
+        return a[k, i]
+
+    @wp.func
+    def load_constant(a: wp.array3d(dtype=scalar), k: int, directions: int, i: int, c: int):
+        return a[k, i, c]
+
+    @wp.func
+    def load3(a: wp.array2d(dtype=vec3), k: int, directions: int, i: int):
+        return a[k, i]
+
+    @wp.func
+    def store3(a: wp.array2d(dtype=vec3), k: int, directions: int, i: int, v: vec3):
+        a[k, i] = v
+
+    @wp.func
+    def vadd(a: vec3, b: vec3):
+        return a + b
+
+    @wp.func
+    def vsub(a: vec3, b: vec3):
+        return a - b
+
+    @wp.func
+    def vneg(a: vec3):
+        return -a
+
+    @wp.func
+    def vscl(c: scalar, a: vec3):
+        return c * a
+
+    @wp.func
+    def sadd(a: scalar, b: scalar):
+        return a + b
+
+    @wp.func
+    def ssub(a: scalar, b: scalar):
+        return a - b
+
+    @wp.func
+    def sneg(a: scalar):
+        return -a
+
+    @wp.func
+    def sscl(c: scalar, a: scalar):
+        return c * a
+
+    @wp.func
+    def outer(v: vec3, a: scalar):
+        return a * v
+
+    @wp.func
+    def dot(u: vec3, r: vec3):
+        return wp.dot(u, r)
+
+    @wp.func
+    def mat(m: mat33, r: vec3):
+        return m * r
+
+    @wp.func
+    def tvec(a: scalar, b: scalar, c: scalar):
+        return vec3(a, b, c)
+
+    return SimpleNamespace(TS=scalar, TV=vec3, step=1, load=load, load_constant=load_constant, load3=load3,
+                           store3=store3, vadd=vadd, vsub=vsub, vneg=vneg, vscl=vscl, sadd=sadd, ssub=ssub,
+                           sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat, tvec=tvec)
+
+
+# Clang vector snippets (``lane_ops``' style): a tangent scalar's K lanes, a tangent vector's three rows.
+_TYPES = """
+    typedef double lanes_t __attribute__((ext_vector_type({lanes})));
+    """
+_S_IN = "lanes_t {name}; __builtin_memcpy(&{name}, {arg}.c, sizeof({name}));\n"
+_S_OUT = """
+    wp::vec_t<{lanes}, wp::float64> ret;
+    __builtin_memcpy(ret.c, &z, sizeof(z));
+    return ret;
+    """
+_V_IN = "lanes_t {name}[3]; for (int i = 0; i < 3; ++i) __builtin_memcpy(&{name}[i], {arg}.data[i], sizeof(lanes_t));\n"
+_V_OUT = """
+    wp::mat_t<3, {lanes}, wp::float64> ret;
+    for (int i = 0; i < 3; ++i) __builtin_memcpy(ret.data[i], &z[i], sizeof(lanes_t));
+    return ret;
+    """
+
+
+def _lane_directions(lanes: int) -> SimpleNamespace:
+    f64 = wp.float64
+    lane = wp.types.vector(lanes, f64)
+    lvec = wp.types.matrix((3, lanes), f64)
+    vec3 = wp.vec3d
+    mem = native_direction_memory(lanes)
+    head = _TYPES.format(lanes=lanes)
+    s_out = _S_OUT.format(lanes=lanes)
+    v_out = _V_OUT.format(lanes=lanes)
+
+    def s_in(*args):
+        return "".join(_S_IN.format(name=n, arg=a) for n, a in args)
+
+    def v_in(*args):
+        return "".join(_V_IN.format(name=n, arg=a) for n, a in args)
+
+    rows = "lanes_t z[3]; for (int i = 0; i < 3; ++i) z[i] = {};\n"
+
+    @wp.func
+    def load(a: wp.array2d(dtype=f64), k: int, directions: int, i: int):
+        return mem.gather(a, k, directions, i)
+
+    @wp.func
+    def load_constant(a: wp.array3d(dtype=f64), k: int, directions: int, i: int, c: int):
+        return mem.gather_constant(a, k, directions, i, c)
+
+    @wp.func
+    def load3(a: wp.array2d(dtype=vec3), k: int, directions: int, i: int):
+        return mem.gather3(a, k, directions, i)
+
+    @wp.func
+    def store3(a: wp.array2d(dtype=vec3), k: int, directions: int, i: int, v: lvec):
+        mem.scatter3(a, k, directions, i, v)
+
+    @wp.func_native(head + v_in(("x", "a"), ("y", "b")) + rows.format("x[i] + y[i]") + v_out)
+    def vadd(a: lvec, b: lvec) -> lvec:
+        ...
+
+    @wp.func_native(head + v_in(("x", "a"), ("y", "b")) + rows.format("x[i] - y[i]") + v_out)
+    def vsub(a: lvec, b: lvec) -> lvec:
+        ...
+
+    @wp.func_native(head + v_in(("x", "a")) + rows.format("-x[i]") + v_out)
+    def vneg(a: lvec) -> lvec:
+        ...
+
+    @wp.func_native(head + v_in(("x", "a")) + rows.format("c * x[i]") + v_out)
+    def vscl(c: f64, a: lvec) -> lvec:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a"), ("y", "b")) + "lanes_t z = x + y;" + s_out)
+    def sadd(a: lane, b: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a"), ("y", "b")) + "lanes_t z = x - y;" + s_out)
+    def ssub(a: lane, b: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a")) + "lanes_t z = -x;" + s_out)
+    def sneg(a: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a")) + "lanes_t z = c * x;" + s_out)
+    def sscl(c: f64, a: lane) -> lane:
+        ...
+
+    @wp.func_native(head + s_in(("x", "a")) + rows.format("v.c[i] * x") + v_out)
+    def outer(v: vec3, a: lane) -> lvec:
+        ...
+
+    @wp.func_native(head + v_in(("x", "r")) + "lanes_t z = u.c[0] * x[0] + u.c[1] * x[1] + u.c[2] * x[2];" + s_out)
+    def dot(u: vec3, r: lvec) -> lane:
+        ...
+
+    @wp.func_native(head + v_in(("x", "r"))
+                    + rows.format("m.data[i][0] * x[0] + m.data[i][1] * x[1] + m.data[i][2] * x[2]") + v_out)
+    def mat(m: wp.mat33d, r: lvec) -> lvec:
+        ...
+
+    @wp.func
+    def tvec(a: lane, b: lane, c: lane):
+        return wp.matrix_from_rows(a, b, c)
+
+    return SimpleNamespace(TS=lane, TV=lvec, step=lanes, load=load, load_constant=load_constant, load3=load3,
+                           store3=store3, vadd=vadd, vsub=vsub, vneg=vneg, vscl=vscl, sadd=sadd, ssub=ssub,
+                           sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat, tvec=tvec)
