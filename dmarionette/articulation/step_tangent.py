@@ -11,16 +11,16 @@ direction and item). Each tangent launch writes the pass's primal outputs too, s
 step's numbers are the solver's.
 
 What is differentiated (:class:`PuppetControlTangent`, all with a leading direction axis
-``P``): the state (``joint_q``, ``joint_qd``; :class:`~dmarionette.articulation.tangent.TangentState`),
+``P``): the state (``joint_q``, ``joint_qd``; :class:`TangentState`),
 the joint forces, the applied body forces and torques, the springs' anchors and anchor
 velocities, and the springs' stiffness and damping (the calibrated tie constants ``k``,
 ``k_d``; one row per spring, or per world and spring where the model has per-world
 constants). Constant: masses, inertias, joint damping and limits, gravity, the contact
 constants, the spring points, ``dt``.
 
-This is :class:`~dmarionette.articulation.tangent.ArticulationTangent` (the puppet's own
-step, which refuses springs and contact) with the hand-written passes added; it is a class of
-its own because that module belongs to another piece of work (the two could be one).
+Chaining steps gives the JVP of a rollout with respect to the initial state and every
+step's inputs (``tests/articulation/test_puppet_tangent.py``: a 10-step rollout against the
+tape's VJP; ``tests/articulation/test_puppet_step_tangent.py``: springs and contact).
 """
 
 from __future__ import annotations
@@ -28,12 +28,27 @@ from __future__ import annotations
 import warp as wp
 
 from dmarionette.articulation.solver import ArticulationControl, ArticulationState, SolverArticulation
-from dmarionette.articulation.tangent import TangentState
 from dmarionette.kernels.articulation_forces import eval_body_external_forces, eval_body_point_springs
 from dmarionette.kernels.articulation_tangent import build_articulation_tangent_kernels
 from dmarionette.kernels.kernel_tangent import tangent_kernel
 
-__all__ = ["PuppetControlTangent", "PuppetStepTangent"]
+__all__ = ["PuppetControlTangent", "PuppetStepTangent", "TangentState"]
+
+
+class TangentState:
+    """P tangents of an :class:`ArticulationState`.
+
+    Attributes:
+        joint_q: shape (P, world_count, q_count), float64.
+        joint_qd: shape (P, world_count, qd_count).
+        joint_qdd: shape (P, world_count, qd_count) (of the step that produced it).
+    """
+
+    def __init__(self, model, direction_count: int, world_count: int):
+        shape = (direction_count, world_count)
+        self.joint_q = wp.zeros(shape + (model.q_count,), dtype=wp.float64, device=model.device)
+        self.joint_qd = wp.zeros(shape + (model.qd_count,), dtype=wp.float64, device=model.device)
+        self.joint_qdd = wp.zeros(shape + (model.qd_count,), dtype=wp.float64, device=model.device)
 
 
 class PuppetControlTangent:

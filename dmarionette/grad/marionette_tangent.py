@@ -39,8 +39,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from dmarionette.articulation.step_tangent import PuppetStepTangent
-from dmarionette.articulation.tangent import TangentState
+from dmarionette.articulation.step_tangent import PuppetStepTangent, TangentState
 from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
 from dmarionette.kernels.articulation_forces import eval_body_points
 from dmarionette.kernels.kernel_tangent import tangent_kernel

@@ -319,14 +319,14 @@ def test_tangent_matches_reverse_mode_at_exact_ties(setup):
 
 
 def test_rollout_jvp_matches_reverse_mode(setup):
-    """JVP of a 10-step rollout (``ArticulationTangent``, P = 3) against the tape's VJP of the same
+    """JVP of a 10-step rollout (``PuppetStepTangent``, P = 3) against the tape's VJP of the same
     rollout of ``SolverArticulation.step``: d(final q, qd) / d(initial q, qd, joint forces)."""
-    from dmarionette.articulation.tangent import ArticulationTangent
+    from dmarionette.articulation.step_tangent import PuppetStepTangent
 
     m = setup.model
     solver = SolverArticulation(m, optimization_level=0)
     P, steps, dt = 3, 10, 0.01
-    jvp_stepper = ArticulationTangent(solver, P, WORLDS, optimization_level=0)
+    jvp_stepper = PuppetStepTangent(solver, P, WORLDS, optimization_level=0)
     rng = np.random.default_rng(5)
     v_q = rng.normal(size=(P, WORLDS, m.q_count))
     v_qd = rng.normal(size=(P, WORLDS, m.qd_count))
@@ -341,9 +341,10 @@ def test_rollout_jvp_matches_reverse_mode(setup):
     tangents = [jvp_stepper.tangent_state() for _ in range(steps + 1)]
     tangents[0].joint_q.assign(v_q)
     tangents[0].joint_qd.assign(v_qd)
-    tan_f = wp.array(v_f, dtype=wp.float64)
+    tan_control = jvp_stepper.control_tangent()
+    tan_control.joint_f.assign(v_f)
     for i in range(steps):
-        jvp_stepper.step(states[i], tangents[i], states[i + 1], tangents[i + 1], control, tan_f, dt)
+        jvp_stepper.step(states[i], tangents[i], states[i + 1], tangents[i + 1], control, tan_control, dt)
     q_end, qd_end = states[-1].joint_q.numpy(), states[-1].joint_qd.numpy()
     jq, jqd = tangents[-1].joint_q.numpy(), tangents[-1].joint_qd.numpy()
 
@@ -367,11 +368,3 @@ def test_rollout_jvp_matches_reverse_mode(setup):
         print(f"rollout p={p}: <u, Jv> = {terms_f.sum():.15e}, <J^T u, v> = {terms_r.sum():.15e}, "
               f"|diff| / scale = {abs(terms_f.sum() - terms_r.sum()) / scale:.1e}")
         assert abs(terms_f.sum() - terms_r.sum()) <= 1e-10 * scale, p
-
-
-def test_rollout_jvp_refuses_what_has_no_tangent():
-    from dmarionette.articulation.tangent import ArticulationTangent
-
-    model = build_articulation_model(load_puppet(), springs=(("head", 300.0, 2.0),))
-    with pytest.raises(ValueError, match="no tangent yet"):
-        ArticulationTangent(SolverArticulation(model, optimization_level=0), 2)
