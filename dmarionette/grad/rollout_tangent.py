@@ -4,8 +4,12 @@
 (its model, solver, rollout length and input/output layout) with
 :class:`~dmarionette.grad.marionette_tangent.MarionetteTangent` puppet step by puppet step: the
 state and its P tangents are carried along, so no checkpoint or tape is needed (the memory is
-two states and two tangent states, plus the host outputs). ``MarionetteGradient.jvp`` delegates
-here.
+two states and two tangent states, each step's control and its tangents, and the outputs). The
+rollout's launches are captured once as a Warp graph (``dmarionette.capture``, as the engine's
+forward: without it the Python cost of the many small launches is most of the time, measured:
+0.65 s against 0.13 s for 30 puppet steps, P = 4) and replayed per call, with the start state, the
+controls, the constants and their directions written in between on the host. ``MarionetteGradient.jvp``
+delegates here.
 
 Each input field maps onto the step's tangents exactly as the reverse engine maps its gradient
 (``grad/engine.py``'s module doc): ``top_q``, ``bar_q``, ``bar_qd`` per string step onto each
@@ -28,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from dmarionette.capture import CapturedChunk
 from dmarionette.grad.engine import INPUT_FIELDS, _checked
 from dmarionette.grad.marionette_tangent import MarionetteTangent
 from dmarionette.kernels.articulation_forces import eval_body_points
@@ -42,7 +47,8 @@ class RolloutTangent:
     """JVPs of ``engine``'s rollout for ``direction_count`` directions (module doc).
 
     Args:
-        engine: a :class:`~dmarionette.grad.engine.MarionetteGradient` of one world.
+        engine: a :class:`~dmarionette.grad.engine.MarionetteGradient` of one world (its ``capture``
+            choice: a captured graph, or the launches one by one, the same numbers).
         direction_count: P, the directions each :meth:`jvp` takes.
         optimization_level: C++ optimisation of the generated puppet tangent kernels.
     """
@@ -57,13 +63,15 @@ class RolloutTangent:
         self.engine = engine
         self.model = m
         self.direction_count = P = int(direction_count)
+        steps, n = engine.puppet_steps, m.substeps
         self.step = MarionetteTangent(engine.solver, P, optimization_level)
         self.states = [m.state(), m.state()]
         self.tangents = [self.step.tangent_state(), self.step.tangent_state()]
-        self.control = MarionetteControl(m)
-        self.control_tangent = self.step.control_tangent()
+        self.controls = [MarionetteControl(m) for _ in range(steps)]
+        self.control_tangents = [self.step.control_tangent() for _ in range(steps)]
         self.constants = self.step.constants_tangent()
-        points = len(m.puppet.point_names)
+        points, bodies, q = len(m.puppet.point_names), m.puppet.body_count, m.puppet.q_count
+        s, b = m.strings.string_count, m.bar_rows
         self.kinematics = m.puppet.kinematics(1)
         self.body = self.step.puppet.body_tangents()
         with wp.ScopedDevice(m.device):
@@ -71,7 +79,16 @@ class RolloutTangent:
             self.point_qd = wp.zeros((1, points), dtype=wp.vec3d)
             self.point_q_dot = wp.zeros((P, 1, points), dtype=wp.vec3d)
             self.point_qd_dot = wp.zeros((P, 1, points), dtype=wp.vec3d)
+            # every output (primal, and tangents with P after the step axis), written by the graph
+            self.out = {"joint_q": wp.zeros((steps + 1, 1, q), dtype=wp.float64),
+                        "point_pos": wp.zeros((steps + 1, 1, points), dtype=wp.vec3d),
+                        "body_pos": wp.zeros((steps + 1, 1, bodies), dtype=wp.vec3d),
+                        "body_rot": wp.zeros((steps + 1, 1, bodies), dtype=wp.quatd),
+                        **{k: wp.zeros((steps, n, max(c, 1)), dtype=wp.vec3d)
+                           for k, c in (("tie_force", s), ("bar_feedback", b), ("bar_reaction", b))}}
+            self.dot = {k: wp.zeros((a.shape[0], P, *a.shape[1:]), dtype=a.dtype) for k, a in self.out.items()}
         self._points = tangent_kernel(eval_body_points)
+        self._chunk: CapturedChunk | None = None  # built at the first jvp (its warm-up needs real inputs)
 
     def check_tangents(self, tangents) -> dict[str, np.ndarray]:
         """``tangents`` (input field -> ``(P, *input_shape)``) checked; missing fields are zero."""
@@ -89,44 +106,59 @@ class RolloutTangent:
         """The rollout's outputs at ``inputs`` (a checked, one-world ``RolloutInputs``) and their
         tangents along ``tangents`` (checked by :meth:`check_tangents`): two dicts, output name ->
         the output's shape, and ``(P, *shape)``."""
-        e, m, P, n = self.engine, self.model, self.direction_count, self.model.substeps
+        e, n = self.engine, self.model.substeps
         e._set_constants(inputs)
         c = self.constants
         c.tie_stiffness.assign(tangents["tie_stiffness"])
         c.tie_damping.assign(tangents["tie_damping"])
         c.string_stiffness.assign(tangents["string_stiffness"] * e._segments_per_string)
-        out = {name: np.zeros(shape) for name, shape in e.output_shapes.items()}
-        dot = {name: np.zeros((P, *shape)) for name, shape in e.output_shapes.items()}
-        state, spare = self.states
-        e._start_state(inputs).load(state)
-        t, t_spare = self.tangents
-        for a in vars(t).values():
-            if isinstance(a, wp.array):
-                a.zero_()
-        t.puppet.joint_q.assign(tangents["joint_q0"][:, None])
-        t.puppet.joint_qd.assign(tangents["joint_qd0"][:, None])
-        t.puppet.joint_qdd.zero_()
-        t.particle_q.assign(tangents["particle_q0"])
-        t.particle_qd.assign(tangents["particle_qd0"])
-        tc = self.control_tangent
-        for k in range(e.puppet_steps):
+        self.step.spread_constants(c)
+        for k, (control, tc) in enumerate(zip(self.controls, self.control_tangents)):
             rows = slice(k * n, (k + 1) * n)
-            upload_values(self.control.top_q, inputs.top_q[rows])
-            upload_values(self.control.bar_q, inputs.bar_q[rows])
-            upload_values(self.control.bar_qd, inputs.bar_qd[rows])
+            upload_values(control.top_q, inputs.top_q[rows])
+            upload_values(control.bar_q, inputs.bar_q[rows])
+            upload_values(control.bar_qd, inputs.bar_qd[rows])
             tc.top_q.assign(tangents["top_q"][:, rows])
             tc.bar_q.assign(tangents["bar_q"][:, rows])
             tc.bar_qd.assign(tangents["bar_qd"][:, rows])
-            self._pose(state, t, k, out, dot)
-            self.step.step(state, t, spare, t_spare, self.control, tc, c)
-            for name in ("tie_force", "bar_feedback", "bar_reaction"):
-                out[name][rows] = getattr(spare, name).numpy()
-                dot[name][:, rows] = getattr(t_spare, name).numpy()
-            state, spare, t, t_spare = spare, state, t_spare, t
-        self._pose(state, t, e.puppet_steps, out, dot)
+        if self._chunk is None:
+            self._start(inputs, tangents)
+            self._chunk = CapturedChunk(self._launch, self.model.device, capture=e._capture)
+        self._start(inputs, tangents)
+        self._chunk.run()
+        out = {k: a.numpy() for k, a in self.out.items()}
+        dot = {k: np.moveaxis(a.numpy(), 1, 0) for k, a in self.dot.items()}
+        out = {k: out[k][:, 0] if k in _POSES else v.reshape(e.output_shapes[k]) for k, v in out.items()}
+        P = self.direction_count
+        dot = {k: dot[k][:, :, 0] if k in _POSES else v.reshape(P, *e.output_shapes[k]) for k, v in dot.items()}
         return out, dot
 
-    def _pose(self, state, t, k: int, out: dict, dot: dict) -> None:
+    def _start(self, inputs, tangents: dict[str, np.ndarray]) -> None:
+        """The start state and its tangent into ``states[0]``, ``tangents[0]``."""
+        self.engine._start_state(inputs).load(self.states[0])
+        t = self.tangents[0]
+        for a in (t.tie_force, t.tie_target, t.bar_feedback, t.bar_reaction, t.puppet.joint_qdd):
+            a.zero_()
+        t.puppet.joint_q.assign(tangents["joint_q0"][:, None])
+        t.puppet.joint_qd.assign(tangents["joint_qd0"][:, None])
+        t.particle_q.assign(tangents["particle_q0"])
+        t.particle_qd.assign(tangents["particle_qd0"])
+
+    def _launch(self) -> None:
+        """The rollout's launches (captured): the steps between the two states in turn, each output
+        copied into its row."""
+        state, spare = self.states
+        t, t_spare = self.tangents
+        for k in range(self.engine.puppet_steps):
+            self._pose(state, t, k)
+            self.step.step(state, t, spare, t_spare, self.controls[k], self.control_tangents[k], spread=False)
+            for name in ("tie_force", "bar_feedback", "bar_reaction"):
+                wp.copy(self.out[name][k], getattr(spare, name))
+                wp.copy(self.dot[name][k], getattr(t_spare, name))
+            state, spare, t, t_spare = spare, state, t_spare, t
+        self._pose(state, t, self.engine.puppet_steps)
+
+    def _pose(self, state, t, k: int) -> None:
         """Row ``k`` of the pose outputs (``joint_q``, points, body poses) of ``state`` and their tangents."""
         m, P, kin, tb = self.model, self.direction_count, self.kinematics, self.body
         self.step.puppet.eval_kinematics(state.puppet, t.puppet, kin, tb)
@@ -135,11 +167,13 @@ class RolloutTangent:
                              kin.body_v, self.point_q, self.point_qd],
                             {**{name: tb[name] for name in ("body_pos", "body_rot", "body_w", "body_v")},
                              "point_pos": self.point_q_dot, "point_vel": self.point_qd_dot}, m.device)
-        out["joint_q"][k] = state.puppet.joint_q.numpy()[0]
-        dot["joint_q"][:, k] = t.puppet.joint_q.numpy()[:, 0]
-        out["point_pos"][k] = self.point_q.numpy()[0]
-        dot["point_pos"][:, k] = self.point_q_dot.numpy()[:, 0]
-        out["body_pos"][k] = kin.body_pos.numpy()[0]
-        dot["body_pos"][:, k] = tb["body_pos"].numpy()[:, 0]
-        out["body_rot"][k] = kin.body_rot.numpy()[0]
-        dot["body_rot"][:, k] = tb["body_rot"].numpy()[:, 0]
+        for name, value, tangent in (("joint_q", state.puppet.joint_q, t.puppet.joint_q),
+                                     ("point_pos", self.point_q, self.point_q_dot),
+                                     ("body_pos", kin.body_pos, tb["body_pos"]),
+                                     ("body_rot", kin.body_rot, tb["body_rot"])):
+            wp.copy(self.out[name][k], value)
+            wp.copy(self.dot[name][k], tangent)
+
+
+# The pose outputs, held with a world axis of one (``(rows, 1, ...)``).
+_POSES = ("joint_q", "point_pos", "body_pos", "body_rot")
