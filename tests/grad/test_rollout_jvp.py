@@ -140,7 +140,8 @@ def test_rollout_jvp_refuses_bad_tangents():
     with pytest.raises(ValueError, match="unknown input 'bar'"):
         e.jvp(h.inputs, {"bar": np.zeros((1, *shape))})
     with pytest.raises(ValueError, match="leading"):
-        e.jvp(h.inputs, {"bar_q": np.zeros((2, *shape)), "tie_stiffness": np.zeros((3, *e.input_shapes["tie_stiffness"]))})
+        e.jvp(h.inputs, {"bar_q": np.zeros((2, *shape)),
+                         "tie_stiffness": np.zeros((3, *e.input_shapes["tie_stiffness"]))})
     with pytest.raises(ValueError, match=r"tangents\['tie_damping'\]: non-finite"):
         e.jvp(h.inputs, {"tie_damping": np.full((1, *e.input_shapes["tie_damping"]), np.nan)})
     with pytest.raises(ValueError, match="RolloutInputs.bar_qd: got shape"):
@@ -200,3 +201,17 @@ def test_jax_forward_mode_matches_engine_and_reverse_mode():
     scale = max(np.abs(terms_f).sum(), np.abs(terms_r).sum())
     print(f"\njax: <u, Jv> = {terms_f.sum():.15e}, <J^T u, v> = {terms_r.sum():.15e}")
     assert abs(terms_f.sum() - terms_r.sum()) <= 1e-10 * scale
+
+
+def test_rollout_jvp_refuses_several_worlds():
+    h = _hanging()
+    scene = h.model.scene
+    model = MarionetteModel.from_scenes([scene, scene], optimization_level=0, requires_grad=True)
+    engine = MarionetteGradient(model, 1)
+    inputs = engine.scene_inputs()
+    with pytest.raises(ValueError, match="2 worlds"):
+        engine.jvp(inputs, {"bar_q": np.zeros((1, *engine.input_shapes["bar_q"]))})
+    from fitting.rollout import marionette_rollout_jvp
+
+    with pytest.raises(ValueError, match="2 worlds"):
+        marionette_rollout_jvp(engine)
