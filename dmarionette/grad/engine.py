@@ -39,6 +39,9 @@ world's gradients (the worlds do not interact, so world ``w``'s gradient is that
 rollout: ``tests/grad/test_world_gradients.py``). Inside, the inputs and outputs are laid out as
 the kernels hold them: strings and bars world after world, puppet arrays with a world axis.
 
+Forward mode: :meth:`MarionetteGradient.jvp` carries P tangent directions through one rollout
+(:mod:`dmarionette.grad.rollout_tangent`; one world).
+
 Not differentiable (discontinuous; keep the loss away from them): the taut flag of a
 string (eq. 4's feedback switches on and off with it), the slack clamp of a segment's
 geometric stiffness, string-ground contact and hard (non-smooth) body contact, and
