@@ -1,6 +1,7 @@
 """Cost of checkpointed marionette gradients (``MarionetteGradient``): time and memory.
 
 Run:  python benchmarks/bench_gradients.py [--seconds 1 4 16] [--memory-seconds 60] [--repeats 3] [--no-lanes]
+      [--jvp [1 4 12 16]]
 
 The scene is ``hanging`` (6 strings x 50 particles, 12 bodies, ground contact on and
 smoothed, joint limits and feedback on) at the paper's rates (strings 1 kHz, puppet 30 Hz),
@@ -20,6 +21,13 @@ serial on the CPU). Reported per length, medians over ``--repeats``:
   segment's arrays and gradients, the checkpoints, the host outputs), and the process's
   peak resident set (``ru_maxrss``) above its size after the model was built and the
   kernels loaded (a coarser number: it includes Python objects of the tape and the graphs).
+
+``--jvp P...``: a second table, forward mode (``MarionetteGradient.jvp``, issue 13 item 4) at the
+shortest length: for each P the JVP of the rollout along P random directions in every input
+(one rollout carrying all P tangents), its median time, and ``JVP / forward``: the median over
+the repeats of each JVP's time over the (captured) forward run just before it, against the
+target ``1 + 0.5 P``; also the forward without capture (every launch from Python, as the JVP
+launches its passes) for scale.
 
 The string steps run in SIMD lanes (``SolverStringImplicit.lanes``, the default: the plain step
 and the taped one with its laned adjoint); ``--no-lanes``: the scalar kernels.
@@ -87,6 +95,40 @@ def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | Non
             "outputs_mib": mem["outputs"] / MIB, "rss_above_model_mib": _peak_mib() - base}
 
 
+def one_jvp(seconds: float, repeats: int, directions: list[int], lanes: bool = True) -> list[dict]:
+    """The JVP rows (module doc): ``seconds`` of rollout, each P in ``directions``."""
+    scene = dm.load_scene("hanging")
+    scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
+    model = MarionetteModel(scene, requires_grad=True)
+    model.string_solver.lanes = lanes
+    steps = round(seconds / model.puppet_dt)
+    engine = MarionetteGradient(model, steps)
+    plain = MarionetteGradient(model, steps, capture=False)
+    inputs = engine.scene_inputs()
+    rng = np.random.default_rng(0)
+    rows = []
+    for p in directions:
+        tangents = {k: rng.normal(size=(p, *shape)) * 1e-3 for k, shape in engine.input_shapes.items()}
+        engine.forward(inputs)
+        plain.forward(inputs)
+        engine.jvp(inputs, tangents)  # builds the tangent kernels and arrays for this P
+        forward, uncaptured, jvp = [], [], []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            engine.forward(inputs)
+            forward.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            engine.jvp(inputs, tangents)
+            jvp.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            plain.forward(inputs)
+            uncaptured.append(time.perf_counter() - start)
+        rows.append({"seconds": seconds, "puppet_steps": steps, "P": p, "forward_s": statistics.median(forward),
+                     "forward_uncaptured_s": statistics.median(uncaptured), "jvp_s": statistics.median(jvp),
+                     "ratio": statistics.median(j / f for f, j in zip(forward, jvp))})
+    return rows
+
+
 LANES = True  # --no-lanes: False
 
 
@@ -112,9 +154,16 @@ def main() -> None:
     p.add_argument("--checkpoint-steps", type=int, nargs="*", default=[],
                    help="also run every length with these segment lengths C (besides the default sqrt(P))")
     p.add_argument("--no-lanes", action="store_true", help="the scalar string kernels (plain and taped)")
+    p.add_argument("--jvp", type=int, nargs="*", default=None,
+                   help="also the forward-mode cost at the shortest length for these direction counts P "
+                        "(no values: 1 4 12 16)")
+    p.add_argument("--one-jvp", type=float, help=argparse.SUPPRESS)
     args = p.parse_args()
     global LANES
     LANES = not args.no_lanes
+    if args.one_jvp is not None:
+        print(json.dumps(one_jvp(args.one_jvp, args.repeats, args.jvp, LANES)))
+        return
     if args.one is not None:
         c = args.checkpoint_steps[0] if args.checkpoint_steps else None
         print(json.dumps(one(args.one, args.repeats, not args.no_capture, c, LANES)))
@@ -139,6 +188,18 @@ def main() -> None:
               f"{r['checkpoints_mib']:.2f} | {r['outputs_mib']:.1f} | {r['rss_above_model_mib']:.0f} |")
     print("\nfirst backward (plans the segments, captures their graphs):",
           ", ".join(f"{r['seconds']:g} s: {r['first_s']:.1f} s" for r in rows))
+    if args.jvp is not None:
+        directions = args.jvp or [1, 4, 12, 16]
+        cmd = [sys.executable, __file__, "--one-jvp", str(min(args.seconds)), "--repeats", str(args.repeats),
+               "--jvp", *map(str, directions)] + ([] if LANES else ["--no-lanes"])
+        jvp_rows = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip()
+                              .splitlines()[-1])
+        print("\n| rollout | P directions | forward [s] | forward, no capture [s] | JVP [s] | JVP / forward "
+              "| target 1 + 0.5 P |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        for r in jvp_rows:
+            print(f"| {r['seconds']:g} s | {r['P']} | {r['forward_s']:.3f} | {r['forward_uncaptured_s']:.3f} | "
+                  f"{r['jvp_s']:.3f} | {r['ratio']:.1f} | {1 + 0.5 * r['P']:g} |")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 This package may import ``dmarionette``; ``dmarionette`` never imports it. ``marionette_rollout``
 exposes a checkpointed marionette rollout (``dmarionette.grad.engine``) to JAX with a
-custom VJP (docs/gradients.md).
+custom VJP, ``marionette_rollout_jvp`` the same rollout with a custom JVP (forward mode)
+(docs/gradients.md).
 """
 
 # Keyframe authoring (docs/authoring.md).
@@ -19,6 +20,7 @@ from .keyframes import keyframes_from_table as keyframes_from_table
 from .keyframes import load_keyframes as load_keyframes
 from .objective import AuthoringObjective as AuthoringObjective
 from .rollout import marionette_rollout as marionette_rollout
+from .rollout import marionette_rollout_jvp as marionette_rollout_jvp
 from .solve import solve as solve
 
 # Calibration (docs/calibration.md).
@@ -27,4 +29,4 @@ from .calibration_fit import calibrate_session as calibrate_session
 
 __all__ = ["AuthorSpec", "AuthoringObjective", "AuthoringProblem", "BarParameterisation", "EXIT_CODES",
            "KeyframeError", "author", "build_problem", "enable_compilation_cache", "solve_keyframes", "calibrate_session", "keyframes_from_table", "load_keyframes",
-           "marionette_rollout", "read_calibration_data", "solve"]
+           "marionette_rollout", "marionette_rollout_jvp", "read_calibration_data", "solve"]

@@ -39,6 +39,9 @@ world's gradients (the worlds do not interact, so world ``w``'s gradient is that
 rollout: ``tests/grad/test_world_gradients.py``). Inside, the inputs and outputs are laid out as
 the kernels hold them: strings and bars world after world, puppet arrays with a world axis.
 
+Forward mode: :meth:`MarionetteGradient.jvp` carries P tangent directions through one rollout
+(:mod:`dmarionette.grad.rollout_tangent`; one world).
+
 Not differentiable (discontinuous; keep the loss away from them): the taut flag of a
 string (eq. 4's feedback switches on and off with it), the slack clamp of a segment's
 geometric stiffness, string-ground contact and hard (non-smooth) body contact, and
@@ -261,6 +264,7 @@ class MarionetteGradient:
         self._flat_outputs = {name: _joined_shape(shape, _WORLD_AXIS[name], w)
                               for name, shape in self.output_shapes.items()}
         self._chunks = {}
+        self._tangents = {}  # direction count -> RolloutTangent (jvp)
         self._capture = bool(capture)
         self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), self.checkpoint_steps, capture=capture)
         self._inputs: RolloutInputs | None = None  # the last forward's, all worlds in the kernels' layout
@@ -499,6 +503,41 @@ class MarionetteGradient:
         grads["string_stiffness"] = s.string_stiffness.grad.numpy() * self._segments_per_string
         result = self._split_inputs(RolloutInputs(**grads))
         return result[0] if single else result
+
+    # ------------------------------------------------------------------ forward mode
+    def jvp(self, inputs: RolloutInputs, tangents: dict[str, np.ndarray]
+            ) -> tuple[RolloutOutputs, dict[str, np.ndarray]]:
+        """The rollout at ``inputs`` and its directional derivatives along P directions at once
+        (forward mode, :class:`~dmarionette.grad.rollout_tangent.RolloutTangent`; one world).
+
+        Args:
+            inputs: a :class:`RolloutInputs` (checked as :meth:`forward` checks it).
+            tangents: input field name -> directions, ``(P, *input_shapes[name])``, for any subset of
+                ``INPUT_FIELDS`` (missing: zero); every given field has the same ``P``.
+
+        Returns:
+            The outputs (as :meth:`forward`'s, which this does not replace: :meth:`backward` still
+            differentiates the last :meth:`forward`) and every output's tangent, output name ->
+            ``(P, *output_shapes[name])``.
+        """
+        from dmarionette.grad.rollout_tangent import RolloutTangent  # it builds on this module
+
+        if self.world_count != 1:
+            raise ValueError(f"MarionetteGradient.jvp: a model of {self.world_count} worlds; the rollout JVP "
+                             "runs one world (build one engine per world)")
+        if not isinstance(tangents, dict) or not tangents:
+            got = type(tangents).__name__ if not isinstance(tangents, dict) else "an empty dict"
+            raise ValueError(f"tangents: got {got}; expected a dict of input name -> (P, *input shape) array")
+        counts = {name: np.shape(value)[0] if np.ndim(value) else None for name, value in tangents.items()}
+        direction_count = next(iter(counts.values()))
+        if direction_count is None or direction_count < 1 or any(c != direction_count for c in counts.values()):
+            raise ValueError(f"tangents: leading (direction) axes {counts}; expected the same P >= 1 for every field")
+        inputs = self.check_inputs(inputs)
+        if direction_count not in self._tangents:
+            self._tangents[direction_count] = RolloutTangent(self, direction_count)
+        rollout = self._tangents[direction_count]
+        out, dot = rollout.jvp(inputs, rollout.check_tangents(tangents))
+        return RolloutOutputs(**out), dot
 
     def memory(self) -> dict[str, int]:
         """Bytes the engine holds for gradients: ``checkpoints`` (host, one per segment),

@@ -154,6 +154,10 @@ class MarionetteTangent:
     def constants_tangent(self) -> MarionetteConstantsTangent:
         return MarionetteConstantsTangent(self.model, self.direction_count)
 
+    def spread_constants(self, tk: MarionetteConstantsTangent | None) -> None:
+        """Writes the constants' directions ``tk`` (None: zero) where the step's passes read them."""
+        self._constants = self._spread_constants(tk)
+
     def _spread_constants(self, tk: MarionetteConstantsTangent | None) -> dict:
         """The constants' directions where each pass reads them: the string step's ``constants_dot``
         columns, the puppet springs' rows (spring ``i`` of world ``w`` is string ``w S + spring_string[i]``);
@@ -180,12 +184,15 @@ class MarionetteTangent:
     def step(self, state_in: MarionetteState, tangent_in: MarionetteTangentState, state_out: MarionetteState,
              tangent_out: MarionetteTangentState, control: MarionetteControl,
              tangent_control: MarionetteControlTangent,
-             tangent_constants: MarionetteConstantsTangent | None = None) -> None:
+             tangent_constants: MarionetteConstantsTangent | None = None, *, spread: bool = True) -> None:
         """One puppet step of the state and of its P tangents (``tangent_out`` other arrays than
-        ``tangent_in``); ``tangent_constants``: directions in the calibrated constants (None: zero)."""
+        ``tangent_in``); ``tangent_constants``: directions in the calibrated constants (None: zero).
+        ``spread=False``: the constants' directions as the last :meth:`spread_constants` left them
+        (no host work: the step's launches can be captured as a graph, ``grad/rollout_tangent``)."""
         m, sv, ws, P = self.model, self.solver, self.workspace, self.direction_count
         dev = m.device
-        self._constants = self._spread_constants(tangent_constants)
+        if spread:
+            self.spread_constants(tangent_constants)
         # ---- begin_step
         sv.eval_body_points(state_in, ws.points)
         self._predict(state_in, tangent_in, ws)
