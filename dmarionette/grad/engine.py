@@ -58,6 +58,7 @@ import warp as wp
 
 from dmarionette.capture import CapturedChunk, ping_pong
 from dmarionette.grad.carried import carried_arrays
+from dmarionette.grad.rollout_tangent import RolloutTangent
 from dmarionette.grad.tape import TapedSegment
 from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, SolverMarionette, bar_inputs
 from dmarionette.strings.rollout import upload_values
@@ -244,9 +245,9 @@ class MarionetteGradient:
         self._rest = Checkpoint.of(self.state)
         s = m.strings
         self.world_count = w = m.world_count
-        self._segments_per_string = s.string_particle_count.astype(np.float64) - 1.0
+        self.segments_per_string = s.string_particle_count.astype(np.float64) - 1.0
         self._scene_constants = (s.string_tie_stiffness.numpy().copy(), s.string_tie_damping.numpy().copy(),
-                                 s.string_stiffness.numpy() / self._segments_per_string)
+                                 s.string_stiffness.numpy() / self.segments_per_string)
         b, per_world, particles = m.bar_rows, m.strings_per_world, s.particle_count // w
         p, t, q, qd = self.puppet_steps, self.string_steps, m.puppet.q_count, m.puppet.qd_count
         points, bodies = len(m.puppet.point_names), m.puppet.body_count
@@ -265,7 +266,7 @@ class MarionetteGradient:
                               for name, shape in self.output_shapes.items()}
         self._chunks = {}
         self._tangents = {}  # direction count -> RolloutTangent (jvp)
-        self._capture = bool(capture)
+        self.capture = bool(capture)
         self._taped = TapedSegment(m, self.solver, self._parameter_arrays(), self.checkpoint_steps, capture=capture)
         self._inputs: RolloutInputs | None = None  # the last forward's, all worlds in the kernels' layout
         self._checkpoints: list[Checkpoint] = []
@@ -339,12 +340,12 @@ class MarionetteGradient:
         parts = {name: _split(getattr(flat, name), _WORLD_AXIS[name], self.world_count) for name in INPUT_FIELDS}
         return [RolloutInputs(**{name: parts[name][w] for name in INPUT_FIELDS}) for w in range(self.world_count)]
 
-    def _set_constants(self, inputs: RolloutInputs) -> None:
+    def set_constants(self, inputs: RolloutInputs) -> None:
         m = self.model
         s, pup = m.strings, m.puppet
         upload_values(s.string_tie_stiffness, inputs.tie_stiffness)
         upload_values(s.string_tie_damping, inputs.tie_damping)
-        upload_values(s.string_stiffness, inputs.string_stiffness * self._segments_per_string)
+        upload_values(s.string_stiffness, inputs.string_stiffness * self.segments_per_string)
         if len(m.spring_string):
             springs = self._spring_strings()
             upload_values(pup.spring_stiffness, inputs.tie_stiffness[springs])
@@ -357,7 +358,7 @@ class MarionetteGradient:
             return m.spring_string
         return (m.spring_string[None] + m.strings_per_world * np.arange(self.world_count)[:, None]).reshape(-1)
 
-    def _start_state(self, inputs: RolloutInputs, tie_target0=None, tie_force0=None) -> Checkpoint:
+    def start_state(self, inputs: RolloutInputs, tie_target0=None, tie_force0=None) -> Checkpoint:
         r = self._rest
         tie_target = r.tie_target.copy() if tie_target0 is None else tie_target0
         tie_force = np.zeros_like(r.tie_force) if tie_force0 is None else tie_force0
@@ -381,7 +382,7 @@ class MarionetteGradient:
     # ------------------------------------------------------------------ forward
     def _chunk(self, steps: int) -> _PlainChunk:
         if steps not in self._chunks:
-            self._chunks[steps] = _PlainChunk(self, steps, self._capture)
+            self._chunks[steps] = _PlainChunk(self, steps, self.capture)
         return self._chunks[steps]
 
     def forward(self, inputs: RolloutInputs | list[RolloutInputs], *, tie_target0=None,
@@ -401,12 +402,12 @@ class MarionetteGradient:
         inputs = self._join_inputs([self.check_inputs(x, w) for w, x in enumerate(worlds)])
         tie_target0, tie_force0 = self._start_arrays(tie_target0, tie_force0)
         m = self.model
-        self._set_constants(inputs)
+        self.set_constants(inputs)
         shapes = self._flat_outputs
         out = {name: np.zeros(shape) for name, shape in shapes.items()}
         n = m.substeps
         checkpoints = []
-        start = self._start_state(inputs, tie_target0, tie_force0)
+        start = self.start_state(inputs, tie_target0, tie_force0)
         start.load(self.state)
         for a, b in self.segments:
             checkpoints.append(Checkpoint.of(self.state))
@@ -476,7 +477,7 @@ class MarionetteGradient:
         cot = {name: _join([c.get(name, np.zeros(self.output_shapes[name])) for c in checked], _WORLD_AXIS[name])
                for name in named}
         m = self.model
-        self._set_constants(self._inputs)  # another engine on the same model may have run since
+        self.set_constants(self._inputs)  # another engine on the same model may have run since
         params = self._parameter_arrays()
         for a in params:
             a.grad.zero_()
@@ -500,7 +501,7 @@ class MarionetteGradient:
             np.add.at(kd_grad, springs, pup.spring_damping.grad.numpy())
         grads["tie_stiffness"] = k_grad
         grads["tie_damping"] = kd_grad
-        grads["string_stiffness"] = s.string_stiffness.grad.numpy() * self._segments_per_string
+        grads["string_stiffness"] = s.string_stiffness.grad.numpy() * self.segments_per_string
         result = self._split_inputs(RolloutInputs(**grads))
         return result[0] if single else result
 
@@ -520,8 +521,6 @@ class MarionetteGradient:
             differentiates the last :meth:`forward`) and every output's tangent, output name ->
             ``(P, *output_shapes[name])``.
         """
-        from dmarionette.grad.rollout_tangent import RolloutTangent  # it builds on this module
-
         if self.world_count != 1:
             raise ValueError(f"MarionetteGradient.jvp: a model of {self.world_count} worlds; the rollout JVP "
                              "runs one world (build one engine per world)")
@@ -533,10 +532,15 @@ class MarionetteGradient:
         if direction_count is None or direction_count < 1 or any(c != direction_count for c in counts.values()):
             raise ValueError(f"tangents: leading (direction) axes {counts}; expected the same P >= 1 for every field")
         inputs = self.check_inputs(inputs)
+        for name in tangents:
+            if name not in self.input_shapes:
+                raise ValueError(f"tangents: unknown input {name!r}; expected some of {list(INPUT_FIELDS)}")
+        checked = {name: _checked(f"tangents[{name!r}]", tangents[name], (direction_count, *shape))
+                   if name in tangents else np.zeros((direction_count, *shape))
+                   for name, shape in self.input_shapes.items()}
         if direction_count not in self._tangents:
             self._tangents[direction_count] = RolloutTangent(self, direction_count)
-        rollout = self._tangents[direction_count]
-        out, dot = rollout.jvp(inputs, rollout.check_tangents(tangents))
+        out, dot = self._tangents[direction_count].jvp(inputs, checked)
         return RolloutOutputs(**out), dot
 
     def memory(self) -> dict[str, int]:

@@ -41,7 +41,6 @@ import numpy as np
 import warp as wp
 
 from dmarionette.capture import CapturedChunk
-from dmarionette.grad.engine import INPUT_FIELDS, _checked
 from dmarionette.grad.marionette_tangent import MarionetteTangent
 from dmarionette.kernels.articulation_forces import eval_body_points
 from dmarionette.kernels.kernel_tangent import tangent_kernel
@@ -98,28 +97,17 @@ class RolloutTangent:
         self._points = tangent_kernel(eval_body_points)
         self._chunk: CapturedChunk | None = None  # built at the first jvp (its warm-up needs real inputs)
 
-    def check_tangents(self, tangents) -> dict[str, np.ndarray]:
-        """``tangents`` (input field -> ``(P, *input_shape)``) checked; missing fields are zero."""
-        e, P = self.engine, self.direction_count
-        if not isinstance(tangents, dict):
-            raise TypeError(f"tangents: got {type(tangents).__name__}; expected a dict of input name -> array")
-        out = {}
-        for name, value in tangents.items():
-            if name not in e.input_shapes:
-                raise ValueError(f"tangents: unknown input {name!r}; expected some of {list(INPUT_FIELDS)}")
-            out[name] = _checked(f"tangents[{name!r}]", value, (P, *e.input_shapes[name]))
-        return {name: out.get(name, np.zeros((P, *e.input_shapes[name]))) for name in INPUT_FIELDS}
-
     def jvp(self, inputs, tangents: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """The rollout's outputs at ``inputs`` (a checked, one-world ``RolloutInputs``) and their
-        tangents along ``tangents`` (checked by :meth:`check_tangents`): two dicts, output name ->
+        tangents along ``tangents`` (every input field, ``(P, *input_shape)``, checked by
+        ``MarionetteGradient.jvp``): two dicts, output name ->
         the output's shape, and ``(P, *shape)``."""
         e, n = self.engine, self.model.substeps
-        e._set_constants(inputs)
+        e.set_constants(inputs)
         c = self.constants
         c.tie_stiffness.assign(tangents["tie_stiffness"])
         c.tie_damping.assign(tangents["tie_damping"])
-        c.string_stiffness.assign(tangents["string_stiffness"] * e._segments_per_string)
+        c.string_stiffness.assign(tangents["string_stiffness"] * e.segments_per_string)
         self.step.spread_constants(c)
         for k, (control, tc) in enumerate(zip(self.controls, self.control_tangents)):
             rows = slice(k * n, (k + 1) * n)
@@ -131,7 +119,7 @@ class RolloutTangent:
             tc.bar_qd.assign(tangents["bar_qd"][:, rows])
         if self._chunk is None:
             self._start(inputs, tangents)
-            self._chunk = CapturedChunk(self._launch, self.model.device, capture=e._capture)
+            self._chunk = CapturedChunk(self._launch, self.model.device, capture=e.capture)
         self._start(inputs, tangents)
         self._chunk.run()
         out = {k: a.numpy() for k, a in self.out.items()}
@@ -143,7 +131,7 @@ class RolloutTangent:
 
     def _start(self, inputs, tangents: dict[str, np.ndarray]) -> None:
         """The start state and its tangent into ``states[0]``, ``tangents[0]``."""
-        self.engine._start_state(inputs).load(self.states[0])
+        self.engine.start_state(inputs).load(self.states[0])
         t = self.tangents[0]
         for a in (t.tie_force, t.tie_target, t.bar_feedback, t.bar_reaction, t.puppet.joint_qdd):
             a.zero_()
