@@ -28,11 +28,12 @@ One world only (a batched model is refused with a ValueError).
 
 Checked (``tests/grad/test_rollout_jvp.py``, 1 s of ``hanging``): against the reverse engine by the
 dot-product identity for every input group (measured 1e-15 relative), against central differences.
-Cost (``python benchmarks/bench_gradients.py --seconds 1 4 --memory-seconds 0 --repeats 5 --jvp``,
-CPU, load 2-2.6 on 2 cores): a 1 s rollout's JVP for P = 1, 4, 12, 16 directions takes 3.7, 7.4, 18.6,
-23.5 captured forward rollouts (issue 13's target ``1 + 0.5 P``: 1.5, 3, 7, 9): missed; each direction
-adds about 1.3 forwards (the tangent kernels run one thread per direction and the string tangent
-steps are not laned, where the forward's string steps run in SIMD lanes).
+Cost (``python benchmarks/bench_gradients.py --seconds 1 --memory-seconds 0 --repeats 5 --jvp``,
+CPU, load 1.0 and 2.9): a 1 s rollout's JVP for P = 1, 4, 12, 16 directions takes 4.0, 5.0-5.6,
+11.7-12.0, 12.4-15.3 captured forward rollouts (issue 13's target ``1 + 0.5 P``: 1.5, 3, 7, 9):
+missed. The string tangent steps are most of it: the forward keeping its factorisation and each
+row's primal cost about three forward string steps before any direction, each direction about
+0.8 (``kernels/string_step_tangent``'s module doc).
 """
 
 from __future__ import annotations
