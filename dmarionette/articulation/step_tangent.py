@@ -200,23 +200,8 @@ class PuppetStepTangent:
             tan_joint_q_out=tangent_out.joint_q), self.model.device)
 
     def eval_contacts(self, ws, tb: dict, h) -> None:
-        """The compiled-in contacts and their tangents (``ContactSet.eval``'s launches)."""
-        P = self.direction_count
-        cs = self.solver.contacts
-        if not cs.any:
-            return
-        s = cs.settings
-        ground, box, ball = self._contacts
-        bodies = [ws.body_pos, ws.body_rot, ws.body_w, ws.body_v]
-        out = [ws.body_wrench, ws.body_stiffness]
+        """The compiled-in contacts and their tangents (``ContactSet.launches``, as its ``eval``)."""
         tans = {k: tb[k] for k in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")}
-        pts = [cs.point_body, cs.point_local, cs.point_radius, cs.constants]
-        n, dev = ws.world_count, self.model.device
-        if s.ground:
-            ground.launch((n, cs.point_count), P, [*pts, cs.ground, *bodies, h, *out], tans, dev)
-        if s.chair is not None:
-            box.launch((n, cs.point_count), P, [*pts, cs.chair, *bodies, h, *out], tans, dev)
-        if s.ball and cs.ball_body >= 0:
-            ball.launch((n, cs.pair_count), P,
-                        [cs.pair_body, cs.pair_is_sphere, cs.pair_half, cs.pair_mass, cs.ball_body,
-                         wp.float64(self.model.ball.radius), cs.constants, *bodies, h, *out], tans, dev)
+        for kernel, dim, inputs in self.solver.contacts.launches(ws, h):
+            self._contacts[kernel].launch(dim, self.direction_count, [*inputs, ws.body_wrench, ws.body_stiffness],
+                                          tans, self.model.device)

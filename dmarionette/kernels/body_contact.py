@@ -420,24 +420,28 @@ class ContactSet:
         if self.any:
             self.kernels = _kernels(bool(s.smooth))
 
+    def launches(self, state, h) -> list[tuple[int, tuple[int, int], list]]:
+        """The compiled-in contacts' launches for ``state``: ``(kernel index in`` :attr:`kernels`
+        ``, dim, inputs)``, the outputs being ``state``'s ``body_wrench``, ``body_stiffness``
+        (the plain pass and its tangent, ``articulation.step_tangent``, launch the same list)."""
+        if not self.any:
+            return []
+        s = self.settings
+        bodies = [state.body_pos, state.body_rot, state.body_w, state.body_v]
+        pts = [self.point_body, self.point_local, self.point_radius, self.constants]
+        out = []
+        if s.ground:
+            out.append((0, (state.world_count, self.point_count), [*pts, self.ground, *bodies, h]))
+        if s.chair is not None:
+            out.append((1, (state.world_count, self.point_count), [*pts, self.chair, *bodies, h]))
+        if s.ball and self.ball_body >= 0:
+            out.append((2, (state.world_count, self.pair_count),
+                        [self.pair_body, self.pair_is_sphere, self.pair_half, self.pair_mass, self.ball_body,
+                         wp.float64(self.model.ball.radius), self.constants, *bodies, h]))
+        return out
+
     def eval(self, state, h) -> None:
         """Adds the contact forces and implicit blocks of ``state`` (kinematics filled)."""
-        if not self.any:
-            return
-        s = self.settings
-        ground, box, ball = self.kernels
-        bodies = [state.body_pos, state.body_rot, state.body_w, state.body_v]
-        out = [state.body_wrench, state.body_stiffness]
-        dev = self.model.device
-        pts = [self.point_body, self.point_local, self.point_radius, self.constants]
-        if s.ground:
-            wp.launch(ground, dim=(state.world_count, self.point_count),
-                      inputs=[*pts, self.ground, *bodies, h], outputs=out, device=dev)
-        if s.chair is not None:
-            wp.launch(box, dim=(state.world_count, self.point_count),
-                      inputs=[*pts, self.chair, *bodies, h], outputs=out, device=dev)
-        if s.ball and self.ball_body >= 0:
-            wp.launch(ball, dim=(state.world_count, self.pair_count),
-                      inputs=[self.pair_body, self.pair_is_sphere, self.pair_half, self.pair_mass, self.ball_body,
-                              wp.float64(self.model.ball.radius), self.constants, *bodies, h],
-                      outputs=out, device=dev)
+        for kernel, dim, inputs in self.launches(state, h):
+            wp.launch(self.kernels[kernel], dim=dim, inputs=inputs,
+                      outputs=[state.body_wrench, state.body_stiffness], device=self.model.device)
