@@ -25,7 +25,8 @@ Tangent kernel signature: the primal kernel's parameters in their groups, with a
 in`` group after the input groups holding ``tan_<name>`` for every array parameter named in
 ``tangent_names`` (default :data:`TANGENT_NAMES`) that the kernel reads, and a last group
 ``Tangent out`` holding ``tan_<name>`` for every array it writes (plain writes and
-``wp.atomic_add``); :meth:`TangentKernel.launch` takes the arguments by name. Each tangent
+``wp.atomic_add``); :meth:`TangentKernel.launch` takes the tangent arrays by name (the primal's
+arguments in signature order or by name) and checks the names it is given. Each tangent
 array has a leading direction axis (``wp.array2d`` -> ``wp.array3d``, same
 dtype). The tangent kernel also writes the primal outputs (the direction-0 threads
 only), so one launch gives the pass and its P directional derivatives; an output that the
@@ -64,6 +65,7 @@ term is ever dropped silently.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 
 import warp as wp
 
@@ -94,33 +96,65 @@ class TangentKernel:
     Attributes:
         kernel: the Warp kernel ``<key>_tangent``.
         params: the primal kernel's parameter names, in order.
+        arrays: the primal kernel's array parameters, in order (the names a tangent may have).
         tangent_inputs: the inputs whose tangent arrays it takes, in order.
         tangent_outputs: the arrays it writes, whose tangent arrays follow, in order.
         source: the generated source.
     """
 
-    def __init__(self, kernel, params, arguments, tangent_inputs, tangent_outputs, source):
+    def __init__(self, kernel, params, arrays, arguments, tangent_inputs, tangent_outputs, source):
         self.kernel = kernel
         self.params = params
+        self.arrays = arrays
         self.arguments = arguments
         self.tangent_inputs = tangent_inputs
         self.tangent_outputs = tangent_outputs
         self.source = source
 
-    def launch(self, dim, directions: int, args: list, tangents: dict, device=None) -> None:
-        """Launches the primal pass (``args``: the primal kernel's arguments, inputs then outputs, in
-        signature order) and its tangents along ``directions`` directions (``tangents``: name -> array
-        with the leading direction axis, for every name in ``tangent_inputs`` and ``tangent_outputs``)."""
+    def launch(self, dim, directions: int, args: list | Mapping, tangents: Mapping, device=None) -> None:
+        """Launches the primal pass and its tangents along ``directions`` directions.
+
+        Args:
+            dim: the primal kernel's launch dimensions.
+            directions: the number of directions P.
+            args: the primal kernel's arguments (inputs then outputs): a list in signature order, or
+                a mapping with every parameter's name.
+            tangents: name -> array with the leading direction axis, for every name in
+                ``tangent_inputs`` and ``tangent_outputs``; a tangent of another array parameter of
+                the primal is accepted and unused (one mapping may serve kernels that read or write
+                different parts of the same state).
+            device: the device of the launch.
+
+        Raises:
+            ValueError: ``args`` of the wrong length or names, or ``tangents`` missing a name or
+                holding one that is no array parameter of the primal kernel (naming the kernel, the
+                name received and the names expected).
+        """
+        key = self.kernel.key
         dim = (dim,) if isinstance(dim, int) else tuple(dim)
-        if len(args) != len(self.params):
-            raise ValueError(f"{self.kernel.key}: {len(args)} arguments for {len(self.params)} parameters")
-        missing = [n for n in self.tangent_inputs + self.tangent_outputs if n not in tangents]
-        if missing:
-            raise ValueError(f"{self.kernel.key}: no tangent arrays for {missing}")
+        if isinstance(args, Mapping):
+            _check_names(key, "argument", args, self.params, self.params)
+            args = [args[n] for n in self.params]
+        elif len(args) != len(self.params):
+            raise ValueError(f"{key}: {len(args)} arguments for {len(self.params)} parameters {self.params}")
+        _check_names(key, "tangent", tangents, self.tangent_inputs + self.tangent_outputs, self.arrays)
         values = dict(zip(self.params, args))
         values.update({f"{TANGENT_PREFIX}{n}": a for n, a in tangents.items()})
         wp.launch(self.kernel, dim=(int(directions), *dim), inputs=[values[n] for n in self.arguments],
                   device=device)
+
+
+def _check_names(key: str, what: str, given: Mapping, expected: list, allowed: list) -> None:
+    """Raises ValueError where a name of ``expected`` is not in ``given`` or one of ``given`` is not in
+    ``allowed``."""
+    for name in given:
+        if name not in allowed:
+            others = [n for n in allowed if n not in expected]
+            raise ValueError(f"{key}: unknown {what} name {name!r}; expected the names {expected}"
+                             + (f" (those of its other array parameters, {others}, are accepted)" if others else ""))
+    missing = [n for n in expected if n not in given]
+    if missing:
+        raise ValueError(f"{key}: no {what} {missing[0]!r} among {list(given)}; expected the names {expected}")
 
 
 _CACHE: dict = {}
@@ -146,6 +180,7 @@ def tangent_kernel(kernel, tangent_names=TANGENT_NAMES) -> TangentKernel:
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
     module = import_generated(f"dmarionette_tangent_{kernel.key}_{digest}", source, b.env)
     ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
-    result = TangentKernel(getattr(module, name), t.params, t.arguments, ins, list(t.outputs), source)
+    arrays = [a for a in t.params if a in t.arrays]
+    result = TangentKernel(getattr(module, name), t.params, arrays, t.arguments, ins, list(t.outputs), source)
     _CACHE[key] = result
     return result
