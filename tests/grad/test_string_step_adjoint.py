@@ -24,8 +24,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-import warp as wp
-from tests.support.strings import ALL_ON, make_model, three_strings, wiggled_controls
+from tests.support.strings import (ALL_ON, make_model, rollout_gradients, taped_rollout, three_strings,
+                                  wiggled_controls)
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
@@ -35,15 +35,6 @@ from dmarionette.strings.solver import SolverStringImplicit
 STEPS = 400
 DT = 1e-3
 TOLERANCE = 1e-10
-CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
-             "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
-             "string_tie_stiffness", "string_tie_damping", "string_tied"]
-
-
-@wp.kernel
-def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
 
 
 def _model(tension_only: bool):
@@ -57,31 +48,16 @@ def _string_gradients(hand: bool, tension_only: bool) -> dict[str, np.ndarray]:
     model = _model(tension_only)
     solver = SolverStringImplicit(model)
     solver.hand_adjoint = hand
-    rng = np.random.default_rng(11)
     controls = wiggled_controls(model, STEPS, DT)
     states = [model.state() for _ in range(STEPS + 1)]
-    weight = wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
-    force_weight = wp.array(rng.normal(size=(model.string_count, 3)), dtype=wp.vec3d)
-    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
-    tape = wp.Tape()
-    with tape:
-        for k in range(STEPS):
-            solver.step(states[k], states[k + 1], controls[k], DT, tape=tape)
-        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_q, weight], outputs=[loss])
-        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_qd, weight], outputs=[loss])
-        wp.launch(weighted_sum, dim=model.string_count, inputs=[states[-1].tie_force, force_weight], outputs=[loss])
+    tape, loss = taped_rollout(solver, states, controls, DT, np.random.default_rng(11))
     # The problem reaches what it is meant to: particles below the ground, a compressed segment.
     q = np.array([s.particle_q.numpy() for s in states[::20]])
     assert np.min(q[:, :9, 1]) < 0.0
     seg = np.linalg.norm(np.diff(q[:, 16:22], axis=1), axis=-1)
     assert np.min(seg) < 0.35 / 5
     tape.backward(loss)
-    out = {"particle_q0": states[0].particle_q.grad.numpy(), "particle_qd0": states[0].particle_qd.grad.numpy()}
-    for name in ("top_q", "tie_q", "tie_qd"):
-        out[name] = np.array([getattr(c, name).grad.numpy() for c in controls])
-    for name in CONSTANTS:
-        out[name] = getattr(model, name).grad.numpy()
-    return {k: np.array(v, dtype=float) for k, v in out.items()}
+    return rollout_gradients(model, states, controls)
 
 
 @pytest.mark.parametrize("tension_only", [False, True], ids=["printed", "tension-only"])

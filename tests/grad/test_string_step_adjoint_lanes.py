@@ -20,7 +20,8 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import ALL_ON, make_model, repeated_specs, wiggled_controls
+from tests.support.strings import (ALL_ON, make_model, repeated_specs, rollout_gradients, taped_rollout,
+                                  wiggled_controls)
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
@@ -31,9 +32,6 @@ from dmarionette.strings.solver import SolverStringImplicit
 
 STEPS = 200
 DT = 1e-3
-CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
-             "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
-             "string_tie_stiffness", "string_tie_damping", "string_tied"]
 
 # test_string_step_adjoint's three strings and a two-particle chain, each repeated this many times.
 BASE = [
@@ -46,12 +44,6 @@ BASE = [
              internal_friction=0.1, ground_stiffness=1500.0, ground_absorption=3.0, ground_friction=1.0,
              tied=True, tie_point=(1.5, 0.05, 0.0), tie_stiffness=500.0, tie_damping=1.0)),
 ]
-
-
-@wp.kernel
-def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
 
 
 def _model(effects: StringEffects):
@@ -68,31 +60,16 @@ def _taped_run(lanes: bool, effects: StringEffects) -> dict[str, np.ndarray]:
     model = _model(effects)
     solver = SolverStringImplicit(model)
     solver.lanes = lanes
-    rng = np.random.default_rng(11)
     controls = wiggled_controls(model, STEPS, DT)
     states = [model.state() for _ in range(STEPS + 1)]
     workspaces = [solver.new_workspace() for _ in range(STEPS)]
-    weight = wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
-    force_weight = wp.array(rng.normal(size=(model.string_count, 3)), dtype=wp.vec3d)
-    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
-    tape = wp.Tape()
-    with tape:
-        for k in range(STEPS):
-            solver.step(states[k], states[k + 1], controls[k], DT, tape=tape, workspace=workspaces[k])
-        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_q, weight], outputs=[loss])
-        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_qd, weight], outputs=[loss])
-        wp.launch(weighted_sum, dim=model.string_count, inputs=[states[-1].tie_force, force_weight], outputs=[loss])
+    tape, loss = taped_rollout(solver, states, controls, DT, np.random.default_rng(11), workspaces)
     out = {name: np.array([getattr(s, name).numpy() for s in states[1:]])
            for name in ("particle_q", "particle_qd", "tie_force", "string_taut")}
     out["particle_dv"] = np.array([w.particle_dv.numpy() for w in workspaces])
     out["pivot_inverse"] = np.array([_pivot_inverses(model, w, lanes) for w in workspaces])
     tape.backward(loss)
-    out["particle_q0_grad"] = states[0].particle_q.grad.numpy()
-    out["particle_qd0_grad"] = states[0].particle_qd.grad.numpy()
-    for name in ("top_q", "tie_q", "tie_qd"):
-        out[name + "_grad"] = np.array([getattr(c, name).grad.numpy() for c in controls])
-    for name in CONSTANTS:
-        out[name + "_grad"] = getattr(model, name).grad.numpy()
+    out.update(rollout_gradients(model, states, controls))
     out["below_ground"] = np.min(out["particle_q"][..., 1])
     return out
 

@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import make_model, repeated_specs, spec, swung_controls
+from tests.support.strings import make_model, repeated_specs, spec, step_in_lockstep
 
 import dmarionette as dm
 from dmarionette.kernels.string_step_lanes import LANES, lane_groups
@@ -71,18 +71,7 @@ def test_lanes_equal_the_scalar_step(effects):
     lanes, scalar = SolverStringImplicit(model), SolverStringImplicit(model)
     assert lanes.lanes  # on by default (float64, CPU, printed springs)
     scalar.lanes = False
-    a, b = model.state(), model.state()
-    c, d = model.state(), model.state()
-    dt = 1e-3
-    reached_ground = False
-    for control in swung_controls(model, 400, dt):
-        lanes.step(a, b, control, dt)
-        scalar.step(c, d, control, dt)
-        for name in ("particle_q", "particle_qd", "tie_force", "string_taut"):
-            np.testing.assert_array_equal(getattr(b, name).numpy(), getattr(d, name).numpy(), err_msg=name)
-        np.testing.assert_array_equal(lanes.workspace.particle_dv.numpy(), scalar.workspace.particle_dv.numpy())
-        reached_ground |= bool(np.min(b.particle_q.numpy()[:, 1]) < 0.0)
-        a, b, c, d = b, a, d, c
+    reached_ground, a = step_in_lockstep(model, (lanes.step, lanes.workspace), (scalar.step, scalar.workspace))
     # Each ran its own kernel: the scalar one writes the workspace's d', the laned one its own scratch.
     assert np.any(scalar.workspace.scratch_d.numpy()) and not np.any(lanes.workspace.scratch_d.numpy())
     assert reached_ground == effects.ground_contact or not effects.gravity

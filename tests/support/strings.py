@@ -101,3 +101,74 @@ def repeated_specs(base, shift) -> list[StringSpec]:
                     k[name] = k[name] * f
             specs.append(spec(name=f"s{b}_{i}", stiffness=500.0 * f, **k))
     return specs
+
+
+def step_in_lockstep(model, first, second, steps: int = 400, dt: float = 1e-3):
+    """Runs two ways of stepping ``model`` side by side from ``model.state()`` under
+    :func:`swung_controls` and asserts after every step that they agree bit for bit: the state
+    outputs (positions, velocities, tie forces, taut flags) and the workspaces' ``particle_dv``.
+
+    Args:
+        first, second: ``(step, workspace)``: ``step(state_in, state_out, control, dt)`` and the
+            workspace whose ``particle_dv`` it writes.
+
+    Returns:
+        (whether a particle went below the ground at some step, the first's last state).
+    """
+    (step_a, ws_a), (step_b, ws_b) = first, second
+    a, b = model.state(), model.state()
+    c, d = model.state(), model.state()
+    reached_ground = False
+    for control in swung_controls(model, steps, dt):
+        step_a(a, b, control, dt)
+        step_b(c, d, control, dt)
+        for name in ("particle_q", "particle_qd", "tie_force", "string_taut"):
+            np.testing.assert_array_equal(getattr(b, name).numpy(), getattr(d, name).numpy(), err_msg=name)
+        np.testing.assert_array_equal(ws_a.particle_dv.numpy(), ws_b.particle_dv.numpy())
+        reached_ground |= bool(np.min(b.particle_q.numpy()[:, 1]) < 0.0)
+        a, b, c, d = b, a, d, c
+    return reached_ground, a
+
+
+# The constants of a string model that a taped step differentiates (arrays of StringModel).
+STRING_CONSTANTS = ["particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
+                    "string_air_drag", "string_ground_stiffness", "string_ground_absorption",
+                    "string_ground_friction", "string_tie_stiffness", "string_tie_damping", "string_tied"]
+
+
+@wp.kernel
+def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
+
+
+def taped_rollout(solver, states, controls, dt: float, rng, workspaces=None) -> tuple[wp.Tape, wp.array]:
+    """Steps ``states[k] -> states[k + 1]`` under ``controls[k]`` (in ``workspaces[k]`` if given) on a
+    tape, then a loss: random weights (normal, from ``rng``) times the last state's positions,
+    velocities and tie forces. Returns (tape, loss) for ``tape.backward(loss)``."""
+    model = solver.model
+    weight = wp.array(rng.normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
+    force_weight = wp.array(rng.normal(size=(model.string_count, 3)), dtype=wp.vec3d)
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        for k in range(len(controls)):
+            solver.step(states[k], states[k + 1], controls[k], dt, tape=tape,
+                        workspace=None if workspaces is None else workspaces[k])
+        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_q, weight], outputs=[loss])
+        wp.launch(weighted_sum, dim=model.particle_count, inputs=[states[-1].particle_qd, weight], outputs=[loss])
+        wp.launch(weighted_sum, dim=model.string_count, inputs=[states[-1].tie_force, force_weight], outputs=[loss])
+    return tape, loss
+
+
+def rollout_gradients(model, states, controls) -> dict[str, np.ndarray]:
+    """After the backward pass of :func:`taped_rollout`: the gradients of the initial positions and
+    velocities (``particle_q0_grad``, ``particle_qd0_grad``), of every step's controls (``top_q_grad``,
+    ... with a leading step axis) and of :data:`STRING_CONSTANTS` (``<name>_grad``)."""
+    out = {"particle_q0_grad": states[0].particle_q.grad.numpy(),
+           "particle_qd0_grad": states[0].particle_qd.grad.numpy()}
+    for name in ("top_q", "tie_q", "tie_qd"):
+        out[name + "_grad"] = np.array([getattr(c, name).grad.numpy() for c in controls])
+    for name in STRING_CONSTANTS:
+        out[name + "_grad"] = getattr(model, name).grad.numpy()
+    return out
