@@ -79,6 +79,13 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     acc_t = wp.types.vector(21, scalar)  # a row's running sums (compute_row_adjoint)
 
     @wp.func
+    def compute_running_sums(acc: acc_t):
+        """The running sums ``acc`` holds, by name (``compute_row_adjoint``'s order)."""
+        return (acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8],
+                vec3(acc[9], acc[10], acc[11]), vec3(acc[12], acc[13], acc[14]), vec3(acc[15], acc[16], acc[17]),
+                vec3(acc[18], acc[19], acc[20]))
+
+    @wp.func
     def compute_row_adjoint(
         p: int,
         j: int,
@@ -135,19 +142,9 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         Returns the values the next row (``p - 1``) carries, and ``acc``."""
         zero = scalar(0.0)
         h2 = dt * dt
-        stiffness_bar = acc[0]
-        rest_bar = acc[1]
-        friction_bar = acc[2]
-        air_bar = acc[3]
-        ground_stiffness_bar = acc[4]
-        ground_absorption_bar = acc[5]
-        ground_friction_bar = acc[6]
-        tie_stiffness_bar = acc[7]
-        tie_damping_bar = acc[8]
-        tie_x_bar = vec3(acc[9], acc[10], acc[11])
-        tie_v_bar = vec3(acc[12], acc[13], acc[14])
-        top_dx_bar = vec3(acc[15], acc[16], acc[17])
-        top_dv_bar = vec3(acc[18], acc[19], acc[20])
+        (stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar,
+         ground_friction_bar, tie_stiffness_bar, tie_damping_bar, tie_x_bar, tie_v_bar, top_dx_bar,
+         top_dv_bar) = compute_running_sums(acc)
         x_prev = particle_q[p - 1]
         v_prev = particle_qd[p - 1]
         u_p, l_p, ratio_p, alpha_p, beta_p = compute_parts(x_prev, x, stiffness, rest_length, segment_forced[p - 1])
@@ -451,19 +448,13 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
                     tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
                     dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
-        stiffness_bar = acc[0]
-        rest_bar = acc[1]
-        friction_bar = acc[2]
-        air_bar = acc[3]
-        ground_stiffness_bar = acc[4]
-        ground_absorption_bar = acc[5]
-        ground_friction_bar = acc[6]
-        tie_stiffness_bar = tie_stiffness_bar + acc[7]
-        tie_damping_bar = tie_damping_bar + acc[8]
-        tie_x_bar = tie_x_bar + vec3(acc[9], acc[10], acc[11])
-        tie_v_bar = tie_v_bar + vec3(acc[12], acc[13], acc[14])
-        top_dx_bar = vec3(acc[15], acc[16], acc[17])
-        top_dv_bar = vec3(acc[18], acc[19], acc[20])
+        (stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar,
+         ground_friction_bar, rows_tie_stiffness_bar, rows_tie_damping_bar, rows_tie_x_bar, rows_tie_v_bar, top_dx_bar,
+         top_dv_bar) = compute_running_sums(acc)
+        tie_stiffness_bar = tie_stiffness_bar + rows_tie_stiffness_bar
+        tie_damping_bar = tie_damping_bar + rows_tie_damping_bar
+        tie_x_bar = tie_x_bar + rows_tie_x_bar
+        tie_v_bar = tie_v_bar + rows_tie_v_bar
         # The top segment (the top particle at the start of the step to particle start + 1).
         e_bar, k_s_bar, d_bar = compute_segment_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
                                                          f_bar_n, uu_n, tr_n, sym_n, segment_forced[start])

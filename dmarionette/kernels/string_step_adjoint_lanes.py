@@ -109,6 +109,12 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         return r
 
     @wp.func
+    def compute_lane_running_sums(acc: lacc):
+        """The running sums ``acc`` holds, by name (the scalar adjoint's ``compute_running_sums``)."""
+        return (acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7], acc[8], acc_vec(acc, 9),
+                acc_vec(acc, 12), acc_vec(acc, 15), acc_vec(acc, 18))
+
+    @wp.func
     def compute_lane_spring_parts(x_a: lvec, x_b: lvec, stiffness: lane, rest_length: lane):
         """``string_spring``'s ``compute_spring_parts``: ``(u, l, 1 - d/l, alpha, beta)``."""
         e = vsub(x_a, x_b)
@@ -198,19 +204,9 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         zv = lvec()
         hl = lane(dt)
         h2 = lane(dt * dt)
-        stiffness_bar = acc[0]
-        rest_bar = acc[1]
-        friction_bar = acc[2]
-        air_bar = acc[3]
-        ground_stiffness_bar = acc[4]
-        ground_absorption_bar = acc[5]
-        ground_friction_bar = acc[6]
-        tie_stiffness_bar = acc[7]
-        tie_damping_bar = acc[8]
-        tie_x_bar = acc_vec(acc, 9)
-        tie_v_bar = acc_vec(acc, 12)
-        top_dx_bar = acc_vec(acc, 15)
-        top_dv_bar = acc_vec(acc, 18)
+        (stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar,
+         ground_friction_bar, tie_stiffness_bar, tie_damping_bar, tie_x_bar, tie_v_bar, top_dx_bar,
+         top_dv_bar) = compute_lane_running_sums(acc)
         x = gather_particle3(particle_q, starts, j)
         v_prev = gather_particle3(particle_qd, starts, j - 1)
         u_p, _l_p, _ratio_p, alpha_p, beta_p = load_parts(lane_parts, row)  # the segment above
@@ -529,19 +525,13 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
                 stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
                 tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, v, v_next,
                 lam_next, dv_next, f_bar_n, uu_n, tr_n, sym_n, acc, q_pend, qd_pend, qd_carry)
-        stiffness_bar = acc[0]
-        rest_bar = acc[1]
-        friction_bar = acc[2]
-        air_bar = acc[3]
-        ground_stiffness_bar = acc[4]
-        ground_absorption_bar = acc[5]
-        ground_friction_bar = acc[6]
-        tie_stiffness_bar = ladd(tie_stiffness_bar, acc[7])
-        tie_damping_bar = ladd(tie_damping_bar, acc[8])
-        tie_x_bar = vadd(tie_x_bar, acc_vec(acc, 9))
-        tie_v_bar = vadd(tie_v_bar, acc_vec(acc, 12))
-        top_dx_bar = acc_vec(acc, 15)
-        top_dv_bar = acc_vec(acc, 18)
+        (stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar,
+         ground_friction_bar, rows_tie_stiffness_bar, rows_tie_damping_bar, rows_tie_x_bar, rows_tie_v_bar, top_dx_bar,
+         top_dv_bar) = compute_lane_running_sums(acc)
+        tie_stiffness_bar = ladd(tie_stiffness_bar, rows_tie_stiffness_bar)
+        tie_damping_bar = ladd(tie_damping_bar, rows_tie_damping_bar)
+        tie_x_bar = vadd(tie_x_bar, rows_tie_x_bar)
+        tie_v_bar = vadd(tie_v_bar, rows_tie_v_bar)
         # The top segment (the top particle at the start of the step to particle 1).
         u_n, l_n, ratio_n, alpha_n, _beta_n = load_parts(lane_parts, base + 1)
         e_bar, k_s_bar, d_bar = compute_lane_spring_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
