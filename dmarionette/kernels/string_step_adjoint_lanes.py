@@ -65,6 +65,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     gather_string, gather_string3, gather_particle, gather_particle3, scatter3 = (
         f.gather_string, f.gather_string3, f.gather_particle, f.gather_particle3, f.scatter3)
     lneg, vadd, vsub, lsum3, lscale, lmul_vec = f.lneg, f.vadd, f.vsub, f.lsum3, f.lscale, f.lmul_vec
+    compute_lane_group = f.compute_lane_group
 
     # --- accumulation into the gradients, real lanes only ---------------------------------------
 
@@ -416,15 +417,9 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         string_tie_damping_grad: wp.array(dtype=f64),
         string_tied_grad: wp.array(dtype=f64),
     ):
-        g = wp.tid()
-        strings = group_string[g]
-        real = group_real[g]
-        base = group_base[g]
-        starts = ivec()
-        for k in range(LANES_):
-            starts[k] = string_start[strings[k]]
-        s0 = strings[0]
-        last = string_start[s0 + 1] - string_start[s0] - 1  # every string of the group has last + 1 particles
+        strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
+                                                            string_start)
+        last = n - 1
         zero = lane(f64(0.0))
         zv = lvec()
         hl = lane(dt)

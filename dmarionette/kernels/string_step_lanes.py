@@ -78,8 +78,10 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
     """The laned step's ``@wp.func`` helpers for ``lanes`` strings per thread, shared by the laned
     step (``integrate_string_lanes``) and its adjoint (``string_step_adjoint_lanes``): gathers from
     and scatters to the simulator's arrays (``lane_ops.native_lane_memory``; a scatter writes the
-    real lanes only), the scalar kernel's vector and matrix operations on lanes in its order and
-    rounding, and the printed spring (``compute_lane_spring``)."""
+    real lanes only), a group's strings and their first particles (``compute_lane_group``), the scalar
+    kernel's vector and matrix operations on lanes in its order and rounding, and the printed spring
+    (``compute_lane_spring``)."""
+    LANES_ = lanes
     lane, ivec, lvec, lmat = lane_types(lanes)
     vec3 = wp.vec3d
     nat = native_lane_ops(lanes)
@@ -108,6 +110,19 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
     def scatter3(a: wp.array(dtype=vec3), index: ivec, j: int, real: int, v: lvec):
         """``a[index[k] + j] = v[:, k]`` for the real lanes ``k < real``."""
         mem.scatter3(a, index, j, real, v)
+
+    @wp.func
+    def compute_lane_group(g: int, group_string: wp.array(dtype=ivec), group_real: wp.array(dtype=wp.int32),
+                           group_base: wp.array(dtype=wp.int32), string_start: wp.array(dtype=wp.int32)):
+        """Group ``g`` of the group table (``lane_groups``): its strings, how many of them are real,
+        its first laned row, each string's first particle, and the particle count (every string of
+        a group has as many)."""
+        strings = group_string[g]
+        starts = ivec()
+        for k in range(LANES_):
+            starts[k] = string_start[strings[k]]
+        s0 = strings[0]
+        return strings, group_real[g], group_base[g], starts, string_start[s0 + 1] - string_start[s0]
 
     # --- the scalar kernel's operations on lanes ----------------------------------------------
 
@@ -241,7 +256,8 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
 
     return SimpleNamespace(
         gather_string=gather_string, gather_string3=gather_string3, gather_particle=gather_particle,
-        gather_particle3=gather_particle3, scatter3=scatter3, lneg=lneg, vadd=vadd, vsub=vsub, madd=madd, msub=msub,
+        gather_particle3=gather_particle3, scatter3=scatter3, compute_lane_group=compute_lane_group, lneg=lneg,
+        vadd=vadd, vsub=vsub, madd=madd, msub=msub,
         lsum3=lsum3, lscale=lscale, lmatmul=lmatmul, ltmatmul=ltmatmul, lmul_vec=lmul_vec, ltmul_vec=ltmul_vec,
         linverse=linverse, compute_lane_spring=compute_lane_spring)
 
@@ -269,6 +285,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
     lneg, vadd, vsub, madd, msub, lsum3, lscale = f.lneg, f.vadd, f.vsub, f.madd, f.msub, f.lsum3, f.lscale
     lmatmul, ltmatmul, lmul_vec, ltmul_vec, linverse = f.lmatmul, f.ltmatmul, f.lmul_vec, f.ltmul_vec, f.linverse
     compute_lane_spring = f.compute_lane_spring
+    compute_lane_group = f.compute_lane_group
 
     @wp.func
     def compute_lane_system_row(
@@ -447,15 +464,8 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         tie_force: wp.array(dtype=vec3),
         string_taut: wp.array(dtype=wp.int32),
     ):
-        g = wp.tid()
-        strings = group_string[g]
-        real = group_real[g]
-        base = group_base[g]
-        starts = ivec()
-        for k in range(LANES_):
-            starts[k] = string_start[strings[k]]
-        s0 = strings[0]
-        n = string_start[s0 + 1] - string_start[s0]  # every string of the group has n particles
+        strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
+                                                            string_start)
         last = n - 1
         # The strings' constants, read once.
         stiffness = gather_string(string_stiffness, strings)
