@@ -102,7 +102,19 @@ class RolloutTangent:
         """The rollout's outputs at ``inputs`` (a checked, one-world ``RolloutInputs``) and their
         tangents along ``tangents`` (every input field, ``(P, *input_shape)``, checked by
         ``MarionetteGradient.jvp``): two dicts, output name ->
-        the output's shape, and ``(P, *shape)``."""
+        the output's shape, and ``(P, *shape)``. :meth:`load`, then the captured :meth:`launch`, then
+        :meth:`read`."""
+        self.load(inputs, tangents)
+        if self._chunk is None:
+            self._chunk = CapturedChunk(self.launch, self.model.device, capture=self.engine.capture)
+            self._start(inputs, tangents)  # the warm-up ran the rollout from the start state
+        self._chunk.run()
+        return self.read()
+
+    def load(self, inputs, tangents: dict[str, np.ndarray]) -> None:
+        """The host's part before the launches: the constants, every step's control and their tangents,
+        the start state and its tangent written into the arrays :meth:`launch` reads (arguments as
+        :meth:`jvp`'s)."""
         e, n = self.engine, self.model.substeps
         e.set_constants(inputs)
         c = self.constants
@@ -118,15 +130,15 @@ class RolloutTangent:
             tc.top_q.assign(tangents["top_q"][:, rows])
             tc.bar_q.assign(tangents["bar_q"][:, rows])
             tc.bar_qd.assign(tangents["bar_qd"][:, rows])
-        if self._chunk is None:
-            self._start(inputs, tangents)
-            self._chunk = CapturedChunk(self._launch, self.model.device, capture=e.capture)
         self._start(inputs, tangents)
-        self._chunk.run()
+
+    def read(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """The host's part after the launches: the outputs and their tangents (as :meth:`jvp` returns
+        them) copied from the arrays :meth:`launch` wrote."""
+        e, P = self.engine, self.direction_count
         out = {k: a.numpy() for k, a in self.out.items()}
         dot = {k: np.moveaxis(a.numpy(), 1, 0) for k, a in self.dot.items()}
         out = {k: out[k][:, 0] if k in _POSES else v.reshape(e.output_shapes[k]) for k, v in out.items()}
-        P = self.direction_count
         dot = {k: dot[k][:, :, 0] if k in _POSES else v.reshape(P, *e.output_shapes[k]) for k, v in dot.items()}
         return out, dot
 
@@ -141,9 +153,11 @@ class RolloutTangent:
         t.particle_q.assign(tangents["particle_q0"])
         t.particle_qd.assign(tangents["particle_qd0"])
 
-    def _launch(self) -> None:
-        """The rollout's launches (captured): the steps between the two states in turn, each output
-        copied into its row."""
+    def launch(self) -> None:
+        """The rollout's launches, and nothing of the host's (what :meth:`jvp` captures once as a graph
+        and replays): the steps between the two states in turn, each output copied into its row.
+        Starts from what the last :meth:`load` wrote; its outputs are read by :meth:`read`. Public for
+        profilers (``benchmarks/profile_tangent.py`` captures groups of these launches on their own)."""
         state, spare = self.states
         t, t_spare = self.tangents
         for k in range(self.engine.puppet_steps):
