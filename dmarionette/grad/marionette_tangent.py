@@ -48,6 +48,7 @@ from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anc
                                                       eval_string_response_kernel, eval_tie_path)
 from dmarionette.marionette.solver import MarionetteControl, MarionetteState, SolverMarionette
 from dmarionette.marionette.workspace import StringStepOutput
+from dmarionette.strings.rollout import upload_values
 
 __all__ = ["MarionetteConstantsTangent", "MarionetteControlTangent", "MarionetteTangent", "MarionetteTangentState"]
 
@@ -173,12 +174,12 @@ class MarionetteTangent:
         c[..., CONSTANTS.index("string_tie_stiffness")] = k
         c[..., CONSTANTS.index("string_tie_damping")] = kd
         c[..., CONSTANTS.index("string_stiffness")] = ks
-        self.constants_dot.assign(c)
+        upload_values(self.constants_dot, c)
         if len(m.spring_string):
             worlds = m.puppet.spring_stiffness.shape[0] // len(m.spring_string)
             rows = np.concatenate([w * m.strings_per_world + m.spring_string for w in range(worlds)])
-            self.puppet_control.spring_stiffness.assign(k[:, rows])
-            self.puppet_control.spring_damping.assign(kd[:, rows])
+            upload_values(self.puppet_control.spring_stiffness, k[:, rows])
+            upload_values(self.puppet_control.spring_damping, kd[:, rows])
         return {"string_tie_stiffness": tk.tie_stiffness, "string_stiffness": tk.string_stiffness}
 
     def step(self, state_in: MarionetteState, tangent_in: MarionetteTangentState, state_out: MarionetteState,
