@@ -234,7 +234,7 @@ class MarionetteTangent:
                                   "spring_anchor_pos": self.puppet_control.spring_anchor_pos,
                                   "spring_anchor_vel": self.puppet_control.spring_anchor_vel}, dev)
         self.puppet.step(state_in.puppet, tangent_in.puppet, state_out.puppet, tangent_out.puppet,
-                         ws.puppet_control, self.puppet_control, m.puppet_dt)
+                         ws.puppet_control, self.puppet_control, m.puppet_dt, contacts_kept=True)
 
     def _predict(self, state_in, tangent_in: MarionetteTangentState, ws) -> None:
         """The trial puppet step (``SolverMarionette.predict_body_points``) and its tangent."""
@@ -255,7 +255,7 @@ class MarionetteTangent:
                  "particle_q": tangent_in.particle_q, "tie_force": tangent_in.tie_force,
                  **{k: self._constant(k) for k in self._response.tangent_inputs if k.startswith("string_")}},
                 m.device)
-        pt.eval_contacts(tw, tb, hi)
+        pt.eval_contacts(tw, tb, hi, keep=True)  # the same as the puppet step's (end_step): kept for it
         pt.solve_dynamics(puppet, tangent_in.puppet, ws.trial, self.trial, ws.puppet_control, self.puppet_control,
                           tw, tb, h, hi)
         pt.integrate(puppet, tangent_in.puppet, ws.trial, self.trial, h)
