@@ -68,15 +68,19 @@ def _problem(smooth: bool):
     return m, solver, jvp, control, values, tc, v, (q0, qd0, v_q, v_qd), rng
 
 
+def _rollout_arrays(m, jvp, start):
+    """The rollout's states and tangents, the first set to ``start`` (``q0, qd0, v_q, v_qd``)."""
+    states = [m.state(WORLDS) for _ in range(STEPS + 1)]
+    tangents = [jvp.tangent_state() for _ in range(STEPS + 1)]
+    for a, x in zip((states[0].joint_q, states[0].joint_qd, tangents[0].joint_q, tangents[0].joint_qd), start):
+        a.assign(x)
+    return states, tangents
+
+
 @pytest.mark.parametrize("smooth", [False, True])
 def test_puppet_rollout_jvp_with_springs_and_contact(smooth):
     m, solver, jvp, control, values, tc, v, (q0, qd0, v_q, v_qd), rng = _problem(smooth)
-    states = [m.state(WORLDS) for _ in range(STEPS + 1)]
-    tangents = [jvp.tangent_state() for _ in range(STEPS + 1)]
-    states[0].joint_q.assign(q0)
-    states[0].joint_qd.assign(qd0)
-    tangents[0].joint_q.assign(v_q)
-    tangents[0].joint_qd.assign(v_qd)
+    states, tangents = _rollout_arrays(m, jvp, (q0, qd0, v_q, v_qd))
     for i in range(STEPS):
         jvp.step(states[i], tangents[i], states[i + 1], tangents[i + 1], control, tc, DT)
 
@@ -126,12 +130,7 @@ def test_kept_contact_tangents_give_the_step_its_own(smooth):
     h, hi = solver.step_sizes(DT)
     runs = {}
     for kept in (False, True):
-        states = [m.state(WORLDS) for _ in range(STEPS + 1)]
-        tangents = [jvp.tangent_state() for _ in range(STEPS + 1)]
-        states[0].joint_q.assign(q0)
-        states[0].joint_qd.assign(qd0)
-        tangents[0].joint_q.assign(v_q)
-        tangents[0].joint_qd.assign(v_qd)
+        states, tangents = _rollout_arrays(m, jvp, (q0, qd0, v_q, v_qd))
         for i in range(STEPS):
             if kept:  # a pass of the same kinematics before the step (the trial's, without its other loads)
                 jvp.eval_kinematics(states[i], tangents[i], trial, trial_body)
