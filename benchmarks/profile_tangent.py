@@ -25,10 +25,12 @@ the time the thread waited for a core on a shared machine):
   - ``puppet generated``: the generated puppet tangent kernels (kinematics, dynamics,
     integration: ``kernels/articulation_tangent``), in the trial, the step and the pose outputs;
   - ``puppet forces/contact/points``: the interleaved tangents of the applied forces, the point
-    springs, the contacts and the body points (``kernels/kernel_tangent``);
+    springs, the contacts and the body points (``kernels/kernel_tangent``), and the kept contact
+    tangents added into the puppet step's (``kernels/body_load_tangent``);
   - ``coupling``: the strings' response, the tie path and the anchors (interleaved tangents);
   - ``bar feedback``: eq. 4 and the exact reaction after every string step (interleaved);
-  - ``primal only``: plain (forward) launches inside the JVP;
+  - ``primal only``: plain (forward) launches inside the JVP (the input's body points, the puppet
+    step's contacts);
   - ``copies, zeroing``: ``wp.copy`` and ``array.zero_`` (outputs into their rows, resets);
 
   and the sum of the groups against the whole graph (their difference: what one launch costs in
@@ -66,7 +68,7 @@ GROUPS = {
     "puppet generated": ("eval_body_kinematics_tangent", "solve_body_dynamics_tangent",
                          "integrate_joint_coordinates_tangent"),
     "puppet forces/contact/points": ("eval_body_external_forces_tangent", "eval_body_point_springs_tangent",
-                                     "contact_tangent", "eval_body_points_tangent"),
+                                     "contact_tangent", "eval_body_points_tangent", "apply_body_load_tangents"),
     "coupling": ("eval_string_response", "eval_tie_path", "apply_string_forces_to_anchors"),
     "bar feedback": ("eval_bar_feedback",),
     "copies, zeroing": ("<copy>", "<zero_>"),

@@ -80,8 +80,8 @@ class RolloutTangent:
         # every step's control field (and its tangent) one row of one array, so that :meth:`load` writes
         # each field once (one small write per step and field was most of the host's time: measured
         # 2.0-3.5 ms of a 30-step JVP, a quarter of a forward rollout)
-        self._control_rows = _rows(self.controls, _CONTROL_FIELDS, m.device)
-        self._tangent_rows = _rows(self.control_tangents, _CONTROL_FIELDS, m.device)
+        self._control_rows = _rows(self.controls, _CONTROL_FIELDS, m.device, axis=0)
+        self._tangent_rows = _rows(self.control_tangents, _CONTROL_FIELDS, m.device, axis=1)  # (P, steps, ...)
         self.constants = self.step.constants_tangent()
         points, bodies, q = len(m.puppet.point_names), m.puppet.body_count, m.puppet.q_count
         s, b = m.strings.string_count, m.bar_rows
@@ -132,7 +132,7 @@ class RolloutTangent:
             value, dot = getattr(inputs, name), tangents[name]
             if value.size:
                 upload_values(self._control_rows[name], value.reshape(steps, -1, *value.shape[1:]))
-                upload_values(self._tangent_rows[name], np.moveaxis(dot.reshape(P, steps, -1, *dot.shape[2:]), 1, 0))
+                upload_values(self._tangent_rows[name], dot.reshape(P, steps, -1, *dot.shape[2:]))
         self._start(inputs, tangents)
 
     def read(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
@@ -195,13 +195,17 @@ _POSES = ("joint_q", "point_pos", "body_pos", "body_rot")
 _CONTROL_FIELDS = ("top_q", "bar_q", "bar_qd")
 
 
-def _rows(controls: list, fields: tuple[str, ...], device) -> dict[str, wp.array]:
-    """Each field of ``controls`` (one per puppet step) made a view of row ``k`` of one array
-    ``(steps, *field shape)``; returns the arrays by field."""
+def _rows(controls: list, fields: tuple[str, ...], device, axis: int) -> dict[str, wp.array]:
+    """Each field of ``controls`` (one per puppet step) made a view of one array with a step axis at
+    ``axis`` (0: ``(steps, *field shape)``, each step's field contiguous; 1: ``(P, steps, ...)`` for
+    tangents ``(P, ...)``, the layout of the host's directions, each step's a strided view); returns the
+    arrays by field."""
     rows = {}
     for name in fields:
         first = getattr(controls[0], name)
-        rows[name] = wp.zeros((len(controls), *first.shape), dtype=first.dtype, device=device)
+        shape = list(first.shape)
+        shape.insert(axis, len(controls))
+        rows[name] = wp.zeros(tuple(shape), dtype=first.dtype, device=device)
         for k, control in enumerate(controls):
-            setattr(control, name, rows[name][k])
+            setattr(control, name, rows[name][k] if axis == 0 else rows[name][:, k])
     return rows
