@@ -14,6 +14,10 @@ tangent (one launch per pass for all P directions, which also computes the pass'
   feedback (eq. 4 and the exact reaction);
 - ``end_step``: the anchors (mean tie force, the tie around the path) and the puppet step
   with its point springs (:class:`~dmarionette.articulation.step_tangent.PuppetStepTangent`).
+  Its contacts are those of the trial step (the same kinematics, of the input state, and the
+  same ``h``): their tangents, kept from the trial, are added (``contacts_kept``) and only
+  their primal evaluated again (the solver's launch), which halves the contacts' cost (the
+  largest of the puppet's: 1.6 of a forward rollout's time for 1 s of ``hanging`` at P = 16).
 
 What is differentiated (:class:`MarionetteTangentState`, :class:`MarionetteControlTangent`,
 leading direction axis ``P``): the state (the puppet's ``joint_q``, ``joint_qd``; the strings'
@@ -28,7 +32,8 @@ friction, drag, ground constants, the puppet's). Float64 strings with the printe
 only (float32 strings and tension-only springs are refused).
 
 Checked against the tape's reverse mode of the same steps by the dot-product identity
-(``tests/grad/test_marionette_tangent.py``: two puppet steps of the shipped ``hanging`` scene).
+(``tests/grad/test_marionette_tangent.py``: two puppet steps of the shipped ``hanging`` scene, and
+of ``chair``, whose contacts act).
 Cost (``python benchmarks/bench_marionette_tangent.py --opt 2 --directions 1 4 8 16``, CPU,
 under load): P = 1, 4, 8, 16 tangents cost 3.0, 3.1, 3.8, 4.9 plain steps (issue 13's target
 ``1 + 0.5 P``: 1.5, 3, 5, 9); the 33 string steps dominate both.
