@@ -2,7 +2,7 @@
 of launches, each as a share of one forward rollout.
 
     .venv/bin/python benchmarks/profile_tangent.py [--seconds 1] [--directions 1 4 16] [--repeats 5]
-                                                   [--kernels]
+                                                   [--kernels] [--shipped-contact]
 
 The scene is ``hanging`` as ``benchmarks/bench_gradients.py`` runs it (6 strings x 50 particles,
 12 bodies, smoothed ground contact, joint limits and feedback on, 1 kHz / 30 Hz, string steps in
@@ -37,6 +37,9 @@ the time the thread waited for a core on a shared machine):
   a bigger graph or a colder cache). ``--kernels``: also each kernel alone.
 
 A group is told by its kernel's key (:data:`GROUPS`); a launch of no group shows as ``other``.
+
+``--shipped-contact``: the scene's own (hard) contact instead of the smoothed one: a hard contact
+skips the points apart from the ground, which are all of them in ``hanging``.
 """
 
 from __future__ import annotations
@@ -129,9 +132,10 @@ def timed(fn) -> tuple[float, float]:
     return time.perf_counter() - w, time.thread_time() - c
 
 
-def profile(seconds: float, directions: int, repeats: int, kernels: bool) -> dict:
+def profile(seconds: float, directions: int, repeats: int, kernels: bool, smooth: bool = True) -> dict:
     scene = dm.load_scene("hanging")
-    scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
+    if smooth:
+        scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
     model = MarionetteModel(scene, requires_grad=True)
     engine = MarionetteGradient(model, round(seconds / model.puppet_dt))
     inputs = engine.check_inputs(engine.scene_inputs())
@@ -201,12 +205,13 @@ def main() -> None:
     p.add_argument("--directions", type=int, nargs="+", default=[1, 4, 16])
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--kernels", action="store_true", help="also each kernel alone")
+    p.add_argument("--shipped-contact", action="store_true", help="the scene's hard contact, not the smoothed")
     args = p.parse_args()
     print(f"# {platform.processor() or platform.machine()}, warp {wp.__version__}, hanging 6 x 50, 1 kHz / 30 Hz, "
-          f"smoothed contact, {args.seconds:g} s, medians of {args.repeats}; load average at start "
+          f"{'shipped (hard)' if args.shipped_contact else 'smoothed'} contact, {args.seconds:g} s, medians of {args.repeats}; load average at start "
           f"{os.getloadavg()[0]:.2f}")
     for d in args.directions:
-        report(profile(args.seconds, d, args.repeats, args.kernels))
+        report(profile(args.seconds, d, args.repeats, args.kernels, not args.shipped_contact))
     print(f"\nload average at end {os.getloadavg()[0]:.2f}")
 
 
