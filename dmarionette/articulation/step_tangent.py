@@ -18,9 +18,15 @@ velocities, and the springs' stiffness and damping (the calibrated tie constants
 constants). Constant: masses, inertias, joint damping and limits, gravity, the contact
 constants, the spring points, ``dt``.
 
+A pass of the same kinematics may reuse the contacts' tangents of an earlier one
+(:meth:`PuppetStepTangent.eval_contacts` with ``keep``, then ``step(..., contacts_kept=True)``:
+the marionette's trial step and its puppet step, ``grad/marionette_tangent``), the contacts'
+primal evaluated again (the solver's launch), their tangents added once more.
+
 Chaining steps gives the JVP of a rollout with respect to the initial state and every
 step's inputs (``tests/articulation/test_puppet_tangent.py``: a 10-step rollout against the
-tape's VJP; ``tests/articulation/test_puppet_step_tangent.py``: springs and contact).
+tape's VJP; ``tests/articulation/test_puppet_step_tangent.py``: springs and contact, and the kept
+contact tangents against the step's own).
 """
 
 from __future__ import annotations
@@ -106,7 +112,7 @@ class PuppetStepTangent:
         self._springs = tangent_kernel(eval_body_point_springs)
         contacts = solver.contacts
         self._contacts = [tangent_kernel(k) for k in contacts.kernels] if contacts.any else []
-        # the tangents of the last eval_contacts(..., keep=True) alone (contact_tangents_kept)
+        # the contacts' tangents of the last eval_contacts(..., keep=True) alone (for step(..., contacts_kept=True))
         self.kept_contacts = {n: wp.zeros((self.direction_count, self.world_count, m.body_count),
                                           dtype=getattr(self.workspace, n).dtype, device=m.device)
                               for n in ("body_wrench", "body_stiffness")}
