@@ -1,18 +1,25 @@
 """Benchmark: the puppet step's tangent (forward-mode) kernels for P directions against the primal kernels.
 
 One "step" here is the three generated kernels of a puppet step (kinematics, dynamics with
-joint limits, integration; no springs, contact or external-force kernels: those have no
-tangent yet). Primal: the three kernels of ``articulation_codegen``. Tangent: their
+joint limits, integration; without the applied forces, point springs and contacts: ``--step``
+adds them). Primal: the three kernels of ``articulation_codegen``. Tangent: their
 ``_tangent`` kernels (``articulation_tangent``) for P directions, which also compute the
 primal values (one launch per kernel for the step and all P directional derivatives).
 Each is captured as a Warp CPU graph of ``--count`` steps and replayed ``--repeats``
 times; reported: the median thread CPU time per step, and the ratio against the primal
 with issue 13's target ``1 + 0.5 P``.
 
+``--step``: also the whole puppet step, ``SolverArticulation.step`` against
+``PuppetStepTangent.step``, with two point springs and the smooth ground contact placed under
+the lowest body (``tests/articulation/test_puppet_step_tangent.py``'s setup): the contacts'
+interleaved tangent kernel recomputes its primal per direction, and the row
+``contacts kept`` is the step taking a trial pass's kept contact tangents (the marionette's
+puppet step, ``grad/marionette_tangent``: only the contacts' primal evaluated again).
+
 Usage::
 
     .venv/bin/python benchmarks/bench_puppet_tangent.py [--worlds 16] [--opt 2] [--count 200] [--repeats 9] \\
-        [--directions 1 4 12 16] [--per-kernel]
+        [--directions 1 4 12 16] [--per-kernel] [--step]
 
 The tangent module compiles once per topology and optimisation level (cached on disk).
 """
@@ -26,7 +33,8 @@ import numpy as np
 import warp as wp
 from bench_support import graph_cost
 
-from dmarionette.articulation.solver import build_articulation_model
+from dmarionette.articulation.solver import ContactSettings, SolverArticulation, build_articulation_model
+from dmarionette.articulation.step_tangent import PuppetStepTangent
 from dmarionette.kernels.articulation_codegen import build_articulation_kernels
 from dmarionette.kernels.articulation_tangent import build_articulation_tangent_kernels
 from dmarionette.scene.puppet import load_puppet
@@ -81,6 +89,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--directions", type=int, nargs="+", default=[1, 4, 12, 16])
     parser.add_argument("--per-kernel", action="store_true", help="also each kernel alone (largest P)")
+    parser.add_argument("--step", action="store_true", help="also the whole step with springs and contact")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
@@ -111,6 +120,8 @@ def main() -> None:
         ta = _tangent_arrays(base, P, rng)
         cost = graph_cost(step_fn(tangent, ta, "_tangent"), args.count, args.repeats)
         print(f"| tangent, P = {P} | {cost * 1e6:.1f} | {cost / one:.2f} | {1 + 0.5 * P:.1f} |", flush=True)
+    if args.step:
+        whole_step(args)
     if args.per_kernel:
         P = args.directions[-1]
         ta = _tangent_arrays(base, P, rng)
@@ -119,6 +130,39 @@ def main() -> None:
             a = graph_cost(_launcher(getattr(primal, n), base, args.worlds), args.count, args.repeats)
             b = graph_cost(_launcher(getattr(tangent, n + "_tangent"), ta, args.worlds), args.count, args.repeats)
             print(f"| {n} | {a * 1e6:.1f} | {b * 1e6:.1f} | {b / a:.2f} |", flush=True)
+
+
+def whole_step(args) -> None:
+    """The ``--step`` table (module doc)."""
+    q0 = np.tile(build_articulation_model(load_puppet()).q_rest, (args.worlds, 1))
+    probe = build_articulation_model(load_puppet())
+    s = probe.state(args.worlds)
+    s.joint_q.assign(q0)
+    SolverArticulation(probe, optimization_level=args.opt).eval_kinematics(s)
+    ground = float(s.body_pos.numpy()[..., 1].min()) + 0.02
+    m = build_articulation_model(load_puppet(), springs=(("head", 300.0, 2.0), ("hand_left", 150.0, 1.0)),
+                                 contacts=ContactSettings(ground=True, smooth=True, ground_height=ground))
+    solver = SolverArticulation(m, optimization_level=args.opt)
+    state_in, state_out, control = m.state(args.worlds), m.state(args.worlds), m.control(args.worlds)
+    state_in.joint_q.assign(q0)
+    control.spring_anchor_pos.assign(np.array([[0.0, 0.62, 0.02], [0.12, 0.3, 0.05]])[None].repeat(args.worlds, 0))
+    one = graph_cost(lambda: solver.step(state_in, state_out, control, H), args.count, args.repeats)
+    print(f"\nwhole step, springs and smooth ground contact ({m.spring_count} springs, "
+          f"{solver.contacts.point_count} contact points): load {os.getloadavg()[0]:.2f}")
+    print("| step | us/step | x primal | target 1 + 0.5 P |")
+    print("| --- | --- | --- | --- |")
+    print(f"| primal (SolverArticulation.step) | {one * 1e6:.1f} | 1.00 | |")
+    rng = np.random.default_rng(1)
+    for P in args.directions:
+        jvp = PuppetStepTangent(solver, P, args.worlds, args.opt)
+        t_in, t_out, tc = jvp.tangent_state(), jvp.tangent_state(), jvp.control_tangent()
+        t_in.joint_q.assign(rng.normal(size=t_in.joint_q.shape) * 1e-3)
+        t_in.joint_qd.assign(rng.normal(size=t_in.joint_qd.shape) * 1e-3)
+        jvp.eval_contacts(jvp.workspace, jvp.body_tangents(), wp.float64(H), keep=True)  # something kept
+        for label, kept in (("", False), (", contacts kept", True)):
+            cost = graph_cost(lambda: jvp.step(state_in, t_in, state_out, t_out, control, tc, H, contacts_kept=kept),
+                              args.count, args.repeats)
+            print(f"| tangent, P = {P}{label} | {cost * 1e6:.1f} | {cost / one:.2f} | {1 + 0.5 * P:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -18,9 +18,15 @@ velocities, and the springs' stiffness and damping (the calibrated tie constants
 constants). Constant: masses, inertias, joint damping and limits, gravity, the contact
 constants, the spring points, ``dt``.
 
+A pass of the same kinematics may reuse the contacts' tangents of an earlier one
+(:meth:`PuppetStepTangent.eval_contacts` with ``keep``, then ``step(..., contacts_kept=True)``:
+the marionette's trial step and its puppet step, ``grad/marionette_tangent``), the contacts'
+primal evaluated again (the solver's launch), their tangents added once more.
+
 Chaining steps gives the JVP of a rollout with respect to the initial state and every
 step's inputs (``tests/articulation/test_puppet_tangent.py``: a 10-step rollout against the
-tape's VJP; ``tests/articulation/test_puppet_step_tangent.py``: springs and contact).
+tape's VJP; ``tests/articulation/test_puppet_step_tangent.py``: springs and contact, and the kept
+contact tangents against the step's own).
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import warp as wp
 from dmarionette.articulation.solver import ArticulationControl, ArticulationState, SolverArticulation
 from dmarionette.kernels.articulation_forces import eval_body_external_forces, eval_body_point_springs
 from dmarionette.kernels.articulation_tangent import build_articulation_tangent_kernels
+from dmarionette.kernels.body_load_tangent import apply_body_load_tangents
 from dmarionette.kernels.kernel_tangent import tangent_kernel
 
 __all__ = ["PuppetControlTangent", "PuppetStepTangent", "TangentState"]
@@ -105,6 +112,10 @@ class PuppetStepTangent:
         self._springs = tangent_kernel(eval_body_point_springs)
         contacts = solver.contacts
         self._contacts = [tangent_kernel(k) for k in contacts.kernels] if contacts.any else []
+        # the contacts' tangents of the last eval_contacts(..., keep=True) alone (for step(..., contacts_kept=True))
+        self.kept_contacts = {n: wp.zeros((self.direction_count, self.world_count, m.body_count),
+                                          dtype=getattr(self.workspace, n).dtype, device=m.device)
+                              for n in ("body_wrench", "body_stiffness")}
 
     def tangent_state(self) -> TangentState:
         """Zero tangents for a state of this model."""
@@ -116,8 +127,14 @@ class PuppetStepTangent:
 
     def step(self, state_in: ArticulationState, tangent_in: TangentState, state_out: ArticulationState,
              tangent_out: TangentState, control: ArticulationControl, tangent_control: PuppetControlTangent,
-             dt: float) -> None:
+             dt: float, *, contacts_kept: bool = False) -> None:
         """One step of the state (the solver's step, pass for pass) and of its P tangents.
+
+        ``contacts_kept``: the contacts' tangents are those the last :meth:`eval_contacts` with
+        ``keep=True`` kept, a pass of the same kinematics (``state_in``'s and ``tangent_in``'s) and
+        ``dt``: only the primal contacts are evaluated here (the solver's launch), and the kept
+        tangents added (:meth:`apply_kept_contacts`; the marionette's trial step and its puppet step,
+        ``grad/marionette_tangent``). The caller answers for the kinematics being the same.
 
         Raises:
             ValueError: what :meth:`SolverArticulation.check_step` raises.
@@ -128,7 +145,10 @@ class PuppetStepTangent:
         self.eval_kinematics(state_in, tangent_in, ws, self.tan_body)
         self.eval_external_forces(ws, self.tan_body, control, tangent_control)
         self.eval_point_springs(ws, self.tan_body, control, tangent_control, hi)
-        self.eval_contacts(ws, self.tan_body, hi)
+        if contacts_kept:
+            self.apply_kept_contacts(ws, self.tan_body, hi)
+        else:
+            self.eval_contacts(ws, self.tan_body, hi)
         self.solve_dynamics(state_in, tangent_in, state_out, tangent_out, control, tangent_control, ws,
                             self.tan_body, h, hi)
         self.integrate(state_in, tangent_in, state_out, tangent_out, h)
@@ -199,9 +219,34 @@ class PuppetStepTangent:
             tan_joint_q=tangent_in.joint_q, tan_joint_qd=tangent_out.joint_qd, joint_q_out=state_out.joint_q,
             tan_joint_q_out=tangent_out.joint_q), self.model.device)
 
-    def eval_contacts(self, ws, tb: dict, h) -> None:
-        """The compiled-in contacts and their tangents (``ContactSet.launches``, as its ``eval``)."""
+    def eval_contacts(self, ws, tb: dict, h, keep: bool = False) -> None:
+        """The compiled-in contacts and their tangents (``ContactSet.launches``, as its ``eval``).
+
+        ``keep``: the contacts' tangents are also kept alone (:attr:`kept_contacts`, for a later
+        :meth:`apply_kept_contacts` of the same kinematics): they are accumulated there, from zero,
+        and then added into ``tb``'s (the sum in another order than point by point: the tangents
+        differ from the unkept ones by rounding; the primal is the same)."""
         tans = {k: tb[k] for k in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")}
+        if keep:
+            for a in self.kept_contacts.values():
+                a.zero_()
+            tans.update(self.kept_contacts)
         for kernel, dim, inputs in self.solver.contacts.launches(ws, h):
             self._contacts[kernel].launch(dim, self.direction_count, [*inputs, ws.body_wrench, ws.body_stiffness],
                                           tans, self.model.device)
+        if keep and self._contacts:
+            self._add_kept(tb)
+
+    def apply_kept_contacts(self, ws, tb: dict, h) -> None:
+        """The compiled-in contacts of ``ws`` (the solver's launches: the primal only) and, into ``tb``,
+        the tangents the last :meth:`eval_contacts` with ``keep=True`` kept (which must have been of
+        the same kinematics and ``h``: one differentiation of the contacts for both passes)."""
+        self.solver.contacts.eval(ws, h)
+        if self._contacts:
+            self._add_kept(tb)
+
+    def _add_kept(self, tb: dict) -> None:
+        k = self.kept_contacts
+        wp.launch(apply_body_load_tangents, dim=k["body_wrench"].shape,
+                  inputs=[k["body_wrench"], k["body_stiffness"], tb["body_wrench"], tb["body_stiffness"]],
+                  device=self.model.device)

@@ -14,6 +14,10 @@ tangent (one launch per pass for all P directions, which also computes the pass'
   feedback (eq. 4 and the exact reaction);
 - ``end_step``: the anchors (mean tie force, the tie around the path) and the puppet step
   with its point springs (:class:`~dmarionette.articulation.step_tangent.PuppetStepTangent`).
+  Its contacts are those of the trial step (the same kinematics, of the input state, and the
+  same ``h``): their tangents, kept from the trial, are added (``contacts_kept``) and only
+  their primal evaluated again (the solver's launch), which halves the contacts' cost (the
+  largest of the puppet's: 1.6 of a forward rollout's time for 1 s of ``hanging`` at P = 16).
 
 What is differentiated (:class:`MarionetteTangentState`, :class:`MarionetteControlTangent`,
 leading direction axis ``P``): the state (the puppet's ``joint_q``, ``joint_qd``; the strings'
@@ -28,7 +32,8 @@ friction, drag, ground constants, the puppet's). Float64 strings with the printe
 only (float32 strings and tension-only springs are refused).
 
 Checked against the tape's reverse mode of the same steps by the dot-product identity
-(``tests/grad/test_marionette_tangent.py``: two puppet steps of the shipped ``hanging`` scene).
+(``tests/grad/test_marionette_tangent.py``: two puppet steps of the shipped ``hanging`` scene, and
+of ``chair``, whose contacts act).
 Cost (``python benchmarks/bench_marionette_tangent.py --opt 2 --directions 1 4 8 16``, CPU,
 under load): P = 1, 4, 8, 16 tangents cost 3.0, 3.1, 3.8, 4.9 plain steps (issue 13's target
 ``1 + 0.5 P``: 1.5, 3, 5, 9); the 33 string steps dominate both.
@@ -48,6 +53,7 @@ from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anc
                                                       eval_string_response_kernel, eval_tie_path)
 from dmarionette.marionette.solver import MarionetteControl, MarionetteState, SolverMarionette
 from dmarionette.marionette.workspace import StringStepOutput
+from dmarionette.strings.rollout import upload_values
 
 __all__ = ["MarionetteConstantsTangent", "MarionetteControlTangent", "MarionetteTangent", "MarionetteTangentState"]
 
@@ -173,12 +179,12 @@ class MarionetteTangent:
         c[..., CONSTANTS.index("string_tie_stiffness")] = k
         c[..., CONSTANTS.index("string_tie_damping")] = kd
         c[..., CONSTANTS.index("string_stiffness")] = ks
-        self.constants_dot.assign(c)
+        upload_values(self.constants_dot, c)
         if len(m.spring_string):
             worlds = m.puppet.spring_stiffness.shape[0] // len(m.spring_string)
             rows = np.concatenate([w * m.strings_per_world + m.spring_string for w in range(worlds)])
-            self.puppet_control.spring_stiffness.assign(k[:, rows])
-            self.puppet_control.spring_damping.assign(kd[:, rows])
+            upload_values(self.puppet_control.spring_stiffness, k[:, rows])
+            upload_values(self.puppet_control.spring_damping, kd[:, rows])
         return {"string_tie_stiffness": tk.tie_stiffness, "string_stiffness": tk.string_stiffness}
 
     def step(self, state_in: MarionetteState, tangent_in: MarionetteTangentState, state_out: MarionetteState,
@@ -233,7 +239,7 @@ class MarionetteTangent:
                                   "spring_anchor_pos": self.puppet_control.spring_anchor_pos,
                                   "spring_anchor_vel": self.puppet_control.spring_anchor_vel}, dev)
         self.puppet.step(state_in.puppet, tangent_in.puppet, state_out.puppet, tangent_out.puppet,
-                         ws.puppet_control, self.puppet_control, m.puppet_dt)
+                         ws.puppet_control, self.puppet_control, m.puppet_dt, contacts_kept=True)
 
     def _predict(self, state_in, tangent_in: MarionetteTangentState, ws) -> None:
         """The trial puppet step (``SolverMarionette.predict_body_points``) and its tangent."""
@@ -254,7 +260,7 @@ class MarionetteTangent:
                  "particle_q": tangent_in.particle_q, "tie_force": tangent_in.tie_force,
                  **{k: self._constant(k) for k in self._response.tangent_inputs if k.startswith("string_")}},
                 m.device)
-        pt.eval_contacts(tw, tb, hi)
+        pt.eval_contacts(tw, tb, hi, keep=True)  # the same as the puppet step's (end_step): kept for it
         pt.solve_dynamics(puppet, tangent_in.puppet, ws.trial, self.trial, ws.puppet_control, self.puppet_control,
                           tw, tb, h, hi)
         pt.integrate(puppet, tangent_in.puppet, ws.trial, self.trial, h)

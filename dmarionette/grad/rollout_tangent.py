@@ -29,11 +29,17 @@ One world only (a batched model is refused with a ValueError).
 Checked (``tests/grad/test_rollout_jvp.py``, 1 s of ``hanging``): against the reverse engine by the
 dot-product identity for every input group (measured 1e-15 relative), against central differences.
 Cost (``python benchmarks/bench_gradients.py --seconds 1 --memory-seconds 0 --repeats 5 --jvp``,
-CPU, load 1.0 and 2.9): a 1 s rollout's JVP for P = 1, 4, 12, 16 directions takes 4.0, 5.0-5.6,
-11.7-12.0, 12.4-15.3 captured forward rollouts (issue 13's target ``1 + 0.5 P``: 1.5, 3, 7, 9):
-missed. The string tangent steps are most of it: the forward keeping its factorisation and each
-row's primal cost about three forward string steps before any direction, each direction about
-0.8 (``kernels/string_step_tangent``'s module doc).
+CPU, two runs at load 0.8-1.4): a 1 s rollout's JVP for P = 1, 4, 12, 16 directions takes 3.3-3.5,
+4.9-5.0, 10.8-11.0, 13.6-14.1 captured forward rollouts (3.5-3.6, 5.2-5.4, 11.5-11.7, 14.7-15.2
+before the host writes were batched and the trial's contact tangents kept for the step, same
+session; issue 13's target ``1 + 0.5 P``: 1.5, 3, 7, 9): missed. Where it goes
+(``benchmarks/profile_tangent.py``, thread CPU time, in forwards, P = 1 / 4 / 16): the string
+steps keeping their factorisation 1.0 / 0.9 / 0.9 and their tangent kernel 1.9 / 2.8 / 9.3
+(``kernels/string_step_tangent``'s module doc); everything else 0.4 / 0.7 / 2.1, of which the
+contact tangent (the interleaved kernel, its primal recomputed per direction: 7 us of a 12 us
+direction) 0.07 / 0.23 / 0.8, the generated puppet kernels 0.07 / 0.14 / 0.42, the bar feedback
+0.07 / 0.13 / 0.32, the coupling 0.02 / 0.06 / 0.20, the host (:meth:`load`, :meth:`read`)
+0.07 / 0.11 / 0.26.
 """
 
 from __future__ import annotations
@@ -77,6 +83,11 @@ class RolloutTangent:
         self.tangents = [self.step.tangent_state(), self.step.tangent_state()]
         self.controls = [MarionetteControl(m) for _ in range(steps)]
         self.control_tangents = [self.step.control_tangent() for _ in range(steps)]
+        # every step's control field (and its tangent) one row of one array, so that :meth:`load` writes
+        # each field once (one small write per step and field was most of the host's time: measured
+        # 2.0-3.5 ms of a 30-step JVP, a quarter of a forward rollout)
+        self._control_rows = _rows(self.controls, _CONTROL_FIELDS, m.device, axis=0)
+        self._tangent_rows = _rows(self.control_tangents, _CONTROL_FIELDS, m.device, axis=1)  # (P, steps, ...)
         self.constants = self.step.constants_tangent()
         points, bodies, q = len(m.puppet.point_names), m.puppet.body_count, m.puppet.q_count
         s, b = m.strings.string_count, m.bar_rows
@@ -102,31 +113,41 @@ class RolloutTangent:
         """The rollout's outputs at ``inputs`` (a checked, one-world ``RolloutInputs``) and their
         tangents along ``tangents`` (every input field, ``(P, *input_shape)``, checked by
         ``MarionetteGradient.jvp``): two dicts, output name ->
-        the output's shape, and ``(P, *shape)``."""
-        e, n = self.engine, self.model.substeps
+        the output's shape, and ``(P, *shape)``. :meth:`load`, then the captured :meth:`launch`, then
+        :meth:`read`."""
+        self.load(inputs, tangents)
+        if self._chunk is None:
+            self._chunk = CapturedChunk(self.launch, self.model.device, capture=self.engine.capture)
+            self._start(inputs, tangents)  # the warm-up ran the rollout from the start state
+        self._chunk.run()
+        return self.read()
+
+    def load(self, inputs, tangents: dict[str, np.ndarray]) -> None:
+        """The host's part before the launches: the constants, every step's control and their tangents,
+        the start state and its tangent written into the arrays :meth:`launch` reads (arguments as
+        :meth:`jvp`'s)."""
+        e, P = self.engine, self.direction_count
         e.set_constants(inputs)
         c = self.constants
-        c.tie_stiffness.assign(tangents["tie_stiffness"])
-        c.tie_damping.assign(tangents["tie_damping"])
-        c.string_stiffness.assign(tangents["string_stiffness"] * e.segments_per_string)
+        upload_values(c.tie_stiffness, tangents["tie_stiffness"])
+        upload_values(c.tie_damping, tangents["tie_damping"])
+        upload_values(c.string_stiffness, tangents["string_stiffness"] * e.segments_per_string)
         self.step.spread_constants(c)
-        for k, (control, tc) in enumerate(zip(self.controls, self.control_tangents)):
-            rows = slice(k * n, (k + 1) * n)
-            upload_values(control.top_q, inputs.top_q[rows])
-            upload_values(control.bar_q, inputs.bar_q[rows])
-            upload_values(control.bar_qd, inputs.bar_qd[rows])
-            tc.top_q.assign(tangents["top_q"][:, rows])
-            tc.bar_q.assign(tangents["bar_q"][:, rows])
-            tc.bar_qd.assign(tangents["bar_qd"][:, rows])
-        if self._chunk is None:
-            self._start(inputs, tangents)
-            self._chunk = CapturedChunk(self._launch, self.model.device, capture=e.capture)
+        steps = e.puppet_steps
+        for name in _CONTROL_FIELDS:
+            value, dot = getattr(inputs, name), tangents[name]
+            if value.size:
+                upload_values(self._control_rows[name], value.reshape(steps, -1, *value.shape[1:]))
+                upload_values(self._tangent_rows[name], dot.reshape(P, steps, -1, *dot.shape[2:]))
         self._start(inputs, tangents)
-        self._chunk.run()
-        out = {k: a.numpy() for k, a in self.out.items()}
-        dot = {k: np.moveaxis(a.numpy(), 1, 0) for k, a in self.dot.items()}
+
+    def read(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """The host's part after the launches: the outputs and their tangents (as :meth:`jvp` returns
+        them) copied from the arrays :meth:`launch` wrote."""
+        e, P = self.engine, self.direction_count
+        out = {k: a.numpy().copy() for k, a in self.out.items()}  # not views of what the next call overwrites
+        dot = {k: np.moveaxis(a.numpy(), 1, 0).copy() for k, a in self.dot.items()}
         out = {k: out[k][:, 0] if k in _POSES else v.reshape(e.output_shapes[k]) for k, v in out.items()}
-        P = self.direction_count
         dot = {k: dot[k][:, :, 0] if k in _POSES else v.reshape(P, *e.output_shapes[k]) for k, v in dot.items()}
         return out, dot
 
@@ -136,14 +157,16 @@ class RolloutTangent:
         t = self.tangents[0]
         for a in (t.tie_force, t.tie_target, t.bar_feedback, t.bar_reaction, t.puppet.joint_qdd):
             a.zero_()
-        t.puppet.joint_q.assign(tangents["joint_q0"][:, None])
-        t.puppet.joint_qd.assign(tangents["joint_qd0"][:, None])
-        t.particle_q.assign(tangents["particle_q0"])
-        t.particle_qd.assign(tangents["particle_qd0"])
+        upload_values(t.puppet.joint_q, tangents["joint_q0"][:, None])
+        upload_values(t.puppet.joint_qd, tangents["joint_qd0"][:, None])
+        upload_values(t.particle_q, tangents["particle_q0"])
+        upload_values(t.particle_qd, tangents["particle_qd0"])
 
-    def _launch(self) -> None:
-        """The rollout's launches (captured): the steps between the two states in turn, each output
-        copied into its row."""
+    def launch(self) -> None:
+        """The rollout's launches, and nothing of the host's (what :meth:`jvp` captures once as a graph
+        and replays): the steps between the two states in turn, each output copied into its row.
+        Starts from what the last :meth:`load` wrote; its outputs are read by :meth:`read`. Public for
+        profilers (``benchmarks/profile_tangent.py`` captures groups of these launches on their own)."""
         state, spare = self.states
         t, t_spare = self.tangents
         for k in range(self.engine.puppet_steps):
@@ -174,3 +197,21 @@ class RolloutTangent:
 
 # The pose outputs, held with a world axis of one (``(rows, 1, ...)``).
 _POSES = ("joint_q", "point_pos", "body_pos", "body_rot")
+# The control fields (of ``MarionetteControl`` and ``MarionetteControlTangent``), one row per string step.
+_CONTROL_FIELDS = ("top_q", "bar_q", "bar_qd")
+
+
+def _rows(controls: list, fields: tuple[str, ...], device, axis: int) -> dict[str, wp.array]:
+    """Each field of ``controls`` (one per puppet step) made a view of one array with a step axis at
+    ``axis`` (0: ``(steps, *field shape)``, each step's field contiguous; 1: ``(P, steps, ...)`` for
+    tangents ``(P, ...)``, the layout of the host's directions, each step's a strided view); returns the
+    arrays by field."""
+    rows = {}
+    for name in fields:
+        first = getattr(controls[0], name)
+        shape = list(first.shape)
+        shape.insert(axis, len(controls))
+        rows[name] = wp.zeros(tuple(shape), dtype=first.dtype, device=device)
+        for k, control in enumerate(controls):
+            setattr(control, name, rows[name][k] if axis == 0 else rows[name][:, k])
+    return rows

@@ -38,8 +38,9 @@ def _ground_height(q):
     return float(s.body_pos.numpy()[..., 1].min()) + 0.02
 
 
-@pytest.mark.parametrize("smooth", [False, True])
-def test_puppet_rollout_jvp_with_springs_and_contact(smooth):
+def _problem(smooth: bool):
+    """The model, solver, tangent step, control and its tangents, the directions and the start of the
+    module doc's rollout."""
     rng = np.random.default_rng(3)
     q0, qd0 = _initial(build_articulation_model(load_puppet()), rng)
     m = build_articulation_model(load_puppet(), springs=SPRINGS, requires_grad=True,
@@ -64,13 +65,22 @@ def test_puppet_rollout_jvp_with_springs_and_contact(smooth):
     for n, x in v.items():
         getattr(tc, n).assign(x)
     v_q, v_qd = rng.normal(size=(P, WORLDS, m.q_count)), rng.normal(size=(P, WORLDS, m.qd_count))
+    return m, solver, jvp, control, values, tc, v, (q0, qd0, v_q, v_qd), rng
 
+
+def _rollout_arrays(m, jvp, start):
+    """The rollout's states and tangents, the first set to ``start`` (``q0, qd0, v_q, v_qd``)."""
     states = [m.state(WORLDS) for _ in range(STEPS + 1)]
     tangents = [jvp.tangent_state() for _ in range(STEPS + 1)]
-    states[0].joint_q.assign(q0)
-    states[0].joint_qd.assign(qd0)
-    tangents[0].joint_q.assign(v_q)
-    tangents[0].joint_qd.assign(v_qd)
+    for a, x in zip((states[0].joint_q, states[0].joint_qd, tangents[0].joint_q, tangents[0].joint_qd), start):
+        a.assign(x)
+    return states, tangents
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_puppet_rollout_jvp_with_springs_and_contact(smooth):
+    m, solver, jvp, control, values, tc, v, (q0, qd0, v_q, v_qd), rng = _problem(smooth)
+    states, tangents = _rollout_arrays(m, jvp, (q0, qd0, v_q, v_qd))
     for i in range(STEPS):
         jvp.step(states[i], tangents[i], states[i + 1], tangents[i + 1], control, tc, DT)
 
@@ -105,3 +115,37 @@ def test_puppet_rollout_jvp_with_springs_and_contact(smooth):
         for n in grads:
             assert np.any(grads[n]), f"no gradient reaches {n}"
         assert abs(terms_f.sum() - terms_r.sum()) <= 1e-10 * scale, p
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_kept_contact_tangents_give_the_step_its_own(smooth):
+    """``step(..., contacts_kept=True)`` after ``eval_contacts(..., keep=True)`` of the same kinematics
+    (what the marionette's trial and puppet steps do, ``grad/marionette_tangent``): the primal to the
+    bit, the tangents to rounding (the kept contact tangents are summed apart and then added, the
+    plain step adds them point by point: about 100 terms of one rounding each per body, through 3
+    steps). Without the kept tangents added the step's tangents move by the contacts' (checked to be
+    far above rounding here)."""
+    m, solver, jvp, control, values, tc, v, (q0, qd0, v_q, v_qd), rng = _problem(smooth)
+    trial, trial_body = m.workspace(WORLDS), jvp.body_tangents()
+    h, hi = solver.step_sizes(DT)
+    runs = {}
+    for kept in (False, True):
+        states, tangents = _rollout_arrays(m, jvp, (q0, qd0, v_q, v_qd))
+        for i in range(STEPS):
+            if kept:  # a pass of the same kinematics before the step (the trial's, without its other loads)
+                jvp.eval_kinematics(states[i], tangents[i], trial, trial_body)
+                jvp.eval_external_forces(trial, trial_body, control, tc)
+                jvp.eval_contacts(trial, trial_body, hi, keep=True)
+            jvp.step(states[i], tangents[i], states[i + 1], tangents[i + 1], control, tc, DT, contacts_kept=kept)
+        runs[kept] = (states[-1], tangents[-1])
+    (plain, plain_t), (kept, kept_t) = runs[False], runs[True]
+    np.testing.assert_array_equal(kept.joint_q.numpy(), plain.joint_q.numpy())
+    np.testing.assert_array_equal(kept.joint_qd.numpy(), plain.joint_qd.numpy())
+    contact = np.abs(jvp.kept_contacts["body_wrench"].numpy()).max()
+    for n in ("joint_q", "joint_qd"):
+        want, got = getattr(plain_t, n).numpy(), getattr(kept_t, n).numpy()
+        err = np.abs(got - want).max() / np.abs(want).max()
+        print(f"smooth={smooth} {n}: max |kept - plain| / max |plain| = {err:.1e}; kept contact wrench tangent "
+              f"{contact:.1e}")
+        assert err <= 1e-12, n
+    assert contact > 1e-3 * np.abs(jvp.tan_body["body_wrench"].numpy()).max()

@@ -1,7 +1,9 @@
 """JVP of marionette steps (``grad/marionette_tangent``: ``MarionetteTangent``, P = 3) against the
 tape's VJP of the same steps of ``SolverMarionette.step``, by the dot-product identity, on the
 ``hanging`` scene as shipped (30 Hz puppet, 1 kHz strings: 33 string steps per puppet step,
-ground contact, joint limits, bar feedback).
+ground contact, joint limits, bar feedback), and on ``chair`` as shipped (the puppet seated: its
+ground and chair contacts act, which the hanging puppet's, far above the ground, do not; the
+trial step's contact tangents, kept and added into the puppet step's, are checked only here).
 
 Directions in every input the tangent takes: the initial state (the puppet's ``joint_q``,
 ``joint_qd``; the strings' particles; the previous step's tie forces; the tie target) and each
@@ -14,6 +16,7 @@ puppet rollout's tests (measured: ~1e-15; a wrong or missing term of any pass is
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import warp as wp
 
 import dmarionette as dm
@@ -41,8 +44,9 @@ def _direction(a, rng, scale):
     return x
 
 
-def test_marionette_step_jvp_matches_reverse_mode():
-    model = MarionetteModel(dm.load_scene("hanging"), optimization_level=0, requires_grad=True)
+@pytest.mark.parametrize("scene", ["hanging", "chair"])
+def test_marionette_step_jvp_matches_reverse_mode(scene):
+    model = MarionetteModel(dm.load_scene(scene), optimization_level=0, requires_grad=True)
     assert model.precision == "float64"
     solver = SolverMarionette(model)
     jvp = MarionetteTangent(solver, P, optimization_level=0)

@@ -148,6 +148,22 @@ def test_rollout_jvp_refuses_bad_tangents():
         e.jvp(dataclasses.replace(h.inputs, bar_qd=np.zeros((1, 3))), {"bar_q": np.zeros((1, *shape))})
 
 
+def test_rollout_jvp_results_are_the_callers():
+    """What ``jvp`` returns is the caller's: a later call (other inputs, other directions) leaves it as it
+    was (they were views of the arrays the next call writes, before)."""
+    h = _hanging()
+    e = h.engine
+    first = e.jvp(h.inputs, {"joint_qd0": h.directions["joint_qd0"][None]})
+    kept = ({name: np.array(getattr(first[0], name)) for name in OUTPUT_FIELDS},
+            {name: np.array(first[1][name]) for name in OUTPUT_FIELDS})
+    later = e.jvp(h.moved("top_q", 10.0), {"joint_qd0": 2.0 * h.directions["joint_qd0"][None]})
+    for name in OUTPUT_FIELDS:
+        assert not np.array_equal(getattr(later[0], name), kept[0][name]), name  # the later call wrote others
+        assert not np.array_equal(later[1][name], kept[1][name]), name
+        np.testing.assert_array_equal(getattr(first[0], name), kept[0][name], err_msg=name)
+        np.testing.assert_array_equal(first[1][name], kept[1][name], err_msg=name)
+
+
 def test_jax_forward_mode_matches_engine_and_reverse_mode():
     jax = pytest.importorskip("jax")
     from fitting.rollout import marionette_rollout, marionette_rollout_jvp
