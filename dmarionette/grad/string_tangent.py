@@ -33,8 +33,7 @@ import warp as wp
 
 from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
-from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, string_step_tangent_kernel,
-                                                     unpack_lane_factorisation_kernel)
+from dmarionette.kernels.string_step_tangent import CONSTANTS, DIRECTION_LANES, lane_factor_rows, string_step_tangent_kernel
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
@@ -70,9 +69,14 @@ class StringStepTangent:
             raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
         self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
         self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(),
-                                                 DIRECTION_LANES if self.lanes else 1)
+                                                 DIRECTION_LANES if self.lanes else 1, LANES if solver.lanes else 0)
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
-        self._unpack = unpack_lane_factorisation_kernel(LANES) if solver.lanes else None
+        # Where the tangent finds each string's rows of the kept factorisation (laned: its group's rows, its lane).
+        rows = np.zeros((2, model.string_count), dtype=np.int32)
+        if solver.lanes:
+            rows[:] = lane_factor_rows(model.string_start.numpy(), *(a.numpy() for a in solver.lane_group_arrays),
+                                       model.string_count)
+        self._factor_row, self._factor_lane = (wp.array(r, dtype=wp.int32, device=model.device) for r in rows)
 
     def zeros(self, count: int, dtype=None) -> wp.array:
         """A ``(P, count)`` tangent array (vec3 by default)."""
@@ -94,14 +98,12 @@ class StringStepTangent:
         ws = self.workspace
         if self.solver.lanes:
             # The laned step keeping its factorisation (the scalar step's numbers bit for bit, about 2x
-            # faster), unpacked into the scalar layout the tangent reads (the solver's lane plan).
+            # faster); the tangent reads it in the laned layout.
             self.solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
-            groups = self.solver.lane_group_arrays
-            wp.launch(self._unpack, dim=groups[1].shape[0],
-                      inputs=[*groups, m.string_start, ws.lane_inverse, ws.lane_c],
-                      outputs=[ws.scratch_inverse, ws.scratch_c], device=m.device, record_tape=False)
+            inverse, c = ws.lane_inverse, ws.lane_c
         else:
             self.solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
+            inverse, c = ws.scratch_inverse, ws.scratch_c
         wp.launch(
             self.kernel,
             dim=m.string_count,
@@ -109,7 +111,8 @@ class StringStepTangent:
                     m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
                     m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
                     m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd, ws.scratch_inverse, ws.scratch_c, ws.particle_dv,
+                    state_in.particle_q, state_in.particle_qd, inverse, c, self._factor_row, self._factor_lane,
+                    ws.particle_dv,
                     state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
                     q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot],
             outputs=[q_out_dot, qd_out_dot, tie_force_dot],

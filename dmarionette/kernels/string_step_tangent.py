@@ -70,12 +70,15 @@ checks the two against each other (the dot-product identity) and against central
 
 import functools
 
+from types import SimpleNamespace
+
+import numpy as np
 import warp as wp
 
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
 from .tangent_directions import tangent_directions
 
-__all__ = ["CONSTANTS", "DIRECTION_LANES", "string_step_tangent_kernel", "unpack_lane_factorisation_kernel"]
+__all__ = ["CONSTANTS", "DIRECTION_LANES", "lane_factor_rows", "string_step_tangent_kernel"]
 
 # Tangent directions per SIMD lane vector with ``lanes`` (4 doubles: one AVX2 register).
 DIRECTION_LANES = 4
@@ -87,14 +90,20 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 
 
 @functools.cache
-def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1):
+def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1,
+                               factor_lanes: int = 0):
     """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
     ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
     any float type and device; 4: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
-    printed springs."""
+    printed springs. ``factor_lanes``: 0, the kept factorisation in the scalar step's layout (one
+    ``mat33`` per particle); ``K``, in the laned step's (``string_step_lanes`` with ``keep``, ``K``
+    strings per group: particle ``p`` of string ``s`` at row ``p + string_factor_row[s]``, lane
+    ``string_factor_lane[s]``, :func:`lane_factor_rows`), read there directly."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
+    factor = _factor_load(scalar, factor_lanes)
+    FM, load_factor = factor.FM, factor.load
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
     t = tangent_directions(scalar, lanes)
     TS, TV, STEP = t.TS, t.TV, t.step
@@ -126,8 +135,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # State in (the step's start, then what the forward, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
-        pivot_inverse: wp.array(dtype=mat33),
-        scratch_c: wp.array(dtype=mat33),
+        pivot_inverse: wp.array(dtype=FM),
+        scratch_c: wp.array(dtype=FM),
+        string_factor_row: wp.array(dtype=wp.int32),
+        string_factor_lane: wp.array(dtype=wp.int32),
         particle_dv: wp.array(dtype=vec3),
         particle_q_out: wp.array(dtype=vec3),
         particle_qd_out: wp.array(dtype=vec3),
@@ -153,6 +164,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         directions = particle_q_dot.shape[0]
         start = string_start[s]
         last = string_start[s + 1] - 1
+        factor_row = string_factor_row[s]
+        factor_lane = string_factor_lane[s]
         zero = scalar(0.0)
         h2 = dt * dt
         stiffness = string_stiffness[s]
@@ -186,7 +199,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             v_prev = particle_qd[p - 1]
             v = particle_qd[p]
             dv = particle_dv[p]
-            inv = pivot_inverse[p]
+            inv = load_factor(pivot_inverse, p + factor_row, factor_lane)
             u_a, l_a, ratio_a, alpha_a, beta_a = compute_spring_parts(x_prev, x, stiffness, rest_length)
             inv_l_a = scalar(1.0) / l_a
             # The springs' parts of b' - A' dv, one K' product per segment:
@@ -327,7 +340,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
         for i in range(last - start - 1):
             p = last - 1 - i
-            c = scratch_c[p]
+            c = load_factor(scratch_c, p + factor_row, factor_lane)
             for k in range(0, directions, STEP):
                 dv_below_dot = load3(particle_qd_out_dot, k, directions, p + 1)
                 store3(particle_qd_out_dot, k, directions, p,
@@ -365,43 +378,44 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     return integrate_string_implicit_tangent
 
 
+def lane_factor_rows(string_start, group_string, group_real, group_base, string_count: int):
+    """``(string_factor_row, string_factor_lane)`` (NumPy int32, one per string) of the laned step's
+    group table (``string_step_lanes.lane_groups``): particle ``p`` of string ``s`` is row
+    ``p + string_factor_row[s]`` of the laned factorisation (``group_base[g] + j`` for ``p =
+    string_start[s] + j``), lane ``string_factor_lane[s]``; the padding lanes' copies are skipped."""
+    row = np.zeros(string_count, dtype=np.int32)
+    lane = np.zeros(string_count, dtype=np.int32)
+    for g in range(len(group_base)):
+        for l in range(int(group_real[g])):
+            s = int(group_string[g][l])
+            row[s] = int(group_base[g]) - int(string_start[s])
+            lane[s] = l
+    return row, lane
+
+
 @functools.cache
-def unpack_lane_factorisation_kernel(lanes: int):
-    """Builds ``unpack_lane_factorisation``: the laned step's kept pivot inverses and ``C'``
-    (``string_step_lanes`` with ``keep``: row ``base + j`` of a group, entry ``(i, m)`` of lane ``l`` at
-    ``[3 i + m, l]``) into the scalar step's layout (one ``mat33d`` per particle), which the tangent
-    reads: one thread per group (each laned row read once: a thread per lane, reading every row 4
-    times, cost about as much as the laned forward), the real lanes only. Lets a tangent rollout
-    run the laned forward (the same numbers bit for bit as the scalar one, ``string_step_lanes``'
-    doc), about 2x faster than the scalar one."""
-    lmat = wp.types.matrix((9, lanes), wp.float64)
-    ivec = wp.types.vector(lanes, wp.int32)
+def _factor_load(scalar, factor_lanes: int) -> SimpleNamespace:
+    """``FM`` (the kept factorisation's dtype) and ``load(a, row, lane)``: the ``mat33`` at ``row``
+    (scalar layout, ``lane`` unused) or lane ``lane`` of the laned ``9 x K`` matrix at ``row`` (entry
+    ``(i, m)`` at ``[3 i + m, lane]``), nine loads, no copy of the other lanes."""
+    mat33 = wp.types.matrix((3, 3), scalar)
+    if factor_lanes == 0:
+        @wp.func
+        def load(a: wp.array(dtype=mat33), row: int, lane: int):
+            return a[row]
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def unpack_lane_factorisation(
-        # Model:
-        group_string: wp.array(dtype=ivec),
-        group_real: wp.array(dtype=wp.int32),
-        group_base: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
-        # State in:
-        lane_inverse: wp.array(dtype=lmat),
-        lane_c: wp.array(dtype=lmat),
-        # State out:
-        pivot_inverse: wp.array(dtype=wp.mat33d),
-        scratch_c: wp.array(dtype=wp.mat33d),
-    ):
-        g = wp.tid()
-        first = group_string[g][0]
-        base = group_base[g]
-        for j in range(1, string_start[first + 1] - string_start[first]):
-            a = lane_inverse[base + j]  # each laned row read once, for all its lanes
-            c = lane_c[base + j]
-            for l in range(group_real[g]):
-                p = string_start[group_string[g][l]] + j
-                pivot_inverse[p] = wp.mat33d(a[0, l], a[1, l], a[2, l], a[3, l], a[4, l], a[5, l], a[6, l], a[7, l],
-                                             a[8, l])
-                scratch_c[p] = wp.mat33d(c[0, l], c[1, l], c[2, l], c[3, l], c[4, l], c[5, l], c[6, l], c[7, l],
-                                         c[8, l])
+        return SimpleNamespace(FM=mat33, load=load)
+    if scalar is not wp.float64:
+        raise TypeError(f"a laned factorisation: float64 only, got {scalar}")
+    lmat = wp.types.matrix((9, factor_lanes), wp.float64)
 
-    return unpack_lane_factorisation
+    @wp.func_native(f"""
+    const double* m = (const double*)((const char*)a.data + (long)row * (long)a.strides[0]) + lane;
+    wp::mat_t<3, 3, wp::float64> r;
+    for (int e = 0; e < 9; ++e) r.data[e / 3][e % 3] = m[e * {factor_lanes}];
+    return r;
+    """)
+    def load_lane(a: wp.array(dtype=lmat), row: int, lane: int) -> wp.mat33d:
+        ...
+
+    return SimpleNamespace(FM=lmat, load=load_lane)
