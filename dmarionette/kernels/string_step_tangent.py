@@ -188,27 +188,29 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         if wp.static(FRICTION):
             g_upper = -dt * friction
 
-        # Forward sweep, row by row; in each row the primal (both segments' springs, the row's
-        # branches) once, then every direction's r = b' - A' dv and its forward substitution
-        # y = inv_p (r - A_{p,p-1} y_prev), y kept in particle_qd_out_dot.
+        # Forward sweep, row by row; in each row the primal (the lower segment's spring parts, the
+        # row's branches) once, then every direction's r = b' - A' dv and its forward substitution
+        # y = inv_p (r - A_{p,p-1} y_prev), y kept in particle_qd_out_dot. Each segment is shared by
+        # two rows and computed once: its spring parts are carried from row p (its lower segment) to
+        # row p + 1 (its upper one), and so is, per direction, its part of b' - A' dv,
+        #     c = K' s + K w' + h f'   (s = h^2 ((v_p - v_{p+1}) + (dv_p - dv_{p+1})), w' = h^2 (v_p' - v_{p+1}'))
+        # which enters row p as +c and row p + 1 as -c (s, w' and the force f' on p change sign
+        # exactly with the segment's ends), kept in particle_q_out_dot[p + 1] (that slot's output is
+        # written after the sweep).
+        u_a, l_a, ratio_a, alpha_a, beta_a = compute_spring_parts(particle_q[start], particle_q[start + 1], stiffness,
+                                                                  rest_length)
+        inv_l_a = scalar(1.0) / l_a
         for p in range(start + 1, last + 1):
             j = p - start
             is_last = p == last
-            x_prev = particle_q[p - 1]
             x = particle_q[p]
             v_prev = particle_qd[p - 1]
             v = particle_qd[p]
             dv = particle_dv[p]
             inv = load_factor(pivot_inverse, p + factor_row, factor_lane)
-            u_a, l_a, ratio_a, alpha_a, beta_a = compute_spring_parts(x_prev, x, stiffness, rest_length)
-            inv_l_a = scalar(1.0) / l_a
-            # The springs' parts of b' - A' dv, one K' product per segment:
-            # K_a' (w_prev + h^2 (dv - dv_prev)) + K_a w_prev' (+ the same for the segment below).
-            w_prev = h2 * (v - v_prev)
-            s_prev = w_prev + h2 * (dv - particle_dv[p - 1])
-            if j == 1:
-                w_prev = h2 * v - dt * top_dx  # next to the top: h K_j0 dx_0, no lower block
-                s_prev = w_prev + h2 * dv
+            # Next to the top (row 1 only): the top segment's h K_10 dx_0 and K' (w_top + h^2 dv), no lower block.
+            w_top = h2 * v - dt * top_dx
+            s_top = w_top + h2 * dv
             x_next = x
             v_next = vec3(zero)
             dv_next = vec3(zero)
@@ -241,17 +243,19 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 x_dot = load3(particle_q_dot, k, directions, p)
                 v_dot = load3(particle_qd_dot, k, directions, p)
                 v_prev_dot = load3(particle_qd_dot, k, directions, p - 1)
-                u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
-                    u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length,
-                    vsub(load3(particle_q_dot, k, directions, p - 1), x_dot), stiffness_dot, rest_dot)
-                force_dot = vneg(f_a_dot)
-                w_prev_dot = vscl(h2, vsub(v_dot, v_prev_dot))
                 top_dx_dot = TV(zero)
-                if j == 1:  # top_dx' = top' - x0_top'
-                    top_dx_dot = vsub(load3(top_q_dot, k, directions, s), load3(particle_q_dot, k, directions, start))
-                    w_prev_dot = vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot))
-                r = vadd(k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_prev),
-                         k_product(u_a, alpha_a, beta_a, w_prev_dot))
+                r = TV(zero)
+                if j == 1:  # the top segment; top_dx' = top' - x0_top'
+                    x_top_dot = load3(particle_q_dot, k, directions, start)
+                    top_dx_dot = vsub(load3(top_q_dot, k, directions, s), x_top_dot)
+                    u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
+                        u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length, vsub(x_top_dot, x_dot), stiffness_dot,
+                        rest_dot)
+                    r = vsub(vadd(k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_top),
+                                  k_product(u_a, alpha_a, beta_a, vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot)))),
+                             vscl(dt, f_a_dot))
+                else:  # the upper segment's -c, from row p - 1
+                    r = vneg(load3(particle_q_out_dot, k, directions, p))
                 v_next_dot = TV(zero)
                 if not is_last:
                     x_next_dot = load3(particle_q_dot, k, directions, p + 1)
@@ -259,9 +263,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
                         u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, vsub(x_dot, x_next_dot), stiffness_dot,
                         rest_dot)
-                    force_dot = vadd(force_dot, f_b_dot)
-                    r = vadd(vadd(r, k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next)),
-                             k_product(u_b, alpha_b, beta_b, vscl(h2, vsub(v_dot, v_next_dot))))
+                    c_b = vadd(vadd(k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next),
+                                    k_product(u_b, alpha_b, beta_b, vscl(h2, vsub(v_dot, v_next_dot)))),
+                               vscl(dt, f_b_dot))
+                    store3(particle_q_out_dot, k, directions, p + 1, c_b)
+                    r = vadd(r, c_b)
+                force_dot = TV(zero)
                 # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
                 # diag(k_c, k_c + k_y, k_c); their tangents.
                 d_xz_dot = TS(zero)
@@ -336,6 +343,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     y_prev = load3(particle_qd_out_dot, k, directions, p - 1)
                     r = vsub(r, vadd(vscl(h2, k_product(u_a, alpha_a, beta_a, y_prev)), vscl(g_upper, y_prev)))
                 store3(particle_qd_out_dot, k, directions, p, mat(inv, r))
+            u_a = u_b  # the lower segment is the next row's upper one
+            l_a = l_b
+            inv_l_a = inv_l_b
+            ratio_a = ratio_b
+            alpha_a = alpha_b
+            beta_a = beta_b
 
         # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
         for i in range(last - start - 1):
