@@ -190,43 +190,49 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
 
         # Forward sweep, row by row; in each row the primal (the lower segment's spring parts, the
         # row's branches) once, then every direction's r = b' - A' dv and its forward substitution
-        # y = inv_p (r - A_{p,p-1} y_prev), y kept in particle_qd_out_dot. Each segment is shared by
-        # two rows and computed once: its spring parts are carried from row p (its lower segment) to
-        # row p + 1 (its upper one), and so is, per direction, its part of b' - A' dv,
-        #     c = K' s + K w' + h f'   (s = h^2 ((v_p - v_{p+1}) + (dv_p - dv_{p+1})), w' = h^2 (v_p' - v_{p+1}'))
-        # which enters row p as +c and row p + 1 as -c (s, w' and the force f' on p change sign
-        # exactly with the segment's ends), kept in particle_q_out_dot[p + 1] (that slot's output is
-        # written after the sweep).
-        u_a, l_a, ratio_a, alpha_a, beta_a = compute_spring_parts(particle_q[start], particle_q[start + 1], stiffness,
+        # y = inv_p (r - A_{p,p-1} y_prev), y kept in particle_qd_out_dot. Each segment below the top
+        # one is shared by two rows and computed once: its spring parts are carried from row p (its
+        # lower segment) to row p + 1 (its upper one), and so is, per direction, its part of b' - A' dv
+        # (the spring's and the internal friction's),
+        #     c = K' s + (h^2 K - h k_f I) (v_p' - v_{p+1}') + h f' - h k_f' z,
+        #     z = (v_p - v_{p+1}) + (dv_p - dv_{p+1}),  s = h^2 z,
+        # which enters row p as +c and row p + 1 as -c (z, v_p' - v_{p+1}' and the spring force f' on
+        # p change sign exactly with the segment's ends), kept in particle_q_out_dot[p + 1] (that
+        # slot's output is written after the sweep). The friction's terms of the two rows, gathered:
+        # h (-k_f' (v_p - v_{p+1}) - k_f (v_p' - v_{p+1}')) of the force, +h k_f' dv_{p+1} of
+        # -A_{p,p+1}' dv_{p+1} and -h k_f' dv_p of the diagonal's -A_pp' dv_p.
+        # The top segment (row 1 only, not shared): h K_10 dx_0 and K' (w_top + h^2 dv), no lower block.
+        u_t, l_t, ratio_t, alpha_t, beta_t = compute_spring_parts(particle_q[start], particle_q[start + 1], stiffness,
                                                                   rest_length)
-        inv_l_a = scalar(1.0) / l_a
+        inv_l_t = scalar(1.0) / l_t
+        # The upper segment's h^2 K - h k_f I = h^2 alpha u u^T + (h^2 beta - h k_f) I (A_{p,p-1}), carried.
+        u_a = vec3(zero)
+        h2_alpha_a = zero
+        upper_beta_a = zero
         for p in range(start + 1, last + 1):
             j = p - start
             is_last = p == last
             x = particle_q[p]
-            v_prev = particle_qd[p - 1]
             v = particle_qd[p]
             dv = particle_dv[p]
             inv = load_factor(pivot_inverse, p + factor_row, factor_lane)
-            # Next to the top (row 1 only): the top segment's h K_10 dx_0 and K' (w_top + h^2 dv), no lower block.
             w_top = h2 * v - dt * top_dx
             s_top = w_top + h2 * dv
-            x_next = x
-            v_next = vec3(zero)
-            dv_next = vec3(zero)
             u_b = vec3(zero)
             l_b = scalar(1.0)
             inv_l_b = scalar(1.0)
             ratio_b = zero
             alpha_b = zero
             beta_b = zero
+            z_b = vec3(zero)
             if not is_last:
-                x_next = particle_q[p + 1]
-                v_next = particle_qd[p + 1]
-                dv_next = particle_dv[p + 1]
-                u_b, l_b, ratio_b, alpha_b, beta_b = compute_spring_parts(x, x_next, stiffness, rest_length)
+                u_b, l_b, ratio_b, alpha_b, beta_b = compute_spring_parts(x, particle_q[p + 1], stiffness, rest_length)
                 inv_l_b = scalar(1.0) / l_b
-            s_next = h2 * (v - v_next) + h2 * (dv - dv_next)
+                z_b = (v - particle_qd[p + 1]) + (dv - particle_dv[p + 1])
+            s_b = h2 * z_b
+            h_z_b = dt * z_b
+            h2_alpha_b = h2 * alpha_b
+            upper_beta_b = h2 * beta_b + g_upper
             below = False
             if wp.static(GROUND):
                 below = x[1] < ground_height
@@ -239,57 +245,49 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             for k in range(0, directions, STEP):
                 stiffness_dot = load_constant(string_constants_dot, k, directions, s, 0)
                 rest_dot = load_constant(string_constants_dot, k, directions, s, 1)
+                friction_dot = TS(zero)
+                if wp.static(FRICTION):
+                    friction_dot = load_constant(string_constants_dot, k, directions, s, 2)
                 mass_dot = load(particle_mass_dot, k, directions, p)
                 x_dot = load3(particle_q_dot, k, directions, p)
                 v_dot = load3(particle_qd_dot, k, directions, p)
-                v_prev_dot = load3(particle_qd_dot, k, directions, p - 1)
-                top_dx_dot = TV(zero)
+                force_dot = TV(zero)
+                d_xz_dot = TS(zero)
                 r = TV(zero)
                 if j == 1:  # the top segment; top_dx' = top' - x0_top'
                     x_top_dot = load3(particle_q_dot, k, directions, start)
                     top_dx_dot = vsub(load3(top_q_dot, k, directions, s), x_top_dot)
-                    u_a_dot, alpha_a_dot, beta_a_dot, f_a_dot = compute_spring_tangent(
-                        u_a, l_a, inv_l_a, ratio_a, stiffness, rest_length, vsub(x_top_dot, x_dot), stiffness_dot,
+                    u_t_dot, alpha_t_dot, beta_t_dot, f_t_dot = compute_spring_tangent(
+                        u_t, l_t, inv_l_t, ratio_t, stiffness, rest_length, vsub(x_top_dot, x_dot), stiffness_dot,
                         rest_dot)
-                    r = vsub(vadd(k_tangent_product(u_a, alpha_a, u_a_dot, alpha_a_dot, beta_a_dot, s_top),
-                                  k_product(u_a, alpha_a, beta_a, vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot)))),
-                             vscl(dt, f_a_dot))
+                    r = vsub(vadd(k_tangent_product(u_t, alpha_t, u_t_dot, alpha_t_dot, beta_t_dot, s_top),
+                                  k_product(u_t, alpha_t, beta_t, vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot)))),
+                             vscl(dt, f_t_dot))
+                    if wp.static(FRICTION):
+                        # f = -k_f (v - v_0), D = -k_f I; rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top.
+                        v_top_dot = load3(particle_qd_dot, k, directions, start)
+                        force_dot = vsub(vneg(outer(v - particle_qd[start], friction_dot)),
+                                         vscl(friction, vsub(v_dot, v_top_dot)))
+                        d_xz_dot = sneg(friction_dot)
+                        top_dv_dot = vsub(vscl(inv_dt, top_dx_dot), v_top_dot)
+                        r = vadd(r, vscl(dt, vadd(outer(top_dv, friction_dot), vscl(friction, top_dv_dot))))
                 else:  # the upper segment's -c, from row p - 1
                     r = vneg(load3(particle_q_out_dot, k, directions, p))
-                v_next_dot = TV(zero)
                 if not is_last:
-                    x_next_dot = load3(particle_q_dot, k, directions, p + 1)
-                    v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
+                    v_diff_dot = vsub(v_dot, load3(particle_qd_dot, k, directions, p + 1))
                     u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
-                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length, vsub(x_dot, x_next_dot), stiffness_dot,
-                        rest_dot)
-                    c_b = vadd(vadd(k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_next),
-                                    k_product(u_b, alpha_b, beta_b, vscl(h2, vsub(v_dot, v_next_dot)))),
-                               vscl(dt, f_b_dot))
+                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length,
+                        vsub(x_dot, load3(particle_q_dot, k, directions, p + 1)), stiffness_dot, rest_dot)
+                    c_b = vadd(vadd(k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_b),
+                                    k_product(u_b, h2_alpha_b, upper_beta_b, v_diff_dot)), vscl(dt, f_b_dot))
+                    if wp.static(FRICTION):
+                        c_b = vsub(c_b, outer(h_z_b, friction_dot))
                     store3(particle_q_out_dot, k, directions, p + 1, c_b)
                     r = vadd(r, c_b)
-                force_dot = TV(zero)
                 # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
                 # diag(k_c, k_c + k_y, k_c); their tangents.
-                d_xz_dot = TS(zero)
                 k_c_dot = TS(zero)
                 k_y_dot = TS(zero)
-                if wp.static(FRICTION):
-                    # f = -k_f (v - v_prev) (- k_f (v - v_next)); D = -k_f I each; the off-diagonal blocks' -h k_f I.
-                    friction_dot = load_constant(string_constants_dot, k, directions, s, 2)
-                    force_dot = vsub(vsub(force_dot, outer(v - v_prev, friction_dot)),
-                                     vscl(friction, vsub(v_dot, v_prev_dot)))
-                    d_xz_dot = ssub(d_xz_dot, friction_dot)
-                    if j == 1:  # rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top
-                        top_dv_dot = vsub(vscl(inv_dt, top_dx_dot), load3(particle_qd_dot, k, directions, start))
-                        r = vadd(r, vscl(dt, vadd(outer(top_dv, friction_dot), vscl(friction, top_dv_dot))))
-                    else:
-                        r = vadd(r, outer(particle_dv[p - 1], sscl(dt, friction_dot)))
-                    if not is_last:
-                        force_dot = vsub(vsub(force_dot, outer(v - v_next, friction_dot)),
-                                         vscl(friction, vsub(v_dot, v_next_dot)))
-                        d_xz_dot = ssub(d_xz_dot, friction_dot)
-                        r = vadd(r, outer(dv_next, sscl(dt, friction_dot)))
                 if wp.static(GRAVITY):
                     force_dot = vadd(force_dot, outer(gravity, mass_dot))
                 if wp.static(AIR):
@@ -340,15 +338,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     tvec(sscl(dv[0], a_xz_dot), sscl(dv[1], a_y_dot), sscl(dv[2], a_xz_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p} = h^2 K_a - h k_f I.
                 if j > 1:
-                    y_prev = load3(particle_qd_out_dot, k, directions, p - 1)
-                    r = vsub(r, vadd(vscl(h2, k_product(u_a, alpha_a, beta_a, y_prev)), vscl(g_upper, y_prev)))
+                    r = vsub(r, k_product(u_a, h2_alpha_a, upper_beta_a,
+                                          load3(particle_qd_out_dot, k, directions, p - 1)))
                 store3(particle_qd_out_dot, k, directions, p, mat(inv, r))
             u_a = u_b  # the lower segment is the next row's upper one
-            l_a = l_b
-            inv_l_a = inv_l_b
-            ratio_a = ratio_b
-            alpha_a = alpha_b
-            beta_a = beta_b
+            h2_alpha_a = h2_alpha_b
+            upper_beta_a = upper_beta_b
 
         # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
         for i in range(last - start - 1):
