@@ -345,23 +345,22 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             h2_alpha_a = h2_alpha_b
             upper_beta_a = upper_beta_b
 
-        # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}, in place), bottom to top.
-        for i in range(last - start - 1):
-            p = last - 1 - i
-            c = load_factor(scratch_c, p + factor_row, factor_lane)
-            for k in range(0, directions, STEP):
-                dv_below_dot = load3(particle_qd_out_dot, k, directions, p + 1)
-                store3(particle_qd_out_dot, k, directions, p,
-                       vsub(load3(particle_qd_out_dot, k, directions, p), mat(c, dv_below_dot)))
-        # v1' = v0' + dv', x1' = x0' + h v1'; the top particle, x1' = top', v1' = (top' - x0_top') / h;
-        # the tie force on the new state (eq. 2, ``string_integrate.compute_string_outputs``).
+        # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}), bottom to top, one group of directions at a
+        # time (dv' carried from row to row), and with it v1' = v0' + dv', x1' = x0' + h v1'; the top
+        # particle, x1' = top', v1' = (top' - x0_top') / h; the tie force on the new state (eq. 2,
+        # ``string_integrate.compute_string_outputs``).
         tie_stiffness_k = string_tie_stiffness[s]
         tie_damping_k = string_tie_damping[s]
         x_last = particle_q_out[last]
         v_last = particle_qd_out[last]
         for k in range(0, directions, STEP):
-            for p in range(start + 1, last + 1):
-                v1_dot = vadd(load3(particle_qd_dot, k, directions, p), load3(particle_qd_out_dot, k, directions, p))
+            dv_dot = load3(particle_qd_out_dot, k, directions, last)
+            for i in range(last - start):
+                p = last - i
+                if p < last:
+                    dv_dot = vsub(load3(particle_qd_out_dot, k, directions, p),
+                                  mat(load_factor(scratch_c, p + factor_row, factor_lane), dv_dot))
+                v1_dot = vadd(load3(particle_qd_dot, k, directions, p), dv_dot)
                 store3(particle_qd_out_dot, k, directions, p, v1_dot)
                 store3(particle_q_out_dot, k, directions, p, vadd(load3(particle_q_dot, k, directions, p),
                                                                  vscl(dt, v1_dot)))
