@@ -77,6 +77,9 @@ class StringStepTangent:
             rows[:] = lane_factor_rows(model.string_start.numpy(), *(a.numpy() for a in solver.lane_group_arrays),
                                        model.string_count)
         self._factor_row, self._factor_lane = (wp.array(r, dtype=wp.int32, device=model.device) for r in rows)
+        # Each segment's spring parts, computed once per step by the tangent kernel for all its directions.
+        self._segment_parts = wp.zeros(model.particle_count, dtype=wp.types.vector(8, model.scalar),
+                                       device=model.device)
 
     def zeros(self, count: int, dtype=None) -> wp.array:
         """A ``(P, count)`` tangent array (vec3 by default)."""
@@ -111,8 +114,8 @@ class StringStepTangent:
                     m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
                     m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
                     m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd, inverse, c, self._factor_row, self._factor_lane,
-                    ws.particle_dv,
+                    state_in.particle_q, state_in.particle_qd, inverse, c, self._segment_parts, self._factor_row,
+                    self._factor_lane, ws.particle_dv,
                     state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
                     q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot],
             outputs=[q_out_dot, qd_out_dot, tie_force_dot],

@@ -102,6 +102,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
+    vec8 = wp.types.vector(8, scalar)
     factor = _factor_load(scalar, factor_lanes)
     FM, load_factor = factor.FM, factor.load
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
@@ -137,6 +138,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_qd: wp.array(dtype=vec3),
         pivot_inverse: wp.array(dtype=FM),
         scratch_c: wp.array(dtype=FM),
+        segment_parts: wp.array(dtype=vec8),
         string_factor_row: wp.array(dtype=wp.int32),
         string_factor_lane: wp.array(dtype=wp.int32),
         particle_dv: wp.array(dtype=vec3),
@@ -188,80 +190,63 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         if wp.static(FRICTION):
             g_upper = -dt * friction
 
-        # Forward sweep, row by row; in each row the primal (the lower segment's spring parts, the
-        # row's branches) once, then every direction's r = b' - A' dv and its forward substitution
-        # y = inv_p (r - A_{p,p-1} y_prev), y kept in particle_qd_out_dot. Each segment below the top
-        # one is shared by two rows and computed once: its spring parts are carried from row p (its
-        # lower segment) to row p + 1 (its upper one), and so is, per direction, its part of b' - A' dv
-        # (the spring's and the internal friction's),
+        # Each segment's spring parts once per step (segment (p, p + 1) at segment_parts[p]: u, l,
+        # 1 / l, 1 - d/l, alpha, beta), read by every group of directions.
+        for p in range(start, last):
+            u, length, ratio, alpha, beta = compute_spring_parts(particle_q[p], particle_q[p + 1], stiffness,
+                                                                 rest_length)
+            segment_parts[p] = vec8(u[0], u[1], u[2], length, scalar(1.0) / length, ratio, alpha, beta)
+        tie_stiffness_k = string_tie_stiffness[s]
+        tie_damping_k = string_tie_damping[s]
+        x_last = particle_q_out[last]
+        v_last = particle_qd_out[last]
+
+        # One group of directions at a time (the string's constants' tangents read once per group):
+        # the forward sweep, row by row, every row's r = b' - A' dv and its forward substitution
+        # y = inv_p (r - A_{p,p-1} y_prev), y carried to the next row and kept in particle_qd_out_dot;
+        # then the back substitution. Each segment below the top one is shared by two rows and its
+        # part of b' - A' dv (the spring's and the internal friction's) computed once per direction,
         #     c = K' s + (h^2 K - h k_f I) (v_p' - v_{p+1}') + h f' - h k_f' z,
         #     z = (v_p - v_{p+1}) + (dv_p - dv_{p+1}),  s = h^2 z,
-        # which enters row p as +c and row p + 1 as -c (z, v_p' - v_{p+1}' and the spring force f' on
-        # p change sign exactly with the segment's ends), kept in particle_q_out_dot[p + 1] (that
-        # slot's output is written after the sweep). The friction's terms of the two rows, gathered:
-        # h (-k_f' (v_p - v_{p+1}) - k_f (v_p' - v_{p+1}')) of the force, +h k_f' dv_{p+1} of
-        # -A_{p,p+1}' dv_{p+1} and -h k_f' dv_p of the diagonal's -A_pp' dv_p.
+        # in row p (as its lower segment, +c) and carried to row p + 1 (its upper one, -c: z,
+        # v_p' - v_{p+1}' and the spring force f' on p change sign exactly with the segment's ends).
+        # The friction's terms of the two rows, gathered: h (-k_f' (v_p - v_{p+1}) - k_f (v_p' - v_{p+1}'))
+        # of the force, +h k_f' dv_{p+1} of -A_{p,p+1}' dv_{p+1} and -h k_f' dv_p of the diagonal's.
         # The top segment (row 1 only, not shared): h K_10 dx_0 and K' (w_top + h^2 dv), no lower block.
-        u_t, l_t, ratio_t, alpha_t, beta_t = compute_spring_parts(particle_q[start], particle_q[start + 1], stiffness,
-                                                                  rest_length)
-        inv_l_t = scalar(1.0) / l_t
-        # The upper segment's h^2 K - h k_f I = h^2 alpha u u^T + (h^2 beta - h k_f) I (A_{p,p-1}), carried.
-        u_a = vec3(zero)
-        h2_alpha_a = zero
-        upper_beta_a = zero
-        for p in range(start + 1, last + 1):
-            j = p - start
-            is_last = p == last
-            x = particle_q[p]
-            v = particle_qd[p]
-            dv = particle_dv[p]
-            inv = load_factor(pivot_inverse, p + factor_row, factor_lane)
-            w_top = h2 * v - dt * top_dx
-            s_top = w_top + h2 * dv
-            u_b = vec3(zero)
-            l_b = scalar(1.0)
-            inv_l_b = scalar(1.0)
-            ratio_b = zero
-            alpha_b = zero
-            beta_b = zero
-            z_b = vec3(zero)
-            if not is_last:
-                u_b, l_b, ratio_b, alpha_b, beta_b = compute_spring_parts(x, particle_q[p + 1], stiffness, rest_length)
-                inv_l_b = scalar(1.0) / l_b
-                z_b = (v - particle_qd[p + 1]) + (dv - particle_dv[p + 1])
-            s_b = h2 * z_b
-            h_z_b = dt * z_b
-            h2_alpha_b = h2 * alpha_b
-            upper_beta_b = h2 * beta_b + g_upper
-            below = False
-            if wp.static(GROUND):
-                below = x[1] < ground_height
-            k_c = zero
-            if is_last:
-                k_c = -tie_stiffness
-            k_y = zero
-            if below:
-                k_y = -ground_stiffness
-            for k in range(0, directions, STEP):
-                stiffness_dot = load_constant(string_constants_dot, k, directions, s, 0)
-                rest_dot = load_constant(string_constants_dot, k, directions, s, 1)
-                friction_dot = TS(zero)
-                if wp.static(FRICTION):
-                    friction_dot = load_constant(string_constants_dot, k, directions, s, 2)
+        for k in range(0, directions, STEP):
+            stiffness_dot = load_constant(string_constants_dot, k, directions, s, 0)
+            rest_dot = load_constant(string_constants_dot, k, directions, s, 1)
+            friction_dot = TS(zero)
+            if wp.static(FRICTION):
+                friction_dot = load_constant(string_constants_dot, k, directions, s, 2)
+            air_dot = TS(zero)
+            if wp.static(AIR):
+                air_dot = load_constant(string_constants_dot, k, directions, s, 3)
+            x_dot = load3(particle_q_dot, k, directions, start + 1)
+            v_dot = load3(particle_qd_dot, k, directions, start + 1)
+            c_a = TV(zero)
+            y_prev = TV(zero)
+            for p in range(start + 1, last + 1):
+                j = p - start
+                is_last = p == last
+                x = particle_q[p]
+                v = particle_qd[p]
+                dv = particle_dv[p]
+                parts_a = segment_parts[p - 1]
+                u_a = vec3(parts_a[0], parts_a[1], parts_a[2])
                 mass_dot = load(particle_mass_dot, k, directions, p)
-                x_dot = load3(particle_q_dot, k, directions, p)
-                v_dot = load3(particle_qd_dot, k, directions, p)
+                r = TV(zero)
                 force_dot = TV(zero)
                 d_xz_dot = TS(zero)
-                r = TV(zero)
                 if j == 1:  # the top segment; top_dx' = top' - x0_top'
+                    w_top = h2 * v - dt * top_dx
                     x_top_dot = load3(particle_q_dot, k, directions, start)
                     top_dx_dot = vsub(load3(top_q_dot, k, directions, s), x_top_dot)
                     u_t_dot, alpha_t_dot, beta_t_dot, f_t_dot = compute_spring_tangent(
-                        u_t, l_t, inv_l_t, ratio_t, stiffness, rest_length, vsub(x_top_dot, x_dot), stiffness_dot,
-                        rest_dot)
-                    r = vsub(vadd(k_tangent_product(u_t, alpha_t, u_t_dot, alpha_t_dot, beta_t_dot, s_top),
-                                  k_product(u_t, alpha_t, beta_t, vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot)))),
+                        u_a, parts_a[3], parts_a[4], parts_a[5], stiffness, rest_length, vsub(x_top_dot, x_dot),
+                        stiffness_dot, rest_dot)
+                    r = vsub(vadd(k_tangent_product(u_a, parts_a[6], u_t_dot, alpha_t_dot, beta_t_dot, w_top + h2 * dv),
+                                  k_product(u_a, parts_a[6], parts_a[7], vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot)))),
                              vscl(dt, f_t_dot))
                     if wp.static(FRICTION):
                         # f = -k_f (v - v_0), D = -k_f I; rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top.
@@ -272,32 +257,42 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                         top_dv_dot = vsub(vscl(inv_dt, top_dx_dot), v_top_dot)
                         r = vadd(r, vscl(dt, vadd(outer(top_dv, friction_dot), vscl(friction, top_dv_dot))))
                 else:  # the upper segment's -c, from row p - 1
-                    r = vneg(load3(particle_q_out_dot, k, directions, p))
+                    r = vneg(c_a)
+                c_b = TV(zero)
+                x_next_dot = TV(zero)
+                v_next_dot = TV(zero)
                 if not is_last:
-                    v_diff_dot = vsub(v_dot, load3(particle_qd_dot, k, directions, p + 1))
+                    parts_b = segment_parts[p]
+                    u_b = vec3(parts_b[0], parts_b[1], parts_b[2])
+                    z_b = (v - particle_qd[p + 1]) + (dv - particle_dv[p + 1])
+                    x_next_dot = load3(particle_q_dot, k, directions, p + 1)
+                    v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
                     u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
-                        u_b, l_b, inv_l_b, ratio_b, stiffness, rest_length,
-                        vsub(x_dot, load3(particle_q_dot, k, directions, p + 1)), stiffness_dot, rest_dot)
-                    c_b = vadd(vadd(k_tangent_product(u_b, alpha_b, u_b_dot, alpha_b_dot, beta_b_dot, s_b),
-                                    k_product(u_b, h2_alpha_b, upper_beta_b, v_diff_dot)), vscl(dt, f_b_dot))
+                        u_b, parts_b[3], parts_b[4], parts_b[5], stiffness, rest_length, vsub(x_dot, x_next_dot),
+                        stiffness_dot, rest_dot)
+                    c_b = vadd(vadd(k_tangent_product(u_b, parts_b[6], u_b_dot, alpha_b_dot, beta_b_dot, h2 * z_b),
+                                    k_product(u_b, h2 * parts_b[6], h2 * parts_b[7] + g_upper,
+                                              vsub(v_dot, v_next_dot))),
+                               vscl(dt, f_b_dot))
                     if wp.static(FRICTION):
-                        c_b = vsub(c_b, outer(h_z_b, friction_dot))
-                    store3(particle_q_out_dot, k, directions, p + 1, c_b)
+                        c_b = vsub(c_b, outer(dt * z_b, friction_dot))
                     r = vadd(r, c_b)
                 # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
                 # diag(k_c, k_c + k_y, k_c); their tangents.
+                k_c = zero
+                k_y = zero
                 k_c_dot = TS(zero)
                 k_y_dot = TS(zero)
                 if wp.static(GRAVITY):
                     force_dot = vadd(force_dot, outer(gravity, mass_dot))
                 if wp.static(AIR):
-                    air_dot = load_constant(string_constants_dot, k, directions, s, 3)
                     force_dot = vsub(vsub(force_dot, outer(v, air_dot)), vscl(air_drag, v_dot))
                     d_xz_dot = ssub(d_xz_dot, air_dot)
                 d_y_dot = d_xz_dot
                 if wp.static(GROUND):
-                    if below:
+                    if x[1] < ground_height:
                         # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
+                        k_y = -ground_stiffness
                         ground_stiffness_dot = load_constant(string_constants_dot, k, directions, s, 4)
                         ground_absorption_dot = load_constant(string_constants_dot, k, directions, s, 5)
                         force_dot = vadd(force_dot, tvec(TS(zero), ssub(ssub(ssub(
@@ -314,10 +309,11 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 if is_last:
                     # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;
                     # k_t = tied k, k_dt = tied k_d.
+                    k_c = -tie_stiffness
                     tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
-                    tie_stiffness_dot = sadd(sscl(string_tie_stiffness[s], tied_dot),
+                    tie_stiffness_dot = sadd(sscl(tie_stiffness_k, tied_dot),
                                              sscl(tied, load_constant(string_constants_dot, k, directions, s, 7)))
-                    tie_damping_dot = sadd(sscl(string_tie_damping[s], tied_dot),
+                    tie_damping_dot = sadd(sscl(tie_damping_k, tied_dot),
                                            sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
                     force_dot = vadd(vadd(vadd(vadd(
                         force_dot, outer(tie_x - x, tie_stiffness_dot)),
@@ -338,23 +334,18 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     tvec(sscl(dv[0], a_xz_dot), sscl(dv[1], a_y_dot), sscl(dv[2], a_xz_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p} = h^2 K_a - h k_f I.
                 if j > 1:
-                    r = vsub(r, k_product(u_a, h2_alpha_a, upper_beta_a,
-                                          load3(particle_qd_out_dot, k, directions, p - 1)))
-                store3(particle_qd_out_dot, k, directions, p, mat(inv, r))
-            u_a = u_b  # the lower segment is the next row's upper one
-            h2_alpha_a = h2_alpha_b
-            upper_beta_a = upper_beta_b
+                    r = vsub(r, k_product(u_a, h2 * parts_a[6], h2 * parts_a[7] + g_upper, y_prev))
+                y_prev = mat(load_factor(pivot_inverse, p + factor_row, factor_lane), r)
+                store3(particle_qd_out_dot, k, directions, p, y_prev)
+                c_a = c_b
+                x_dot = x_next_dot
+                v_dot = v_next_dot
 
-        # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}), bottom to top, one group of directions at a
-        # time (dv' carried from row to row), and with it v1' = v0' + dv', x1' = x0' + h v1'; the top
-        # particle, x1' = top', v1' = (top' - x0_top') / h; the tie force on the new state (eq. 2,
-        # ``string_integrate.compute_string_outputs``).
-        tie_stiffness_k = string_tie_stiffness[s]
-        tie_damping_k = string_tie_damping[s]
-        x_last = particle_q_out[last]
-        v_last = particle_qd_out[last]
-        for k in range(0, directions, STEP):
-            dv_dot = load3(particle_qd_out_dot, k, directions, last)
+            # Back substitution (dv'_j = y_j - C'_j dv'_{j+1}), bottom to top, dv' carried from row to
+            # row, and with it v1' = v0' + dv', x1' = x0' + h v1'; the top particle, x1' = top',
+            # v1' = (top' - x0_top') / h; the tie force on the new state (eq. 2,
+            # ``string_integrate.compute_string_outputs``).
+            dv_dot = y_prev
             for i in range(last - start):
                 p = last - i
                 if p < last:
