@@ -138,7 +138,6 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_qd: wp.array(dtype=vec3),
         pivot_inverse: wp.array(dtype=FM),
         scratch_c: wp.array(dtype=FM),
-        segment_parts: wp.array(dtype=vec8),
         string_factor_row: wp.array(dtype=wp.int32),
         string_factor_lane: wp.array(dtype=wp.int32),
         particle_dv: wp.array(dtype=vec3),
@@ -157,7 +156,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         tie_qd_dot: wp.array2d(dtype=vec3),
         particle_mass_dot: wp.array2d(dtype=scalar),
         string_constants_dot: wp.array3d(dtype=scalar),
-        # Tangent out:
+        # Tangent out (first a scratch: each segment's spring parts, written and read within the launch):
+        segment_parts: wp.array(dtype=vec8),
         particle_q_out_dot: wp.array2d(dtype=vec3),
         particle_qd_out_dot: wp.array2d(dtype=vec3),
         tie_force_dot: wp.array2d(dtype=vec3),
