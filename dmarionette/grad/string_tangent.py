@@ -77,9 +77,9 @@ class StringStepTangent:
             rows[:] = lane_factor_rows(model.string_start.numpy(), *(a.numpy() for a in solver.lane_group_arrays),
                                        model.string_count)
         self._factor_row, self._factor_lane = (wp.array(r, dtype=wp.int32, device=model.device) for r in rows)
-        # Each segment's spring parts, computed once per step by the tangent kernel for all its directions.
-        self._segment_parts = wp.zeros(model.particle_count, dtype=wp.types.vector(8, model.scalar),
-                                       device=model.device)
+        # Each segment's linear map (E, W, C), computed once per step by the tangent kernel for all directions.
+        self._segment_jacobians = [wp.zeros(model.particle_count, dtype=model.mat33, device=model.device)
+                                   for _ in range(3)]
 
     def zeros(self, count: int, dtype=None) -> wp.array:
         """A ``(P, count)`` tangent array (vec3 by default)."""
@@ -118,7 +118,7 @@ class StringStepTangent:
                     ws.particle_dv,
                     state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
                     q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot],
-            outputs=[self._segment_parts, q_out_dot, qd_out_dot, tie_force_dot],
+            outputs=[*self._segment_jacobians, q_out_dot, qd_out_dot, tie_force_dot],
             device=m.device,
             record_tape=False,
         )

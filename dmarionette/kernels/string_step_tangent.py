@@ -102,7 +102,6 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
-    vec8 = wp.types.vector(8, scalar)
     factor = _factor_load(scalar, factor_lanes)
     FM, load_factor = factor.FM, factor.load
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
@@ -115,6 +114,16 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     compute_spring_tangent = spring.compute_spring_tangent
     k_product = spring.compute_jacobian_product
     k_tangent_product = spring.compute_jacobian_tangent_product
+
+    @wp.func
+    def compute_rank_two(a: scalar, b_vec: vec3, b: scalar, c: scalar, d: scalar, u: vec3):
+        """``a b_vec u^T + b u b_vec^T + c u u^T + d I``, entry by entry."""
+        m = mat33()
+        for i in range(3):
+            for j in range(3):
+                m[i, j] = a * b_vec[i] * u[j] + b * u[i] * b_vec[j] + c * u[i] * u[j]
+            m[i, i] = m[i, i] + d
+        return m
 
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_tangent(
@@ -156,8 +165,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         tie_qd_dot: wp.array2d(dtype=vec3),
         particle_mass_dot: wp.array2d(dtype=scalar),
         string_constants_dot: wp.array3d(dtype=scalar),
-        # Tangent out (first a scratch: each segment's spring parts, written and read within the launch):
-        segment_parts: wp.array(dtype=vec8),
+        # Tangent out (first a scratch: each segment's E, W, C, written and read within the launch):
+        jacobian_e: wp.array(dtype=mat33),
+        jacobian_w: wp.array(dtype=mat33),
+        jacobian_c: wp.array(dtype=mat33),
         particle_q_out_dot: wp.array2d(dtype=vec3),
         particle_qd_out_dot: wp.array2d(dtype=vec3),
         tie_force_dot: wp.array2d(dtype=vec3),
@@ -190,29 +201,58 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         if wp.static(FRICTION):
             g_upper = -dt * friction
 
-        # Each segment's spring parts once per step (segment (p, p + 1) at segment_parts[p]: u, l,
-        # 1 / l, 1 - d/l, alpha, beta), read by every group of directions.
-        for p in range(start, last):
-            u, length, ratio, alpha, beta = compute_spring_parts(particle_q[p], particle_q[p + 1], stiffness,
-                                                                 rest_length)
-            segment_parts[p] = vec8(u[0], u[1], u[2], length, scalar(1.0) / length, ratio, alpha, beta)
+        # Each segment's part of b' - A' dv as a linear map of the direction, once per step (P-independent),
+        # for the segment (p, p + 1) below the top one (spring parts u, l, g = max(1 - d/l, 0), alpha,
+        # beta of e = x_p - x_{p+1}; s = h^2 z, z = (v_p - v_{p+1}) + (dv_p - dv_{p+1}); P = I - u u^T):
+        #     c = K' s + (h^2 K - h k_f I) (v_p' - v_{p+1}') + h f' - h k_f' z
+        #       = E e' + W (v_p' - v_{p+1}') + C (k_s', d', k_f'),
+        #     E = k_s G (u (u.s) - s) u^T + (alpha / l) ((u.s) I + u s^T) P - h k_s (u u^T + ((l - d) / l) P)
+        #     W = h^2 alpha u u^T + (h^2 beta - h k_f) I   (= A_{p,p+1}, the next row's lower block),
+        #     C = [-(1 - g) (u.s) u - g s - h (l - d) u,  k_s D (u (u.s) - s) + h k_s u,  -h z],
+        # with g' = G l' + D d' (G = d / l^2, D = -1 / l while 1 - d/l > 0, else 0: the clamp's flat
+        # side), from l' = u.e', u' = P e' / l, alpha' = -(1 - g) k_s' + k_s g', beta' = -g k_s' - k_s g',
+        # f' = -(k_s' (l - d) + k_s (l' - d')) u - k_s (l - d) u' (``string_spring_tangent_functions``).
+        # The friction's terms of the segment's two rows, gathered: h (-k_f' (v_p - v_{p+1}) - k_f
+        # (v_p' - v_{p+1}')) of the force, +h k_f' dv_{p+1} of -A_{p,p+1}' dv_{p+1}, -h k_f' dv_p of the
+        # diagonal's -A_pp' dv_p. c enters row p as +c and row p + 1 as -c (z, v_p' - v_{p+1}', e' and
+        # the spring force on p change sign exactly with the segment's ends).
+        for p in range(start + 1, last):
+            x = particle_q[p]
+            u, length, ratio, alpha, beta = compute_spring_parts(x, particle_q[p + 1], stiffness, rest_length)
+            z = (particle_qd[p] - particle_qd[p + 1]) + (particle_dv[p] - particle_dv[p + 1])
+            s_z = h2 * z
+            inv_l = scalar(1.0) / length
+            geometric = wp.max(ratio, zero)
+            g_l = zero
+            g_d = zero
+            if ratio > zero:
+                g_l = rest_length * inv_l * inv_l
+                g_d = -inv_l
+            ur = wp.dot(u, s_z)
+            stretch = length - rest_length
+            bend = ur * u - s_z  # = -P s
+            # E with ((u.s) I + u s^T) P = (u.s) P - u bend^T: two rank-one terms and a multiple of I and u u^T.
+            e_iso = (alpha * ur - dt * stiffness * stretch) * inv_l
+            jacobian_e[p] = compute_rank_two(stiffness * g_l, bend, -alpha * inv_l, -(e_iso + dt * stiffness), e_iso, u)
+            jacobian_w[p] = compute_rank_two(zero, bend, zero, h2 * alpha, h2 * beta + g_upper, u)
+            col_ks = (-(scalar(1.0) - geometric) * ur - dt * stretch) * u - geometric * s_z
+            col_d = (stiffness * g_d) * bend + (dt * stiffness) * u
+            col_kf = -dt * z
+            jacobian_c[p] = mat33(col_ks[0], col_d[0], col_kf[0], col_ks[1], col_d[1], col_kf[1],
+                                  col_ks[2], col_d[2], col_kf[2])
         tie_stiffness_k = string_tie_stiffness[s]
         tie_damping_k = string_tie_damping[s]
         x_last = particle_q_out[last]
         v_last = particle_qd_out[last]
+        v0_top = particle_qd[start]
 
         # One group of directions at a time (the string's constants' tangents read once per group):
         # the forward sweep, row by row, every row's r = b' - A' dv and its forward substitution
         # y = inv_p (r - A_{p,p-1} y_prev), y carried to the next row and kept in particle_qd_out_dot;
-        # then the back substitution. Each segment below the top one is shared by two rows and its
-        # part of b' - A' dv (the spring's and the internal friction's) computed once per direction,
-        #     c = K' s + (h^2 K - h k_f I) (v_p' - v_{p+1}') + h f' - h k_f' z,
-        #     z = (v_p - v_{p+1}) + (dv_p - dv_{p+1}),  s = h^2 z,
-        # in row p (as its lower segment, +c) and carried to row p + 1 (its upper one, -c: z,
-        # v_p' - v_{p+1}' and the spring force f' on p change sign exactly with the segment's ends).
-        # The friction's terms of the two rows, gathered: h (-k_f' (v_p - v_{p+1}) - k_f (v_p' - v_{p+1}'))
-        # of the force, +h k_f' dv_{p+1} of -A_{p,p+1}' dv_{p+1} and -h k_f' dv_p of the diagonal's.
-        # The top segment (row 1 only, not shared): h K_10 dx_0 and K' (w_top + h^2 dv), no lower block.
+        # then the back substitution. Row p's segments: the lower one's c computed (+c), the upper
+        # one's carried from row p - 1 (-c); the top segment (row 1 only, not shared): h K_10 dx_0 and
+        # K' (w_top + h^2 dv), no lower block, from its spring parts. Every other term's Jacobian is
+        # diagonal; each term's part of r, linear in the direction, is added on its own.
         for k in range(0, directions, STEP):
             stiffness_dot = load_constant(string_constants_dot, k, directions, s, 0)
             rest_dot = load_constant(string_constants_dot, k, directions, s, 1)
@@ -222,6 +262,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             air_dot = TS(zero)
             if wp.static(AIR):
                 air_dot = load_constant(string_constants_dot, k, directions, s, 3)
+            constants_dot = tvec(stiffness_dot, rest_dot, friction_dot)
             x_dot = load3(particle_q_dot, k, directions, start + 1)
             v_dot = load3(particle_qd_dot, k, directions, start + 1)
             c_a = TV(zero)
@@ -232,109 +273,83 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 x = particle_q[p]
                 v = particle_qd[p]
                 dv = particle_dv[p]
-                parts_a = segment_parts[p - 1]
-                u_a = vec3(parts_a[0], parts_a[1], parts_a[2])
-                mass_dot = load(particle_mass_dot, k, directions, p)
                 r = TV(zero)
-                force_dot = TV(zero)
-                d_xz_dot = TS(zero)
                 if j == 1:  # the top segment; top_dx' = top' - x0_top'
-                    w_top = h2 * v - dt * top_dx
+                    u_t, l_t, ratio_t, alpha_t, beta_t = compute_spring_parts(particle_q[start], x, stiffness,
+                                                                              rest_length)
                     x_top_dot = load3(particle_q_dot, k, directions, start)
                     top_dx_dot = vsub(load3(top_q_dot, k, directions, s), x_top_dot)
                     u_t_dot, alpha_t_dot, beta_t_dot, f_t_dot = compute_spring_tangent(
-                        u_a, parts_a[3], parts_a[4], parts_a[5], stiffness, rest_length, vsub(x_top_dot, x_dot),
+                        u_t, l_t, scalar(1.0) / l_t, ratio_t, stiffness, rest_length, vsub(x_top_dot, x_dot),
                         stiffness_dot, rest_dot)
-                    r = vsub(vadd(k_tangent_product(u_a, parts_a[6], u_t_dot, alpha_t_dot, beta_t_dot, w_top + h2 * dv),
-                                  k_product(u_a, parts_a[6], parts_a[7], vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot)))),
+                    r = vsub(vadd(k_tangent_product(u_t, alpha_t, u_t_dot, alpha_t_dot, beta_t_dot,
+                                                    h2 * v - dt * top_dx + h2 * dv),
+                                  k_product(u_t, alpha_t, beta_t, vsub(vscl(h2, v_dot), vscl(dt, top_dx_dot)))),
                              vscl(dt, f_t_dot))
                     if wp.static(FRICTION):
-                        # f = -k_f (v - v_0), D = -k_f I; rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top.
+                        # f = -k_f (v - v_0), D = -k_f I; rhs's h k_f dv_0, dv_0 = top_dx / h - v0_top:
+                        # h k_f' (dv_0 - (v - v_0) - dv) + h k_f (dv_0' - (v' - v_0')).
                         v_top_dot = load3(particle_qd_dot, k, directions, start)
-                        force_dot = vsub(vneg(outer(v - particle_qd[start], friction_dot)),
-                                         vscl(friction, vsub(v_dot, v_top_dot)))
-                        d_xz_dot = sneg(friction_dot)
-                        top_dv_dot = vsub(vscl(inv_dt, top_dx_dot), v_top_dot)
-                        r = vadd(r, vscl(dt, vadd(outer(top_dv, friction_dot), vscl(friction, top_dv_dot))))
+                        r = vadd(vadd(r, outer(dt * (top_dv - (v - v0_top) - dv), friction_dot)),
+                                 vscl(dt * friction, vsub(vsub(vscl(inv_dt, top_dx_dot), v_top_dot),
+                                                          vsub(v_dot, v_top_dot))))
                 else:  # the upper segment's -c, from row p - 1
                     r = vneg(c_a)
                 c_b = TV(zero)
                 x_next_dot = TV(zero)
                 v_next_dot = TV(zero)
                 if not is_last:
-                    parts_b = segment_parts[p]
-                    u_b = vec3(parts_b[0], parts_b[1], parts_b[2])
-                    z_b = (v - particle_qd[p + 1]) + (dv - particle_dv[p + 1])
                     x_next_dot = load3(particle_q_dot, k, directions, p + 1)
                     v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
-                    u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
-                        u_b, parts_b[3], parts_b[4], parts_b[5], stiffness, rest_length, vsub(x_dot, x_next_dot),
-                        stiffness_dot, rest_dot)
-                    c_b = vadd(vadd(k_tangent_product(u_b, parts_b[6], u_b_dot, alpha_b_dot, beta_b_dot, h2 * z_b),
-                                    k_product(u_b, h2 * parts_b[6], h2 * parts_b[7] + g_upper,
-                                              vsub(v_dot, v_next_dot))),
-                               vscl(dt, f_b_dot))
-                    if wp.static(FRICTION):
-                        c_b = vsub(c_b, outer(dt * z_b, friction_dot))
+                    c_b = vadd(vadd(mat(jacobian_e[p], vsub(x_dot, x_next_dot)),
+                                    mat(jacobian_w[p], vsub(v_dot, v_next_dot))),
+                               mat(jacobian_c[p], constants_dot))
                     r = vadd(r, c_b)
-                # Every other term's Jacobian is diagonal: damping diag(d_xz, d_y, d_xz), stiffness
-                # diag(k_c, k_c + k_y, k_c); their tangents.
-                k_c = zero
-                k_y = zero
-                k_c_dot = TS(zero)
-                k_y_dot = TS(zero)
+                # The mass: h g m' of the force, -m' dv of the diagonal.
+                mass_coefficient = -dv
                 if wp.static(GRAVITY):
-                    force_dot = vadd(force_dot, outer(gravity, mass_dot))
+                    mass_coefficient = dt * gravity - dv
+                r = vadd(r, outer(mass_coefficient, load(particle_mass_dot, k, directions, p)))
                 if wp.static(AIR):
-                    force_dot = vsub(vsub(force_dot, outer(v, air_dot)), vscl(air_drag, v_dot))
-                    d_xz_dot = ssub(d_xz_dot, air_dot)
-                d_y_dot = d_xz_dot
+                    # f = -k_a v, D = -k_a I: h (-k_a' v - k_a v') - h k_a' dv.
+                    r = vsub(r, vadd(outer(dt * (v + dv), air_dot), vscl(dt * air_drag, v_dot)))
                 if wp.static(GROUND):
                     if x[1] < ground_height:
-                        # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
-                        k_y = -ground_stiffness
+                        # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs: the force's
+                        # h f_y', b's h^2 K_yy' v_y + h^2 K_yy v_y', the diagonal's -(h k_abs' + h^2 k_rep') dv_y.
                         ground_stiffness_dot = load_constant(string_constants_dot, k, directions, s, 4)
                         ground_absorption_dot = load_constant(string_constants_dot, k, directions, s, 5)
-                        force_dot = vadd(force_dot, tvec(TS(zero), ssub(ssub(ssub(
-                            sscl(ground_height - x[1], ground_stiffness_dot), sscl(ground_stiffness, x_dot[1])),
-                            sscl(v[1], ground_absorption_dot)), sscl(ground_absorption, v_dot[1])), TS(zero)))
-                        k_y_dot = sneg(ground_stiffness_dot)
-                        d_y_dot = ssub(d_y_dot, ground_absorption_dot)
+                        r_y = sadd(sadd(sscl(dt * (ground_height - x[1]) - h2 * (v[1] + dv[1]), ground_stiffness_dot),
+                                        sscl(-dt * (v[1] + dv[1]), ground_absorption_dot)),
+                                   ssub(sscl(-dt * ground_stiffness, x_dot[1]),
+                                        sscl(dt * ground_absorption + h2 * ground_stiffness, v_dot[1])))
+                        r_x = TS(zero)
+                        r_z = TS(zero)
                         if wp.static(GROUND_FRICTION):
+                            # f_xz = -k_gf v_xz, D_xz = -k_gf: h (-k_gf' v - k_gf v') - h k_gf' dv.
                             ground_friction_dot = load_constant(string_constants_dot, k, directions, s, 6)
-                            force_dot = vadd(force_dot, tvec(
-                                ssub(sscl(-v[0], ground_friction_dot), sscl(ground_friction, v_dot[0])), TS(zero),
-                                ssub(sscl(-v[2], ground_friction_dot), sscl(ground_friction, v_dot[2]))))
-                            d_xz_dot = ssub(d_xz_dot, ground_friction_dot)
+                            r_x = ssub(sscl(-dt * (v[0] + dv[0]), ground_friction_dot),
+                                       sscl(dt * ground_friction, v_dot[0]))
+                            r_z = ssub(sscl(-dt * (v[2] + dv[2]), ground_friction_dot),
+                                       sscl(dt * ground_friction, v_dot[2]))
+                        r = vadd(r, tvec(r_x, r_y, r_z))
                 if is_last:
                     # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;
-                    # k_t = tied k, k_dt = tied k_d.
-                    k_c = -tie_stiffness
+                    # k_t = tied k, k_dt = tied k_d: the force's h f', b's h^2 (K' v + K v'), the
+                    # diagonal's -(h k_dt' + h^2 k_t') dv.
                     tied_dot = load_constant(string_constants_dot, k, directions, s, 9)
                     tie_stiffness_dot = sadd(sscl(tie_stiffness_k, tied_dot),
                                              sscl(tied, load_constant(string_constants_dot, k, directions, s, 7)))
                     tie_damping_dot = sadd(sscl(tie_damping_k, tied_dot),
                                            sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
-                    force_dot = vadd(vadd(vadd(vadd(
-                        force_dot, outer(tie_x - x, tie_stiffness_dot)),
-                        vscl(tie_stiffness, vsub(load3(tie_q_dot, k, directions, s), x_dot))),
-                        outer(tie_v - v, tie_damping_dot)),
-                        vscl(tie_damping, vsub(load3(tie_qd_dot, k, directions, s), v_dot)))
-                    k_c_dot = sneg(tie_stiffness_dot)
-                    d_xz_dot = ssub(d_xz_dot, tie_damping_dot)
-                    d_y_dot = ssub(d_y_dot, tie_damping_dot)
-                # a = M - h D - h^2 K on the diagonal; b's h f and h^2 K v0 of the diagonal terms.
-                a_xz_dot = ssub(ssub(mass_dot, sscl(dt, d_xz_dot)), sscl(h2, k_c_dot))
-                k_cy_dot = sadd(k_c_dot, k_y_dot)
-                a_y_dot = ssub(ssub(mass_dot, sscl(dt, d_y_dot)), sscl(h2, k_cy_dot))
-                r = vsub(vadd(vadd(r, vscl(dt, force_dot)), vscl(h2, tvec(
-                    sadd(sscl(v[0], k_c_dot), sscl(k_c, v_dot[0])),
-                    sadd(sscl(v[1], k_cy_dot), sscl(k_c + k_y, v_dot[1])),
-                    sadd(sscl(v[2], k_c_dot), sscl(k_c, v_dot[2]))))),
-                    tvec(sscl(dv[0], a_xz_dot), sscl(dv[1], a_y_dot), sscl(dv[2], a_xz_dot)))
-                # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p} = h^2 K_a - h k_f I.
+                    r = vadd(vadd(vadd(r, outer(dt * (tie_x - x) - h2 * (v + dv), tie_stiffness_dot)),
+                                  outer(dt * (tie_v - v - dv), tie_damping_dot)),
+                             vsub(vadd(vscl(dt * tie_stiffness, vsub(load3(tie_q_dot, k, directions, s), x_dot)),
+                                       vscl(dt * tie_damping, vsub(load3(tie_qd_dot, k, directions, s), v_dot))),
+                                  vscl(h2 * tie_stiffness, v_dot)))
+                # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p}, the upper segment's W.
                 if j > 1:
-                    r = vsub(r, k_product(u_a, h2 * parts_a[6], h2 * parts_a[7] + g_upper, y_prev))
+                    r = vsub(r, mat(jacobian_w[p - 1], y_prev))
                 y_prev = mat(load_factor(pivot_inverse, p + factor_row, factor_lane), r)
                 store3(particle_qd_out_dot, k, directions, p, y_prev)
                 c_a = c_b
