@@ -68,8 +68,12 @@ class StringStepTangent:
         if lanes and not supported:
             raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
         self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
-        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(),
-                                                 DIRECTION_LANES if self.lanes else 1, LANES if solver.lanes else 0)
+        step = DIRECTION_LANES if self.lanes else 1
+        # The segments' linear maps where there is more than one group of directions per string
+        # (built once per step, they cost more than one group saves; ``kernels/string_step_tangent``).
+        self.maps = self.directions > step
+        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), step,
+                                                 LANES if solver.lanes else 0, self.maps)
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
         # Where the tangent finds each string's rows of the kept factorisation (laned: its group's rows, its lane).
         rows = np.zeros((2, model.string_count), dtype=np.int32)

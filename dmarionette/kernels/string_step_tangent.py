@@ -91,15 +91,19 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 
 @functools.cache
 def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1,
-                               factor_lanes: int = 0):
+                               factor_lanes: int = 0, maps: bool = True):
     """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
     ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
     any float type and device; 4: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
     printed springs. ``factor_lanes``: 0, the kept factorisation in the scalar step's layout (one
     ``mat33`` per particle); ``K``, in the laned step's (``string_step_lanes`` with ``keep``, ``K``
     strings per group: particle ``p`` of string ``s`` at row ``p + string_factor_row[s]``, lane
-    ``string_factor_lane[s]``, :func:`lane_factor_rows`), read there directly."""
+    ``string_factor_lane[s]``, :func:`lane_factor_rows`), read there directly. ``maps``: each
+    segment's part of ``b' - A' dv`` from its linear map (``E``, ``W``, ``C``, built once per step:
+    cheaper per direction, dearer per step; :data:`MAP_DIRECTIONS`), else from the spring's tangent
+    (its parts ``u, l, 1 / l, 1 - d/l, alpha, beta`` kept once per step in ``jacobian_e``)."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
+    MAPS = maps
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)
@@ -219,9 +223,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         for p in range(start + 1, last):
             x = particle_q[p]
             u, length, ratio, alpha, beta = compute_spring_parts(x, particle_q[p + 1], stiffness, rest_length)
+            inv_l = scalar(1.0) / length
+            if wp.static(not MAPS):
+                jacobian_e[p] = mat33(u[0], u[1], u[2], length, inv_l, ratio, alpha, beta, zero)
+                continue
             z = (particle_qd[p] - particle_qd[p + 1]) + (particle_dv[p] - particle_dv[p + 1])
             s_z = h2 * z
-            inv_l = scalar(1.0) / length
             geometric = wp.max(ratio, zero)
             g_l = zero
             g_d = zero
@@ -301,9 +308,23 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 if not is_last:
                     x_next_dot = load3(particle_q_dot, k, directions, p + 1)
                     v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
-                    c_b = vadd(vadd(mat(jacobian_e[p], vsub(x_dot, x_next_dot)),
-                                    mat(jacobian_w[p], vsub(v_dot, v_next_dot))),
-                               mat(jacobian_c[p], constants_dot))
+                    if wp.static(MAPS):
+                        c_b = vadd(vadd(mat(jacobian_e[p], vsub(x_dot, x_next_dot)),
+                                        mat(jacobian_w[p], vsub(v_dot, v_next_dot))),
+                                   mat(jacobian_c[p], constants_dot))
+                    else:
+                        parts = jacobian_e[p]
+                        u_b = vec3(parts[0, 0], parts[0, 1], parts[0, 2])
+                        u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
+                            u_b, parts[1, 0], parts[1, 1], parts[1, 2], stiffness, rest_length,
+                            vsub(x_dot, x_next_dot), stiffness_dot, rest_dot)
+                        z_b = (v - particle_qd[p + 1]) + (dv - particle_dv[p + 1])
+                        c_b = vadd(vadd(k_tangent_product(u_b, parts[2, 0], u_b_dot, alpha_b_dot, beta_b_dot, h2 * z_b),
+                                        k_product(u_b, h2 * parts[2, 0], h2 * parts[2, 1] + g_upper,
+                                                  vsub(v_dot, v_next_dot))),
+                                   vscl(dt, f_b_dot))
+                        if wp.static(FRICTION):
+                            c_b = vsub(c_b, outer(dt * z_b, friction_dot))
                     r = vadd(r, c_b)
                 # The mass: h g m' of the force, -m' dv of the diagonal.
                 mass_coefficient = -dv
@@ -349,7 +370,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                                   vscl(h2 * tie_stiffness, v_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p}, the upper segment's W.
                 if j > 1:
-                    r = vsub(r, mat(jacobian_w[p - 1], y_prev))
+                    if wp.static(MAPS):
+                        r = vsub(r, mat(jacobian_w[p - 1], y_prev))
+                    else:
+                        parts = jacobian_e[p - 1]
+                        r = vsub(r, k_product(vec3(parts[0, 0], parts[0, 1], parts[0, 2]), h2 * parts[2, 0],
+                                              h2 * parts[2, 1] + g_upper, y_prev))
                 y_prev = mat(load_factor(pivot_inverse, p + factor_row, factor_lane), r)
                 store3(particle_qd_out_dot, k, directions, p, y_prev)
                 c_a = c_b
