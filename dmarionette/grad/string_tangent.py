@@ -81,7 +81,7 @@ class StringStepTangent:
             rows[:] = lane_factor_rows(model.string_start.numpy(), *(a.numpy() for a in solver.lane_group_arrays),
                                        model.string_count)
         self._factor_row, self._factor_lane = (wp.array(r, dtype=wp.int32, device=model.device) for r in rows)
-        # Each segment's linear map (E, W, C), computed once per step by the tangent kernel for all directions.
+        # Each segment's spring parts and linear maps (E, C), computed once per step by the tangent kernel.
         self._segment_jacobians = [wp.zeros(model.particle_count, dtype=model.mat33, device=model.device)
                                    for _ in range(3)]
 

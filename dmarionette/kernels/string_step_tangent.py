@@ -170,9 +170,9 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_mass_dot: wp.array2d(dtype=scalar),
         string_constants_dot: wp.array3d(dtype=scalar),
         # Tangent out (first a scratch: each segment's E, W, C, written and read within the launch):
-        jacobian_e: wp.array(dtype=mat33),
-        jacobian_w: wp.array(dtype=mat33),
-        jacobian_c: wp.array(dtype=mat33),
+        segment_parts: wp.array(dtype=mat33),
+        segment_e: wp.array(dtype=mat33),
+        segment_c: wp.array(dtype=mat33),
         particle_q_out_dot: wp.array2d(dtype=vec3),
         particle_qd_out_dot: wp.array2d(dtype=vec3),
         tie_force_dot: wp.array2d(dtype=vec3),
@@ -224,8 +224,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             x = particle_q[p]
             u, length, ratio, alpha, beta = compute_spring_parts(x, particle_q[p + 1], stiffness, rest_length)
             inv_l = scalar(1.0) / length
+            segment_parts[p] = mat33(u[0], u[1], u[2], length, inv_l, ratio, alpha, beta, zero)
             if wp.static(not MAPS):
-                jacobian_e[p] = mat33(u[0], u[1], u[2], length, inv_l, ratio, alpha, beta, zero)
                 continue
             z = (particle_qd[p] - particle_qd[p + 1]) + (particle_dv[p] - particle_dv[p + 1])
             s_z = h2 * z
@@ -240,12 +240,11 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             bend = ur * u - s_z  # = -P s
             # E with ((u.s) I + u s^T) P = (u.s) P - u bend^T: two rank-one terms and a multiple of I and u u^T.
             e_iso = (alpha * ur - dt * stiffness * stretch) * inv_l
-            jacobian_e[p] = compute_rank_two(stiffness * g_l, bend, -alpha * inv_l, -(e_iso + dt * stiffness), e_iso, u)
-            jacobian_w[p] = compute_rank_two(zero, bend, zero, h2 * alpha, h2 * beta + g_upper, u)
+            segment_e[p] = compute_rank_two(stiffness * g_l, bend, -alpha * inv_l, -(e_iso + dt * stiffness), e_iso, u)
             col_ks = (-(scalar(1.0) - geometric) * ur - dt * stretch) * u - geometric * s_z
             col_d = (stiffness * g_d) * bend + (dt * stiffness) * u
             col_kf = -dt * z
-            jacobian_c[p] = mat33(col_ks[0], col_d[0], col_kf[0], col_ks[1], col_d[1], col_kf[1],
+            segment_c[p] = mat33(col_ks[0], col_d[0], col_kf[0], col_ks[1], col_d[1], col_kf[1],
                                   col_ks[2], col_d[2], col_kf[2])
         tie_stiffness_k = string_tie_stiffness[s]
         tie_damping_k = string_tie_damping[s]
@@ -308,21 +307,19 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 if not is_last:
                     x_next_dot = load3(particle_q_dot, k, directions, p + 1)
                     v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
+                    parts = segment_parts[p]
+                    u_b = vec3(parts[0, 0], parts[0, 1], parts[0, 2])
+                    w_part = k_product(u_b, h2 * parts[2, 0], h2 * parts[2, 1] + g_upper, vsub(v_dot, v_next_dot))
                     if wp.static(MAPS):
-                        c_b = vadd(vadd(mat(jacobian_e[p], vsub(x_dot, x_next_dot)),
-                                        mat(jacobian_w[p], vsub(v_dot, v_next_dot))),
-                                   mat(jacobian_c[p], constants_dot))
+                        c_b = vadd(vadd(mat(segment_e[p], vsub(x_dot, x_next_dot)), w_part),
+                                   mat(segment_c[p], constants_dot))
                     else:
-                        parts = jacobian_e[p]
-                        u_b = vec3(parts[0, 0], parts[0, 1], parts[0, 2])
                         u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
                             u_b, parts[1, 0], parts[1, 1], parts[1, 2], stiffness, rest_length,
                             vsub(x_dot, x_next_dot), stiffness_dot, rest_dot)
                         z_b = (v - particle_qd[p + 1]) + (dv - particle_dv[p + 1])
                         c_b = vadd(vadd(k_tangent_product(u_b, parts[2, 0], u_b_dot, alpha_b_dot, beta_b_dot, h2 * z_b),
-                                        k_product(u_b, h2 * parts[2, 0], h2 * parts[2, 1] + g_upper,
-                                                  vsub(v_dot, v_next_dot))),
-                                   vscl(dt, f_b_dot))
+                                        w_part), vscl(dt, f_b_dot))
                         if wp.static(FRICTION):
                             c_b = vsub(c_b, outer(dt * z_b, friction_dot))
                     r = vadd(r, c_b)
@@ -370,12 +367,9 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                                   vscl(h2 * tie_stiffness, v_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p}, the upper segment's W.
                 if j > 1:
-                    if wp.static(MAPS):
-                        r = vsub(r, mat(jacobian_w[p - 1], y_prev))
-                    else:
-                        parts = jacobian_e[p - 1]
-                        r = vsub(r, k_product(vec3(parts[0, 0], parts[0, 1], parts[0, 2]), h2 * parts[2, 0],
-                                              h2 * parts[2, 1] + g_upper, y_prev))
+                    parts = segment_parts[p - 1]
+                    r = vsub(r, k_product(vec3(parts[0, 0], parts[0, 1], parts[0, 2]), h2 * parts[2, 0],
+                                          h2 * parts[2, 1] + g_upper, y_prev))
                 y_prev = mat(load_factor(pivot_inverse, p + factor_row, factor_lane), r)
                 store3(particle_qd_out_dot, k, directions, p, y_prev)
                 c_a = c_b
