@@ -33,7 +33,8 @@ import warp as wp
 
 from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
-from dmarionette.kernels.string_step_tangent import CONSTANTS, DIRECTION_LANES, lane_factor_rows, string_step_tangent_kernel
+from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_lanes, lane_factor_rows,
+                                                     string_step_tangent_kernel)
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
@@ -48,7 +49,8 @@ class StringStepTangent:
     Args:
         solver: the stepper (printed springs; its effects choose the kernels).
         directions: the number of tangent directions ``P``.
-        lanes: the tangent kernel with ``DIRECTION_LANES`` directions in SIMD lanes
+        lanes: the tangent kernel with ``DIRECTION_LANES`` directions in SIMD lanes (8 from 8 directions,
+            ``kernels.string_step_tangent.direction_lanes``)
             (``kernels/tangent_directions``: float64 on the CPU; the same tangents to rounding), else
             one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
             alone fills one lane of four: measured ~1.35x slower than the scalar kernel; P = 2 ties).
@@ -68,7 +70,7 @@ class StringStepTangent:
         if lanes and not supported:
             raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
         self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
-        step = DIRECTION_LANES if self.lanes else 1
+        step = direction_lanes(self.directions) if self.lanes else 1
         # The segments' linear maps where there is more than one group of directions per string
         # (built once per step, they cost more than one group saves; ``kernels/string_step_tangent``).
         self.maps = self.directions > step

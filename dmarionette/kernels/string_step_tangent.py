@@ -78,10 +78,24 @@ import warp as wp
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
 from .tangent_directions import tangent_directions
 
-__all__ = ["CONSTANTS", "DIRECTION_LANES", "lane_factor_rows", "string_step_tangent_kernel"]
+__all__ = ["CONSTANTS", "DIRECTION_LANES", "WIDE_DIRECTION_LANES", "direction_lanes", "lane_factor_rows",
+           "string_step_tangent_kernel"]
 
-# Tangent directions per SIMD lane vector with ``lanes`` (4 doubles: one AVX2 register).
+# Tangent directions per SIMD lane vector with ``lanes``: 4 doubles (one AVX2 register) or 8 (each
+# operation two independent 4-wide halves, more work per instruction: a group of 8 directions
+# measured ~1.6x a group of 4, ``benchmarks/bench_string_tangent.py``), whichever needs less.
 DIRECTION_LANES = 4
+WIDE_DIRECTION_LANES = 8
+WIDE_GROUP_COST = 1.6
+
+
+def direction_lanes(directions: int) -> int:
+    """Directions per lane vector for ``directions`` tangents in SIMD lanes: 8 where the groups of 8
+    cost less than those of 4 (P = 5-8 and from 13 on; 4 for P <= 4 and 9-12, where they tie)."""
+    groups = -(-directions // DIRECTION_LANES)
+    wide_groups = -(-directions // WIDE_DIRECTION_LANES)
+    return WIDE_DIRECTION_LANES if WIDE_GROUP_COST * wide_groups < groups else DIRECTION_LANES
+
 
 # The per-string constants whose tangents the kernel reads, in the order of its ``string_constants_dot``.
 CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction", "string_air_drag",

@@ -163,7 +163,7 @@ def _check_identity(model, problem, scale, groups_per_direction, seed, lanes=Tru
         assert gap < TOLERANCE
 
 
-@pytest.mark.parametrize("directions", [1, 4, 7])
+@pytest.mark.parametrize("directions", [1, 4, 7, 9])
 def test_tangent_and_adjoint_satisfy_the_dot_product_identity(directions):
     model = _model()
     problem, scale = _problem(model)
@@ -177,14 +177,15 @@ def test_tangent_and_adjoint_agree_in_each_input_group(lanes):
     _check_identity(model, problem, scale, [(name,) for name in GROUPS], seed=17, lanes=lanes)
 
 
-@pytest.mark.parametrize("directions", [1, 3, 4, 7, 16])
+@pytest.mark.parametrize("directions", [1, 3, 4, 7, 9, 16])
 def test_laned_and_scalar_tangents_agree(directions):
-    """The directions in SIMD lanes (4 per lane vector, P padded up to a multiple of 4) against one
-    at a time, every input group in every direction: the same operations in the same order
-    (``tangent_directions``), so equal up to rounding differences a compiler may introduce
-    (contraction into fma; none seen here); asserted to 1e-13 of each output's largest entry per
-    direction (rounding through the substitution, a few hundred eps at most). P = 1, 3, 7 have
-    padding lanes, which write nothing (``_tangent`` checks the rows after the P outputs stay zero)."""
+    """The directions in SIMD lanes (4 or 8 per lane vector, ``direction_lanes``, P padded up to a
+    multiple) against one at a time, every input group in every direction: the same operations in
+    the same order (``tangent_directions``; from 2 directions per string group on both use the
+    segments' linear maps, at P = 3 and 4 the lanes take the spring tangents instead: another
+    order), so equal up to rounding; asserted to 1e-13 of each output's largest entry per direction
+    (rounding through the substitution, a few hundred eps at most). P = 1, 3, 7, 9 have padding
+    lanes, which write nothing (``_tangent`` checks the rows after the P outputs stay zero)."""
     model = _model()
     problem, scale = _problem(model)
     rng = np.random.default_rng(23)
