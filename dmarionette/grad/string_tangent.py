@@ -2,11 +2,11 @@
 
 Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback have no tangent yet).
 :class:`StringStepTangent` runs one step of a :class:`SolverStringImplicit` forward keeping its
-factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` unpacked into the scalar
-layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
+factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` read by the tangent in the
+laned layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
 the step's tangent-linear model for P directions in one launch (``kernels/string_step_tangent``:
-a substitution with the stored factorisation; on the CPU in float64, 4 directions per SIMD lane
-vector, ``kernels/tangent_directions``). :class:`StringRolloutTangent` carries P tangents
+a substitution with the stored factorisation; on the CPU in float64, 4 or 8 directions per SIMD
+lane vector, ``kernels/tangent_directions``). :class:`StringRolloutTangent` carries P tangents
 through ``T`` steps with prescribed motion (tops and tie targets given per step), as
 ``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
 
@@ -18,10 +18,10 @@ springs only (a tension-only model is refused: the active-set step has no tangen
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
 differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py`` (thread CPU time under load 1.3-1.7, medians of three
-interleaved runs: P = 1, 4, 12, 16 tangents cost 4.2-4.7, 6.5, 12.9, 16.2 laned forward rollouts
-with the directions in SIMD lanes for P >= 2, 4.2, 8.2, 23.4, 28.9 one direction at a time; short of
-the issue's 1 + 0.5 P = 1.5, 3, 7, 9: ``kernels/string_step_tangent``'s doc says where it goes).
+``benchmarks/bench_string_tangent.py --repeats 5 --clock cpu`` (thread CPU time under load 1.2-1.35:
+P = 1, 4, 12, 16 tangents cost 2.66, 3.90, 8.20, 8.81 laned forward rollouts with the directions in
+SIMD lanes for P >= 2, 2.53, 5.92, 13.35, 17.06 one direction at a time; the issue's 1 + 0.5 P =
+1.5, 3, 7, 9 met at P = 16 only: ``kernels/string_step_tangent``'s doc says where it goes).
 """
 
 from __future__ import annotations
@@ -49,11 +49,10 @@ class StringStepTangent:
     Args:
         solver: the stepper (printed springs; its effects choose the kernels).
         directions: the number of tangent directions ``P``.
-        lanes: the tangent kernel with ``DIRECTION_LANES`` directions in SIMD lanes (8 from 8 directions,
-            ``kernels.string_step_tangent.direction_lanes``)
-            (``kernels/tangent_directions``: float64 on the CPU; the same tangents to rounding), else
-            one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
-            alone fills one lane of four: measured ~1.35x slower than the scalar kernel; P = 2 ties).
+        lanes: the tangent kernel with 4 or 8 directions in SIMD lanes
+            (``kernels.string_step_tangent.direction_lanes``; ``kernels/tangent_directions``: float64
+            on the CPU; the same tangents to rounding), else one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
+            alone fills one lane of four: its tangent kernel measured ~1.6x the scalar one's).
     """
 
     def __init__(self, solver: SolverStringImplicit, directions: int, lanes: bool | None = None):
@@ -84,7 +83,7 @@ class StringStepTangent:
                                        model.string_count)
         self._factor_row, self._factor_lane = (wp.array(r, dtype=wp.int32, device=model.device) for r in rows)
         # Each segment's spring parts and linear maps (E, C), computed once per step by the tangent kernel.
-        self._segment_jacobians = [wp.zeros(model.particle_count, dtype=model.mat33, device=model.device)
+        self._segments = [wp.zeros(model.particle_count, dtype=model.mat33, device=model.device)
                                    for _ in range(3)]
 
     def zeros(self, count: int, dtype=None) -> wp.array:
@@ -124,7 +123,7 @@ class StringStepTangent:
                     ws.particle_dv,
                     state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
                     q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot],
-            outputs=[*self._segment_jacobians, q_out_dot, qd_out_dot, tie_force_dot],
+            outputs=[*self._segments, q_out_dot, qd_out_dot, tie_force_dot],
             device=m.device,
             record_tape=False,
         )

@@ -28,39 +28,68 @@ compressed, ``string_spring.string_spring_tangent_functions``). The taut flag ha
 Printed springs only: the tension-only springs' step (an active-set solve) has no tangent here
 (``grad.string_tangent`` refuses such a model).
 
-Layout: one thread per string, ``dim = S``, looping over the P directions inside each row, so
-that the row's primal (both segments' spring parts, the branches, the pivot inverse) is evaluated
-once for all P (at P = 16 about 1.2-1.5x faster than a thread per (direction, string) recomputing
-it, ``benchmarks/bench_string_tangent.py``, measured on a loaded machine). The tangents have a
-leading direction axis (``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants
-``(P, string_count, 10)`` in :data:`CONSTANTS` order). The spring parts are recomputed from the
-positions in each row (each segment twice, nothing stored by the forward beyond its factorisation
-and ``dv``); a segment's tangent likewise, once per direction and row. The forward substitution's
-``y`` is kept in ``particle_qd_out_dot`` and becomes ``dv'`` in place in the back substitution,
-then ``v1'``.
+Layout: one thread per string, ``dim = S``. The tangents have a leading direction axis
+(``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
+:data:`CONSTANTS` order). The kept factorisation is read where the forward left it: the scalar
+step's layout, or the laned step's (``factor_lanes``: a string's lane of its group's ``9 x 4``
+rows, no unpacking launch). First a pass over the string's segments, once per step for all
+directions: each segment's spring parts (``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps``
+its part of ``b' - A' dv`` as a linear map of the direction (``E``, ``C`` below). Then one group
+of directions at a time (the string's constants' tangents read once per group): the forward
+sweep row by row, ``x'``, ``v'`` of the next particle, the upper segment's part ``c`` and the
+substitution's ``y`` carried from row to row in registers (``y`` also kept in
+``particle_qd_out_dot``), then the back substitution bottom to top, ``dv'`` carried, with
+``v1'`` and ``x1'`` written as it goes. Each segment's part of a row is computed once per
+direction and shared by its two rows (+c in the row above, -c in the row below, exactly), the
+internal friction's terms of the segment folded into it; the other terms (mass, air drag, ground,
+tie) are diagonal, each added to ``r`` on its own as a product of the direction with primal
+coefficients of the row.
 
-Directions in SIMD lanes (``lanes = DIRECTION_LANES``, float64 on the CPU, the default of
-``grad.string_tangent``): the same body on ``tangent_directions``' values, each direction loop
-stepping by 4 directions, a tangent scalar a lane vector and a tangent vector a ``3 x 4`` lane
-matrix (Clang vector snippets: packed AVX2 instructions), the primal values scalars as before;
-P is padded up to a multiple of 4 (the padding lanes repeat the last direction and write
-nothing). The body is written with the namespace's functions (``vadd``, ``vscl``, ``outer``,
-...) rather than Warp's operators, so that both layouts share it; each is the scalar operation
-it stands for, in the scalar kernel's order, so the laned tangent agrees with the scalar one to
-rounding (bit for bit on the machine measured; ``tests/grad/test_string_step_tangent.py``
-asserts 1e-13). One deviation from a literal derivative of the forward's expressions: ``/ h``
-of the tangents is a product with ``1 / h`` (computed once), in both layouts.
+Directions in SIMD lanes (``lanes = 4`` or ``8``, float64 on the CPU, the default of
+``grad.string_tangent`` from P = 2; :func:`direction_lanes`): the same body on
+``tangent_directions``' values, each group one lane vector of directions, a tangent scalar a
+lane vector and a tangent vector a ``3 x K`` lane matrix (Clang vector snippets: packed AVX2
+instructions; 8 lanes are two independent 4-wide halves per operation, no 512-bit instruction
+seen), the primal values scalars as before; P is padded up to a multiple of ``K`` (the padding
+lanes repeat the last direction and write nothing). The body is written with the namespace's
+functions (``vadd``, ``vscl``, ``outer``, ...) rather than Warp's operators, so that both layouts
+share it; each is the scalar operation it stands for, in the scalar kernel's order, so the laned
+tangent agrees with the scalar one built with the same ``maps`` to rounding
+(``tests/grad/test_string_step_tangent.py`` asserts 1e-13). Deviations from a literal derivative
+of the forward's expressions (rounding only): ``/ h`` of the tangents is a product with ``1 / h``
+(computed once); sums are regrouped (a segment's part once for its two rows, each diagonal term's
+coefficients gathered, ``h^2 K - h k_f I`` as one product).
 
-Cost (``bench_string_tangent``, the ``strings`` scene's six strings of 50 particles, thread CPU
-time, 2-core machine under load 1.3-1.7, medians of three interleaved runs): a rollout of
-P = 4, 12, 16 tangents in lanes costs 6.5, 12.9, 16.2 laned forward rollouts (the scalar kernel
-8.2, 23.4, 28.9: lanes 1.4-1.75x faster), short of the issue's 1 + 0.5 P = 3, 7, 9. Where it goes
-(rollouts with this launch, then also the unpack, left out): the laned forward with ``keep``
-~1 forward, the unpack of its factorisation ~0.3-0.5, this kernel's per-row primal (scalar,
-P-independent) ~1.6, each group of 4 directions ~3.2 (0.8 of a forward per direction against the
-0.5 the target needs; the laned kernel is ~3,600 instructions, ~490 of them packed arithmetic,
-~900 stack accesses: register-bound). At P = 1 the scalar kernel is the faster (4.1-4.3 forwards
-against 5.6-5.9 for one direction in four lanes), at P = 2 they tie, from P = 3 the lanes win.
+Cost (``PYTHONPATH=$PWD python benchmarks/bench_string_tangent.py --repeats 5 --clock cpu``, the
+``strings`` scene's six strings of 50 particles, 1,000 steps, thread CPU time, 2-core machine
+under load 1.2-1.35 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.66, 3.90,
+8.20, 8.81 laned forward rollouts (``--no-lanes``, one direction at a time: 2.53, 5.92, 13.35,
+17.06); with wall time (the default clock) 2.67, 3.84, 8.46, 9.27, against 3.97, 5.67, 12.19,
+15.21 before this layout (commit f0b0766, the run before it in the same session). The issue's
+1 + 0.5 P = 1.5, 3, 7, 9: met at P = 16 (8.7-9.3 over four runs, wall or CPU time), not at
+P = 1, 4, 12. Where it goes (1,000 captured steps each, in laned forward rollouts of ~6.9 ms):
+the laned forward with ``keep`` 0.87; this kernel's fixed part 0.43 (the segment pass with the
+spring parts), 1.33 with the linear maps; then each direction 1.2 (P = 1, scalar), 0.57 (groups of
+4 from the spring tangents), 0.48 (groups of 8, spring tangents), 0.47 (groups of 4, maps), 0.38
+(groups of 8, maps); the upload of the per-step tangents and the download of the tie forces'
+0.1-0.45. Each change on its own (the tangent rollout of P = 1, 4, 12, 16 in ms, one after the
+other in one session, load 1.0-1.8; the first five with wall time, the last two thread CPU time):
+reading the laned factorisation in place instead of unpacking it, 27.3, 39.8, 85.5, 106.7 -> 24.9,
+35.4, 79.3, 101.1; each segment's spring parts and part of
+``r`` once (not once per row side) -> 22.1, 34.4, 76.8, 99.0; the friction folded into the
+segment, ``A_{p,p-1}`` as one product -> 20.2, 32.3, 70.0, 91.4; the back substitution per group,
+fused with ``v1'``, ``x1'`` -> 19.2, 29.8, 63.6, 81.5; the directions outside the row loop
+(constants once per group, ``x'``, ``v'``, ``c``, ``y`` in registers) -> 18.9, 26.1, 58.3, 74.5; the
+linear maps from two groups on and the rows' diagonal terms by coefficients -> 18.0, 26.9, 56.8,
+68.5; 8 lanes where cheaper -> 17.7, 25.9, 54.3, 58.3. Tried and dropped (no gain beyond the noise): the
+gathers' addresses with one multiply per access instead of one per lane (~3 %), ``y``, ``v0'``,
+``x0'`` kept contiguous per group for the back substitution instead of gathered again, the
+segments' ``h^2 K - h k_f I`` stored as a matrix, the map ``E`` built entry by entry instead of
+from outer products. What is left is mostly per direction: the lane gathers and scatters of the
+``(P, N)`` vec3 arrays (nine per row and group; dropping two of them, as an experiment, cut a
+group's cost by ~11 %) and the fixed part of the maps; a direction-minor layout of the tangent
+arrays would make the gathers plain loads, and P = 1 would need the strings in lanes (as the
+forward has them) rather than the directions.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
@@ -108,14 +137,15 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                                factor_lanes: int = 0, maps: bool = True):
     """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
     ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
-    any float type and device; 4: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
+    any float type and device; 4 or 8: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
     printed springs. ``factor_lanes``: 0, the kept factorisation in the scalar step's layout (one
     ``mat33`` per particle); ``K``, in the laned step's (``string_step_lanes`` with ``keep``, ``K``
     strings per group: particle ``p`` of string ``s`` at row ``p + string_factor_row[s]``, lane
     ``string_factor_lane[s]``, :func:`lane_factor_rows`), read there directly. ``maps``: each
-    segment's part of ``b' - A' dv`` from its linear map (``E``, ``W``, ``C``, built once per step:
-    cheaper per direction, dearer per step; :data:`MAP_DIRECTIONS`), else from the spring's tangent
-    (its parts ``u, l, 1 / l, 1 - d/l, alpha, beta`` kept once per step in ``jacobian_e``)."""
+    segment's part of ``b' - A' dv`` from its linear maps ``E``, ``C`` (built once per step in
+    ``segment_e``, ``segment_c``: cheaper per direction, dearer per step; ``grad.string_tangent``
+    takes them from two groups of directions on), else from the spring's tangent; either way from
+    the spring parts ``u, l, 1 / l, 1 - d/l, alpha, beta`` kept once per step in ``segment_parts``."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     MAPS = maps
     vec3 = wp.types.vector(3, scalar)

@@ -98,8 +98,8 @@ def _directions(model, scale, groups_per_direction, rng):
 
 def _tangent(model, problem, directions, lanes=True, tangent_lanes=None):
     """The tangent kernel: (x1', v1', F') per direction, and the step's outputs (the forward: the
-    laned step, its factorisation unpacked, or the scalar one; the tangent: ``tangent_lanes``, by
-    default the directions in SIMD lanes where supported)."""
+    laned step, its factorisation read in the laned layout, or the scalar one; the tangent:
+    ``tangent_lanes``, by default the directions in SIMD lanes where supported)."""
     solver = SolverStringImplicit(model)
     solver.lanes = lanes
     p = len(directions)
