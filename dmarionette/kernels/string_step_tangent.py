@@ -265,15 +265,21 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # diagonal's -A_pp' dv_p. c enters row p as +c and row p + 1 as -c (z, v_p' - v_{p+1}', e' and
         # the spring force on p change sign exactly with the segment's ends).
         for p in range(start + 1, last):
-            x = particle_q[p]
-            u, length, ratio, alpha, beta = compute_spring_parts(x, particle_q[p + 1], stiffness, rest_length)
+            # ``compute_spring_parts`` with one division (products with 1 / l: the tangent's primal within
+            # an ulp or so of the forward's, as the step's other parts are).
+            e = particle_q[p] - particle_q[p + 1]
+            length = wp.length(e)
             inv_l = scalar(1.0) / length
+            u = e * inv_l
+            ratio = scalar(1.0) - rest_length * inv_l
+            geometric = wp.max(ratio, zero)
+            alpha = -stiffness * (scalar(1.0) - geometric)
+            beta = -stiffness * geometric
             segment_parts[p] = mat33(u[0], u[1], u[2], length, inv_l, ratio, alpha, beta, zero)
             if wp.static(not MAPS):
                 continue
             z = (particle_qd[p] - particle_qd[p + 1]) + (particle_dv[p] - particle_dv[p + 1])
             s_z = h2 * z
-            geometric = wp.max(ratio, zero)
             g_l = zero
             g_d = zero
             if ratio > zero:
