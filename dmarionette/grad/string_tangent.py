@@ -33,7 +33,7 @@ import warp as wp
 
 from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
-from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_lanes, lane_factor_rows,
+from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_chunks, lane_factor_rows,
                                                      string_step_tangent_kernel)
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
@@ -50,7 +50,7 @@ class StringStepTangent:
         solver: the stepper (printed springs; its effects choose the kernels).
         directions: the number of tangent directions ``P``.
         lanes: the tangent kernel with 4 or 8 directions in SIMD lanes
-            (``kernels.string_step_tangent.direction_lanes``; ``kernels/tangent_directions``: float64
+            (``kernels.string_step_tangent.direction_chunks``; ``kernels/tangent_directions``: float64
             on the CPU; the same tangents to rounding), else one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
             alone fills one lane of four: its tangent kernel measured ~1.6x the scalar one's).
     """
@@ -69,12 +69,19 @@ class StringStepTangent:
         if lanes and not supported:
             raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
         self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
-        step = direction_lanes(self.directions) if self.lanes else 1
-        # The segments' linear maps where there is more than one group of directions per string
-        # (built once per step, they cost more than one group saves; ``kernels/string_step_tangent``).
-        self.maps = self.directions > step
-        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), step,
-                                                 LANES if solver.lanes else 0, self.maps)
+        # One launch per chunk of directions (in lanes: 8, then 4, then one alone, ``direction_chunks``),
+        # the first computing the segments' parts for the others; the segments' linear maps where
+        # there is more than one group of directions per string in all (built once per step, they
+        # cost more than one group saves; ``kernels/string_step_tangent``).
+        chunks = direction_chunks(self.directions) if self.lanes else [(1, self.directions)]
+        self.maps = sum(-(-count // lanes) for lanes, count in chunks) > 1
+        self._launches = []
+        first = 0
+        for lanes, count in chunks:
+            kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), lanes,
+                                                LANES if solver.lanes else 0, self.maps, first == 0)
+            self._launches.append((kernel, first, count))
+            first += count
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
         # Where the tangent finds each string's rows of the kept factorisation (laned: its group's rows, its lane).
         rows = np.zeros((2, model.string_count), dtype=np.int32)
@@ -112,21 +119,26 @@ class StringStepTangent:
         else:
             self.solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
             inverse, c = ws.scratch_inverse, ws.scratch_c
-        wp.launch(
-            self.kernel,
-            dim=m.string_count,
-            inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
-                    m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
-                    m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
-                    m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd, inverse, c, self._factor_row, self._factor_lane,
-                    ws.particle_dv,
-                    state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
-                    q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot],
-            outputs=[*self._segments, q_out_dot, qd_out_dot, tie_force_dot],
-            device=m.device,
-            record_tape=False,
-        )
+        tangents_in = (q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot)
+        tangents_out = (q_out_dot, qd_out_dot, tie_force_dot)
+        for kernel, first, count in self._launches:
+            chunk = slice(first, first + count)
+            whole = count == self.directions
+            wp.launch(
+                kernel,
+                dim=m.string_count,
+                inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                        m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
+                        m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
+                        m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
+                        state_in.particle_q, state_in.particle_qd, inverse, c, self._factor_row, self._factor_lane,
+                        ws.particle_dv,
+                        state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
+                        *(a if whole else a[chunk] for a in tangents_in)],
+                outputs=[*self._segments, *(a if whole else a[chunk] for a in tangents_out)],
+                device=m.device,
+                record_tape=False,
+            )
 
 
 @dataclasses.dataclass

@@ -46,7 +46,9 @@ tie) are diagonal, each added to ``r`` on its own as a product of the direction 
 coefficients of the row.
 
 Directions in SIMD lanes (``lanes = 4`` or ``8``, float64 on the CPU, the default of
-``grad.string_tangent`` from P = 2; :func:`direction_lanes`): the same body on
+``grad.string_tangent`` from P = 2, in launches of 8, then 4, then 1, :func:`direction_chunks`;
+each launch's ``directions`` a slice of the P, the first one computing the segment pass for the
+others): the same body on
 ``tangent_directions``' values, each group one lane vector of directions, a tangent scalar a
 lane vector and a tangent vector a ``3 x K`` lane matrix (Clang vector snippets: packed AVX2
 instructions; 8 lanes are two independent 4-wide halves per operation, no 512-bit instruction
@@ -107,23 +109,28 @@ import warp as wp
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
 from .tangent_directions import tangent_directions
 
-__all__ = ["CONSTANTS", "DIRECTION_LANES", "WIDE_DIRECTION_LANES", "direction_lanes", "lane_factor_rows",
+__all__ = ["CONSTANTS", "DIRECTION_LANES", "WIDE_DIRECTION_LANES", "direction_chunks", "lane_factor_rows",
            "string_step_tangent_kernel"]
 
 # Tangent directions per SIMD lane vector with ``lanes``: 4 doubles (one AVX2 register) or 8 (each
 # operation two independent 4-wide halves, more work per instruction: a group of 8 directions
-# measured ~1.6x a group of 4, ``benchmarks/bench_string_tangent.py``), whichever needs less.
+# measured ~1.6x a group of 4, one direction alone ~0.65x, ``benchmarks/bench_string_tangent.py``).
 DIRECTION_LANES = 4
 WIDE_DIRECTION_LANES = 8
-WIDE_GROUP_COST = 1.6
 
 
-def direction_lanes(directions: int) -> int:
-    """Directions per lane vector for ``directions`` tangents in SIMD lanes: 8 where the groups of 8
-    cost less than those of 4 (P = 5-8 and from 13 on; 4 for P <= 4 and 9-12, where they tie)."""
-    groups = -(-directions // DIRECTION_LANES)
-    wide_groups = -(-directions // WIDE_DIRECTION_LANES)
-    return WIDE_DIRECTION_LANES if WIDE_GROUP_COST * wide_groups < groups else DIRECTION_LANES
+def direction_chunks(directions: int) -> list[tuple[int, int]]:
+    """The launches for ``directions`` tangents in SIMD lanes, ``(lanes, count)`` each, directions in
+    order: 8 lanes while 5 or more are left, then 4 lanes for 2-4, one direction alone (``lanes =
+    1``) for the last one (P = 12: 8 + 4; P = 9: 8 + 1), the cheapest mix by the costs above."""
+    chunks = []
+    left = directions
+    while left > 0:
+        lanes = WIDE_DIRECTION_LANES if left >= 5 else DIRECTION_LANES if left >= 2 else 1
+        count = min(lanes, left)
+        chunks.append((lanes, count))
+        left -= count
+    return chunks
 
 
 # The per-string constants whose tangents the kernel reads, in the order of its ``string_constants_dot``.
@@ -134,7 +141,7 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 
 @functools.cache
 def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1,
-                               factor_lanes: int = 0, maps: bool = True):
+                               factor_lanes: int = 0, maps: bool = True, segments: bool = True):
     """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
     ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
     any float type and device; 4 or 8: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
@@ -145,9 +152,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     segment's part of ``b' - A' dv`` from its linear maps ``E``, ``C`` (built once per step in
     ``segment_e``, ``segment_c``: cheaper per direction, dearer per step; ``grad.string_tangent``
     takes them from two groups of directions on), else from the spring's tangent; either way from
-    the spring parts ``u, l, 1 / l, 1 - d/l, alpha, beta`` kept once per step in ``segment_parts``."""
+    the spring parts ``u, l, 1 / l, 1 - d/l, alpha, beta`` kept once per step in ``segment_parts``.
+    ``segments``: compute them (the step's first launch), else read those an earlier launch of the
+    same step (its other directions, the same ``maps``) left."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     MAPS = maps
+    SEGMENTS = segments
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)
@@ -264,38 +274,40 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # (v_p' - v_{p+1}')) of the force, +h k_f' dv_{p+1} of -A_{p,p+1}' dv_{p+1}, -h k_f' dv_p of the
         # diagonal's -A_pp' dv_p. c enters row p as +c and row p + 1 as -c (z, v_p' - v_{p+1}', e' and
         # the spring force on p change sign exactly with the segment's ends).
-        for p in range(start + 1, last):
-            # ``compute_spring_parts`` with one division (products with 1 / l: the tangent's primal within
-            # an ulp or so of the forward's, as the step's other parts are).
-            e = particle_q[p] - particle_q[p + 1]
-            length = wp.length(e)
-            inv_l = scalar(1.0) / length
-            u = e * inv_l
-            ratio = scalar(1.0) - rest_length * inv_l
-            geometric = wp.max(ratio, zero)
-            alpha = -stiffness * (scalar(1.0) - geometric)
-            beta = -stiffness * geometric
-            segment_parts[p] = mat33(u[0], u[1], u[2], length, inv_l, ratio, alpha, beta, zero)
-            if wp.static(not MAPS):
-                continue
-            z = (particle_qd[p] - particle_qd[p + 1]) + (particle_dv[p] - particle_dv[p + 1])
-            s_z = h2 * z
-            g_l = zero
-            g_d = zero
-            if ratio > zero:
-                g_l = rest_length * inv_l * inv_l
-                g_d = -inv_l
-            ur = wp.dot(u, s_z)
-            stretch = length - rest_length
-            bend = ur * u - s_z  # = -P s
-            # E with ((u.s) I + u s^T) P = (u.s) P - u bend^T: two rank-one terms and a multiple of I and u u^T.
-            e_iso = (alpha * ur - dt * stiffness * stretch) * inv_l
-            segment_e[p] = compute_rank_two(stiffness * g_l, bend, -alpha * inv_l, -(e_iso + dt * stiffness), e_iso, u)
-            col_ks = (-(scalar(1.0) - geometric) * ur - dt * stretch) * u - geometric * s_z
-            col_d = (stiffness * g_d) * bend + (dt * stiffness) * u
-            col_kf = -dt * z
-            segment_c[p] = mat33(col_ks[0], col_d[0], col_kf[0], col_ks[1], col_d[1], col_kf[1],
-                                  col_ks[2], col_d[2], col_kf[2])
+        if wp.static(SEGMENTS):
+            for p in range(start + 1, last):
+                # ``compute_spring_parts`` with one division (products with 1 / l: the tangent's primal
+                # within an ulp or so of the forward's, as the step's other parts are).
+                e = particle_q[p] - particle_q[p + 1]
+                length = wp.length(e)
+                inv_l = scalar(1.0) / length
+                u = e * inv_l
+                ratio = scalar(1.0) - rest_length * inv_l
+                geometric = wp.max(ratio, zero)
+                alpha = -stiffness * (scalar(1.0) - geometric)
+                beta = -stiffness * geometric
+                segment_parts[p] = mat33(u[0], u[1], u[2], length, inv_l, ratio, alpha, beta, zero)
+                if wp.static(not MAPS):
+                    continue
+                z = (particle_qd[p] - particle_qd[p + 1]) + (particle_dv[p] - particle_dv[p + 1])
+                s_z = h2 * z
+                g_l = zero
+                g_d = zero
+                if ratio > zero:
+                    g_l = rest_length * inv_l * inv_l
+                    g_d = -inv_l
+                ur = wp.dot(u, s_z)
+                stretch = length - rest_length
+                bend = ur * u - s_z  # = -P s
+                # E with ((u.s) I + u s^T) P = (u.s) P - u bend^T: two rank-one terms, multiples of I, u u^T.
+                e_iso = (alpha * ur - dt * stiffness * stretch) * inv_l
+                segment_e[p] = compute_rank_two(stiffness * g_l, bend, -alpha * inv_l, -(e_iso + dt * stiffness),
+                                                e_iso, u)
+                col_ks = (-(scalar(1.0) - geometric) * ur - dt * stretch) * u - geometric * s_z
+                col_d = (stiffness * g_d) * bend + (dt * stiffness) * u
+                col_kf = -dt * z
+                segment_c[p] = mat33(col_ks[0], col_d[0], col_kf[0], col_ks[1], col_d[1], col_kf[1],
+                                      col_ks[2], col_d[2], col_kf[2])
         tie_stiffness_k = string_tie_stiffness[s]
         tie_damping_k = string_tie_damping[s]
         x_last = particle_q_out[last]

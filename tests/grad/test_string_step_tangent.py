@@ -177,12 +177,13 @@ def test_tangent_and_adjoint_agree_in_each_input_group(lanes):
     _check_identity(model, problem, scale, [(name,) for name in GROUPS], seed=17, lanes=lanes)
 
 
-@pytest.mark.parametrize("directions", [1, 3, 4, 7, 9, 16])
+@pytest.mark.parametrize("directions", [1, 3, 4, 7, 9, 12, 16])
 def test_laned_and_scalar_tangents_agree(directions):
-    """The directions in SIMD lanes (4 or 8 per lane vector, ``direction_lanes``, P padded up to a
-    multiple) against one at a time, every input group in every direction: the same operations in
-    the same order (``tangent_directions``; from 2 directions per string group on both use the
-    segments' linear maps, at P = 3 and 4 the lanes take the spring tangents instead: another
+    """The directions in SIMD lanes (launches of 8, then 4 per lane vector, the last direction
+    alone, ``direction_chunks``, each chunk padded up to its lanes; P = 12: 8 + 4, P = 9: 8 + 1)
+    against one at a time, every input group in every direction: the same operations in the same
+    order (``tangent_directions``; with more than one group of directions per string both take
+    the segments' linear maps, at P = 3 and 4 the lanes the spring tangents instead: another
     order), so equal up to rounding; asserted to 1e-13 of each output's largest entry per direction
     (rounding through the substitution, a few hundred eps at most). P = 1, 3, 7, 9 have padding
     lanes, which write nothing (``_tangent`` checks the rows after the P outputs stay zero)."""
