@@ -59,39 +59,45 @@ share it; each is the scalar operation it stands for, in the scalar kernel's ord
 tangent agrees with the scalar one built with the same ``maps`` to rounding
 (``tests/grad/test_string_step_tangent.py`` asserts 1e-13). Deviations from a literal derivative
 of the forward's expressions (rounding only): ``/ h`` of the tangents is a product with ``1 / h``
-(computed once); sums are regrouped (a segment's part once for its two rows, each diagonal term's
-coefficients gathered, ``h^2 K - h k_f I`` as one product).
+(computed once); the segment pass's spring parts use products with ``1 / l`` (one division, not
+``compute_spring_parts``' four); sums are regrouped (a segment's part once for its two rows, each
+diagonal term's coefficients gathered, ``h^2 K - h k_f I`` as one product).
 
 Cost (``PYTHONPATH=$PWD python benchmarks/bench_string_tangent.py --repeats 5 --clock cpu``, the
 ``strings`` scene's six strings of 50 particles, 1,000 steps, thread CPU time, 2-core machine
-under load 1.2-1.35 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.66, 3.90,
-8.20, 8.81 laned forward rollouts (``--no-lanes``, one direction at a time: 2.53, 5.92, 13.35,
-17.06); with wall time (the default clock) 2.67, 3.84, 8.46, 9.27, against 3.97, 5.67, 12.19,
-15.21 before this layout (commit f0b0766, the run before it in the same session). The issue's
-1 + 0.5 P = 1.5, 3, 7, 9: met at P = 16 (8.7-9.3 over four runs, wall or CPU time), not at
-P = 1, 4, 12. Where it goes (1,000 captured steps each, in laned forward rollouts of ~6.9 ms):
-the laned forward with ``keep`` 0.87; this kernel's fixed part 0.43 (the segment pass with the
-spring parts), 1.33 with the linear maps; then each direction 1.2 (P = 1, scalar), 0.57 (groups of
-4 from the spring tangents), 0.48 (groups of 8, spring tangents), 0.47 (groups of 4, maps), 0.38
-(groups of 8, maps); the upload of the per-step tangents and the download of the tie forces'
-0.1-0.45. Each change on its own (the tangent rollout of P = 1, 4, 12, 16 in ms, one after the
-other in one session, load 1.0-1.8; the first five with wall time, the last two thread CPU time):
-reading the laned factorisation in place instead of unpacking it, 27.3, 39.8, 85.5, 106.7 -> 24.9,
-35.4, 79.3, 101.1; each segment's spring parts and part of
+under load 2.2 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.39, 3.46, 7.49,
+8.80 laned forward rollouts (``--no-lanes``, one direction at a time: 2.42, 5.99, 13.49, 17.19);
+with wall time (the default clock) 2.47, 3.59, 7.90, 9.22, against 3.97-4.09, 5.67-5.97, 12.19-12.28,
+15.21-15.59 before this layout (commit f0b0766, run just before in the same session; two
+sessions). The issue's 1 + 0.5 P = 1.5, 3, 7, 9: met at P = 16 (8.7-9.3 over five runs, wall
+or CPU time), not at P = 1, 4, 12 (7.5-8.3). Where it goes (1,000 captured steps each, in laned
+forward rollouts of ~6.9 ms, load 1.2-1.8): the laned forward with ``keep`` 0.87; this kernel's
+fixed part 0.43 (the segment pass with the spring parts), 1.33 with the linear maps; then each
+direction 1.2 (P = 1, scalar), 0.57 (groups of 4 from the spring tangents), 0.48 (groups of 8,
+spring tangents), 0.47 (groups of 4, maps), 0.38 (groups of 8, maps); the upload of the per-step
+tangents and the download of the tie forces' 0.1-0.45. Each change on its own (the tangent
+rollout of P = 1, 4, 12, 16 in ms, one after the other, load 1.0-1.8; the first five with wall
+time, the rest thread CPU time): reading the laned factorisation in place instead of unpacking
+it, 27.3, 39.8, 85.5, 106.7 -> 24.9, 35.4, 79.3, 101.1; each segment's spring parts and part of
 ``r`` once (not once per row side) -> 22.1, 34.4, 76.8, 99.0; the friction folded into the
 segment, ``A_{p,p-1}`` as one product -> 20.2, 32.3, 70.0, 91.4; the back substitution per group,
 fused with ``v1'``, ``x1'`` -> 19.2, 29.8, 63.6, 81.5; the directions outside the row loop
 (constants once per group, ``x'``, ``v'``, ``c``, ``y`` in registers) -> 18.9, 26.1, 58.3, 74.5; the
 linear maps from two groups on and the rows' diagonal terms by coefficients -> 18.0, 26.9, 56.8,
-68.5; 8 lanes where cheaper -> 17.7, 25.9, 54.3, 58.3. Tried and dropped (no gain beyond the noise): the
-gathers' addresses with one multiply per access instead of one per lane (~3 %), ``y``, ``v0'``,
-``x0'`` kept contiguous per group for the back substitution instead of gathered again, the
-segments' ``h^2 K - h k_f I`` stored as a matrix, the map ``E`` built entry by entry instead of
-from outer products. What is left is mostly per direction: the lane gathers and scatters of the
-``(P, N)`` vec3 arrays (nine per row and group; dropping two of them, as an experiment, cut a
-group's cost by ~11 %) and the fixed part of the maps; a direction-minor layout of the tangent
-arrays would make the gathers plain loads, and P = 1 would need the strings in lanes (as the
-forward has them) rather than the directions.
+68.5; 8 lanes where cheaper -> 17.7, 25.9, 54.3, 58.3; then, tangent kernel alone (1,000 steps,
+two interleaved A/B runs each): the segment pass with one division, P = 4 19.0, 19.1 -> 18.3,
+17.7; launches of 8, then 4, then 1 lanes, P = 9 46.6, 45.1 -> 38.2, 40.0 and P = 12 47.7, 46.1
+-> 45.2, 45.4. Tried and dropped (no gain beyond the noise): the gathers' addresses with one
+multiply per access instead of one per lane (~3 %), ``y``, ``v0'``, ``x0'`` kept contiguous per
+group for the back substitution instead of gathered again, the segments' ``h^2 K - h k_f I``
+stored as a matrix, ``E`` built entry by entry or from precomputed scaled vectors, the segment
+pass two segments per iteration. Measured pieces at P = 12 (tangent kernel 47.5 ms; removing
+each, results wrong, as an experiment): the back substitution 10.4, the rows' diagonal terms 4.9,
+the maps' products ``E e' + C k'`` 5.1, the fixed part 9.2. What is left is mostly per direction:
+the lane gathers and scatters of the ``(P, N)`` vec3 arrays (nine per row and group) and the
+fixed part of the maps (scalar code, ~1 flop a cycle); a direction-minor layout of the tangent
+arrays would make the gathers plain loads, a pass on lanes of segments would cut the fixed part,
+and P = 1 would need the strings in lanes (as the forward has them) rather than the directions.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
