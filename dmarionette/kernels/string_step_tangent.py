@@ -167,6 +167,9 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)
+    # The segment pass in lanes of 4 consecutive segments where the directions are in lanes (float64 CPU).
+    SEGMENT_LANES = 1 if lanes == 1 else DIRECTION_LANES
+    store_segments = _segment_pass(scalar, SEGMENT_LANES, maps)
     FM, load_factor = factor.FM, factor.load
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
     t = tangent_directions(scalar, lanes)
@@ -178,16 +181,6 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     compute_spring_tangent = spring.compute_spring_tangent
     k_product = spring.compute_jacobian_product
     k_tangent_product = spring.compute_jacobian_tangent_product
-
-    @wp.func
-    def compute_rank_two(a: scalar, b_vec: vec3, b: scalar, c: scalar, d: scalar, u: vec3):
-        """``a b_vec u^T + b u b_vec^T + c u u^T + d I``, entry by entry."""
-        m = mat33()
-        for i in range(3):
-            for j in range(3):
-                m[i, j] = a * b_vec[i] * u[j] + b * u[i] * b_vec[j] + c * u[i] * u[j]
-            m[i, i] = m[i, i] + d
-        return m
 
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_tangent(
@@ -280,40 +273,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # (v_p' - v_{p+1}')) of the force, +h k_f' dv_{p+1} of -A_{p,p+1}' dv_{p+1}, -h k_f' dv_p of the
         # diagonal's -A_pp' dv_p. c enters row p as +c and row p + 1 as -c (z, v_p' - v_{p+1}', e' and
         # the spring force on p change sign exactly with the segment's ends).
-        if wp.static(SEGMENTS):
-            for p in range(start + 1, last):
-                # ``compute_spring_parts`` with one division (products with 1 / l: the tangent's primal
-                # within an ulp or so of the forward's, as the step's other parts are).
-                e = particle_q[p] - particle_q[p + 1]
-                length = wp.length(e)
-                inv_l = scalar(1.0) / length
-                u = e * inv_l
-                ratio = scalar(1.0) - rest_length * inv_l
-                geometric = wp.max(ratio, zero)
-                alpha = -stiffness * (scalar(1.0) - geometric)
-                beta = -stiffness * geometric
-                segment_parts[p] = mat33(u[0], u[1], u[2], length, inv_l, ratio, alpha, beta, zero)
-                if wp.static(not MAPS):
-                    continue
-                z = (particle_qd[p] - particle_qd[p + 1]) + (particle_dv[p] - particle_dv[p + 1])
-                s_z = h2 * z
-                g_l = zero
-                g_d = zero
-                if ratio > zero:
-                    g_l = rest_length * inv_l * inv_l
-                    g_d = -inv_l
-                ur = wp.dot(u, s_z)
-                stretch = length - rest_length
-                bend = ur * u - s_z  # = -P s
-                # E with ((u.s) I + u s^T) P = (u.s) P - u bend^T: two rank-one terms, multiples of I, u u^T.
-                e_iso = (alpha * ur - dt * stiffness * stretch) * inv_l
-                segment_e[p] = compute_rank_two(stiffness * g_l, bend, -alpha * inv_l, -(e_iso + dt * stiffness),
-                                                e_iso, u)
-                col_ks = (-(scalar(1.0) - geometric) * ur - dt * stretch) * u - geometric * s_z
-                col_d = (stiffness * g_d) * bend + (dt * stiffness) * u
-                col_kf = -dt * z
-                segment_c[p] = mat33(col_ks[0], col_d[0], col_kf[0], col_ks[1], col_d[1], col_kf[1],
-                                      col_ks[2], col_d[2], col_kf[2])
+        if wp.static(SEGMENTS):  # SEGMENT_LANES segments at a time
+            for p0 in range(start + 1, last, SEGMENT_LANES):
+                store_segments(p0, wp.min(SEGMENT_LANES, last - p0), particle_q, particle_qd, particle_dv, stiffness,
+                               rest_length, dt, segment_parts, segment_e, segment_c)
         tie_stiffness_k = string_tie_stiffness[s]
         tie_damping_k = string_tie_damping[s]
         x_last = particle_q_out[last]
@@ -520,3 +483,221 @@ def _factor_load(scalar, factor_lanes: int) -> SimpleNamespace:
         ...
 
     return SimpleNamespace(FM=lmat, load=load_lane)
+
+
+@functools.cache
+def _segment_values(scalar, lanes: int) -> SimpleNamespace:
+    """The values of the segment pass: one segment per value (``lanes = 1``, any float type and
+    device: Warp's operations) or ``lanes`` consecutive segments in SIMD lanes (float64 on the CPU:
+    ``lane_ops``' Clang vector snippets, each lane the scalar operation in the same order). ``L``, ``V``:
+    a scalar and a vec3 of the segments; ``load3(a, p0, count, j)``: ``a[p + j]`` for the segments
+    ``p = p0 ... p0 + count - 1`` (the padding lanes repeat the last); ``const``, ``add``, ``sub``,
+    ``mul``, ``div``, ``sqrt``, ``max``, ``where_pos(x, a, b)`` (``a`` where ``x > 0``), ``vadd``, ``vsub``,
+    ``vscl``, ``vdot``; ``store9(a, p0, count, m)``: ``a[p] = m`` (a ``mat33`` of nine ``L``, row-major)
+    for the real segments."""
+    vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+    if lanes == 1:
+        L, V = scalar, vec3
+        M = wp.types.vector(9, scalar)
+
+        @wp.func
+        def const(x: scalar):
+            return x
+
+        @wp.func
+        def load3(a: wp.array(dtype=vec3), p0: int, count: int, j: int):
+            return a[p0 + j]
+
+        @wp.func
+        def add(a: scalar, b: scalar):
+            return a + b
+
+        @wp.func
+        def sub(a: scalar, b: scalar):
+            return a - b
+
+        @wp.func
+        def mul(a: scalar, b: scalar):
+            return a * b
+
+        @wp.func
+        def div(a: scalar, b: scalar):
+            return a / b
+
+        @wp.func
+        def sqrt(a: scalar):
+            return wp.sqrt(a)
+
+        @wp.func
+        def vmax(a: scalar, b: scalar):
+            return wp.max(a, b)
+
+        @wp.func
+        def where_pos(x: scalar, a: scalar, b: scalar):
+            r = b
+            if x > scalar(0.0):
+                r = a
+            return r
+
+        @wp.func
+        def vadd(a: vec3, b: vec3):
+            return a + b
+
+        @wp.func
+        def vsub(a: vec3, b: vec3):
+            return a - b
+
+        @wp.func
+        def vscl(s: scalar, v: vec3):
+            return s * v
+
+        @wp.func
+        def vdot(a: vec3, b: vec3):
+            return wp.dot(a, b)
+
+        @wp.func
+        def store9(a: wp.array(dtype=mat33), p0: int, count: int, m: M):
+            a[p0] = mat33(m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
+
+        return SimpleNamespace(L=L, V=V, M=M, const=const, load3=load3, add=add, sub=sub, mul=mul, div=div,
+                               sqrt=sqrt, max=vmax, where_pos=where_pos, vadd=vadd, vsub=vsub, vscl=vscl, vdot=vdot,
+                               store9=store9)
+    if scalar is not wp.float64:
+        raise TypeError(f"the segment pass in lanes: float64 only, got {scalar}")
+    from .lane_ops import native_lane_memory, native_lane_ops
+    from .string_step_lanes import lane_step_functions, lane_types
+
+    lane, ivec, lvec, _lmat = lane_types(lanes)
+    nine = wp.types.matrix((9, lanes), wp.float64)
+    nat = native_lane_ops(lanes)
+    mem = native_lane_memory(lanes)
+    f = lane_step_functions(lanes)
+    LANES_ = lanes
+
+    @wp.func
+    def const(x: wp.float64):
+        return lane(x)
+
+    @wp.func
+    def load3(a: wp.array(dtype=wp.vec3d), p0: int, count: int, j: int):
+        index = ivec()
+        for l in range(LANES_):
+            index[l] = p0 + wp.min(l, count - 1)
+        return mem.gather3(a, index, j)
+
+    @wp.func
+    def where_pos(x: lane, a: lane, b: lane):
+        return nat.where_less(lane(wp.float64(0.0)), x, a, b)
+
+    @wp.func
+    def vscl(s: lane, v: lvec):
+        return f.lscale(s, v)
+
+    @wp.func
+    def vdot(a: lvec, b: lvec):
+        return f.lsum3(a[0], a[1], a[2], b[0], b[1], b[2])
+
+    @wp.func
+    def store9(a: wp.array(dtype=wp.mat33d), p0: int, count: int, m: nine):
+        for l in range(count):
+            a[p0 + l] = wp.mat33d(m[0, l], m[1, l], m[2, l], m[3, l], m[4, l], m[5, l], m[6, l], m[7, l], m[8, l])
+
+    return SimpleNamespace(L=lane, V=lvec, M=nine, const=const, load3=load3, add=nat.add, sub=nat.sub, mul=nat.mul,
+                           div=nat.div, sqrt=nat.sqrt, max=nat.max, where_pos=where_pos, vadd=f.vadd, vsub=f.vsub,
+                           vscl=vscl, vdot=vdot, store9=store9)
+
+
+@functools.cache
+def _segment_pass(scalar, lanes: int, maps: bool):
+    """``store_segments(p0, count, ...)``: the segment pass (the kernel's comment) for the segments
+    ``(p, p + 1)``, ``p = p0 ... p0 + count - 1`` (``count <= lanes``), one body for one segment per
+    value or ``lanes`` of them in SIMD lanes (:func:`_segment_values`: the same operations in the
+    same order). ``segment_parts[p]``: the rows ``u``, ``(l, 1 / l, 1 - d/l)``, ``(alpha, beta, 0)``;
+    with ``maps`` also ``E`` in ``segment_e[p]`` and ``C`` in ``segment_c[p]``."""
+    g = _segment_values(scalar, lanes)
+    vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+    L, V, M = g.L, g.V, g.M
+    const, add, sub, mul, div, sqrt, vmax, where_pos = g.const, g.add, g.sub, g.mul, g.div, g.sqrt, g.max, g.where_pos
+    vadd, vsub, vscl, vdot, load3, store9 = g.vadd, g.vsub, g.vscl, g.vdot, g.load3, g.store9
+    MAPS = maps
+
+    @wp.func
+    def neg(a: L):
+        return sub(const(scalar(0.0)), a)
+
+    @wp.func
+    def columns(a: V, b: V, c: V):
+        """The nine values (row-major) of the ``3 x 3`` matrix with the columns ``a``, ``b``, ``c``."""
+        m = M()
+        for i in range(3):
+            m[3 * i] = a[i]
+            m[3 * i + 1] = b[i]
+            m[3 * i + 2] = c[i]
+        return m
+
+    @wp.func
+    def rank_two(a: L, b_vec: V, b: L, c: L, d: L, u: V):
+        """``a b_vec u^T + b u b_vec^T + c u u^T + d I``, entry by entry (nine values, row-major)."""
+        m = M()
+        for i in range(3):
+            ab = mul(a, b_vec[i])
+            bu = mul(b, u[i])
+            cu = mul(c, u[i])
+            for j in range(3):
+                m[3 * i + j] = add(add(mul(ab, u[j]), mul(bu, b_vec[j])), mul(cu, u[j]))
+            m[4 * i] = add(m[4 * i], d)
+        return m
+
+    @wp.func
+    def store_segments(p0: int, count: int, particle_q: wp.array(dtype=vec3), particle_qd: wp.array(dtype=vec3),
+                       particle_dv: wp.array(dtype=vec3), stiffness: scalar, rest_length: scalar, dt: scalar,
+                       segment_parts: wp.array(dtype=mat33), segment_e: wp.array(dtype=mat33),
+                       segment_c: wp.array(dtype=mat33)):
+        zero = const(scalar(0.0))
+        one = const(scalar(1.0))
+        ks = const(stiffness)
+        d = const(rest_length)
+        h = const(dt)
+        h2 = const(dt * dt)
+        # ``compute_spring_parts`` with one division (products with 1 / l: the tangent's primal within
+        # an ulp or so of the forward's, as the step's other parts are).
+        e = vsub(load3(particle_q, p0, count, 0), load3(particle_q, p0, count, 1))
+        length = sqrt(vdot(e, e))
+        inv_l = div(one, length)
+        u = vscl(inv_l, e)
+        ratio = sub(one, mul(d, inv_l))
+        geometric = vmax(ratio, zero)
+        alpha = mul(neg(ks), sub(one, geometric))
+        beta = mul(neg(ks), geometric)
+        parts = M()
+        for i in range(3):
+            parts[i] = u[i]
+        parts[3] = length
+        parts[4] = inv_l
+        parts[5] = ratio
+        parts[6] = alpha
+        parts[7] = beta
+        parts[8] = zero
+        store9(segment_parts, p0, count, parts)
+        if wp.static(MAPS):
+            z = vadd(vsub(load3(particle_qd, p0, count, 0), load3(particle_qd, p0, count, 1)),
+                     vsub(load3(particle_dv, p0, count, 0), load3(particle_dv, p0, count, 1)))
+            s_z = vscl(h2, z)
+            g_l = where_pos(ratio, mul(mul(d, inv_l), inv_l), zero)
+            g_d = where_pos(ratio, neg(inv_l), zero)
+            ur = vdot(u, s_z)
+            stretch = sub(length, d)
+            bend = vsub(vscl(ur, u), s_z)  # = -P s
+            # E with ((u.s) I + u s^T) P = (u.s) P - u bend^T: two rank-one terms, multiples of I, u u^T.
+            hks = mul(h, ks)
+            e_iso = mul(sub(mul(alpha, ur), mul(hks, stretch)), inv_l)
+            store9(segment_e, p0, count,
+                   rank_two(mul(ks, g_l), bend, neg(mul(alpha, inv_l)), neg(add(e_iso, hks)), e_iso, u))
+            col_ks = vsub(vscl(sub(neg(mul(sub(one, geometric), ur)), mul(h, stretch)), u), vscl(geometric, s_z))
+            col_d = vadd(vscl(mul(ks, g_d), bend), vscl(hks, u))
+            col_kf = vscl(neg(h), z)
+            store9(segment_c, p0, count, columns(col_ks, col_d, col_kf))
+
+    return store_segments
