@@ -51,8 +51,9 @@ class StringStepTangent:
         directions: the number of tangent directions ``P``.
         lanes: the tangent kernel with 4 or 8 directions in SIMD lanes
             (``kernels.string_step_tangent.direction_chunks``; ``kernels/tangent_directions``: float64
-            on the CPU; the same tangents to rounding), else one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
-            alone fills one lane of four: its tangent kernel measured ~1.6x the scalar one's).
+            on the CPU; the same tangents to rounding), else one direction at a time. Default: in
+            lanes where supported and ``P >= 2`` (one direction alone fills one lane of four: its
+            tangent kernel measured ~1.6x the scalar one's).
     """
 
     def __init__(self, solver: SolverStringImplicit, directions: int, lanes: bool | None = None):
