@@ -34,7 +34,9 @@ Layout: one thread per string, ``dim = S``. The tangents have a leading directio
 step's layout, or the laned step's (``factor_lanes``: a string's lane of its group's ``9 x 4``
 rows, no unpacking launch). First a pass over the string's segments, once per step for all
 directions: each segment's spring parts (``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps``
-its part of ``b' - A' dv`` as a linear map of the direction (``E``, ``C`` below). Then one group
+its part of ``b' - A' dv`` as a linear map of the direction (``E``, ``C`` below); where the
+directions are in lanes, 4 consecutive segments per lane vector (:func:`_segment_pass`, one body
+for both). Then one group
 of directions at a time (the string's constants' tangents read once per group): the forward
 sweep row by row, ``x'``, ``v'`` of the next particle, the upper segment's part ``c`` and the
 substitution's ``y`` carried from row to row in registers (``y`` also kept in
@@ -65,17 +67,18 @@ diagonal term's coefficients gathered, ``h^2 K - h k_f I`` as one product).
 
 Cost (``PYTHONPATH=$PWD python benchmarks/bench_string_tangent.py --repeats 5 --clock cpu``, the
 ``strings`` scene's six strings of 50 particles, 1,000 steps, thread CPU time, 2-core machine
-under load 2.2 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.39, 3.46, 7.49,
-8.80 laned forward rollouts (``--no-lanes``, one direction at a time: 2.42, 5.99, 13.49, 17.19);
-with wall time (the default clock) 2.47, 3.59, 7.90, 9.22, against 3.97-4.09, 5.67-5.97, 12.19-12.28,
-15.21-15.59 before this layout (commit f0b0766, run just before in the same session; two
-sessions). The issue's 1 + 0.5 P = 1.5, 3, 7, 9: met at P = 16 (8.7-9.3 over five runs, wall
-or CPU time), not at P = 1, 4, 12 (7.5-8.3). Where it goes (1,000 captured steps each, in laned
-forward rollouts of ~6.9 ms, load 1.2-1.8): the laned forward with ``keep`` 0.87; this kernel's
-fixed part 0.43 (the segment pass with the spring parts), 1.33 with the linear maps; then each
-direction 1.2 (P = 1, scalar), 0.57 (groups of 4 from the spring tangents), 0.48 (groups of 8,
-spring tangents), 0.47 (groups of 4, maps), 0.38 (groups of 8, maps); the upload of the per-step
-tangents and the download of the tie forces' 0.1-0.45. Each change on its own (the tangent
+under load 1.9 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.47, 3.64, 7.09,
+8.32 laned forward rollouts (``--no-lanes``, one direction at a time: 2.43, 6.05, 13.76, 17.48);
+with wall time (the default clock) 2.41, 3.65, 7.32, 8.37, against 3.86, 5.44, 11.63, 15.09 before
+this layout (commit f0b0766, run just before in the same session; 3.97-4.09, 5.67-5.97,
+12.19-12.28, 15.21-15.59 in two earlier sessions). The issue's 1 + 0.5 P = 1.5, 3, 7, 9: met at
+P = 16, P = 12 just short (7.1-7.3), not at P = 1, 4. Where it goes (1,000 captured steps each,
+in laned forward rollouts of ~6.7 ms, load ~2): the laned forward with ``keep`` 0.9; this
+kernel's fixed part 0.25-0.3 (the segment pass with the spring parts), 0.9-1.0 with the linear
+maps; then each direction 1.4 (P = 1, scalar), 0.59 (groups of 4 from the spring tangents),
+0.48 (groups of 8, spring tangents), 0.40 (groups of 8, maps), ~0.6 (a second launch of 4,
+maps); the upload of the per-step tangents and the download of the tie forces' 0.05-0.4.
+Each change on its own (the tangent
 rollout of P = 1, 4, 12, 16 in ms, one after the other, load 1.0-1.8; the first five with wall
 time, the rest thread CPU time): reading the laned factorisation in place instead of unpacking
 it, 27.3, 39.8, 85.5, 106.7 -> 24.9, 35.4, 79.3, 101.1; each segment's spring parts and part of
@@ -87,17 +90,18 @@ linear maps from two groups on and the rows' diagonal terms by coefficients -> 1
 68.5; 8 lanes where cheaper -> 17.7, 25.9, 54.3, 58.3; then, tangent kernel alone (1,000 steps,
 two interleaved A/B runs each): the segment pass with one division, P = 4 19.0, 19.1 -> 18.3,
 17.7; launches of 8, then 4, then 1 lanes, P = 9 46.6, 45.1 -> 38.2, 40.0 and P = 12 47.7, 46.1
--> 45.2, 45.4. Tried and dropped (no gain beyond the noise): the gathers' addresses with one
+-> 45.2, 45.4; the segment pass on lanes of segments, P = 12 46.1, 47.2 -> 42.5, 42.8 and
+P = 16 54.7, 53.0 -> 52.5, 49.0 (P = 1, 4 unchanged). Tried and dropped (no gain beyond the noise): the gathers' addresses with one
 multiply per access instead of one per lane (~3 %), ``y``, ``v0'``, ``x0'`` kept contiguous per
 group for the back substitution instead of gathered again, the segments' ``h^2 K - h k_f I``
 stored as a matrix, ``E`` built entry by entry or from precomputed scaled vectors, the segment
 pass two segments per iteration. Measured pieces at P = 12 (tangent kernel 47.5 ms; removing
 each, results wrong, as an experiment): the back substitution 10.4, the rows' diagonal terms 4.9,
-the maps' products ``E e' + C k'`` 5.1, the fixed part 9.2. What is left is mostly per direction:
-the lane gathers and scatters of the ``(P, N)`` vec3 arrays (nine per row and group) and the
-fixed part of the maps (scalar code, ~1 flop a cycle); a direction-minor layout of the tangent
-arrays would make the gathers plain loads, a pass on lanes of segments would cut the fixed part,
+the maps' products ``E e' + C k'`` 5.1, the fixed part 9.2 (then a scalar segment pass). What is
+left is mostly per direction: the lane gathers and scatters of the ``(P, N)`` vec3 arrays (nine
+per row and group); a direction-minor layout of the tangent arrays would make them plain loads,
 and P = 1 would need the strings in lanes (as the forward has them) rather than the directions.
+The linear maps at P = 2-4 (one group) measured ~1 ms dearer than the spring tangents.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
