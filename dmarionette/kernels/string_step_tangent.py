@@ -28,80 +28,76 @@ compressed, ``string_spring.string_spring_tangent_functions``). The taut flag ha
 Printed springs only: the tension-only springs' step (an active-set solve) has no tangent here
 (``grad.string_tangent`` refuses such a model).
 
-Layout: one thread per string, ``dim = S``. The tangents have a leading direction axis
-(``(P, particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
+Layout: one thread per string, ``dim = S``. The tangents have a leading direction axis (``(P,
+particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
 :data:`CONSTANTS` order). The kept factorisation is read where the forward left it: the scalar
-step's layout, or the laned step's (``factor_lanes``: a string's lane of its group's ``9 x 4``
-rows, no unpacking launch). First a pass over the string's segments, once per step for all
-directions: each segment's spring parts (``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps``
-its part of ``b' - A' dv`` as a linear map of the direction (``E``, ``C`` below); where the
-directions are in lanes, 4 consecutive segments per lane vector (:func:`_segment_pass`, one body
-for both). Then one group
-of directions at a time (the string's constants' tangents read once per group): the forward
+step's layout, or the laned step's (``factor_lanes``: a string's lane of its group's ``9 x 4`` rows,
+no unpacking launch). First a pass over the string's segments, once per step for all directions:
+each segment's spring parts (``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps`` its part of
+``b' - A' dv`` as a linear map of the direction (``E``, ``C`` below); where the directions are in
+lanes, 4 consecutive segments per lane vector (:func:`_segment_pass`, one body for both). Then one
+group of directions at a time (the string's constants' tangents read once per group): the forward
 sweep row by row, ``x'``, ``v'`` of the next particle, the upper segment's part ``c`` and the
 substitution's ``y`` carried from row to row in registers (``y`` also kept in
-``particle_qd_out_dot``), then the back substitution bottom to top, ``dv'`` carried, with
-``v1'`` and ``x1'`` written as it goes. Each segment's part of a row is computed once per
-direction and shared by its two rows (+c in the row above, -c in the row below, exactly), the
-internal friction's terms of the segment folded into it; the other terms (mass, air drag, ground,
-tie) are diagonal, each added to ``r`` on its own as a product of the direction with primal
-coefficients of the row.
+``particle_qd_out_dot``), then the back substitution bottom to top, ``dv'`` carried, with ``v1'``
+and ``x1'`` written as it goes. Each segment's part of a row is computed once per direction and
+shared by its two rows (+c in the row above, -c in the row below, exactly), the internal friction's
+terms of the segment folded into it; the other terms (mass, air drag, ground, tie) are diagonal,
+each added to ``r`` on its own as a product of the direction with primal coefficients of the row.
 
 Directions in SIMD lanes (``lanes = 4`` or ``8``, float64 on the CPU, the default of
-``grad.string_tangent`` from P = 2, in launches of 8, then 4, then 1, :func:`direction_chunks`;
-each launch's ``directions`` a slice of the P, the first one computing the segment pass for the
-others): the same body on
-``tangent_directions``' values, each group one lane vector of directions, a tangent scalar a
-lane vector and a tangent vector a ``3 x K`` lane matrix (Clang vector snippets: packed AVX2
-instructions; 8 lanes are two independent 4-wide halves per operation, no 512-bit instruction
-seen), the primal values scalars as before; P is padded up to a multiple of ``K`` (the padding
-lanes repeat the last direction and write nothing). The body is written with the namespace's
-functions (``vadd``, ``vscl``, ``outer``, ...) rather than Warp's operators, so that both layouts
-share it; each is the scalar operation it stands for, in the scalar kernel's order, so the laned
-tangent agrees with the scalar one built with the same ``maps`` to rounding
-(``tests/grad/test_string_step_tangent.py`` asserts 1e-13). Deviations from a literal derivative
-of the forward's expressions (rounding only): ``/ h`` of the tangents is a product with ``1 / h``
+``grad.string_tangent`` from P = 2, in launches of 8, then 4, then 1, :func:`direction_chunks`; each
+launch's ``directions`` a slice of the P, the first one computing the segment pass for the others):
+the same body on ``tangent_directions``' values, each group one lane vector of directions, a tangent
+scalar a lane vector and a tangent vector a ``3 x K`` lane matrix (Clang vector snippets: packed
+AVX2 instructions; 8 lanes are two independent 4-wide halves per operation, no 512-bit instruction
+seen), the primal values scalars as before; P is padded up to a multiple of ``K`` (the padding lanes
+repeat the last direction and write nothing). The body is written with the namespace's functions
+(``vadd``, ``vscl``, ``outer``, ...) rather than Warp's operators, so that both layouts share it;
+each is the scalar operation it stands for, in the scalar kernel's order, so the laned tangent
+agrees with the scalar one built with the same ``maps`` to rounding
+(``tests/grad/test_string_step_tangent.py`` asserts 1e-13). Deviations from a literal derivative of
+the forward's expressions (rounding only): ``/ h`` of the tangents is a product with ``1 / h``
 (computed once); the segment pass's spring parts use products with ``1 / l`` (one division, not
 ``compute_spring_parts``' four); sums are regrouped (a segment's part once for its two rows, each
 diagonal term's coefficients gathered, ``h^2 K - h k_f I`` as one product).
 
 Cost (``PYTHONPATH=$PWD python benchmarks/bench_string_tangent.py --repeats 5 --clock cpu``, the
-``strings`` scene's six strings of 50 particles, 1,000 steps, thread CPU time, 2-core machine
-under load 1.9 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.47, 3.64, 7.09,
-8.32 laned forward rollouts (``--no-lanes``, one direction at a time: 2.43, 6.05, 13.76, 17.48);
-with wall time (the default clock) 2.41, 3.65, 7.32, 8.37, against 3.86, 5.44, 11.63, 15.09 before
-this layout (commit f0b0766, run just before in the same session; 3.97-4.09, 5.67-5.97,
-12.19-12.28, 15.21-15.59 in two earlier sessions). The issue's 1 + 0.5 P = 1.5, 3, 7, 9: met at
-P = 16, P = 12 just short (7.1-7.3), not at P = 1, 4. Where it goes (1,000 captured steps each,
-in laned forward rollouts of ~6.7 ms, load ~2): the laned forward with ``keep`` 0.9; this
-kernel's fixed part 0.25-0.3 (the segment pass with the spring parts), 0.9-1.0 with the linear
-maps; then each direction 1.4 (P = 1, scalar), 0.59 (groups of 4 from the spring tangents),
-0.48 (groups of 8, spring tangents), 0.40 (groups of 8, maps), ~0.6 (a second launch of 4,
-maps); the upload of the per-step tangents and the download of the tie forces' 0.05-0.4.
-Each change on its own (the tangent
-rollout of P = 1, 4, 12, 16 in ms, one after the other, load 1.0-1.8; the first five with wall
-time, the rest thread CPU time): reading the laned factorisation in place instead of unpacking
-it, 27.3, 39.8, 85.5, 106.7 -> 24.9, 35.4, 79.3, 101.1; each segment's spring parts and part of
-``r`` once (not once per row side) -> 22.1, 34.4, 76.8, 99.0; the friction folded into the
-segment, ``A_{p,p-1}`` as one product -> 20.2, 32.3, 70.0, 91.4; the back substitution per group,
-fused with ``v1'``, ``x1'`` -> 19.2, 29.8, 63.6, 81.5; the directions outside the row loop
-(constants once per group, ``x'``, ``v'``, ``c``, ``y`` in registers) -> 18.9, 26.1, 58.3, 74.5; the
-linear maps from two groups on and the rows' diagonal terms by coefficients -> 18.0, 26.9, 56.8,
-68.5; 8 lanes where cheaper -> 17.7, 25.9, 54.3, 58.3; then, tangent kernel alone (1,000 steps,
-two interleaved A/B runs each): the segment pass with one division, P = 4 19.0, 19.1 -> 18.3,
-17.7; launches of 8, then 4, then 1 lanes, P = 9 46.6, 45.1 -> 38.2, 40.0 and P = 12 47.7, 46.1
--> 45.2, 45.4; the segment pass on lanes of segments, P = 12 46.1, 47.2 -> 42.5, 42.8 and
-P = 16 54.7, 53.0 -> 52.5, 49.0 (P = 1, 4 unchanged). Tried and dropped (no gain beyond the noise): the gathers' addresses with one
-multiply per access instead of one per lane (~3 %), ``y``, ``v0'``, ``x0'`` kept contiguous per
-group for the back substitution instead of gathered again, the segments' ``h^2 K - h k_f I``
-stored as a matrix, ``E`` built entry by entry or from precomputed scaled vectors, the segment
-pass two segments per iteration. Measured pieces at P = 12 (tangent kernel 47.5 ms; removing
-each, results wrong, as an experiment): the back substitution 10.4, the rows' diagonal terms 4.9,
-the maps' products ``E e' + C k'`` 5.1, the fixed part 9.2 (then a scalar segment pass). What is
-left is mostly per direction: the lane gathers and scatters of the ``(P, N)`` vec3 arrays (nine
-per row and group); a direction-minor layout of the tangent arrays would make them plain loads,
-and P = 1 would need the strings in lanes (as the forward has them) rather than the directions.
-The linear maps at P = 2-4 (one group) measured ~1 ms dearer than the spring tangents.
+``strings`` scene's six strings of 50 particles, 1,000 steps, thread CPU time, 2-core machine under
+load 1.9 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.47, 3.64, 7.09, 8.32 laned
+forward rollouts (``--no-lanes``, one direction at a time: 2.43, 6.05, 13.76, 17.48); with wall time
+(the default clock) 2.41, 3.65, 7.32, 8.37, against 3.86, 5.44, 11.63, 15.09 before this layout
+(commit f0b0766, run just before in the same session; 3.97-4.09, 5.67-5.97, 12.19-12.28, 15.21-15.59
+in two earlier sessions). The issue's 1 + 0.5 P = 1.5, 3, 7, 9: met at P = 16, P = 12 just short
+(7.1-7.3), not at P = 1, 4. Where it goes (1,000 captured steps each, in laned forward rollouts of
+~6.7 ms, load ~2): the laned forward with ``keep`` 0.9; this kernel's fixed part 0.25-0.3 (the
+segment pass with the spring parts), 0.9-1.0 with the linear maps; then each direction 1.4 (P = 1,
+scalar), 0.59 (groups of 4 from the spring tangents), 0.48 (groups of 8, spring tangents), 0.40
+(groups of 8, maps), ~0.6 (a second launch of 4, maps); the upload of the per-step tangents and the
+download of the tie forces' 0.05-0.4. Each change on its own (the tangent rollout of P = 1, 4, 12,
+16 in ms, one after the other, load 1.0-1.8; the first five with wall time, the rest thread CPU
+time): reading the laned factorisation in place instead of unpacking it, 27.3, 39.8, 85.5, 106.7 ->
+24.9, 35.4, 79.3, 101.1; each segment's spring parts and part of ``r`` once (not once per row side)
+-> 22.1, 34.4, 76.8, 99.0; the friction folded into the segment, ``A_{p,p-1}`` as one product ->
+20.2, 32.3, 70.0, 91.4; the back substitution per group, fused with ``v1'``, ``x1'`` -> 19.2, 29.8,
+63.6, 81.5; the directions outside the row loop (constants once per group, ``x'``, ``v'``, ``c``,
+``y`` in registers) -> 18.9, 26.1, 58.3, 74.5; the linear maps from two groups on and the rows'
+diagonal terms by coefficients -> 18.0, 26.9, 56.8, 68.5; 8 lanes where cheaper -> 17.7, 25.9, 54.3,
+58.3; then, tangent kernel alone (1,000 steps, two interleaved A/B runs each): the segment pass with
+one division, P = 4 19.0, 19.1 -> 18.3, 17.7; launches of 8, then 4, then 1 lanes, P = 9 46.6, 45.1
+-> 38.2, 40.0 and P = 12 47.7, 46.1 -> 45.2, 45.4; the segment pass on lanes of segments, P = 12
+46.1, 47.2 -> 42.5, 42.8 and P = 16 54.7, 53.0 -> 52.5, 49.0 (P = 1, 4 unchanged). Tried and dropped
+(no gain beyond the noise): the gathers' addresses with one multiply per access instead of one per
+lane (~3 %), ``y``, ``v0'``, ``x0'`` kept contiguous per group for the back substitution instead of
+gathered again, the segments' ``h^2 K - h k_f I`` stored as a matrix, ``E`` built entry by entry or
+from precomputed scaled vectors, the (scalar) segment pass two segments per iteration. Measured
+pieces at P = 12 (tangent kernel 47.5 ms; removing each, results wrong, as an experiment): the back
+substitution 10.4, the rows' diagonal terms 4.9, the maps' products ``E e' + C k'`` 5.1, the fixed
+part 9.2 (then a scalar segment pass). What is left is mostly per direction: the lane gathers and
+scatters of the ``(P, N)`` vec3 arrays (nine per row and group); a direction-minor layout of the
+tangent arrays would make them plain loads, and P = 1 would need the strings in lanes (as the
+forward has them) rather than the directions. The linear maps at P = 2-4 (one group) measured ~1 ms
+dearer than the spring tangents.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
