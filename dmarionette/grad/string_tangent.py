@@ -4,9 +4,9 @@ Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback hav
 :class:`StringStepTangent` runs one step of a :class:`SolverStringImplicit` forward keeping its
 factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` read by the tangent in the
 laned layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
-the step's tangent-linear model for P directions in one launch (``kernels/string_step_tangent``:
-a substitution with the stored factorisation; on the CPU in float64, 4 or 8 directions per SIMD
-lane vector, ``kernels/tangent_directions``). :class:`StringRolloutTangent` carries P tangents
+the step's tangent-linear model for P directions (``kernels/string_step_tangent``: a substitution
+with the stored factorisation; on the CPU in float64, 4 or 8 directions per SIMD lane vector,
+``kernels/tangent_directions``, one launch per chunk of 8, 4 or 1 directions, ``direction_chunks``). :class:`StringRolloutTangent` carries P tangents
 through ``T`` steps with prescribed motion (tops and tie targets given per step), as
 ``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
 
