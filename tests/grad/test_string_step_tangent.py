@@ -183,8 +183,8 @@ def test_laned_and_scalar_tangents_agree(directions):
     alone, ``direction_chunks``, each chunk padded up to its lanes; P = 12: 8 + 4, P = 9: 8 + 1)
     against one at a time, every input group in every direction: the same operations in the same
     order (``tangent_directions``; with more than one group of directions per string both take
-    the segments' linear maps, at P = 3 and 4 the lanes the spring tangents instead: another
-    order), so equal up to rounding; asserted to 1e-13 of each output's largest entry per direction
+    the segments' linear maps; where the lanes have one group, P = 3, 4, 7, they take the spring
+    tangents instead: another order), so equal up to rounding; asserted to 1e-13 of each output's largest entry per direction
     (rounding through the substitution, a few hundred eps at most). P = 1, 3, 7, 9 have padding
     lanes, which write nothing (``_tangent`` checks the rows after the P outputs stay zero)."""
     model = _model()
