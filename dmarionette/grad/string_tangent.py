@@ -2,13 +2,14 @@
 
 Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback have no tangent yet).
 :class:`StringStepTangent` runs one step of a :class:`SolverStringImplicit` forward keeping its
-factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` read by the tangent in the
-laned layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
-the step's tangent-linear model for P directions (``kernels/string_step_tangent``: a substitution
-with the stored factorisation; on the CPU in float64, 4 or 8 directions per SIMD lane vector,
-``kernels/tangent_directions``, one launch per chunk of 8, 4 or 1 directions, ``direction_chunks``). :class:`StringRolloutTangent` carries P tangents
-through ``T`` steps with prescribed motion (tops and tie targets given per step), as
-``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
+factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` read by the tangent in
+the laned layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``)
+and then the step's tangent-linear model for P directions (``kernels/string_step_tangent``: a
+substitution with the stored factorisation; on the CPU in float64, 4 or 8 directions per SIMD lane
+vector, ``kernels/tangent_directions``, one launch per chunk of 8, 4 or 1 directions,
+``direction_chunks``). :class:`StringRolloutTangent` carries P tangents through ``T`` steps with
+prescribed motion (tops and tie targets given per step), as ``StringRollout`` runs the plain steps:
+chunks of steps captured once as a Warp graph and replayed.
 
 What is differentiated, per direction (:class:`StringTangentInputs`): the initial positions and
 velocities, the particle masses, each string's constants (``kernels.string_step_tangent.CONSTANTS``
@@ -79,9 +80,12 @@ class StringStepTangent:
         self.maps = sum(-(-count // lanes) for lanes, count in chunks) > 1
         self._launches = []
         first = 0
+        # The segment pass on lanes of 4 segments where the directions are in lanes (float64 CPU),
+        # its results in that laned layout for every launch of the step.
+        segment_lanes = DIRECTION_LANES if self.lanes else 1
         for lanes, count in chunks:
             kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), lanes,
-                                                LANES if solver.lanes else 0, self.maps, first == 0)
+                                                LANES if solver.lanes else 0, self.maps, first == 0, segment_lanes)
             self._launches.append((kernel, first, count))
             first += count
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
@@ -92,8 +96,8 @@ class StringStepTangent:
                                        model.string_count)
         self._factor_row, self._factor_lane = (wp.array(r, dtype=wp.int32, device=model.device) for r in rows)
         # Each segment's spring parts and linear maps (E, C), computed once per step by the tangent kernel.
-        self._segments = [wp.zeros(model.particle_count, dtype=model.mat33, device=model.device)
-                                   for _ in range(3)]
+        segment_type = model.mat33 if segment_lanes == 1 else wp.types.matrix((9, segment_lanes), wp.float64)
+        self._segments = [wp.zeros(model.particle_count, dtype=segment_type, device=model.device) for _ in range(3)]
 
     def zeros(self, count: int, dtype=None) -> wp.array:
         """A ``(P, count)`` tangent array (vec3 by default)."""

@@ -147,7 +147,8 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 
 @functools.cache
 def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1,
-                               factor_lanes: int = 0, maps: bool = True, segments: bool = True):
+                               factor_lanes: int = 0, maps: bool = True, segments: bool = True,
+                               segment_lanes: int = 1):
     """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
     ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
     any float type and device; 4 or 8: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
@@ -160,16 +161,20 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     takes them from two groups of directions on), else from the spring's tangent; either way from
     the spring parts ``u, l, 1 / l, 1 - d/l, alpha, beta`` kept once per step in ``segment_parts``.
     ``segments``: compute them (the step's first launch), else read those an earlier launch of the
-    same step (its other directions, the same ``maps``) left."""
+    same step (its other directions, the same ``maps`` and ``segment_lanes``) left.
+    ``segment_lanes``: the pass one segment at a time (1) or ``DIRECTION_LANES`` consecutive ones in
+    SIMD lanes (float64 CPU), each group of them kept as one laned ``9 x K`` block
+    (:func:`_segment_values`)."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     MAPS = maps
     SEGMENTS = segments
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)
-    # The segment pass in lanes of 4 consecutive segments where the directions are in lanes (float64 CPU).
-    SEGMENT_LANES = 1 if lanes == 1 else DIRECTION_LANES
-    store_segments = _segment_pass(scalar, SEGMENT_LANES, maps)
+    SEGMENT_LANES = segment_lanes
+    store_segments = _segment_pass(scalar, segment_lanes, maps)
+    segment_values = _segment_values(scalar, segment_lanes)
+    SM, load_segment = segment_values.SM, segment_values.load9
     FM, load_factor = factor.FM, factor.load
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
     t = tangent_directions(scalar, lanes)
@@ -223,9 +228,9 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_mass_dot: wp.array2d(dtype=scalar),
         string_constants_dot: wp.array3d(dtype=scalar),
         # Tangent out (first a scratch: each segment's E, W, C, written and read within the launch):
-        segment_parts: wp.array(dtype=mat33),
-        segment_e: wp.array(dtype=mat33),
-        segment_c: wp.array(dtype=mat33),
+        segment_parts: wp.array(dtype=SM),
+        segment_e: wp.array(dtype=SM),
+        segment_c: wp.array(dtype=SM),
         particle_q_out_dot: wp.array2d(dtype=vec3),
         particle_qd_out_dot: wp.array2d(dtype=vec3),
         tie_force_dot: wp.array2d(dtype=vec3),
@@ -338,12 +343,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 if not is_last:
                     x_next_dot = load3(particle_q_dot, k, directions, p + 1)
                     v_next_dot = load3(particle_qd_dot, k, directions, p + 1)
-                    parts = segment_parts[p]
+                    parts = load_segment(segment_parts, p, start + 1)
                     u_b = vec3(parts[0, 0], parts[0, 1], parts[0, 2])
                     w_part = k_product(u_b, h2 * parts[2, 0], h2 * parts[2, 1] + g_upper, vsub(v_dot, v_next_dot))
                     if wp.static(MAPS):
-                        c_b = vadd(vadd(mat(segment_e[p], vsub(x_dot, x_next_dot)), w_part),
-                                   mat(segment_c[p], constants_dot))
+                        c_b = vadd(vadd(mat(load_segment(segment_e, p, start + 1), vsub(x_dot, x_next_dot)), w_part),
+                                   mat(load_segment(segment_c, p, start + 1), constants_dot))
                     else:
                         u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
                             u_b, parts[1, 0], parts[1, 1], parts[1, 2], stiffness, rest_length,
@@ -398,7 +403,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                                   vscl(h2 * tie_stiffness, v_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p}, the upper segment's W.
                 if j > 1:
-                    parts = segment_parts[p - 1]
+                    parts = load_segment(segment_parts, p - 1, start + 1)
                     r = vsub(r, k_product(vec3(parts[0, 0], parts[0, 1], parts[0, 2]), h2 * parts[2, 0],
                                           h2 * parts[2, 1] + g_upper, y_prev))
                 y_prev = mat(load_factor(pivot_inverse, p + factor_row, factor_lane), r)
@@ -493,8 +498,11 @@ def _segment_values(scalar, lanes: int) -> SimpleNamespace:
     a scalar and a vec3 of the segments; ``load3(a, p0, count, j)``: ``a[p + j]`` for the segments
     ``p = p0 ... p0 + count - 1`` (the padding lanes repeat the last); ``const``, ``add``, ``sub``,
     ``mul``, ``div``, ``sqrt``, ``max``, ``where_pos(x, a, b)`` (``a`` where ``x > 0``), ``vadd``, ``vsub``,
-    ``vscl``, ``vdot``; ``store9(a, p0, count, m)``: ``a[p] = m`` (a ``mat33`` of nine ``L``, row-major)
-    for the real segments."""
+    ``vscl``, ``vdot``; ``store9(a, p0, count, m)``: the nine ``L`` of ``m`` (a ``3 x 3`` matrix,
+    row-major) kept for the segments, in ``a`` of ``SM`` (one ``mat33`` per segment; in lanes one
+    ``9 x lanes`` block per group of segments, at its first segment's index, the layout of the laned
+    factorisation); ``load9(a, p, first)``: segment ``p``'s ``mat33`` (``first``: the string's first
+    segment of the pass, where its groups start)."""
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     if lanes == 1:
@@ -560,9 +568,13 @@ def _segment_values(scalar, lanes: int) -> SimpleNamespace:
         def store9(a: wp.array(dtype=mat33), p0: int, count: int, m: M):
             a[p0] = mat33(m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
 
-        return SimpleNamespace(L=L, V=V, M=M, const=const, load3=load3, add=add, sub=sub, mul=mul, div=div,
-                               sqrt=sqrt, max=vmax, where_pos=where_pos, vadd=vadd, vsub=vsub, vscl=vscl, vdot=vdot,
-                               store9=store9)
+        @wp.func
+        def load9(a: wp.array(dtype=mat33), p: int, first: int):
+            return a[p]
+
+        return SimpleNamespace(L=L, V=V, M=M, SM=mat33, load9=load9, store9=store9, const=const, load3=load3,
+                               add=add, sub=sub, mul=mul, div=div, sqrt=sqrt, max=vmax, where_pos=where_pos,
+                               vadd=vadd, vsub=vsub, vscl=vscl, vdot=vdot)
     if scalar is not wp.float64:
         raise TypeError(f"the segment pass in lanes: float64 only, got {scalar}")
     from .lane_ops import native_lane_memory, native_lane_ops
@@ -599,13 +611,21 @@ def _segment_values(scalar, lanes: int) -> SimpleNamespace:
         return f.lsum3(a[0], a[1], a[2], b[0], b[1], b[2])
 
     @wp.func
-    def store9(a: wp.array(dtype=wp.mat33d), p0: int, count: int, m: nine):
-        for l in range(count):
-            a[p0 + l] = wp.mat33d(m[0, l], m[1, l], m[2, l], m[3, l], m[4, l], m[5, l], m[6, l], m[7, l], m[8, l])
+    def store9(a: wp.array(dtype=nine), p0: int, count: int, m: nine):
+        a[p0] = m  # the block of the segments p0 ... p0 + lanes - 1, one store
 
-    return SimpleNamespace(L=lane, V=lvec, M=nine, const=const, load3=load3, add=nat.add, sub=nat.sub, mul=nat.mul,
-                           div=nat.div, sqrt=nat.sqrt, max=nat.max, where_pos=where_pos, vadd=f.vadd, vsub=f.vsub,
-                           vscl=vscl, vdot=vdot, store9=store9)
+    load_lane = _factor_load(wp.float64, lanes).load
+
+    @wp.func
+    def load9(a: wp.array(dtype=nine), p: int, first: int):
+        """Segment ``p``'s ``mat33``: lane ``(p - first) % lanes`` of the block at its group's first segment."""
+        q = p - first
+        lane_index = q % LANES_
+        return load_lane(a, p - lane_index, lane_index)
+
+    return SimpleNamespace(L=lane, V=lvec, M=nine, SM=nine, load9=load9, store9=store9, const=const, load3=load3,
+                           add=nat.add, sub=nat.sub, mul=nat.mul, div=nat.div, sqrt=nat.sqrt, max=nat.max,
+                           where_pos=where_pos, vadd=f.vadd, vsub=f.vsub, vscl=vscl, vdot=vdot)
 
 
 @functools.cache
@@ -618,7 +638,7 @@ def _segment_pass(scalar, lanes: int, maps: bool):
     g = _segment_values(scalar, lanes)
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
-    L, V, M = g.L, g.V, g.M
+    L, V, M, SM = g.L, g.V, g.M, g.SM
     const, add, sub, mul, div, sqrt, vmax, where_pos = g.const, g.add, g.sub, g.mul, g.div, g.sqrt, g.max, g.where_pos
     vadd, vsub, vscl, vdot, load3, store9 = g.vadd, g.vsub, g.vscl, g.vdot, g.load3, g.store9
     MAPS = maps
@@ -653,8 +673,8 @@ def _segment_pass(scalar, lanes: int, maps: bool):
     @wp.func
     def store_segments(p0: int, count: int, particle_q: wp.array(dtype=vec3), particle_qd: wp.array(dtype=vec3),
                        particle_dv: wp.array(dtype=vec3), stiffness: scalar, rest_length: scalar, dt: scalar,
-                       segment_parts: wp.array(dtype=mat33), segment_e: wp.array(dtype=mat33),
-                       segment_c: wp.array(dtype=mat33)):
+                       segment_parts: wp.array(dtype=SM), segment_e: wp.array(dtype=SM),
+                       segment_c: wp.array(dtype=SM)):
         zero = const(scalar(0.0))
         one = const(scalar(1.0))
         ks = const(stiffness)
