@@ -19,11 +19,10 @@ springs only (a tension-only model is refused: the active-set step has no tangen
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
 differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py --repeats 5 --clock cpu`` (thread CPU time under load 1.9:
-P = 1, 4, 12, 16 tangents cost 2.47, 3.64, 7.09, 8.32 laned forward rollouts with the directions in
-SIMD lanes for P >= 2, 2.43, 6.05, 13.76, 17.48 one direction at a time; the issue's 1 + 0.5 P =
-1.5, 3, 7, 9 met at P = 16, P = 12 just short: ``kernels/string_step_tangent``'s doc says where it
-goes).
+``benchmarks/bench_string_tangent.py --repeats 5 --clock cpu`` (thread CPU time under load 2.3:
+P = 1, 4, 12, 16 tangents cost 2.42, 3.29, 6.59, 7.63 laned forward rollouts with the directions in
+SIMD lanes for P >= 2, 2.39, 5.75, 13.00, 16.78 one direction at a time; the issue's 1 + 0.5 P =
+1.5, 3, 7, 9 met at P = 12 and 16: ``kernels/string_step_tangent``'s doc says where it goes).
 """
 
 from __future__ import annotations

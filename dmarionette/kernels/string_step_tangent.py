@@ -64,40 +64,43 @@ diagonal term's coefficients gathered, ``h^2 K - h k_f I`` as one product).
 
 Cost (``PYTHONPATH=$PWD python benchmarks/bench_string_tangent.py --repeats 5 --clock cpu``, the
 ``strings`` scene's six strings of 50 particles, 1,000 steps, thread CPU time, 2-core machine under
-load 1.9 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.47, 3.64, 7.09, 8.32 laned
-forward rollouts (``--no-lanes``, one direction at a time: 2.43, 6.05, 13.76, 17.48); with wall time
-(the default clock) 2.41, 3.65, 7.32, 8.37, against 3.86, 5.44, 11.63, 15.09 before this layout
-(commit f0b0766, run just before in the same session; 3.97-4.09, 5.67-5.97, 12.19-12.28, 15.21-15.59
-in two earlier sessions). The issue's 1 + 0.5 P = 1.5, 3, 7, 9: met at P = 16, P = 12 just short
-(7.1-7.3), not at P = 1, 4. Where it goes (1,000 captured steps each, in laned forward rollouts of
-~6.7 ms, load ~2): the laned forward with ``keep`` 0.9; this kernel's fixed part 0.25-0.3 (the
-segment pass with the spring parts), 0.9-1.0 with the linear maps; then each direction 1.4 (P = 1,
-scalar), 0.59 (groups of 4 from the spring tangents), 0.48 (groups of 8, spring tangents), 0.40
-(groups of 8, maps), ~0.6 (a second launch of 4, maps); the upload of the per-step tangents and the
-download of the tie forces' 0.05-0.4. Each change on its own (the tangent rollout of P = 1, 4, 12,
-16 in ms, one after the other, load 1.0-1.8; the first five with wall time, the rest thread CPU
-time): reading the laned factorisation in place instead of unpacking it, 27.3, 39.8, 85.5, 106.7 ->
-24.9, 35.4, 79.3, 101.1; each segment's spring parts and part of ``r`` once (not once per row side)
--> 22.1, 34.4, 76.8, 99.0; the friction folded into the segment, ``A_{p,p-1}`` as one product ->
-20.2, 32.3, 70.0, 91.4; the back substitution per group, fused with ``v1'``, ``x1'`` -> 19.2, 29.8,
-63.6, 81.5; the directions outside the row loop (constants once per group, ``x'``, ``v'``, ``c``,
-``y`` in registers) -> 18.9, 26.1, 58.3, 74.5; the linear maps from two groups on and the rows'
-diagonal terms by coefficients -> 18.0, 26.9, 56.8, 68.5; 8 lanes where cheaper -> 17.7, 25.9, 54.3,
-58.3; then, tangent kernel alone (1,000 steps, two interleaved A/B runs each): the segment pass with
-one division, P = 4 19.0, 19.1 -> 18.3, 17.7; launches of 8, then 4, then 1 lanes, P = 9 46.6, 45.1
--> 38.2, 40.0 and P = 12 47.7, 46.1 -> 45.2, 45.4; the segment pass on lanes of segments, P = 12
-46.1, 47.2 -> 42.5, 42.8 and P = 16 54.7, 53.0 -> 52.5, 49.0 (P = 1, 4 unchanged). Tried and dropped
-(no gain beyond the noise): the gathers' addresses with one multiply per access instead of one per
-lane (~3 %), ``y``, ``v0'``, ``x0'`` kept contiguous per group for the back substitution instead of
-gathered again, the segments' ``h^2 K - h k_f I`` stored as a matrix, ``E`` built entry by entry or
-from precomputed scaled vectors, the (scalar) segment pass two segments per iteration. Measured
-pieces at P = 12 (tangent kernel 47.5 ms; removing each, results wrong, as an experiment): the back
-substitution 10.4, the rows' diagonal terms 4.9, the maps' products ``E e' + C k'`` 5.1, the fixed
-part 9.2 (then a scalar segment pass). What is left is mostly per direction: the lane gathers and
-scatters of the ``(P, N)`` vec3 arrays (nine per row and group); a direction-minor layout of the
-tangent arrays would make them plain loads, and P = 1 would need the strings in lanes (as the
-forward has them) rather than the directions. The linear maps at P = 2-4 (one group) measured ~1 ms
-dearer than the spring tangents.
+load 2.3 from other work): a rollout of P = 1, 4, 12, 16 tangents costs 2.42, 3.29, 6.59, 7.63 laned
+forward rollouts (``--no-lanes``, one direction at a time: 2.39, 5.75, 13.00, 16.78); with wall time
+(the default clock) 2.47, 3.38, 6.67, 7.61, against 4.04, 5.55, 12.33, 15.54 before this layout
+(commit f0b0766, run just before in the same session; 3.86-4.09, 5.44-5.97, 11.63-12.28, 15.09-15.59
+in three earlier sessions). The issue's 1 + 0.5 P = 1.5, 3, 7, 9: met at P = 12 and 16, not at P =
+1, 4. Where it goes (1,000 captured steps each, in laned forward rollouts of ~6.85 ms, load ~2.2):
+the laned forward with ``keep`` 0.86; this kernel's fixed part 0.15 (the segment pass with the
+spring parts, on lanes of segments; 0.26 one segment at a time, P = 1), 0.6 with the linear maps;
+then each direction 1.33 (P = 1, scalar), 0.57 (a group of 4, spring tangents), 0.48 (groups of 8,
+spring tangents), 0.44 (8 + 4, maps), 0.39 (groups of 8, maps); the upload of the per-step tangents
+and the download of the tie forces' 0.05-0.35. Each change on its own (the tangent rollout of P = 1,
+4, 12, 16 in ms, one after the other, load 1.0-1.8; the first five with wall time, the rest thread
+CPU time): reading the laned factorisation in place instead of unpacking it, 27.3, 39.8, 85.5, 106.7
+-> 24.9, 35.4, 79.3, 101.1; each segment's spring parts and part of ``r`` once (not once per row
+side) -> 22.1, 34.4, 76.8, 99.0; the friction folded into the segment, ``A_{p,p-1}`` as one product
+-> 20.2, 32.3, 70.0, 91.4; the back substitution per group, fused with ``v1'``, ``x1'`` -> 19.2,
+29.8, 63.6, 81.5; the directions outside the row loop (constants once per group, ``x'``, ``v'``,
+``c``, ``y`` in registers) -> 18.9, 26.1, 58.3, 74.5; the linear maps from two groups on and the
+rows' diagonal terms by coefficients -> 18.0, 26.9, 56.8, 68.5; 8 lanes where cheaper -> 17.7, 25.9,
+54.3, 58.3; then, tangent kernel alone (1,000 steps, two interleaved A/B runs each): the segment
+pass with one division, P = 4 19.0, 19.1 -> 18.3, 17.7; launches of 8, then 4, then 1 lanes, P = 9
+46.6, 45.1 -> 38.2, 40.0 and P = 12 47.7, 46.1 -> 45.2, 45.4; the segment pass on lanes of segments,
+P = 12 46.1, 47.2 -> 42.5, 42.8 and P = 16 54.7, 53.0 -> 52.5, 49.0 (P = 1, 4 unchanged); the laned
+pass keeping each group of 4 segments as one 9 x 4 block, P = 4 18.5, 19.1 -> 16.8, 17.0, P = 12
+43.6, 42.4 -> 40.7, 40.6, P = 16 52.9, 51.3 -> 47.7, 47.7. Tried and dropped (no gain beyond the
+noise): the gathers' addresses with one multiply per access instead of one per lane (~3 %), ``y``,
+``v0'``, ``x0'`` kept contiguous per group for the back substitution instead of gathered again, the
+segments' ``h^2 K - h k_f I`` stored as a matrix, ``E`` built entry by entry or from precomputed
+scaled vectors, the (scalar) segment pass two segments per iteration. Measured pieces at P = 12
+(tangent kernel 47.5 ms; removing each, results wrong, as an experiment): the back substitution
+10.4, the rows' diagonal terms 4.9, the maps' products ``E e' + C k'`` 5.1, the fixed part 9.2 (then
+a scalar segment pass, one mat33 per segment). What is left is mostly per direction: the lane
+gathers and scatters of the ``(P, N)`` vec3 arrays (nine per row and group); a direction-minor
+layout of the tangent arrays would make them plain loads, and P = 1 would need the strings in lanes
+(as the forward has them) rather than the directions. With one group of directions (P = 2-8) the
+linear maps and the spring tangents now tie (measured within 1 ms); the spring tangents are kept
+there.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
