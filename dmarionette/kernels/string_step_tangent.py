@@ -230,7 +230,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         tie_qd_dot: wp.array2d(dtype=vec3),
         particle_mass_dot: wp.array2d(dtype=scalar),
         string_constants_dot: wp.array3d(dtype=scalar),
-        # Tangent out (first a scratch: each segment's E, W, C, written and read within the launch):
+        # Tangent out (first a scratch: each segment's spring parts, E, C, written and read within the step):
         segment_parts: wp.array(dtype=SM),
         segment_e: wp.array(dtype=SM),
         segment_c: wp.array(dtype=SM),
@@ -272,7 +272,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         #     c = K' s + (h^2 K - h k_f I) (v_p' - v_{p+1}') + h f' - h k_f' z
         #       = E e' + W (v_p' - v_{p+1}') + C (k_s', d', k_f'),
         #     E = k_s G (u (u.s) - s) u^T + (alpha / l) ((u.s) I + u s^T) P - h k_s (u u^T + ((l - d) / l) P)
-        #     W = h^2 alpha u u^T + (h^2 beta - h k_f) I   (= A_{p,p+1}, the next row's lower block),
+        #     W = h^2 alpha u u^T + (h^2 beta - h k_f) I   (= A_{p,p+1}; applied from the parts, not stored),
         #     C = [-(1 - g) (u.s) u - g s - h (l - d) u,  k_s D (u (u.s) - s) + h k_s u,  -h z],
         # with g' = G l' + D d' (G = d / l^2, D = -1 / l while 1 - d/l > 0, else 0: the clamp's flat
         # side), from l' = u.e', u' = P e' / l, alpha' = -(1 - g) k_s' + k_s g', beta' = -g k_s' - k_s g',
