@@ -115,7 +115,9 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
+from .lane_ops import native_lane_memory, native_lane_ops
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
+from .string_step_lanes import lane_step_functions, lane_types
 from .tangent_directions import tangent_directions
 
 __all__ = ["CONSTANTS", "DIRECTION_LANES", "WIDE_DIRECTION_LANES", "direction_chunks", "lane_factor_rows",
@@ -580,9 +582,6 @@ def _segment_values(scalar, lanes: int) -> SimpleNamespace:
                                vadd=vadd, vsub=vsub, vscl=vscl, vdot=vdot)
     if scalar is not wp.float64:
         raise TypeError(f"the segment pass in lanes: float64 only, got {scalar}")
-    from .lane_ops import native_lane_memory, native_lane_ops
-    from .string_step_lanes import lane_step_functions, lane_types
-
     lane, ivec, lvec, _lmat = lane_types(lanes)
     nine = wp.types.matrix((9, lanes), wp.float64)
     nat = native_lane_ops(lanes)
