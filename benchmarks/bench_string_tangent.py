@@ -9,12 +9,12 @@ Timed (median of ``--repeats`` runs after an untimed warm-up, spread printed):
 - the plain forward rollout (``StringRollout``, captured chunks of 100 steps), with the laned step
   (the default) and with the scalar one-launch step (``lanes = False``);
 - ``StringRolloutTangent`` with P = 1, 4, 12, 16 directions (every input group: initial state,
-  masses, constants, tops and tie targets per step): the forward (the laned step with ``keep``,
-  its factorisation unpacked) and the P tangents (one launch per step), in captured chunks of 100
+  masses, constants, tops and tie targets per step): the forward (the laned step with ``keep``)
+  and the P tangents (one launch per chunk of directions per step), in captured chunks of 100
   steps, including the upload of the per-step tangents and the download of the tie forces' tangents;
-  the tangent kernel as ``StringRolloutTangent`` chooses it (4 directions per SIMD lane vector
-  for P >= 2, the scalar kernel for P = 1), or with ``--no-lanes`` one direction at a time (the
-  scalar tangent kernel) for every P.
+  the tangent kernel as ``StringRolloutTangent`` chooses it (4 or 8 directions per SIMD lane
+  vector for P >= 2, ``string_step_tangent.direction_chunks``, the scalar kernel for P = 1), or
+  with ``--no-lanes`` one direction at a time (the scalar tangent kernel) for every P.
 
 The issue's target: P tangents cost at most (1 + 0.5 P) x one forward rollout (P <= 16). The
 ratio is printed against both forwards (the laned default is the harder reference).

@@ -2,13 +2,14 @@
 
 Issue 13, item 4 (the strings; the puppet, the coupling and the bar feedback have no tangent yet).
 :class:`StringStepTangent` runs one step of a :class:`SolverStringImplicit` forward keeping its
-factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` unpacked into the scalar
-layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``) and then
-the step's tangent-linear model for P directions in one launch (``kernels/string_step_tangent``:
-a substitution with the stored factorisation; on the CPU in float64, 4 directions per SIMD lane
-vector, ``kernels/tangent_directions``). :class:`StringRolloutTangent` carries P tangents
-through ``T`` steps with prescribed motion (tops and tie targets given per step), as
-``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
+factorisation (the laned step with ``keep``, its pivot inverses and ``C'`` read by the tangent in
+the laned layout, where the solver's lanes are on; else the one-launch scalar step with ``keep``)
+and then the step's tangent-linear model for P directions (``kernels/string_step_tangent``: a
+substitution with the stored factorisation; on the CPU in float64, 4 or 8 directions per SIMD lane
+vector, ``kernels/tangent_directions``, one launch per chunk of 8, 4 or 1 directions,
+``direction_chunks``). :class:`StringRolloutTangent` carries P tangents through ``T`` steps with
+prescribed motion (tops and tie targets given per step), as ``StringRollout`` runs the plain steps:
+chunks of steps captured once as a Warp graph and replayed.
 
 What is differentiated, per direction (:class:`StringTangentInputs`): the initial positions and
 velocities, the particle masses, each string's constants (``kernels.string_step_tangent.CONSTANTS``
@@ -18,10 +19,10 @@ springs only (a tension-only model is refused: the active-set step has no tangen
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
 differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py`` (thread CPU time under load 1.3-1.7, medians of three
-interleaved runs: P = 1, 4, 12, 16 tangents cost 4.2-4.7, 6.5, 12.9, 16.2 laned forward rollouts
-with the directions in SIMD lanes for P >= 2, 4.2, 8.2, 23.4, 28.9 one direction at a time; short of
-the issue's 1 + 0.5 P = 1.5, 3, 7, 9: ``kernels/string_step_tangent``'s doc says where it goes).
+``benchmarks/bench_string_tangent.py --repeats 5 --clock cpu`` (thread CPU time under load 2.3:
+P = 1, 4, 12, 16 tangents cost 2.42, 3.29, 6.59, 7.63 laned forward rollouts with the directions in
+SIMD lanes for P >= 2, 2.39, 5.75, 13.00, 16.78 one direction at a time; the issue's 1 + 0.5 P =
+1.5, 3, 7, 9 met at P = 12 and 16: ``kernels/string_step_tangent``'s doc says where it goes).
 """
 
 from __future__ import annotations
@@ -33,8 +34,8 @@ import warp as wp
 
 from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
-from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, string_step_tangent_kernel,
-                                                     unpack_lane_factorisation_kernel)
+from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_chunks, lane_factor_rows,
+                                                     string_step_tangent_kernel)
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
@@ -49,10 +50,11 @@ class StringStepTangent:
     Args:
         solver: the stepper (printed springs; its effects choose the kernels).
         directions: the number of tangent directions ``P``.
-        lanes: the tangent kernel with ``DIRECTION_LANES`` directions in SIMD lanes
-            (``kernels/tangent_directions``: float64 on the CPU; the same tangents to rounding), else
-            one direction at a time. Default: in lanes where supported and ``P >= 2`` (one direction
-            alone fills one lane of four: measured ~1.35x slower than the scalar kernel; P = 2 ties).
+        lanes: the tangent kernel with 4 or 8 directions in SIMD lanes
+            (``kernels.string_step_tangent.direction_chunks``; ``kernels/tangent_directions``: float64
+            on the CPU; the same tangents to rounding), else one direction at a time. Default: in
+            lanes where supported and ``P >= 2`` (one direction alone fills one lane of four: its
+            tangent kernel measured ~1.6x the scalar one's).
     """
 
     def __init__(self, solver: SolverStringImplicit, directions: int, lanes: bool | None = None):
@@ -69,10 +71,32 @@ class StringStepTangent:
         if lanes and not supported:
             raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
         self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
-        self.kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(),
-                                                 DIRECTION_LANES if self.lanes else 1)
+        # One launch per chunk of directions (in lanes: 8, then 4, then one alone, ``direction_chunks``),
+        # the first computing the segments' parts for the others; the segments' linear maps where
+        # there is more than one group of directions per string in all (built once per step, they
+        # cost more than one group saves; ``kernels/string_step_tangent``).
+        chunks = direction_chunks(self.directions) if self.lanes else [(1, self.directions)]
+        self.maps = sum(-(-count // lanes) for lanes, count in chunks) > 1
+        self._launches = []
+        first = 0
+        # The segment pass on lanes of 4 segments where the directions are in lanes (float64 CPU),
+        # its results in that laned layout for every launch of the step.
+        segment_lanes = DIRECTION_LANES if self.lanes else 1
+        for lanes, count in chunks:
+            kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), lanes,
+                                                LANES if solver.lanes else 0, self.maps, first == 0, segment_lanes)
+            self._launches.append((kernel, first, count))
+            first += count
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
-        self._unpack = unpack_lane_factorisation_kernel(LANES) if solver.lanes else None
+        # Where the tangent finds each string's rows of the kept factorisation (laned: its group's rows, its lane).
+        rows = np.zeros((2, model.string_count), dtype=np.int32)
+        if solver.lanes:
+            rows[:] = lane_factor_rows(model.string_start.numpy(), *(a.numpy() for a in solver.lane_group_arrays),
+                                       model.string_count)
+        self._factor_row, self._factor_lane = (wp.array(r, dtype=wp.int32, device=model.device) for r in rows)
+        # Each segment's spring parts and linear maps (E, C), computed once per step by the tangent kernel.
+        segment_type = model.mat33 if segment_lanes == 1 else wp.types.matrix((9, segment_lanes), wp.float64)
+        self._segments = [wp.zeros(model.particle_count, dtype=segment_type, device=model.device) for _ in range(3)]
 
     def zeros(self, count: int, dtype=None) -> wp.array:
         """A ``(P, count)`` tangent array (vec3 by default)."""
@@ -94,28 +118,32 @@ class StringStepTangent:
         ws = self.workspace
         if self.solver.lanes:
             # The laned step keeping its factorisation (the scalar step's numbers bit for bit, about 2x
-            # faster), unpacked into the scalar layout the tangent reads (the solver's lane plan).
+            # faster); the tangent reads it in the laned layout.
             self.solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
-            groups = self.solver.lane_group_arrays
-            wp.launch(self._unpack, dim=groups[1].shape[0],
-                      inputs=[*groups, m.string_start, ws.lane_inverse, ws.lane_c],
-                      outputs=[ws.scratch_inverse, ws.scratch_c], device=m.device, record_tape=False)
+            inverse, c = ws.lane_inverse, ws.lane_c
         else:
             self.solver.integrate_string_implicit(state_in, state_out, control, h, ws, keep=True)
-        wp.launch(
-            self.kernel,
-            dim=m.string_count,
-            inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
-                    m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
-                    m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
-                    m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd, ws.scratch_inverse, ws.scratch_c, ws.particle_dv,
-                    state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
-                    q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot],
-            outputs=[q_out_dot, qd_out_dot, tie_force_dot],
-            device=m.device,
-            record_tape=False,
-        )
+            inverse, c = ws.scratch_inverse, ws.scratch_c
+        tangents_in = (q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot)
+        tangents_out = (q_out_dot, qd_out_dot, tie_force_dot)
+        for kernel, first, count in self._launches:
+            chunk = slice(first, first + count)
+            whole = count == self.directions
+            wp.launch(
+                kernel,
+                dim=m.string_count,
+                inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                        m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
+                        m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
+                        m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
+                        state_in.particle_q, state_in.particle_qd, inverse, c, self._factor_row, self._factor_lane,
+                        ws.particle_dv,
+                        state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q, control.tie_qd, h,
+                        *(a if whole else a[chunk] for a in tangents_in)],
+                outputs=[*self._segments, *(a if whole else a[chunk] for a in tangents_out)],
+                device=m.device,
+                record_tape=False,
+            )
 
 
 @dataclasses.dataclass

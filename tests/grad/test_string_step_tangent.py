@@ -98,8 +98,8 @@ def _directions(model, scale, groups_per_direction, rng):
 
 def _tangent(model, problem, directions, lanes=True, tangent_lanes=None):
     """The tangent kernel: (x1', v1', F') per direction, and the step's outputs (the forward: the
-    laned step, its factorisation unpacked, or the scalar one; the tangent: ``tangent_lanes``, by
-    default the directions in SIMD lanes where supported)."""
+    laned step, its factorisation read in the laned layout, or the scalar one; the tangent:
+    ``tangent_lanes``, by default the directions in SIMD lanes where supported)."""
     solver = SolverStringImplicit(model)
     solver.lanes = lanes
     p = len(directions)
@@ -163,7 +163,7 @@ def _check_identity(model, problem, scale, groups_per_direction, seed, lanes=Tru
         assert gap < TOLERANCE
 
 
-@pytest.mark.parametrize("directions", [1, 4, 7])
+@pytest.mark.parametrize("directions", [1, 4, 7, 9])
 def test_tangent_and_adjoint_satisfy_the_dot_product_identity(directions):
     model = _model()
     problem, scale = _problem(model)
@@ -177,14 +177,16 @@ def test_tangent_and_adjoint_agree_in_each_input_group(lanes):
     _check_identity(model, problem, scale, [(name,) for name in GROUPS], seed=17, lanes=lanes)
 
 
-@pytest.mark.parametrize("directions", [1, 3, 4, 7, 16])
+@pytest.mark.parametrize("directions", [1, 3, 4, 7, 9, 12, 16])
 def test_laned_and_scalar_tangents_agree(directions):
-    """The directions in SIMD lanes (4 per lane vector, P padded up to a multiple of 4) against one
-    at a time, every input group in every direction: the same operations in the same order
-    (``tangent_directions``), so equal up to rounding differences a compiler may introduce
-    (contraction into fma; none seen here); asserted to 1e-13 of each output's largest entry per
-    direction (rounding through the substitution, a few hundred eps at most). P = 1, 3, 7 have
-    padding lanes, which write nothing (``_tangent`` checks the rows after the P outputs stay zero)."""
+    """The directions in SIMD lanes (launches of 8, then 4 per lane vector, the last direction
+    alone, ``direction_chunks``, each chunk padded up to its lanes; P = 12: 8 + 4, P = 9: 8 + 1)
+    against one at a time, every input group in every direction: the same operations in the same
+    order (``tangent_directions``; with more than one group of directions per string both take
+    the segments' linear maps; where the lanes have one group, P = 3, 4, 7, they take the spring
+    tangents instead: another order), so equal up to rounding; asserted to 1e-13 of each output's largest entry per direction
+    (rounding through the substitution, a few hundred eps at most). P = 1, 3, 7, 9 have padding
+    lanes, which write nothing (``_tangent`` checks the rows after the P outputs stay zero)."""
     model = _model()
     problem, scale = _problem(model)
     rng = np.random.default_rng(23)
