@@ -4,7 +4,9 @@ source-to-source transformation: each statement's primal, then its tangent.
 Warp's tape is reverse mode only. :func:`tangent_kernel` parses a kernel's Python source
 with :mod:`ast` and writes a kernel ``<key>_tangent`` that runs one thread per (direction,
 original thread): ``wp.tid()`` gains a leading direction index, so the launch is
-``dim = (P, *dim)`` and loops need no per-direction storage. Control flow is kept as it
+``dim = (P, *dim)`` and loops need no per-direction storage (or, ``unroll``, a kernel
+``<key>_tangent_w<w>`` that runs the primal once for a block of ``w`` directions: "Two layouts"
+below). Control flow is kept as it
 is (forward mode needs no tape): ``if``/``for`` (static or dynamic bounds), early
 ``return``, ``+=`` on locals, element writes of local vectors and matrices. Every active
 value ``y`` gets its tangent ``tan_y`` right after it. Calls of project ``@wp.func``s
@@ -51,10 +53,24 @@ users are :class:`~dmarionette.articulation.step_tangent.PuppetStepTangent` and
 
 Why interleaved and not hand-written tangents: no derivative to keep in sync by hand (a
 change of a kernel changes its tangent), and the transformer is the one place where a rule
-lives. Why one thread per (direction, thread), not a direction loop: loops and branches stay
-as they are, with no per-direction storage of the loop's values; the price is the primal
-recomputed per direction (these kernels are a small part of a step: the dynamics and the
-string solve, which have their own tangents, dominate).
+lives.
+
+Two layouts (``unroll``). ``unroll = 0``: one thread per (direction, original thread), as above;
+loops and branches stay as they are with no per-direction storage, but every direction's thread
+evaluates the whole primal again. ``unroll = n > 0`` (what the callers use, :data:`UNROLL`): one
+thread per (block of ``w`` directions, original thread), ``w`` the largest divisor of P up to n
+(:meth:`TangentKernel.width`; one kernel per ``w``, built on first use): ``wp.tid()`` gains the
+block index ``_blk``, each primal statement is written once and each tangent statement ``w``
+times, once per direction, on locals of their own (``tan_y_d0`` ... ``tan_y_d<w-1>``; a jvp
+function takes and returns the ``w`` tangents of each active value). Control flow needs nothing
+more: the tangents of every direction live in the one thread that runs the primal's loops and
+branches, so every construct the one-direction layout handles (loops of data-dependent trip
+count carrying active values, early returns, atomics, element writes) is handled, and no kernel
+falls back. The primal is evaluated P / w times instead of P times; each direction's tangent
+statements are the same expressions on the same primal values as in the one-direction layout,
+and the generated kernels give the same primal and tangents bit for bit (tested). The price is
+code size (the tangent part ``w`` times) and a prime P above n runs ``w = 1``. The one-direction
+layout's source is unchanged by the option.
 
 Anything else (another builtin, ``**``, keyword arguments on an active call, an active
 ``if`` condition or index, a tuple returned into an expression) raises

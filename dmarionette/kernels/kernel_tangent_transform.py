@@ -18,7 +18,11 @@ active value ``y`` gets its tangent ``tan_y`` right after it, operands reduced t
 pattern of active arguments, emitted once, after their callees) returning the primal results, then
 the tangents of the active ones. ``wp.atomic_add(a, i.., x)``: also ``wp.atomic_add(tan_a, _dir,
 i.., x_t)``; ``a[i] = x``: also ``tan_a[_dir, i] = x_t``; the primal outputs are written by the
-direction-0 threads only.
+direction-0 threads only. Unrolled layout (``TangentBuilder(width)``): ``wp.tid()`` gains the
+block index ``_blk`` and the directions ``_dir_d<k> = _blk * width + k``; a tangent line carries a
+mark where the direction number goes and :meth:`TangentTransform.emit` writes it once per
+direction (locals ``tan_y_d<k>``); a jvp function takes and returns ``width`` tangents per active
+value (:meth:`TangentTransform.each_of`); the primal outputs are written by block 0.
 
 Anything else (``**``, keyword arguments on an active call, an active ``if`` condition or index, a
 tuple returned into an expression, another statement kind) raises
