@@ -59,7 +59,8 @@ Two layouts (``unroll``). ``unroll = 0``: one thread per (direction, original th
 loops and branches stay as they are with no per-direction storage, but every direction's thread
 evaluates the whole primal again. ``unroll = n > 0`` (what the callers use, :data:`UNROLL`): one
 thread per (block of ``w`` directions, original thread), ``w`` the largest divisor of P up to n
-(:meth:`TangentKernel.width`; one kernel per ``w``, built on first use): ``wp.tid()`` gains the
+(:meth:`TangentKernel.width`; one kernel per ``w``, built on first use; ``w = 1`` runs the
+one-direction layout's kernel, the same launch): ``wp.tid()`` gains the
 block index ``_blk``, each primal statement is written once and each tangent statement ``w``
 times, once per direction, on locals of their own (``tan_y_d0`` ... ``tan_y_d<w-1>``; a jvp
 function takes and returns the ``w`` tangents of each active value). Control flow needs nothing
@@ -211,12 +212,12 @@ def tangent_kernel(kernel, tangent_names=TANGENT_NAMES, unroll: int = 0) -> Tang
     names = frozenset(tangent_names)
     variants: dict = {}
 
-    def variant(width):
+    def variant(width):  # width 1: the one-direction layout's kernel (the same launch, (P, *dim))
         if width not in variants:
-            variants[width] = _build(kernel, names, width)
+            variants[width] = _build(kernel, names, width if width > 1 else None)
         return variants[width][0]
 
-    k, t, source = _build(kernel, names, int(unroll) or None)
+    k, t, source = _build(kernel, names, int(unroll) if unroll > 1 else None)
     if unroll:
         variants[int(unroll)] = (k, t, source)
     ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
