@@ -37,7 +37,7 @@ from dmarionette.articulation.solver import ArticulationControl, ArticulationSta
 from dmarionette.kernels.articulation_forces import eval_body_external_forces, eval_body_point_springs
 from dmarionette.kernels.articulation_tangent import build_articulation_tangent_kernels
 from dmarionette.kernels.body_load_tangent import apply_body_load_tangents
-from dmarionette.kernels.kernel_tangent import tangent_kernel
+from dmarionette.kernels.kernel_tangent import UNROLL, tangent_kernel
 
 __all__ = ["PuppetControlTangent", "PuppetStepTangent", "TangentState"]
 
@@ -108,10 +108,10 @@ class PuppetStepTangent:
         self.tan_body = self.body_tangents()
         self.tan_spring_force = wp.zeros((self.direction_count, self.world_count, max(m.spring_count, 1)),
                                          dtype=wp.vec3d, device=m.device)
-        self._forces = tangent_kernel(eval_body_external_forces)
-        self._springs = tangent_kernel(eval_body_point_springs)
+        self._forces = tangent_kernel(eval_body_external_forces, unroll=UNROLL)
+        self._springs = tangent_kernel(eval_body_point_springs, unroll=UNROLL)
         contacts = solver.contacts
-        self._contacts = [tangent_kernel(k) for k in contacts.kernels] if contacts.any else []
+        self._contacts = [tangent_kernel(k, unroll=UNROLL) for k in contacts.kernels] if contacts.any else []
         # the contacts' tangents of the last eval_contacts(..., keep=True) alone (for step(..., contacts_kept=True))
         self.kept_contacts = {n: wp.zeros((self.direction_count, self.world_count, m.body_count),
                                           dtype=getattr(self.workspace, n).dtype, device=m.device)

@@ -47,7 +47,7 @@ import warp as wp
 from dmarionette.articulation.step_tangent import PuppetStepTangent, TangentState
 from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
 from dmarionette.kernels.articulation_forces import eval_body_points
-from dmarionette.kernels.kernel_tangent import tangent_kernel
+from dmarionette.kernels.kernel_tangent import UNROLL, tangent_kernel
 from dmarionette.kernels.bar_feedback import eval_bar_feedback_kernel
 from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anchors_kernel,
                                                       eval_string_response_kernel, eval_tie_path)
@@ -140,15 +140,18 @@ class MarionetteTangent:
         self.puppet_control = self.puppet.control_tangent()  # zero but for the anchors
         self._zeros: dict = {}
         self._constants: dict = {}
-        self._points = tangent_kernel(eval_body_points)
-        self._tie_path = tangent_kernel(eval_tie_path)
-        self._anchors = tangent_kernel(apply_string_forces_to_anchors_kernel(m.substeps))
+        self._points = tangent_kernel(eval_body_points, unroll=UNROLL)
+        self._tie_path = tangent_kernel(eval_tie_path, unroll=UNROLL)
+        self._anchors = tangent_kernel(apply_string_forces_to_anchors_kernel(m.substeps), unroll=UNROLL)
         effects = m.scene.effects
         # the solver's kernels (the factories are cached: the same kernel objects)
+        # (each unrolled: the primal once per block of up to UNROLL directions, kernel_tangent)
         self._response = (tangent_kernel(eval_string_response_kernel(m.strings.scalar, effects.internal_friction,
-                                                                     m.substeps)) if len(m.spring_string) else None)
+                                                                     m.substeps), unroll=UNROLL)
+                          if len(m.spring_string) else None)
         self._feedback = (tangent_kernel(eval_bar_feedback_kernel(m.strings.scalar, effects.internal_friction,
-                                                                  effects.tension_only, bar_scalar=wp.float64))
+                                                                  effects.tension_only, bar_scalar=wp.float64),
+                                         unroll=UNROLL)
                           if m.scene.body_effects["feedback"] and m.bar_count else None)
 
     def tangent_state(self) -> MarionetteTangentState:

@@ -50,7 +50,7 @@ import warp as wp
 from dmarionette.capture import CapturedChunk
 from dmarionette.grad.marionette_tangent import MarionetteTangent
 from dmarionette.kernels.articulation_forces import eval_body_points
-from dmarionette.kernels.kernel_tangent import tangent_kernel
+from dmarionette.kernels.kernel_tangent import UNROLL, tangent_kernel
 from dmarionette.marionette.solver import MarionetteControl
 from dmarionette.strings.rollout import upload_values
 
@@ -106,7 +106,7 @@ class RolloutTangent:
                         **{k: wp.zeros((steps, n, max(c, 1)), dtype=wp.vec3d)
                            for k, c in (("tie_force", s), ("bar_feedback", b), ("bar_reaction", b))}}
             self.dot = {k: wp.zeros((a.shape[0], P, *a.shape[1:]), dtype=a.dtype) for k, a in self.out.items()}
-        self._points = tangent_kernel(eval_body_points)
+        self._points = tangent_kernel(eval_body_points, unroll=UNROLL)
         self._chunk: CapturedChunk | None = None  # built at the first jvp (its warm-up needs real inputs)
 
     def jvp(self, inputs, tangents: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:

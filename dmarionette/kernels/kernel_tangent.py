@@ -4,7 +4,9 @@ source-to-source transformation: each statement's primal, then its tangent.
 Warp's tape is reverse mode only. :func:`tangent_kernel` parses a kernel's Python source
 with :mod:`ast` and writes a kernel ``<key>_tangent`` that runs one thread per (direction,
 original thread): ``wp.tid()`` gains a leading direction index, so the launch is
-``dim = (P, *dim)`` and loops need no per-direction storage. Control flow is kept as it
+``dim = (P, *dim)`` and loops need no per-direction storage (or, ``unroll``, a kernel
+``<key>_tangent_w<w>`` that runs the primal once for a block of ``w`` directions: "Two layouts"
+below). Control flow is kept as it
 is (forward mode needs no tape): ``if``/``for`` (static or dynamic bounds), early
 ``return``, ``+=`` on locals, element writes of local vectors and matrices. Every active
 value ``y`` gets its tangent ``tan_y`` right after it. Calls of project ``@wp.func``s
@@ -51,10 +53,25 @@ users are :class:`~dmarionette.articulation.step_tangent.PuppetStepTangent` and
 
 Why interleaved and not hand-written tangents: no derivative to keep in sync by hand (a
 change of a kernel changes its tangent), and the transformer is the one place where a rule
-lives. Why one thread per (direction, thread), not a direction loop: loops and branches stay
-as they are, with no per-direction storage of the loop's values; the price is the primal
-recomputed per direction (these kernels are a small part of a step: the dynamics and the
-string solve, which have their own tangents, dominate).
+lives.
+
+Two layouts (``unroll``). ``unroll = 0``: one thread per (direction, original thread), as above;
+loops and branches stay as they are with no per-direction storage, but every direction's thread
+evaluates the whole primal again. ``unroll = n > 0`` (what the callers use, :data:`UNROLL`): one
+thread per (block of ``w`` directions, original thread), ``w`` the largest divisor of P up to n
+(:meth:`TangentKernel.width`; one kernel per ``w``, built on first use; ``w = 1`` runs the
+one-direction layout's kernel, the same launch): ``wp.tid()`` gains the
+block index ``_blk``, each primal statement is written once and each tangent statement ``w``
+times, once per direction, on locals of their own (``tan_y_d0`` ... ``tan_y_d<w-1>``; a jvp
+function takes and returns the ``w`` tangents of each active value). Control flow needs nothing
+more: the tangents of every direction live in the one thread that runs the primal's loops and
+branches, so every construct the one-direction layout handles (loops of data-dependent trip
+count carrying active values, early returns, atomics, element writes) is handled, and no kernel
+falls back. The primal is evaluated P / w times instead of P times; each direction's tangent
+statements are the same expressions on the same primal values as in the one-direction layout,
+and the generated kernels give the same primal and tangents bit for bit (tested). The price is
+code size (the tangent part ``w`` times) and a prime P above n runs ``w = 1``. The one-direction
+layout's source is unchanged by the option.
 
 Anything else (another builtin, ``**``, keyword arguments on an active call, an active
 ``if`` condition or index, a tuple returned into an expression) raises
@@ -73,7 +90,11 @@ from dmarionette.kernels.articulation_codegen import import_generated
 from dmarionette.kernels.kernel_tangent_transform import (TANGENT_PREFIX, TangentBuilder, TangentTransform,
                                                           parameter_groups)
 
-__all__ = ["TANGENT_NAMES", "TangentKernel", "tangent_kernel"]
+__all__ = ["TANGENT_NAMES", "TangentKernel", "UNROLL", "tangent_kernel"]
+
+# The callers' layout: up to this many directions per thread, the primal once per block
+# (:func:`tangent_kernel`'s ``unroll``; docs/gradients.md "Forward mode").
+UNROLL = 8
 
 # Array parameters whose tangents the kernels take (by name; every other input is a constant).
 TANGENT_NAMES = frozenset({
@@ -102,7 +123,8 @@ class TangentKernel:
         source: the generated source.
     """
 
-    def __init__(self, kernel, params, arrays, arguments, tangent_inputs, tangent_outputs, source):
+    def __init__(self, kernel, params, arrays, arguments, tangent_inputs, tangent_outputs, source, unroll=0,
+                 variant=None):
         self.kernel = kernel
         self.params = params
         self.arrays = arrays
@@ -110,6 +132,15 @@ class TangentKernel:
         self.tangent_inputs = tangent_inputs
         self.tangent_outputs = tangent_outputs
         self.source = source
+        self.unroll = unroll
+        self._variant = variant  # width -> the kernel unrolled over that many directions (unroll > 0)
+
+    def width(self, directions: int) -> int | None:
+        """The directions one thread runs for ``directions`` directions: None in the one-direction
+        layout (``unroll`` 0); else the largest divisor of ``directions`` up to ``unroll``."""
+        if not self.unroll:
+            return None
+        return max(w for w in range(1, min(self.unroll, int(directions)) + 1) if directions % w == 0)
 
     def launch(self, dim, directions: int, args: list | Mapping, tangents: Mapping, device=None) -> None:
         """Launches the primal pass and its tangents along ``directions`` directions.
@@ -140,8 +171,12 @@ class TangentKernel:
         _check_names(key, "tangent", tangents, self.tangent_inputs + self.tangent_outputs, self.arrays)
         values = dict(zip(self.params, args))
         values.update({f"{TANGENT_PREFIX}{n}": a for n, a in tangents.items()})
-        wp.launch(self.kernel, dim=(int(directions), *dim), inputs=[values[n] for n in self.arguments],
-                  device=device)
+        width = self.width(directions)
+        if width is None:
+            kernel, lead = self.kernel, int(directions)
+        else:
+            kernel, lead = self._variant(width), int(directions) // width
+        wp.launch(kernel, dim=(lead, *dim), inputs=[values[n] for n in self.arguments], device=device)
 
 
 def _check_names(key: str, what: str, given: Mapping, expected: list, allowed: list) -> None:
@@ -160,27 +195,48 @@ def _check_names(key: str, what: str, given: Mapping, expected: list, allowed: l
 _CACHE: dict = {}
 
 
-def tangent_kernel(kernel, tangent_names=TANGENT_NAMES) -> TangentKernel:
-    """The tangent kernel of a Warp kernel (cached per kernel and set of tangent names).
+def tangent_kernel(kernel, tangent_names=TANGENT_NAMES, unroll: int = 0) -> TangentKernel:
+    """The tangent kernel of a Warp kernel (cached per kernel, set of tangent names and ``unroll``).
 
     Args:
         kernel: a ``@wp.kernel`` (hand-written; closures are resolved).
         tangent_names: names of the array parameters whose tangents the kernel takes.
+        unroll: 0, one thread per (direction, thread), the primal recomputed per direction; n > 0, one
+            thread per (block of directions, thread), the primal evaluated once per block and each
+            tangent statement written once per direction of the block, blocks of up to n directions
+            (:meth:`TangentKernel.width`; one kernel per width, built on first use).
     """
-    key = (id(kernel), frozenset(tangent_names))
+    key = (id(kernel), frozenset(tangent_names), int(unroll))
     if key in _CACHE:
         return _CACHE[key]
-    b = TangentBuilder()
-    t = TangentTransform(b, kernel.func, set(), kernel=True, tangent_names=frozenset(tangent_names))
-    name = f"{kernel.key}_tangent"
+    names = frozenset(tangent_names)
+    variants: dict = {}
+
+    def variant(width):  # width 1: the one-direction layout's kernel (the same launch, (P, *dim))
+        if width not in variants:
+            variants[width] = _build(kernel, names, width if width > 1 else None)
+        return variants[width][0]
+
+    k, t, source = _build(kernel, names, int(unroll) if unroll > 1 else None)
+    if unroll:
+        variants[int(unroll)] = (k, t, source)
+    ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
+    arrays = [a for a in t.params if a in t.arrays]
+    result = TangentKernel(k, t.params, arrays, t.arguments, ins, list(t.outputs), source, int(unroll), variant)
+    _CACHE[key] = result
+    return result
+
+
+def _build(kernel, tangent_names: frozenset, width: int | None):
+    """(generated kernel, its transform, its source) of the one-direction layout (``width`` None) or
+    the layout unrolled over ``width`` directions."""
+    b = TangentBuilder(width)
+    t = TangentTransform(b, kernel.func, set(), kernel=True, tangent_names=tangent_names)
+    name = f"{kernel.key}_tangent" if width is None else f"{kernel.key}_tangent_w{width}"
     body = t.emit_kernel(name, parameter_groups(kernel.func))
     source = ("# Generated by dmarionette.kernels.kernel_tangent; do not edit.\n" + b.described_globals()
               + "import warp as wp\n\nwp.set_module_options({'enable_backward': False})\n\n\n"
               + "\n\n".join(b.funcs + [body]))
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
     module = import_generated(f"dmarionette_tangent_{kernel.key}_{digest}", source, b.env)
-    ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
-    arrays = [a for a in t.params if a in t.arrays]
-    result = TangentKernel(getattr(module, name), t.params, arrays, t.arguments, ins, list(t.outputs), source)
-    _CACHE[key] = result
-    return result
+    return getattr(module, name), t, source

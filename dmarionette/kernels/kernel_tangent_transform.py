@@ -18,7 +18,11 @@ active value ``y`` gets its tangent ``tan_y`` right after it, operands reduced t
 pattern of active arguments, emitted once, after their callees) returning the primal results, then
 the tangents of the active ones. ``wp.atomic_add(a, i.., x)``: also ``wp.atomic_add(tan_a, _dir,
 i.., x_t)``; ``a[i] = x``: also ``tan_a[_dir, i] = x_t``; the primal outputs are written by the
-direction-0 threads only.
+direction-0 threads only. Unrolled layout (``TangentBuilder(width)``): ``wp.tid()`` gains the
+block index ``_blk`` and the directions ``_dir_d<k> = _blk * width + k``; a tangent line carries a
+mark where the direction number goes and :meth:`TangentTransform.emit` writes it once per
+direction (locals ``tan_y_d<k>``); a jvp function takes and returns ``width`` tangents per active
+value (:meth:`TangentTransform.each_of`); the primal outputs are written by block 0.
 
 Anything else (``**``, keyword arguments on an active call, an active ``if`` condition or index, a
 tuple returned into an expression, another statement kind) raises
@@ -44,6 +48,8 @@ __all__ = ["TANGENT_PREFIX", "TangentBuilder", "TangentTransform", "parameter_gr
 _FunctionType = type(compute_spatial)  # warp's @wp.func object
 TANGENT_PREFIX = "tan_"
 _DIR = "_dir"
+_BLOCK = "_blk"  # the launch's leading index in the unrolled layout: the block of directions
+_MARK = "@D"  # in the unrolled layout, where a tangent line's direction number goes (``emit``)
 _TMP = "_tmp"
 _GLB = "_glb"
 _INACTIVE_CALLS = ("wp.tid", "wp.static", "wp.identity", "int", "float", "bool", "len", "range", "wp.int32")
@@ -77,7 +83,8 @@ def _describe(obj, depth: int = 0) -> str:
 class TangentBuilder:
     """One tangent module: the globals its source refers to and the functions it has generated."""
 
-    def __init__(self):
+    def __init__(self, width: int | None = None):
+        self.width = width  # None: one thread per (direction, thread); n: n directions unrolled per thread
         self.env: dict[str, object] = {}
         self.alias_of: dict[int, str] = {}
         self.funcs: list[str] = []
@@ -120,6 +127,7 @@ class TangentTransform:
 
     def __init__(self, builder: TangentBuilder, pyfunc, active_params: set, kernel: bool, tangent_names=()):
         self.b = builder
+        self.width = builder.width
         self.kernel = kernel
         self.where = pyfunc.__qualname__
         tree = ast.parse(textwrap.dedent(inspect.getsource(pyfunc)))
@@ -132,7 +140,8 @@ class TangentTransform:
         self.params = [a.arg for a in fn.args.args]
         self.locals = set(self.params) | {n.id for n in ast.walk(fn) if isinstance(n, ast.Name)
                                           and isinstance(n.ctx, ast.Store)}
-        clash = sorted(n for n in self.locals if n.startswith((TANGENT_PREFIX, _TMP, _GLB)) or n == _DIR)
+        clash = sorted(n for n in self.locals if n.startswith((TANGENT_PREFIX, _TMP, _GLB)) or n in (_DIR, _BLOCK)
+                       or n.startswith(_DIR + "_d"))
         if clash:
             raise TangentError(f"kernel_tangent: {self.where}: names {clash} clash with the tangent code's own")
         # Annotations are evaluated where the function is defined (a closure's are not cells): their objects.
@@ -320,13 +329,42 @@ class TangentTransform:
 
     # ------------------------------------------------------------ emission
     def emit(self, line: str, indent: int) -> None:
-        self.lines.append("    " * indent + line)
+        """Appends a line; in the unrolled layout a tangent line (one holding the mark) once per direction."""
+        for text in self.each(line):
+            self.lines.append("    " * indent + text)
+
+    def each(self, text: str) -> list[str]:
+        """``text`` for each direction of a thread: itself in the one-direction layout; in the unrolled
+        layout, once per direction with the mark replaced by the direction's number (``tan_y_d0``, ...)."""
+        if self.width is None or _MARK not in text:
+            return [text]
+        return [text.replace(_MARK, str(k)) for k in range(self.width)]
+
+    def each_of(self, texts) -> list[str]:
+        """Every item once per direction, in order (the tangents of one value together); an item without
+        the mark (a zero ``y - y``) is the same in every direction."""
+        if self.width is None:
+            return list(texts)
+        return [t.replace(_MARK, str(k)) for t in texts for k in range(self.width)]
+
+    def direction(self) -> str:
+        """The direction index of a tangent array's element, in a tangent line."""
+        return _DIR if self.width is None else f"{_DIR}_d{_MARK}"
+
+    def first(self) -> str:
+        """The condition of the threads that write the primal outputs."""
+        return f"{_DIR} == 0" if self.width is None else f"{_BLOCK} == 0"
 
     def temp(self) -> str:
         self.temps += 1
         return f"{_TMP}{self.temps}"
 
     def tan(self, name: str) -> str:
+        """The tangent of a local (in the unrolled layout: with the mark, one per direction)."""
+        return f"{TANGENT_PREFIX}{name}" if self.width is None else f"{TANGENT_PREFIX}{name}_d{_MARK}"
+
+    def tan_array(self, name: str) -> str:
+        """The tangent array of an array parameter (all directions along its leading axis)."""
         return f"{TANGENT_PREFIX}{name}"
 
     def atom(self, node: ast.AST, indent: int) -> tuple[str, str | None]:
@@ -337,7 +375,7 @@ class TangentTransform:
             if node.value.id not in self.active_arrays:
                 return _src(node), None
             idx = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
-            return _src(node), f"{self.tan(node.value.id)}[{', '.join([_DIR] + [_src(i) for i in idx])}]"
+            return _src(node), f"{self.tan_array(node.value.id)}[{', '.join([self.direction()] + [_src(i) for i in idx])}]"
         if isinstance(node, ast.Attribute):
             return _src(node), None
         prim, tan = self.lower(node, indent)
@@ -384,8 +422,8 @@ class TangentTransform:
                 _fail(self.where, node, "a function of several results in an expression")
             atoms = [self.atom(a, indent) for a in node.args]
             res = self.temp()
-            call = ", ".join([a for a, _ in atoms] + [t for _, t in atoms if t])
-            self.emit(f"{res}, {self.tan(res)} = {name}({call})", indent)
+            call = ", ".join([a for a, _ in atoms] + self.each_of(t for _, t in atoms if t))
+            self.emit(f"{', '.join([res] + self.each(self.tan(res)))} = {name}({call})", indent)
             return res, self.tan(res)
         atoms = [self.atom(a, indent) for a in node.args]
         args = [a for a, _ in atoms]
@@ -451,10 +489,10 @@ class TangentTransform:
         if isinstance(t, ast.Name) and isinstance(v, ast.Call) and _src(v.func) == "wp.tid":
             if not self.kernel:
                 _fail(self.where, v, "wp.tid outside a kernel")
-            self.emit(f"{_DIR}, {_src(t)} = wp.tid()", indent)
+            self.tid(_src(t), indent)
             return
         if isinstance(t, ast.Tuple) and isinstance(v, ast.Call) and _src(v.func) == "wp.tid":
-            self.emit(f"{_DIR}, {', '.join(_src(e) for e in t.elts)} = wp.tid()", indent)
+            self.tid(', '.join(_src(e) for e in t.elts), indent)
             return
         if isinstance(t, ast.Name):
             prim, tan = self.lower(v, indent)
@@ -477,9 +515,10 @@ class TangentTransform:
                 if len(out) != len(names):
                     _fail(self.where, v, f"{len(names)} targets for {len(out)} results")
                 atoms = [self.atom(a, indent) for a in v.args]
-                tnames = [self.tan(n) if n in self.active else self.temp() for n, a in zip(names, out) if a]
-                self.emit(f"{', '.join(names + tnames)} = "
-                          f"{name}({', '.join([a for a, _ in atoms] + [x for _, x in atoms if x])})", indent)
+                tnames = [self.tan(n) if n in self.active else self.temp_tangent() for n, a in zip(names, out) if a]
+                self.emit(f"{', '.join(names + self.each_of(tnames))} = "
+                          f"{name}({', '.join([a for a, _ in atoms] + self.each_of(x for _, x in atoms if x))})",
+                          indent)
             for n, a in zip(names, mask):
                 if n in self.active and not a:
                     self.emit(f"{self.tan(n)} = {self.zero(n)}", indent)
@@ -490,10 +529,10 @@ class TangentTransform:
             x, tx = self.atom(v, indent)
             arr = t.value.id
             if arr in self.arrays:
-                self.emit(f"if {_DIR} == 0:", indent)
+                self.emit(f"if {self.first()}:", indent)
                 self.emit(f"{_src(t)} = {x}", indent + 1)
                 idx = t.slice.elts if isinstance(t.slice, ast.Tuple) else [t.slice]
-                self.emit(f"{self.tan(arr)}[{', '.join([_DIR] + [_src(i) for i in idx])}] = "
+                self.emit(f"{self.tan_array(arr)}[{', '.join([self.direction()] + [_src(i) for i in idx])}] = "
                           f"{tx if tx is not None else self.zero(x)}", indent)
             else:
                 self.emit(f"{_src(t)} = {x}", indent)
@@ -508,10 +547,24 @@ class TangentTransform:
             _fail(self.where, call, "an atomic add to something other than a parameter array")
         x, tx = self.atom(value, indent)
         ids = [_src(i) for i in idx]
-        self.emit(f"if {_DIR} == 0:", indent)
+        self.emit(f"if {self.first()}:", indent)
         self.emit(f"wp.atomic_add({', '.join([arr.id] + ids + [x])})", indent + 1)
         if tx is not None:
-            self.emit(f"wp.atomic_add({', '.join([self.tan(arr.id), _DIR] + ids + [tx])})", indent)
+            self.emit(f"wp.atomic_add({', '.join([self.tan_array(arr.id), self.direction()] + ids + [tx])})", indent)
+
+    def tid(self, targets: str, indent: int) -> None:
+        """``wp.tid()`` with the leading direction index (one-direction layout) or the leading block of
+        ``width`` directions and their numbers (unrolled layout)."""
+        if self.width is None:
+            self.emit(f"{_DIR}, {targets} = wp.tid()", indent)
+            return
+        self.emit(f"{_BLOCK}, {targets} = wp.tid()", indent)
+        self.emit(f"{_DIR}_d{_MARK} = {_BLOCK} * {self.width} + {_MARK}", indent)
+
+    def temp_tangent(self) -> str:
+        """A temporary for an unused tangent result (one per direction in the unrolled layout)."""
+        name = self.temp()
+        return name if self.width is None else f"{name}_d{_MARK}"
 
     def ret(self, st: ast.Return, indent: int) -> None:
         if self.kernel:
@@ -522,7 +575,7 @@ class TangentTransform:
         elts = st.value.elts if isinstance(st.value, ast.Tuple) else [st.value]
         atoms = [self.atom(e, indent) for e in elts]
         tans = [(t if t is not None else self.zero(a)) for (a, t), m in zip(atoms, self.out_mask) if m]
-        self.emit(f"return {', '.join([a for a, _ in atoms] + tans)}", indent)
+        self.emit(f"return {', '.join([a for a, _ in atoms] + self.each_of(tans))}", indent)
 
     # ------------------------------------------------------------ definitions
     def _signature(self, extra: list[str]) -> list[str]:
@@ -530,7 +583,7 @@ class TangentTransform:
 
     def emit_function(self, name: str) -> str:
         self.statements(self.fn.body, 1)
-        extra = [f"{self.tan(n)}: {self.annotation_source(n)}" for n in self.params if n in self.active]
+        extra = self.each_of(f"{self.tan(n)}: {self.annotation_source(n)}" for n in self.params if n in self.active)
         head = ["@wp.func", f"def {name}(" + ", ".join(self._signature(extra)) + "):"]
         return "\n".join(head + self.lines) + "\n"
 
@@ -542,8 +595,8 @@ class TangentTransform:
         tan_in = [n for n in self.params if n in self.active_arrays and n not in self.outputs]
         inputs = [n for n in self.params if groups.get(n) in _INPUT_GROUPS]
         outputs = [n for n in self.params if n not in inputs]
-        order = [(groups.get(n), n) for n in inputs] + [("Tangent in", self.tan(n)) for n in tan_in]
-        order += [(groups.get(n), n) for n in outputs] + [("Tangent out", self.tan(n)) for n in self.outputs]
+        order = [(groups.get(n), n) for n in inputs] + [("Tangent in", self.tan_array(n)) for n in tan_in]
+        order += [(groups.get(n), n) for n in outputs] + [("Tangent out", self.tan_array(n)) for n in self.outputs]
         self.arguments = [n for _, n in order]
         head = ["@wp.kernel", f"def {name}("]
         group = None

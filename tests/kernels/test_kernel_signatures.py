@@ -225,7 +225,7 @@ def test_generated_kernel_tangents_are_clean(tmp_path, monkeypatch):
 
     from dmarionette.kernels.articulation_forces import eval_body_point_springs
     from dmarionette.kernels.bar_feedback import eval_bar_feedback_kernel
-    from dmarionette.kernels.kernel_tangent import tangent_kernel
+    from dmarionette.kernels.kernel_tangent import UNROLL, tangent_kernel
     from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anchors_kernel,
                                                           eval_string_response_kernel, eval_tie_path)
 
@@ -240,8 +240,9 @@ def test_generated_kernel_tangents_are_clean(tmp_path, monkeypatch):
     kernels = [eval_body_point_springs, ground, box, ball, eval_tie_path, apply_string_forces_to_anchors_kernel(3),
                eval_string_response_kernel(wp.float64, True, 3), eval_bar_feedback_kernel(wp.float64, True)]
     for kernel in kernels:
-        tangent = tangent_kernel(kernel, frozenset({"body_pos", "particle_q", "tie_q", "tie_target"}))
-        path = Path(sys.modules[tangent.kernel.func.__module__].__file__)
-        problems = lint.lint_paths([path])
-        assert not problems, "\n".join(map(str, problems))
-        assert "    # Tangent in:" in path.read_text() and "    # Tangent out:" in path.read_text()
+        for unroll in (0, UNROLL):  # both layouts (kernel_tangent)
+            tangent = tangent_kernel(kernel, frozenset({"body_pos", "particle_q", "tie_q", "tie_target"}), unroll)
+            path = Path(sys.modules[tangent.kernel.func.__module__].__file__)
+            problems = lint.lint_paths([path])
+            assert not problems, "\n".join(map(str, problems))
+            assert "    # Tangent in:" in path.read_text() and "    # Tangent out:" in path.read_text()

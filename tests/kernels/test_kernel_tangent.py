@@ -113,3 +113,84 @@ def test_launch_accepts_tangents_of_other_array_parameters():
     tangents["scale"] = wp.array(np.full((2, 3), np.nan), dtype=wp.float64, device="cpu")
     tk.launch(3, 2, [args[n] for n in tk.params], tangents, "cpu")
     assert np.isfinite(tangents["out"].numpy()).all()
+
+
+# ---------------------------------------------------------------- the unrolled layout (``unroll``)
+
+
+def _run_layout(tk, dim, args, tangents_in, P):
+    """Primal outputs and output tangents (numpy) of one launch of ``tk`` on copies of ``args``."""
+    values = {n: (wp.clone(v) if isinstance(v, wp.array) else v) for n, v in args.items()}
+    tan = {n: wp.array(tangents_in[n], dtype=args[n].dtype, device="cpu") for n in tk.tangent_inputs}
+    tan.update({n: wp.zeros((P, *args[n].shape), dtype=args[n].dtype, device="cpu") for n in tk.tangent_outputs})
+    tk.launch(dim, P, values, tan, "cpu")
+    return ({n: values[n].numpy() for n in tk.tangent_outputs}, {n: tan[n].numpy() for n in tk.tangent_outputs})
+
+
+@wp.func
+def compute_pair(x: wp.vec3d, k: wp.float64):
+    """Two results, a branch on the primal and an element write of a local vector."""
+    y = x
+    if x[0] > wp.float64(0.0):
+        y[1] = k * x[0] * x[2]
+    return wp.length(y), wp.cross(x, y)
+
+
+@wp.kernel
+def eval_mixed(
+    # Model:
+    point_body: wp.array(dtype=wp.int32),
+    # State in:
+    body_pos: wp.array(dtype=wp.vec3d),
+    body_v: wp.array(dtype=wp.vec3d),
+    # State out:
+    out: wp.array(dtype=wp.vec3d),
+    total: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()
+    acc = wp.vec3d()
+    s = wp.float64(0.0)
+    for j in range(point_body[i]):  # a loop of data-dependent trip count, carrying active values
+        r, c = compute_pair(body_pos[i] + wp.float64(j) * body_v[i], wp.float64(0.5))
+        acc += c
+        s = s + wp.max(r, wp.float64(0.5))
+    if s > wp.float64(2.5):
+        return
+    out[i] = acc
+    wp.atomic_add(total, 0, s * s)
+
+
+@pytest.mark.parametrize("P, unroll", [(6, 3), (4, 2), (5, 8), (1, 8)])
+def test_unrolled_layout_matches_the_one_direction_layout(P, unroll):
+    """The unrolled layout (primal once per block of ``width`` directions, each tangent statement once
+    per direction) against the one-direction layout, on a kernel with each construct the
+    transformation keeps (a loop whose trip count is data, carrying active values; a function of two
+    results with a branch and an element write; an early return; a switch; an atomic add of an output
+    both accumulate): the primal outputs bit for bit (the same statements on the same values, written
+    by the first block only) and the tangents bit for bit too (each direction's tangent statements are
+    the same expressions on the same primal values, only placed in one thread). The kernels the rollout
+    JVP runs are compared likewise in their dot-product tests (``tests/support/tangents``). P = 6 with
+    unroll 3 and P = 4 with unroll 2: two blocks each."""
+    n = 7
+    rng = np.random.default_rng(P)
+    args = {"point_body": wp.array(np.array([0, 1, 2, 3, 1, 2, 3], dtype=np.int32), dtype=wp.int32, device="cpu"),
+            "body_pos": wp.array(rng.standard_normal((n, 3)) * 0.4, dtype=wp.vec3d, device="cpu"),
+            "body_v": wp.array(rng.standard_normal((n, 3)) * 0.2, dtype=wp.vec3d, device="cpu"),
+            "out": wp.zeros(n, dtype=wp.vec3d, device="cpu"), "total": wp.zeros(1, dtype=wp.float64, device="cpu")}
+    old, new = tangent_kernel(eval_mixed), tangent_kernel(eval_mixed, unroll=unroll)
+    assert old.arguments == new.arguments and new.width(P) == min(unroll, P)
+    v = {name: rng.standard_normal((P, n, 3)) for name in old.tangent_inputs}
+    prim_old, tan_old = _run_layout(old, n, args, v, P)
+    prim_new, tan_new = _run_layout(new, n, args, v, P)
+    for name in old.tangent_outputs:
+        np.testing.assert_array_equal(prim_new[name], prim_old[name], err_msg=f"primal {name}")
+        assert np.abs(tan_old[name]).max() > 0.0, f"tangent {name} is zero (nothing compared)"
+        np.testing.assert_array_equal(tan_new[name], tan_old[name], err_msg=f"tangent {name}")
+
+
+def test_unrolled_width():
+    """The directions per thread: the largest divisor of P up to ``unroll`` (0: the one-direction layout)."""
+    tk = tangent_kernel(eval_scaled, unroll=8)
+    assert [tk.width(p) for p in (1, 4, 5, 12, 16, 13, 24)] == [1, 4, 5, 6, 8, 1, 8]
+    assert tangent_kernel(eval_scaled).width(16) is None
+    assert "_blk, i = wp.tid()" in tk.source and "tan_out[_dir_d7, i] = " in tk.source

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from dmarionette.kernels.kernel_tangent import tangent_kernel
+from dmarionette.kernels.kernel_tangent import UNROLL, tangent_kernel
 
 RTOL = 1e-10
 
@@ -37,11 +37,12 @@ def _numpy(a: wp.array) -> np.ndarray:
     return n.reshape(*a.shape, _components(a.dtype))
 
 
-def launch_tangent(kernel, dim, args: dict, tangents: dict, P: int) -> tuple[dict, dict]:
+def launch_tangent(kernel, dim, args: dict, tangents: dict, P: int, unroll: int = 0) -> tuple[dict, dict]:
     """Runs the tangent kernel of ``kernel`` on copies of ``args`` (name -> value; outputs hold their
     initial values) with the input tangents ``tangents`` (name -> numpy ``(P, *shape, comps)``; the
-    output tangents start at zero). Returns (primal outputs, output tangents) as numpy arrays."""
-    tk = tangent_kernel(kernel)
+    output tangents start at zero; ``unroll``: the layout, :func:`tangent_kernel`'s). Returns (primal
+    outputs, output tangents) as numpy arrays."""
+    tk = tangent_kernel(kernel, unroll=unroll)
     values = {n: (wp.clone(v) if isinstance(v, wp.array) else v) for n, v in args.items()}
     tan = {n: _as_array(tangents[n], args[n].dtype) for n in tk.tangent_inputs}
     for n in tk.tangent_outputs:
@@ -54,10 +55,16 @@ def launch_tangent(kernel, dim, args: dict, tangents: dict, P: int) -> tuple[dic
 
 def dot_product_check(kernel, dim, args: dict, P: int, rng) -> list[tuple[float, float, float]]:
     """The dot-product identity per direction: ``[(<u, J v_p>, <J^T u, v_p>, scale)]``; also asserts
-    that the tangent kernel's primal outputs equal the primal kernel's bit for bit."""
+    that the tangent kernel's primal outputs equal the primal kernel's bit for bit, and that the
+    unrolled layout (``UNROLL``: the P directions in one block) gives the same primal and tangents bit
+    for bit (the same statements on the same values; ``tests/kernels/test_kernel_tangent``)."""
     tk = tangent_kernel(kernel)
     v = {n: _random_like(args[n], rng, (P,)) for n in tk.tangent_inputs}
     prim, jv = launch_tangent(kernel, dim, args, v, P)
+    prim_u, jv_u = launch_tangent(kernel, dim, args, v, P, UNROLL)
+    for n in tk.tangent_outputs:
+        np.testing.assert_array_equal(prim_u[n], prim[n], err_msg=f"{kernel.key}: unrolled primal output {n}")
+        np.testing.assert_array_equal(jv_u[n], jv[n], err_msg=f"{kernel.key}: unrolled tangent of {n}")
     taped = {n: (wp.clone(a, requires_grad=a.dtype not in (wp.int32, wp.int64)) if isinstance(a, wp.array) else a)
              for n, a in args.items()}
     tape = wp.Tape()
