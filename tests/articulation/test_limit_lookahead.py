@@ -56,7 +56,6 @@ def _acceleration(model, solver, offset: float, rate: float, dt: float, torque: 
     return float(b.joint_qdd.numpy()[0, dof])
 
 
-@pytest.mark.xfail(strict=True, reason="issue 13: the look-ahead band also brakes motion away from a limit")
 @pytest.mark.parametrize("dt", [1.0 / 30.0, 1e-3, 1e-4])
 def test_moving_away_from_a_limit_is_not_braked(models, dt):
     on = _acceleration(*models[True], -INSIDE, -1.0, dt)
@@ -65,7 +64,6 @@ def test_moving_away_from_a_limit_is_not_braked(models, dt):
     assert on == pytest.approx(off, rel=1e-12, abs=1e-12)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 13: the look-ahead band also brakes motion away from a limit")
 @pytest.mark.parametrize("dt", [1.0 / 30.0, 1e-3])
 def test_the_band_is_switched_off_as_the_joint_moves_away(models, dt):
     """With a torque of 5 mN m pulling the elbow away from its upper limit: at rest 0.03 rad
