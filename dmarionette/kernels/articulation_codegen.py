@@ -67,10 +67,12 @@ LIMIT_BAND = 5e-2
 # from the limit over LIMIT_AWAY_SPEED [rad/s] (``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` at an
 # upper limit) unless the joint is within LIMIT_INNER of the limit or past it; a brake on the
 # step's *end* angle (``_limit_brake``) keeps the end angle LIMIT_INNER [rad] before the limit.
-LIMIT_AWAY_SPEED = 1e-1
-LIMIT_INNER = 1e-2
+LIMIT_AWAY_SPEED = float(os.environ.get("L6_AWAY", 1e-1))
+LIMIT_INNER = float(os.environ.get("L6_INNER", 1e-2))
 # The brake's largest weight (1: the limit's whole implicit part, ``c + k h``).
-LIMIT_BRAKE_MAX = 1.0
+LIMIT_BALL_ONE_SIDED = bool(int(os.environ.get("L6_BALL", 1)))
+LIMIT_PAST = bool(int(os.environ.get("L6_PAST", 1)))
+LIMIT_BRAKE_MAX = float(os.environ.get("L6_BMAX", 1.0))
 
 _Q_COUNT = {"free": 7, "ball": 4, "universal": 2, "hinge": 1}
 _QD_COUNT = {"free": 6, "ball": 3, "universal": 2, "hinge": 1}
@@ -399,6 +401,7 @@ def solve_body_dynamics(
         e(f"band = wp.float64({LIMIT_BAND!r})")
         e(f"away = wp.float64({LIMIT_AWAY_SPEED!r})")
         e(f"inner = wp.float64({LIMIT_INNER!r})")
+        e(f"pastw = wp.float64({1.0 if LIMIT_PAST else 0.0!r})")
         e("dl = limit_damping + h_implicit * limit_stiffness")
         e("hl = h_implicit * limit_damping + h_implicit * h_implicit * limit_stiffness")
         for b, j in enumerate(self.t.joints):
@@ -409,9 +412,9 @@ def solve_body_dynamics(
                     q = f"joint_q[w, {j.q_start + k}]"
                     e(f"qe{i} = {q} + h_implicit * qd{i}")
                     e(f"ua{i} = wp.max(wp.clamp(one + qd{i} / away, zero, one), "
-                      f"wp.clamp(({q} - dof_limit_upper[{i}]) / inner + one, zero, one))")
+                      f"pastw * wp.clamp(({q} - dof_limit_upper[{i}]) / inner + one, zero, one))")
                     e(f"la{i} = wp.max(wp.clamp(one - qd{i} / away, zero, one), "
-                      f"wp.clamp((dof_limit_lower[{i}] - {q}) / inner + one, zero, one))")
+                      f"pastw * wp.clamp((dof_limit_lower[{i}] - {q}) / inner + one, zero, one))")
                     e(f"up{i} = ua{i} * wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
                     e(f"lo{i} = la{i} * wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
                     e(f"tl{i} = tau{i} - kl * (wp.max({q} - dof_limit_upper[{i}], zero) + wp.min({q} - dof_limit_lower[{i}], zero)) - (up{i} + lo{i}) * dl * qd{i}")
@@ -428,8 +431,8 @@ def solve_body_dynamics(
                 e(f"n{b} = nv{b} / sn{b}")
                 e(f"om{b} = wp.vec3d(qd{d}, qd{d + 1}, qd{d + 2})")
                 e(f"rt{b} = h_implicit * wp.dot(n{b}, om{b})")
-                e(f"ba{b} = wp.max(wp.clamp(one + wp.dot(n{b}, om{b}) / away, zero, one), "
-                  f"wp.clamp((th{b} - dof_limit_upper[{d}]) / inner + one, zero, one))")
+                e(f"ba{b} = one") if not LIMIT_BALL_ONE_SIDED else e(f"ba{b} = wp.max(wp.clamp(one + wp.dot(n{b}, om{b}) / away, zero, one), "
+                  f"pastw * wp.clamp((th{b} - dof_limit_upper[{d}]) / inner + one, zero, one))")
                 e(f"ac{b} = ba{b} * wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
                 e(f"tb{b} = n{b} * (ac{b} * (-kl * wp.max(th{b} - dof_limit_upper[{d}], zero) - dl * wp.dot(n{b}, om{b})))")
                 for k in range(3):
@@ -496,7 +499,7 @@ def solve_body_dynamics(
                     tau[i] = f"tk{i}"
                     e(f"Hk{i}_{i} = {H[i, i]} + bw{i} * hl")
                     H[i, i] = f"Hk{i}_{i}"
-            elif j.type == "ball":
+            elif j.type == "ball" and LIMIT_BALL_ONE_SIDED:
                 nm = f"b{b}"
                 e(f"ta{nm} = h * (n{b}[0] * (qd{d} + h * {x[d]}) + n{b}[1] * (qd{d + 1} + h * {x[d + 1]}) "
                   f"+ n{b}[2] * (qd{d + 2} + h * {x[d + 2]}))")
