@@ -500,21 +500,26 @@ def solve_body_dynamics(
                     e(f"Hk{i}_{i} = {H[i, i]} + bw{i} * hl")
                     H[i, i] = f"Hk{i}_{i}"
             elif j.type == "ball" and LIMIT_BALL_ONE_SIDED:
+                # The cone: the end angle of the trial's rotation (integrated as the step does,
+                # so that a fast turn across the axis counts), an isotropic brake on the
+                # joint's angular velocity, and (H^-1) along the trial's end velocity.
                 nm = f"b{b}"
-                e(f"ta{nm} = h * (n{b}[0] * (qd{d} + h * {x[d]}) + n{b}[1] * (qd{d + 1} + h * {x[d + 1]}) "
-                  f"+ n{b}[2] * (qd{d + 2} + h * {x[d + 2]}))")
-                inverse_diagonal(nm, d + 2, {d + k: f"n{b}[{k}]" for k in range(3)})
+                s = j.q_start
+                e(f"tw{nm} = wp.vec3d(qd{d} + h * {x[d]}, qd{d + 1} + h * {x[d + 1]}, qd{d + 2} + h * {x[d + 2]})")
+                e(f"te{nm} = compute_quat_integrate(qb{b}, tw{nm}, h)")
+                e(f"ts{nm} = wp.where(te{nm}[3] < zero, -one, one)")
+                e(f"tn{nm} = compute_smooth_norm(wp.vec3d(te{nm}[0], te{nm}[1], te{nm}[2]) * ts{nm})")
+                e(f"ta{nm} = wp.float64(2.0) * wp.atan2(tn{nm}, te{nm}[3] * ts{nm}) - th{b}")
+                e(f"tu{nm} = tw{nm} / compute_smooth_norm(tw{nm})")
+                inverse_diagonal(nm, d + 2, {d + k: f"tu{nm}[{k}]" for k in range(3)})
                 e(f"bt{nm} = wp.max(h * dl * hi{nm}, btiny)")
                 e(f"gu{nm} = dof_limit_upper[{d}] - inner - th{b}")
                 e(f"bw{nm} = {weight(nm, f'ta{nm}', f'gu{nm}')}")
-                e(f"bf{nm} = bw{nm} * dl * wp.dot(n{b}, om{b})")
                 for k in range(3):
-                    e(f"tk{d + k} = {tau[d + k]} - bf{nm} * n{b}[{k}]")
+                    e(f"tk{d + k} = {tau[d + k]} - bw{nm} * dl * qd{d + k}")
                     tau[d + k] = f"tk{d + k}"
-                for k in range(3):
-                    for m in range(k + 1):
-                        e(f"Hk{d + k}_{d + m} = {H[d + k, d + m]} + bw{nm} * hl * n{b}[{k}] * n{b}[{m}]")
-                        H[d + k, d + m] = f"Hk{d + k}_{d + m}"
+                    e(f"Hk{d + k}_{d + k} = {H[d + k, d + k]} + bw{nm} * hl")
+                    H[d + k, d + k] = f"Hk{d + k}_{d + k}"
 
     def _factor_and_solve(self, H: dict, tau: dict, prefix: str = "") -> dict:
         """Tree-sparse L^T L factorisation of H and the two triangular solves.
