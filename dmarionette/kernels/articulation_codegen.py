@@ -63,16 +63,21 @@ class JointTopology:
 # fit (``tests/fitting/test_calibration.py``) missed a string's k by 5 standard errors and its k_d by 8;
 # at 5e-2 rad (2.9 deg) it recovers every constant within 1.8 of them.
 LIMIT_BAND = 5e-2
-# One-sided look-ahead (issue 13): the start band is switched off by a start velocity away
-# from the limit over LIMIT_AWAY_SPEED [rad/s] (``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` at an
-# upper limit) unless the joint is within LIMIT_INNER of the limit or past it; a brake on the
-# step's *end* angle (``_limit_brake``) keeps the end angle LIMIT_INNER [rad] before the limit.
-LIMIT_AWAY_SPEED = float(os.environ.get("L6_AWAY", 1e-1))
-LIMIT_INNER = float(os.environ.get("L6_INNER", 1e-2))
-# The brake's largest weight (1: the limit's whole implicit part, ``c + k h``).
-LIMIT_BALL_ONE_SIDED = bool(int(os.environ.get("L6_BALL", 1)))
-LIMIT_PAST = bool(int(os.environ.get("L6_PAST", 1)))
-LIMIT_BRAKE_MAX = float(os.environ.get("L6_BMAX", 1.0))
+# The one-sided look-ahead (issue 13, ``_limits`` and ``_limit_brake``): the start band is
+# switched off by a start velocity away from the limit over LIMIT_AWAY_SPEED [rad/s]
+# (``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` at an upper limit), and a brake judged by the
+# step's *end* angle (a trial solve) keeps that angle LIMIT_INNER [rad] before the limit.
+# LIMIT_BRAKE_GAP [rad] is the least gap the brake's weight is computed with, and
+# LIMIT_BRAKE_MAX its largest weight (1: the limit's whole implicit part, ``c + k h``). The
+# last two are set from the hard cases (docs/puppet.md, "Joint limits"): a brake as strong
+# as the closed form asks (weights up to 1e3) or as steep as a 1e-2 rad gap makes it lets
+# the coupling's trial step and the real step brake differently, and the stiff ties take up
+# the difference (+8 J over the bars' jerks at 4.6 m/s); up to 1 it lets a foot turned round
+# by the ground within a step go 0.81 rad through its limit.
+LIMIT_AWAY_SPEED = 1e-1
+LIMIT_INNER = 1e-2
+LIMIT_BRAKE_GAP = 3e-2
+LIMIT_BRAKE_MAX = 2.0
 
 _Q_COUNT = {"free": 7, "ball": 4, "universal": 2, "hinge": 1}
 _QD_COUNT = {"free": 6, "ball": 3, "universal": 2, "hinge": 1}
@@ -401,7 +406,6 @@ def solve_body_dynamics(
         e(f"band = wp.float64({LIMIT_BAND!r})")
         e(f"away = wp.float64({LIMIT_AWAY_SPEED!r})")
         e(f"inner = wp.float64({LIMIT_INNER!r})")
-        e(f"pastw = wp.float64({1.0 if LIMIT_PAST else 0.0!r})")
         e("dl = limit_damping + h_implicit * limit_stiffness")
         e("hl = h_implicit * limit_damping + h_implicit * h_implicit * limit_stiffness")
         for b, j in enumerate(self.t.joints):
@@ -411,10 +415,8 @@ def solve_body_dynamics(
                     i = d + k
                     q = f"joint_q[w, {j.q_start + k}]"
                     e(f"qe{i} = {q} + h_implicit * qd{i}")
-                    e(f"ua{i} = wp.max(wp.clamp(one + qd{i} / away, zero, one), "
-                      f"pastw * wp.clamp(({q} - dof_limit_upper[{i}]) / inner + one, zero, one))")
-                    e(f"la{i} = wp.max(wp.clamp(one - qd{i} / away, zero, one), "
-                      f"pastw * wp.clamp((dof_limit_lower[{i}] - {q}) / inner + one, zero, one))")
+                    e(f"ua{i} = wp.clamp(one + qd{i} / away, zero, one)")
+                    e(f"la{i} = wp.clamp(one - qd{i} / away, zero, one)")
                     e(f"up{i} = ua{i} * wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
                     e(f"lo{i} = la{i} * wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
                     e(f"tl{i} = tau{i} - kl * (wp.max({q} - dof_limit_upper[{i}], zero) + wp.min({q} - dof_limit_lower[{i}], zero)) - (up{i} + lo{i}) * dl * qd{i}")
@@ -431,8 +433,7 @@ def solve_body_dynamics(
                 e(f"n{b} = nv{b} / sn{b}")
                 e(f"om{b} = wp.vec3d(qd{d}, qd{d + 1}, qd{d + 2})")
                 e(f"rt{b} = h_implicit * wp.dot(n{b}, om{b})")
-                e(f"ba{b} = one") if not LIMIT_BALL_ONE_SIDED else e(f"ba{b} = wp.max(wp.clamp(one + wp.dot(n{b}, om{b}) / away, zero, one), "
-                  f"pastw * wp.clamp((th{b} - dof_limit_upper[{d}]) / inner + one, zero, one))")
+                e(f"ba{b} = wp.clamp(one + wp.dot(n{b}, om{b}) / away, zero, one)")
                 e(f"ac{b} = ba{b} * wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
                 e(f"tb{b} = n{b} * (ac{b} * (-kl * wp.max(th{b} - dof_limit_upper[{d}], zero) - dl * wp.dot(n{b}, om{b})))")
                 for k in range(3):
@@ -463,6 +464,7 @@ def solve_body_dynamics(
         lam = self.t.dof_parent()
         e(f"bmax = wp.float64({LIMIT_BRAKE_MAX!r})")
         e("btiny = wp.float64(1e-30)")
+        e(f"gfloor = wp.float64({LIMIT_BRAKE_GAP!r})")
 
         def inverse_diagonal(name: str, top: int, r: dict) -> None:
             path = []
@@ -480,8 +482,8 @@ def solve_body_dynamics(
             e(f"hi{name} = " + " + ".join(f"ty{name}_{k} * ty{name}_{k}" for k in path))
 
         def weight(name: str, advance: str, gap: str) -> str:
-            return (f"wp.clamp(wp.min(({advance} - {gap}) / (bt{name} * wp.max({gap}, inner)), "
-                    f"{advance} / (bt{name} * inner)), zero, bmax)")
+            return (f"wp.clamp(wp.min(({advance} - {gap}) / (bt{name} * wp.max({gap}, gfloor)), "
+                    f"{advance} / (bt{name} * gfloor)), zero, bmax)")
 
         for b, j in enumerate(self.t.joints):
             d = j.qd_start
@@ -499,7 +501,7 @@ def solve_body_dynamics(
                     tau[i] = f"tk{i}"
                     e(f"Hk{i}_{i} = {H[i, i]} + bw{i} * hl")
                     H[i, i] = f"Hk{i}_{i}"
-            elif j.type == "ball" and LIMIT_BALL_ONE_SIDED:
+            elif j.type == "ball":
                 # The cone: the end angle of the trial's rotation (integrated as the step does,
                 # so that a fast turn across the axis counts), an isotropic brake on the
                 # joint's angular velocity, and (H^-1) along the trial's end velocity.
