@@ -1,14 +1,14 @@
 """The joint-limit look-ahead and motion away from a limit (issue 13, ``articulation_codegen._limits``).
 
 A limit acts in a step that starts past it or whose start velocity carries the joint past
-it (``docs/puppet.md``). The look-ahead band (``LIMIT_BAND``, 0.05 rad) acts whatever the
-direction, so it also brakes motion away from a limit: the left elbow 0.03 rad inside its
-upper limit (5 deg), moving away at 1 rad/s, has its acceleration changed from 15.9 to
-29.7 rad/s^2 at 30 Hz (41.4 -> 499 at h = 1e-3 s, 43.4 -> 848 at 1e-4 s). That is an open
-defect: the tests that say what a one-sided look-ahead must do are expected failures
-(strict, so that a fix shows); the two one-sided versions tried broke
-``tests/marionette/test_hard_cases.py::test_all_strings_slack_and_lying_on_the_ground`` (``docs/puppet.md``).
-The limit acting on the mirror case (moving towards it) and past it is checked as is.
+it (``docs/puppet.md``). The look-ahead band (``LIMIT_BAND``, 0.05 rad) used to act whatever
+the direction, so it also braked motion away from a limit: the left elbow 0.03 rad inside its
+upper limit (5 deg), moving away at 1 rad/s, had its acceleration changed from 15.9 to
+29.7 rad/s^2 at 30 Hz (41.4 -> 499 at h = 1e-3 s, 43.4 -> 848 at 1e-4 s). The look-ahead is
+one-sided now: the start band is switched off by a start velocity away from the limit and a
+brake judged by the step's end angle (``_limit_brake``) acts only on an end velocity towards
+it; these tests say what that must do (they were strict expected failures before).
+The limit acting on the mirror case (moving towards it) and past it is checked as well.
 """
 
 from __future__ import annotations

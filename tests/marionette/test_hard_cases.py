@@ -55,6 +55,7 @@ from tests.support.hard_cases import (
     check_case,
     contact_bound,
     fast_model,
+    jerked_bars,
     limit_bound,
     still_bar,
 )
@@ -100,14 +101,8 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
     0.158 rad (energy bound 4.2 rad; 0.465 rad with the ``x + H v`` tie path of before,
     ``string_body_coupling``).
     """
-    main, hand = hanging.bars
-    p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
-    d, v = 0.1, 5.0
-    times = [0.0, 1.0, 1.0 + d / v, 2.0, 2.0 + d / v, 3.0, 3.0 + d / v, 4.0, 4.0 + d / v]
-    offsets = np.array([[0, 0, 0], [0, 0, 0], [0, d, 0], [0, d, 0], [d, d, 0], [d, d, 0], [d, 0, 0], [d, 0, 0],
-                        [0, 0, 0]], dtype=np.float64)
-    bars = (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, p0 + offsets)),
-            dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, h0 + offsets)))
+    v = 5.0
+    bars = jerked_bars(hanging, v)
     model = fast_model(hanging, bars=bars)
     r = simulate_energy_balance(model, 5.0)
     assert r["bar_work"][-1] > 1.0  # the jerks did put work in
