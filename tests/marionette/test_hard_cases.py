@@ -99,7 +99,8 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
     by the strings' pull). Measured: bar work 20.8 J, energy at most -1.66e-2 J from
     ``E(0) + W``, the puppet off the ground (bound 5 x 0.033 + 0.0037 = 169 mm), limit
     0.158 rad (energy bound 4.2 rad; 0.465 rad with the ``x + H v`` tie path of before,
-    ``string_body_coupling``).
+    ``string_body_coupling``); 0.221 rad with the one-sided limit look-ahead (issue 13; the
+    guard is still 1.5 x 0.158). Other speeds: ``test_hard_cases_jerk_speeds.py``.
     """
     v = 5.0
     bars = jerked_bars(hanging, v)
