@@ -90,10 +90,14 @@ class ArticulationTopology:
     Attributes:
         joints: per body, in body order.
         joint_limits: whether joint limits are compiled in.
+        one_sided_limits: the one-sided look-ahead (issue 13; ``_limits``, ``_limit_brake``)
+            instead of the two-sided band; off by default (it moves the authored ``ball`` and
+            ``chair`` scenes off their keyframes, ``docs/puppet.md``, "Joint limits").
     """
 
     joints: tuple[JointTopology, ...]
     joint_limits: bool = True
+    one_sided_limits: bool = False
 
     @property
     def body_count(self) -> int:
@@ -351,7 +355,7 @@ def eval_mass_matrix(
         for d in range(t.qd_count):
             e(f"Hd{d} = {H[d, d]} + " + " + ".join(diag_extra[d]))
             H[d, d] = f"Hd{d}"
-        if t.joint_limits:
+        if t.joint_limits and t.one_sided_limits:
             trial = self._factor_and_solve(H, tau, prefix="t")
             self._limit_brake(H, tau, trial)
         self._factor_and_solve(H, tau)
@@ -399,16 +403,18 @@ def solve_body_dynamics(
         band of ``LIMIT_BAND`` before the limit, ``w = clamp((max(q, q + h qd) - upper) /
         band + 1, 0, 1)``, so that the step is continuous in ``q`` and ``qd`` (an on/off
         switch there turned float32 rounding of the strings into different motions: 7x the
-        rounding bound of ``tests/marionette/test_marionette_float32.py``). One-sided (issue 13):
-        ``w`` is multiplied by ``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` (upper limit; the
+        rounding bound of ``tests/marionette/test_marionette_float32.py``). With
+        ``one_sided_limits`` (issue 13; off by default, ``docs/puppet.md``) ``w`` is multiplied by ``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` (upper limit; the
         cone: ``qd`` is the rate of its angle, ``n . omega``), so motion away from a limit is
         not braked; a joint turned round within the step is caught by ``_limit_brake``.
         """
         e = self
         e("kl = limit_stiffness")
         e(f"band = wp.float64({LIMIT_BAND!r})")
-        e(f"away = wp.float64({LIMIT_AWAY_SPEED!r})")
-        e(f"inner = wp.float64({LIMIT_INNER!r})")
+        one_sided = self.t.one_sided_limits
+        if one_sided:
+            e(f"away = wp.float64({LIMIT_AWAY_SPEED!r})")
+            e(f"inner = wp.float64({LIMIT_INNER!r})")
         e("dl = limit_damping + h_implicit * limit_stiffness")
         e("hl = h_implicit * limit_damping + h_implicit * h_implicit * limit_stiffness")
         for b, j in enumerate(self.t.joints):
@@ -418,10 +424,13 @@ def solve_body_dynamics(
                     i = d + k
                     q = f"joint_q[w, {j.q_start + k}]"
                     e(f"qe{i} = {q} + h_implicit * qd{i}")
-                    e(f"ua{i} = wp.clamp(one + qd{i} / away, zero, one)")
-                    e(f"la{i} = wp.clamp(one - qd{i} / away, zero, one)")
-                    e(f"up{i} = ua{i} * wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
-                    e(f"lo{i} = la{i} * wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
+                    ua = la = ""
+                    if one_sided:
+                        e(f"ua{i} = wp.clamp(one + qd{i} / away, zero, one)")
+                        e(f"la{i} = wp.clamp(one - qd{i} / away, zero, one)")
+                        ua, la = f"ua{i} * ", f"la{i} * "
+                    e(f"up{i} = {ua}wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
+                    e(f"lo{i} = {la}wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
                     e(f"tl{i} = tau{i} - kl * (wp.max({q} - dof_limit_upper[{i}], zero) + wp.min({q} - dof_limit_lower[{i}], zero)) - (up{i} + lo{i}) * dl * qd{i}")
                     tau[i] = f"tl{i}"
                     diag_extra[i].append(f"(up{i} + lo{i}) * hl")
@@ -436,8 +445,11 @@ def solve_body_dynamics(
                 e(f"n{b} = nv{b} / sn{b}")
                 e(f"om{b} = wp.vec3d(qd{d}, qd{d + 1}, qd{d + 2})")
                 e(f"rt{b} = h_implicit * wp.dot(n{b}, om{b})")
-                e(f"ba{b} = wp.clamp(one + wp.dot(n{b}, om{b}) / away, zero, one)")
-                e(f"ac{b} = ba{b} * wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
+                ba = ""
+                if one_sided:
+                    e(f"ba{b} = wp.clamp(one + wp.dot(n{b}, om{b}) / away, zero, one)")
+                    ba = f"ba{b} * "
+                e(f"ac{b} = {ba}wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
                 e(f"tb{b} = n{b} * (ac{b} * (-kl * wp.max(th{b} - dof_limit_upper[{d}], zero) - dl * wp.dot(n{b}, om{b})))")
                 for k in range(3):
                     e(f"tl{d + k} = tau{d + k} + tb{b}[{k}]")

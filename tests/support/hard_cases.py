@@ -44,6 +44,12 @@ def jerked_bars(scene, speed, distance=0.1):
             dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, h0 + offsets)))
 
 
+def with_lookahead(scene, variant: str):
+    """``scene`` with the joint-limit look-ahead ``variant``: ``"band"`` (the default, two-sided)
+    or ``"one_sided"`` (``[effects] one_sided_limits``, issue 13)."""
+    return dataclasses.replace(scene, body_effects={**scene.body_effects, "one_sided_limits": variant == "one_sided"})
+
+
 def fast_model(scene, **changes):
     """The marionette of ``scene`` with ``changes``; puppet kernels compiled without optimisation."""
     return MarionetteModel(dataclasses.replace(scene, **changes), optimization_level=0)
