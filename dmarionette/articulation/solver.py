@@ -270,6 +270,7 @@ def build_articulation_model(
     springs: tuple[tuple[str, float, float], ...] = (),
     contacts: ContactSettings | None = None,
     joint_limits: bool = True,
+    one_sided_limits: bool = False,
     limit_stiffness: float = 5.0,
     limit_damping: float = 0.05,
     gravity: tuple[float, float, float] = GRAVITY,
@@ -289,6 +290,8 @@ def build_articulation_model(
             ``springs`` says; a batched marionette writes its worlds' own).
         contacts: which contacts to compile in (default: none).
         joint_limits: compile joint limits in.
+        one_sided_limits: the one-sided limit look-ahead (issue 13, ``docs/puppet.md``, "Joint
+            limits"; off by default) instead of the two-sided band.
         limit_stiffness, limit_damping: joint-limit penalty [N m/rad], [N m s/rad].
         gravity: [m/s^2].
         device: Warp device.
@@ -333,7 +336,7 @@ def build_articulation_model(
         contact.append(True)
         mass.append(ball.mass)
         inertia.append((0.4 * ball.mass * ball.radius**2,) * 3)
-    topo = ArticulationTopology(tuple(joints), joint_limits=joint_limits)
+    topo = ArticulationTopology(tuple(joints), joint_limits=joint_limits, one_sided_limits=one_sided_limits)
 
     point_names = [p.name for p in puppet.points]
     s_body, s_point, s_k, s_kd = [], [], [], []

@@ -63,6 +63,21 @@ class JointTopology:
 # fit (``tests/fitting/test_calibration.py``) missed a string's k by 5 standard errors and its k_d by 8;
 # at 5e-2 rad (2.9 deg) it recovers every constant within 1.8 of them.
 LIMIT_BAND = 5e-2
+# The one-sided look-ahead (issue 13, ``_limits`` and ``_limit_brake``): the start band is
+# switched off by a start velocity away from the limit over LIMIT_AWAY_SPEED [rad/s]
+# (``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` at an upper limit), and a brake judged by the
+# step's *end* angle (a trial solve) keeps that angle LIMIT_INNER [rad] before the limit.
+# LIMIT_BRAKE_GAP [rad] is the least gap the brake's weight is computed with, and
+# LIMIT_BRAKE_MAX its largest weight (1: the limit's whole implicit part, ``c + k h``). The
+# last two are set from the hard cases (docs/puppet.md, "Joint limits"): a brake as strong
+# as the closed form asks (weights up to 1e3) or as steep as a 1e-2 rad gap makes it lets
+# the coupling's trial step and the real step brake differently, and the stiff ties take up
+# the difference (+8 J over the bars' jerks at 4.6 m/s); up to 1 it lets a foot turned round
+# by the ground within a step go 0.81 rad through its limit.
+LIMIT_AWAY_SPEED = 1e-1
+LIMIT_INNER = 1e-2
+LIMIT_BRAKE_GAP = 3e-2
+LIMIT_BRAKE_MAX = 2.0
 
 _Q_COUNT = {"free": 7, "ball": 4, "universal": 2, "hinge": 1}
 _QD_COUNT = {"free": 6, "ball": 3, "universal": 2, "hinge": 1}
@@ -75,10 +90,14 @@ class ArticulationTopology:
     Attributes:
         joints: per body, in body order.
         joint_limits: whether joint limits are compiled in.
+        one_sided_limits: the one-sided look-ahead (issue 13; ``_limits``, ``_limit_brake``)
+            instead of the two-sided band; off by default (it moves the authored ``ball`` and
+            ``chair`` scenes off their keyframes, ``docs/puppet.md``, "Joint limits").
     """
 
     joints: tuple[JointTopology, ...]
     joint_limits: bool = True
+    one_sided_limits: bool = False
 
     @property
     def body_count(self) -> int:
@@ -336,6 +355,9 @@ def eval_mass_matrix(
         for d in range(t.qd_count):
             e(f"Hd{d} = {H[d, d]} + " + " + ".join(diag_extra[d]))
             H[d, d] = f"Hd{d}"
+        if t.joint_limits and t.one_sided_limits:
+            trial = self._factor_and_solve(H, tau, prefix="t")
+            self._limit_brake(H, tau, trial)
         self._factor_and_solve(H, tau)
         for d in range(t.qd_count):
             e(f"joint_qdd[w, {d}] = qdd{d}")
@@ -381,11 +403,18 @@ def solve_body_dynamics(
         band of ``LIMIT_BAND`` before the limit, ``w = clamp((max(q, q + h qd) - upper) /
         band + 1, 0, 1)``, so that the step is continuous in ``q`` and ``qd`` (an on/off
         switch there turned float32 rounding of the strings into different motions: 7x the
-        rounding bound of ``tests/marionette/test_marionette_float32.py``).
+        rounding bound of ``tests/marionette/test_marionette_float32.py``). With
+        ``one_sided_limits`` (issue 13; off by default, ``docs/puppet.md``) ``w`` is multiplied by ``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` (upper limit; the
+        cone: ``qd`` is the rate of its angle, ``n . omega``), so motion away from a limit is
+        not braked; a joint turned round within the step is caught by ``_limit_brake``.
         """
         e = self
         e("kl = limit_stiffness")
         e(f"band = wp.float64({LIMIT_BAND!r})")
+        one_sided = self.t.one_sided_limits
+        if one_sided:
+            e(f"away = wp.float64({LIMIT_AWAY_SPEED!r})")
+            e(f"inner = wp.float64({LIMIT_INNER!r})")
         e("dl = limit_damping + h_implicit * limit_stiffness")
         e("hl = h_implicit * limit_damping + h_implicit * h_implicit * limit_stiffness")
         for b, j in enumerate(self.t.joints):
@@ -395,8 +424,13 @@ def solve_body_dynamics(
                     i = d + k
                     q = f"joint_q[w, {j.q_start + k}]"
                     e(f"qe{i} = {q} + h_implicit * qd{i}")
-                    e(f"up{i} = wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
-                    e(f"lo{i} = wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
+                    ua = la = ""
+                    if one_sided:
+                        e(f"ua{i} = wp.clamp(one + qd{i} / away, zero, one)")
+                        e(f"la{i} = wp.clamp(one - qd{i} / away, zero, one)")
+                        ua, la = f"ua{i} * ", f"la{i} * "
+                    e(f"up{i} = {ua}wp.clamp((wp.max({q}, qe{i}) - dof_limit_upper[{i}]) / band + one, zero, one)")
+                    e(f"lo{i} = {la}wp.clamp((dof_limit_lower[{i}] - wp.min({q}, qe{i})) / band + one, zero, one)")
                     e(f"tl{i} = tau{i} - kl * (wp.max({q} - dof_limit_upper[{i}], zero) + wp.min({q} - dof_limit_lower[{i}], zero)) - (up{i} + lo{i}) * dl * qd{i}")
                     tau[i] = f"tl{i}"
                     diag_extra[i].append(f"(up{i} + lo{i}) * hl")
@@ -411,7 +445,11 @@ def solve_body_dynamics(
                 e(f"n{b} = nv{b} / sn{b}")
                 e(f"om{b} = wp.vec3d(qd{d}, qd{d + 1}, qd{d + 2})")
                 e(f"rt{b} = h_implicit * wp.dot(n{b}, om{b})")
-                e(f"ac{b} = wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
+                ba = ""
+                if one_sided:
+                    e(f"ba{b} = wp.clamp(one + wp.dot(n{b}, om{b}) / away, zero, one)")
+                    ba = f"ba{b} * "
+                e(f"ac{b} = {ba}wp.clamp((wp.max(th{b}, th{b} + rt{b}) - dof_limit_upper[{d}]) / band + one, zero, one)")
                 e(f"tb{b} = n{b} * (ac{b} * (-kl * wp.max(th{b} - dof_limit_upper[{d}], zero) - dl * wp.dot(n{b}, om{b})))")
                 for k in range(3):
                     e(f"tl{d + k} = tau{d + k} + tb{b}[{k}]")
@@ -421,13 +459,103 @@ def solve_body_dynamics(
                         e(f"Hb{d + k}_{d + m} = {H[d + k, d + m]} + ac{b} * hl * n{b}[{k}] * n{b}[{m}]")
                         H[d + k, d + m] = f"Hb{d + k}_{d + m}"
 
-    def _factor_and_solve(self, H: dict, tau: dict) -> None:
+    def _limit_brake(self, H: dict, tau: dict, trial: dict) -> None:
+        """The one-sided look-ahead's brake on the step's *end* angle (issue 13).
+
+        ``trial`` is the solve of the step with the limits' start part (``_limits``): its ``L``
+        and solution. Per limit, the trial's end angle is compared with the point
+        ``LIMIT_INNER`` before the limit; where it gets past, a brake ``-w (c + k h) qd'`` (the
+        limit's implicit part with weight ``w``, on top of the start band's) is added. A brake
+        of weight ``w`` scales the end velocity along the joint's axis by ``1 / (1 + w beta)``,
+        ``beta = h (c + k h) (H^-1)_nn`` (exact for one braked limit, by Sherman-Morrison), so
+        with the gap ``g`` to the point and the trial's advance ``a`` the end angle lands on the
+        point for ``w = (a - g) / (beta g)``. Written ``clamp(min((a - g) / (beta max(g, G)),
+        a / (beta G)), 0, LIMIT_BRAKE_MAX)`` with ``G = LIMIT_BRAKE_GAP``: continuous, 0 for
+        an end velocity away from the limit (``a <= 0``), full within ``G`` of the point.
+        ``(H^-1)_nn = |L^-T n|^2`` by a triangular solve over the joint's ancestors with the
+        trial's factor. Hinges and universal axes: ``n`` the axis, ``a = h qd'_trial``. The
+        cone (ball joint): ``a`` is the rotation angle of the trial's end orientation (the
+        step's own quaternion integration, so that a fast turn across the cone's axis counts)
+        minus the start angle, the brake acts on all three rates (``-w (c + k h) omega'``)
+        and ``n`` is the direction of the trial's end velocity. Braking along the start
+        angle's axis only (as the start band does) let the neck go 1.28 rad through its cone
+        over the bars' jerks at 4.6 m/s and gained 0.67 J. The brake only opposes the end
+        velocity: it takes energy out.
+        """
+        e = self
+        L, x = trial["L"], trial["x"]
+        lam = self.t.dof_parent()
+        e(f"bmax = wp.float64({LIMIT_BRAKE_MAX!r})")
+        e("btiny = wp.float64(1e-30)")
+        e(f"gfloor = wp.float64({LIMIT_BRAKE_GAP!r})")
+
+        def inverse_diagonal(name: str, top: int, r: dict) -> None:
+            path = []
+            i = top
+            while i >= 0:
+                path.append(i)
+                i = lam[i]
+            for pos, k in enumerate(path):
+                terms = [r[k]] if k in r else []
+                terms += [f"- {L[m, k]} * ty{name}_{m}" for m in path[:pos]]
+                if not terms:
+                    e(f"ty{name}_{k} = zero")
+                else:
+                    e(f"ty{name}_{k} = ({' '.join(terms)}) / {L[k, k]}")
+            e(f"hi{name} = " + " + ".join(f"ty{name}_{k} * ty{name}_{k}" for k in path))
+
+        def weight(name: str, advance: str, gap: str) -> str:
+            return (f"wp.clamp(wp.min(({advance} - {gap}) / (bt{name} * wp.max({gap}, gfloor)), "
+                    f"{advance} / (bt{name} * gfloor)), zero, bmax)")
+
+        for b, j in enumerate(self.t.joints):
+            d = j.qd_start
+            if j.type in ("hinge", "universal"):
+                for k in range(len(j.axes)):
+                    i = d + k
+                    q = f"joint_q[w, {j.q_start + k}]"
+                    e(f"ta{i} = h * (qd{i} + h * {x[i]})")
+                    inverse_diagonal(f"{i}", i, {i: "one"})
+                    e(f"bt{i} = wp.max(h * dl * hi{i}, btiny)")
+                    e(f"gu{i} = dof_limit_upper[{i}] - inner - {q}")
+                    e(f"gl{i} = {q} - dof_limit_lower[{i}] - inner")
+                    e(f"bw{i} = {weight(str(i), f'ta{i}', f'gu{i}')} + {weight(str(i), f'-ta{i}', f'gl{i}')}")
+                    e(f"tk{i} = {tau[i]} - bw{i} * dl * qd{i}")
+                    tau[i] = f"tk{i}"
+                    e(f"Hk{i}_{i} = {H[i, i]} + bw{i} * hl")
+                    H[i, i] = f"Hk{i}_{i}"
+            elif j.type == "ball":
+                # The cone: the end angle of the trial's rotation (integrated as the step does,
+                # so that a fast turn across the axis counts), an isotropic brake on the
+                # joint's angular velocity, and (H^-1) along the trial's end velocity.
+                nm = f"b{b}"
+                s = j.q_start
+                e(f"tw{nm} = wp.vec3d(qd{d} + h * {x[d]}, qd{d + 1} + h * {x[d + 1]}, qd{d + 2} + h * {x[d + 2]})")
+                e(f"te{nm} = compute_quat_integrate(qb{b}, tw{nm}, h)")
+                e(f"ts{nm} = wp.where(te{nm}[3] < zero, -one, one)")
+                e(f"tn{nm} = compute_smooth_norm(wp.vec3d(te{nm}[0], te{nm}[1], te{nm}[2]) * ts{nm})")
+                e(f"ta{nm} = wp.float64(2.0) * wp.atan2(tn{nm}, te{nm}[3] * ts{nm}) - th{b}")
+                e(f"tu{nm} = tw{nm} / compute_smooth_norm(tw{nm})")
+                inverse_diagonal(nm, d + 2, {d + k: f"tu{nm}[{k}]" for k in range(3)})
+                e(f"bt{nm} = wp.max(h * dl * hi{nm}, btiny)")
+                e(f"gu{nm} = dof_limit_upper[{d}] - inner - th{b}")
+                e(f"bw{nm} = {weight(nm, f'ta{nm}', f'gu{nm}')}")
+                for k in range(3):
+                    e(f"tk{d + k} = {tau[d + k]} - bw{nm} * dl * qd{d + k}")
+                    tau[d + k] = f"tk{d + k}"
+                    e(f"Hk{d + k}_{d + k} = {H[d + k, d + k]} + bw{nm} * hl")
+                    H[d + k, d + k] = f"Hk{d + k}_{d + k}"
+
+    def _factor_and_solve(self, H: dict, tau: dict, prefix: str = "") -> dict:
         """Tree-sparse L^T L factorisation of H and the two triangular solves.
 
         Records in ``self.solve`` what ``articulation_tangent`` needs to differentiate the solve
         as a whole (``H qdd = tau``: ``qdd' = H^-1 (tau' - H' qdd)`` with this ``L``): the names of
         H's entries (``H``, lower triangle), of the right-hand side (``b``), of ``L``, of the
         solution (``x``), the dof parents (``lam``) and the names this part defines (``internal``).
+        With a ``prefix`` (the joint limits' trial solve) its names are prefixed and nothing is
+        recorded: that solve is plain straight-line code to ``articulation_tangent``. Returns
+        the names of ``L`` and of the solution (``L``, ``x``).
         """
         e = self
         n = self.t.qd_count
@@ -444,41 +572,45 @@ def solve_body_dynamics(
 
         def fresh(i, j):
             version[i, j] = version.get((i, j), 0) + 1
-            return f"H{i}_{j}_{version[i, j]}"
+            return f"{prefix}H{i}_{j}_{version[i, j]}"
 
         L = {}
         for k in reversed(range(n)):
-            L[k, k] = f"L{k}_{k}"
-            e(f"L{k}_{k} = wp.sqrt({cur[k, k]})")
+            L[k, k] = f"{prefix}L{k}_{k}"
+            e(f"{prefix}L{k}_{k} = wp.sqrt({cur[k, k]})")
             for i in anc(lam[k]):
-                L[k, i] = f"L{k}_{i}"
-                e(f"L{k}_{i} = {cur[k, i]} / L{k}_{k}")
+                L[k, i] = f"{prefix}L{k}_{i}"
+                e(f"{prefix}L{k}_{i} = {cur[k, i]} / {prefix}L{k}_{k}")
             for i in anc(lam[k]):
                 for j in anc(i):
                     name = fresh(i, j)
-                    e(f"{name} = {cur[i, j]} - L{k}_{i} * L{k}_{j}")
+                    e(f"{name} = {cur[i, j]} - {L[k, i]} * {L[k, j]}")
                     cur[i, j] = name
         x = dict(tau)
         xv = {}
 
         def xfresh(i):
             xv[i] = xv.get(i, 0) + 1
-            return f"x{i}_{xv[i]}"
+            return f"{prefix}x{i}_{xv[i]}"
 
         for i in reversed(range(n)):
             name = xfresh(i)
-            e(f"{name} = {x[i]} / L{i}_{i}")
+            e(f"{name} = {x[i]} / {L[i, i]}")
             x[i] = name
             for j in anc(lam[i]):
                 name = xfresh(j)
-                e(f"{name} = {x[j]} - L{i}_{j} * {x[i]}")
+                e(f"{name} = {x[j]} - {L[i, j]} * {x[i]}")
                 x[j] = name
         for i in range(n):
-            terms = " - ".join([x[i]] + [f"L{i}_{j} * qdd{j}" for j in anc(lam[i])])
-            e(f"qdd{i} = ({terms}) / L{i}_{i}")
+            terms = " - ".join([x[i]] + [f"{L[i, j]} * {prefix}qdd{j}" for j in anc(lam[i])])
+            e(f"{prefix}qdd{i} = ({terms}) / {L[i, i]}")
+        sol = {i: f"{prefix}qdd{i}" for i in range(n)}
+        if prefix:
+            return dict(L=L, x=sol)
         internal = [line.strip().split(" = ", 1)[0] for line in self.lines[first:]]
         self.solve = dict(H=dict(H), b=dict(tau), L=L, x={i: f"qdd{i}" for i in range(n)}, lam=lam,
                           internal=internal)
+        return dict(L=L, x=sol)
 
     # -------------------------------------------------------------- integration
     def integrate(self) -> str:

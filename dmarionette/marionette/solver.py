@@ -129,7 +129,8 @@ class MarionetteModel:
                                    damping=c["damping"], friction=c["friction"],
                                    friction_velocity=c["friction_velocity"], smooth_distance=c["smooth_distance"])
         self.puppet = build_articulation_model(
-            scene.puppet, ball=ball, contacts=contacts, joint_limits=e["joint_limits"], gravity=scene.gravity,
+            scene.puppet, ball=ball, contacts=contacts, joint_limits=e["joint_limits"],
+            one_sided_limits=e["one_sided_limits"], gravity=scene.gravity,
             springs=tuple((p, scene.strings[i].tie_stiffness, scene.strings[i].tie_damping) for i, p in tied),
             device=str(self.device), requires_grad=self.requires_grad,
             spring_worlds=self.world_count if self.world_count > 1 else 1)

@@ -8,7 +8,7 @@ is documented in ``docs/scenes.md``:
 - ``[solver]`` ``precision`` (``"float64"`` default, or ``"float32"``);
 - ``[effects]`` which effects are compiled in: string effects (``gravity``,
   ``internal_friction``, ``air_drag``, ``ground_contact``, ``ground_friction``) and, with a
-  puppet, ``body_ground``, ``chair``, ``ball``, ``joint_limits``, ``feedback``;
+  puppet, ``body_ground``, ``chair``, ``ball``, ``joint_limits``, ``one_sided_limits``, ``feedback``;
 - ``[world]`` ``gravity`` [m/s^2] and ``ground_height`` [m];
 - ``[string_defaults]`` constants shared by every string (see :mod:`string_model`);
 - ``[[strings]]`` one table per string: ``name``, ``top``, ``bottom`` (or, with a puppet, the
@@ -69,7 +69,8 @@ _STRING_CONSTANTS = {
 }
 _STRING_KEYS = {"name", "top", "bottom", "length", "bottom_end", "tie_point", "body_point", *_STRING_CONSTANTS}
 _EFFECTS = [f.name for f in dataclasses.fields(StringEffects)]
-_BODY_EFFECTS = {"body_ground": True, "chair": False, "ball": False, "joint_limits": True, "feedback": True}
+_BODY_EFFECTS = {"body_ground": True, "chair": False, "ball": False, "joint_limits": True, "one_sided_limits": False,
+                 "feedback": True}
 _CONTACT = {
     # key: (default, reader options); see dmarionette.kernels.body_contact.ContactSettings
     "stiffness": (2000.0, {"positive": True}),

@@ -48,8 +48,8 @@ def _quat_mj(rng):
 
 
 class Setup:
-    def __init__(self):
-        self.model = build_articulation_model(load_puppet(), requires_grad=False)
+    def __init__(self, one_sided_limits: bool = False):
+        self.model = build_articulation_model(load_puppet(), requires_grad=False, one_sided_limits=one_sided_limits)
         m = self.model
         topo = m.topology
         self.primal = build_articulation_kernels(topo, optimization_level=0)
@@ -160,6 +160,13 @@ def setup():
     return Setup()
 
 
+@pytest.fixture(scope="module")
+def setup_one_sided():
+    """The one-sided joint-limit look-ahead (``one_sided_limits``: a trial solve and a brake
+    by the end angle inside the dynamics kernel; issue 13)."""
+    return Setup(one_sided_limits=True)
+
+
 def _values(setup, name):
     if name == "eval_body_kinematics":
         return setup.kinematics_values(setup.q, setup.qd)
@@ -219,6 +226,18 @@ def test_tangent_matches_reverse_mode(setup, name, P):
               f"|diff| / scale = {abs(lhs - rhs) / scale:.1e}")
         assert abs(lhs - rhs) <= 1e-10 * scale, (name, p)
     assert all(np.all(np.isfinite(jv[n])) for n in outs)
+
+
+@pytest.mark.parametrize("P", [1, 3])
+def test_one_sided_limits_tangent_matches_reverse_mode(setup, setup_one_sided, P):
+    """The dynamics kernel with the one-sided look-ahead (its trial solve and end-angle brake)
+    against reverse mode, in the same states as the default's; those states do switch the
+    one-sided parts on (the accelerations differ from the band's)."""
+    band = setup.run(setup.primal.solve_body_dynamics, setup.dynamics_values())["joint_qdd"].numpy()
+    one_sided = setup_one_sided.run(setup_one_sided.primal.solve_body_dynamics,
+                                    setup_one_sided.dynamics_values())["joint_qdd"].numpy()
+    assert np.abs(one_sided - band).max() > 1e-3 * np.abs(band).max()
+    test_tangent_matches_reverse_mode(setup_one_sided, "solve_body_dynamics", P)
 
 
 @pytest.mark.parametrize("name", list(KERNELS))

@@ -51,12 +51,13 @@ def test_generated_articulation_kernels_are_clean(tmp_path, monkeypatch):
     joints = (JointTopology("free", -1, 0, 0), JointTopology("ball", 0, 7, 6, lower=(0.0,), upper=(1.0,)),
               JointTopology("universal", 0, 11, 9, axes=((1, 0, 0), (0, 0, 1)), lower=(-1, -1), upper=(1, 1)),
               JointTopology("hinge", 2, 13, 11, axes=((1, 0, 0),), lower=(-1,), upper=(1,)))
-    for limits in (True, False):
-        module = build_articulation_kernels(ArticulationTopology(joints, joint_limits=limits))
+    for limits, one_sided in ((True, False), (True, True), (False, False)):
+        topology = ArticulationTopology(joints, joint_limits=limits, one_sided_limits=one_sided)
+        module = build_articulation_kernels(topology)
         problems = lint.lint_paths([Path(module.__file__)])
         assert not problems, "\n".join(map(str, problems))
         assert sum(1 for line in Path(module.__file__).read_text().splitlines() if line == "@wp.kernel") == 4
-        tangent = build_articulation_tangent_kernels(ArticulationTopology(joints, joint_limits=limits))
+        tangent = build_articulation_tangent_kernels(topology)
         problems = lint.lint_paths([Path(tangent.__file__)])
         assert not problems, "\n".join(map(str, problems))
 

@@ -55,8 +55,10 @@ from tests.support.hard_cases import (
     check_case,
     contact_bound,
     fast_model,
+    jerked_bars,
     limit_bound,
     still_bar,
+    with_lookahead,
 )
 
 wp.config.log_level = wp.LOG_WARNING
@@ -87,7 +89,14 @@ def test_very_stiff_strings_at_the_default_steps(hanging, segment_stiffness):
     check_case(f"k_s = {segment_stiffness:g}", model, r, ground=0.0, limit=limit_bound(model, r), limit_measured=0.0005)
 
 
-def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
+@pytest.fixture(scope="module", params=["band", "one_sided"])
+def hanging_limits(request, hanging):
+    """``hanging`` with each joint-limit look-ahead (issue 13): the cases where the limits act
+    run with both."""
+    return with_lookahead(hanging, request.param)
+
+
+def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging_limits):
     """Both bars jump from rest to 5 m/s, travel 10 cm, stop dead; four times (up, sideways,
     down, back), 5 s in all.
 
@@ -98,23 +107,18 @@ def test_bars_jerked_by_5_m_per_s_steps_and_stopped_dead(hanging):
     by the strings' pull). Measured: bar work 20.8 J, energy at most -1.66e-2 J from
     ``E(0) + W``, the puppet off the ground (bound 5 x 0.033 + 0.0037 = 169 mm), limit
     0.158 rad (energy bound 4.2 rad; 0.465 rad with the ``x + H v`` tie path of before,
-    ``string_body_coupling``).
+    ``string_body_coupling``); with ``one_sided_limits`` 0.221 rad, the same energy (the guard
+    is 1.5 x 0.158 for both). Other speeds: ``test_hard_cases_jerk_speeds.py``.
     """
-    main, hand = hanging.bars
-    p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
-    d, v = 0.1, 5.0
-    times = [0.0, 1.0, 1.0 + d / v, 2.0, 2.0 + d / v, 3.0, 3.0 + d / v, 4.0, 4.0 + d / v]
-    offsets = np.array([[0, 0, 0], [0, 0, 0], [0, d, 0], [0, d, 0], [d, d, 0], [d, d, 0], [d, 0, 0], [d, 0, 0],
-                        [0, 0, 0]], dtype=np.float64)
-    bars = (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, p0 + offsets)),
-            dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, h0 + offsets)))
-    model = fast_model(hanging, bars=bars)
+    v = 5.0
+    bars = jerked_bars(hanging_limits, v)
+    model = fast_model(hanging_limits, bars=bars)
     r = simulate_energy_balance(model, 5.0)
     assert r["bar_work"][-1] > 1.0  # the jerks did put work in
     check_case("jerks", model, r, ground=contact_bound(model, v), limit=limit_bound(model, r), limit_measured=0.158)
 
 
-def test_dropped_onto_the_ground(hanging):
+def test_dropped_onto_the_ground(hanging_limits):
     """The puppet with its ties cut, released 0.4 m (feet) above the ground: it falls, lands and
     lies there. Bounds: transient ``v H + M g / k`` with ``v = sqrt(2 g 0.4)`` = 2.8 m/s
     (96 mm; measured 80.7 mm). Lying (last second): ``M g / k + g H^2`` = 3.7 + 10.7 mm: the contact force is
@@ -123,10 +127,12 @@ def test_dropped_onto_the_ground(hanging):
 
     Measured: it comes to rest folded forward (head, knees and feet on the ground, the
     torso's centre 0.164 m up) within 3 s; resting depth 2.5 mm; energy at most -3.9e-2 J
-    from ``E(0)``; limit 0.352 rad (energy bound 2.0 rad). (Before joint limits looked ahead,
+    from ``E(0)``; limit 0.352 rad (energy bound 2.0 rad; 0.111 rad with ``one_sided_limits``).
+    (Before joint limits looked ahead,
     ``articulation_codegen._limits``, it ended flat, torso 0.05 m up, the lying puppet
     chattering at the puppet rate's Nyquist frequency, depth alternating 0.4 / 6.2 mm.)
     """
+    hanging = hanging_limits
     puppet = dataclasses.replace(hanging.puppet, root_position=(0.0, 0.79, 0.0))
     bars = tuple(still_bar(b) for b in hanging.bars)
     model = fast_model(hanging, puppet=puppet, strings=_cut_ties(hanging.strings), bars=bars)
@@ -182,7 +188,7 @@ def test_whole_weight_on_one_string(hanging):
     assert abs(lift - weight) <= 0.01 * weight
 
 
-def test_all_strings_slack_and_lying_on_the_ground(hanging):
+def test_all_strings_slack_and_lying_on_the_ground(hanging_limits):
     """Both bars lowered by 1.2 / 1.1 m at 0.6 m/s (a velocity step) to 10 cm above the ground:
     the puppet lands, the strings go slack and lie on the ground (6 s).
 
@@ -194,11 +200,13 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging):
     weight. String particles, tied to body points, ``v H`` further. Measured: bar work 9.6 J
     (the top segments' friction again), energy at most -1.66e-2 J from ``E(0) + W``, puppet
     95.0 mm deep (the feet, under the knee strings' push), lowest particle -27.8 mm, limit
-    0.413 rad. (With the ``x + H v`` tie path of before, ``string_body_coupling``: 28.8 mm,
+    0.413 rad (0.222 rad with ``one_sided_limits``). (With the ``x + H v`` tie path of before,
+    ``string_body_coupling``: 28.8 mm,
     -46.1 mm, 0.409 rad.) The particles that deep are not lying on the ground: they are the
     lower end of a straight, *compressed* knee string pushed into the ground by the lowering
     bar, see ``test_hard_cases_strings.py::test_a_lowered_string_does_not_push_into_the_ground``.
     """
+    hanging = hanging_limits
     main, hand = hanging.bars
     p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
     times = [0.0, 1.0, 3.0]

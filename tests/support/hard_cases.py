@@ -31,6 +31,25 @@ class PiecewiseLinearPath:
         return pos, vel, euler_to_matrix(np.tile(self.rotations[0], (len(t), 1)))
 
 
+def jerked_bars(scene, speed, distance=0.1):
+    """Both bars of ``scene`` jump from rest to ``speed`` [m/s], travel ``distance`` [m] and stop
+    dead; four times (up at 1 s, sideways at 2 s, down at 3 s, back at 4 s)."""
+    main, hand = scene.bars
+    p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
+    d, v = distance, speed
+    times = [0.0, 1.0, 1.0 + d / v, 2.0, 2.0 + d / v, 3.0, 3.0 + d / v, 4.0, 4.0 + d / v]
+    offsets = np.array([[0, 0, 0], [0, 0, 0], [0, d, 0], [0, d, 0], [d, d, 0], [d, d, 0], [d, 0, 0], [d, 0, 0],
+                        [0, 0, 0]], dtype=np.float64)
+    return (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, p0 + offsets)),
+            dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, h0 + offsets)))
+
+
+def with_lookahead(scene, variant: str):
+    """``scene`` with the joint-limit look-ahead ``variant``: ``"band"`` (the default, two-sided)
+    or ``"one_sided"`` (``[effects] one_sided_limits``, issue 13)."""
+    return dataclasses.replace(scene, body_effects={**scene.body_effects, "one_sided_limits": variant == "one_sided"})
+
+
 def fast_model(scene, **changes):
     """The marionette of ``scene`` with ``changes``; puppet kernels compiled without optimisation."""
     return MarionetteModel(dataclasses.replace(scene, **changes), optimization_level=0)
