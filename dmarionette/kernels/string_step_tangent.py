@@ -153,7 +153,7 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 @functools.cache
 def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1,
                                factor_lanes: int = 0, maps: bool = True, segments: bool = True,
-                               segment_lanes: int = 1):
+                               segment_lanes: int = 1, minor: bool = False):
     """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
     ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
     any float type and device; 4 or 8: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
@@ -169,7 +169,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     same step (its other directions, the same ``maps`` and ``segment_lanes``) left.
     ``segment_lanes``: the pass one segment at a time (1) or ``DIRECTION_LANES`` consecutive ones in
     SIMD lanes (float64 CPU), each group of them kept as one laned ``9 x K`` block
-    (:func:`_segment_values`)."""
+    (:func:`_segment_values`). ``minor`` (with ``lanes``): the particles' tangent arrays (in, out, the
+    masses') stored direction-minor (``tangent_directions.direction_minor``) and every lane group
+    whole (``directions`` a multiple of ``lanes``): each group's transfer one contiguous load or
+    store (``tangent_directions``), no gather."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     MAPS = maps
     SEGMENTS = segments
@@ -182,9 +185,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     SM, load_segment = segment_values.SM, segment_values.load9
     FM, load_factor = factor.FM, factor.load
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
-    t = tangent_directions(scalar, lanes)
+    t = tangent_directions(scalar, lanes, minor)
     TS, TV, STEP = t.TS, t.TV, t.step
     load, load_constant, load3, store3 = t.load, t.load_constant, t.load3, t.store3
+    sload3, sstore3 = t.sload3, t.sstore3  # the strings' (P, S) arrays: a leading direction axis
     vadd, vsub, vneg, vscl, sadd, ssub, sneg, sscl = t.vadd, t.vsub, t.vneg, t.vscl, t.sadd, t.ssub, t.sneg, t.sscl
     outer, mat, tvec = t.outer, t.mat, t.tvec
     spring = string_spring_tangent_functions(scalar, lanes)
@@ -325,7 +329,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     u_t, l_t, ratio_t, alpha_t, beta_t = compute_spring_parts(particle_q[start], x, stiffness,
                                                                               rest_length)
                     x_top_dot = load3(particle_q_dot, k, directions, start)
-                    top_dx_dot = vsub(load3(top_q_dot, k, directions, s), x_top_dot)
+                    top_dx_dot = vsub(sload3(top_q_dot, k, directions, s), x_top_dot)
                     u_t_dot, alpha_t_dot, beta_t_dot, f_t_dot = compute_spring_tangent(
                         u_t, l_t, scalar(1.0) / l_t, ratio_t, stiffness, rest_length, vsub(x_top_dot, x_dot),
                         stiffness_dot, rest_dot)
@@ -403,8 +407,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                                            sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
                     r = vadd(vadd(vadd(r, outer(dt * (tie_x - x) - h2 * (v + dv), tie_stiffness_dot)),
                                   outer(dt * (tie_v - v - dv), tie_damping_dot)),
-                             vsub(vadd(vscl(dt * tie_stiffness, vsub(load3(tie_q_dot, k, directions, s), x_dot)),
-                                       vscl(dt * tie_damping, vsub(load3(tie_qd_dot, k, directions, s), v_dot))),
+                             vsub(vadd(vscl(dt * tie_stiffness, vsub(sload3(tie_q_dot, k, directions, s), x_dot)),
+                                       vscl(dt * tie_damping, vsub(sload3(tie_qd_dot, k, directions, s), v_dot))),
                                   vscl(h2 * tie_stiffness, v_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p}, the upper segment's W.
                 if j > 1:
@@ -431,7 +435,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 store3(particle_qd_out_dot, k, directions, p, v1_dot)
                 store3(particle_q_out_dot, k, directions, p, vadd(load3(particle_q_dot, k, directions, p),
                                                                  vscl(dt, v1_dot)))
-            top_dot = load3(top_q_dot, k, directions, s)
+            top_dot = sload3(top_q_dot, k, directions, s)
             store3(particle_q_out_dot, k, directions, start, top_dot)
             store3(particle_qd_out_dot, k, directions, start,
                    vscl(inv_dt, vsub(top_dot, load3(particle_q_dot, k, directions, start))))
@@ -441,12 +445,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             tie_damping_dot = sadd(sscl(tie_damping_k, tied_dot),
                                    sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
             # F' = -k_t' (x_tie - x1) - k_t (x_tie' - x1') - k_dt' (v_tie - v1) - k_dt (v_tie' - v1')
-            store3(tie_force_dot, k, directions, s, vsub(vsub(vsub(
+            sstore3(tie_force_dot, k, directions, s, vsub(vsub(vsub(
                 outer(tie_x - x_last, sneg(tie_stiffness_dot)),
-                vscl(tie_stiffness, vsub(load3(tie_q_dot, k, directions, s),
+                vscl(tie_stiffness, vsub(sload3(tie_q_dot, k, directions, s),
                                          load3(particle_q_out_dot, k, directions, last)))),
                 outer(tie_v - v_last, tie_damping_dot)),
-                vscl(tie_damping, vsub(load3(tie_qd_dot, k, directions, s),
+                vscl(tie_damping, vsub(sload3(tie_qd_dot, k, directions, s),
                                        load3(particle_qd_out_dot, k, directions, last)))))
 
     return integrate_string_implicit_tangent
