@@ -18,11 +18,15 @@ order) and, per step, the tops, the tie targets and their velocities. The output
 springs only (a tension-only model is refused: the active-set step has no tangent here).
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
-differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py --repeats 5 --clock cpu`` (thread CPU time under load 2.3:
-P = 1, 4, 12, 16 tangents cost 2.42, 3.29, 6.59, 7.63 laned forward rollouts with the directions in
-SIMD lanes for P >= 2, 2.39, 5.75, 13.00, 16.78 one direction at a time; the issue's 1 + 0.5 P =
-1.5, 3, 7, 9 met at P = 12 and 16: ``kernels/string_step_tangent``'s doc says where it goes).
+differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). The rollout
+carries the particles' tangents direction-minor (``tangent_directions.direction_minor``; the
+masses' too), where the tangent kernel loads a lane group's directions contiguously. Cost:
+``benchmarks/bench_string_tangent.py --repeats 5 --layout both`` (wall time under load 1.6: P = 1,
+4, 12, 16 tangents cost 2.48, 3.07, 5.84, 7.10 laned forward rollouts with the directions in SIMD
+lanes for P >= 2 and direction-minor, 2.48, 3.38, 6.97, 8.28 with a leading direction axis; earlier,
+thread CPU time, one direction at a time: 2.39, 5.75, 13.00, 16.78); the issue's 1 + 0.5 P = 1.5,
+3, 7, 9 met at P = 12 and 16, not at 1 and (just) 4: ``kernels/string_step_tangent``'s doc says
+where it goes).
 """
 
 from __future__ import annotations
