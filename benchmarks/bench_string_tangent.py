@@ -1,7 +1,7 @@
 """Forward-mode cost of string rollouts: P tangents against one plain forward rollout (issue 13, item 4).
 
 Run:  python benchmarks/bench_string_tangent.py [--repeats 5] [--steps 1000] [--clock wall|cpu] [--no-lanes]
-          [--layout minor|major|both]
+          [--layout minor|major|both] [--directions 1 4 12 16]
 
 The strings of the built-in ``strings`` scene (six strings of 50 particles, every effect on, the
 two hand strings tied as in ``tests/grad/test_string_rollout_tangent.py``), 1 kHz, tops swaying.
@@ -79,6 +79,7 @@ def main() -> None:
                         help="the scalar tangent kernel (one direction at a time) instead of directions in lanes")
     parser.add_argument("--layout", choices=("minor", "major", "both"), default="minor",
                         help="the carried particle tangents' layout (StringRolloutTangent(minor=)); both: A/B per P")
+    parser.add_argument("--directions", type=int, nargs="+", default=list(DIRECTIONS), help="the P to time")
     args = parser.parse_args()
     clock = time.perf_counter if args.clock == "wall" else time.thread_time
     steps = CHUNK * max(1, args.steps // CHUNK)
@@ -104,7 +105,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     rng = np.random.default_rng(0)
     layouts = ("minor", "major") if args.layout == "both" else (args.layout,)
-    for p in DIRECTIONS:
+    for p in args.directions:
         tangents = _tangents(model, p, steps, rng)
         for layout in layouts:
             rollout = StringRolloutTangent(SolverStringImplicit(model), DT, p, chunk_steps=CHUNK,

@@ -87,15 +87,15 @@ class StringStepTangent:
         # The segment pass on lanes of 4 segments where the directions are in lanes (float64 CPU),
         # its results in that laned layout for every launch of the step.
         segment_lanes = DIRECTION_LANES if self.lanes else 1
-        # Each chunk's kernel for tangent arrays with a leading direction axis, and where the chunk's
-        # lane groups are whole, one for direction-minor arrays (``tangent_directions.direction_minor``:
-        # contiguous transfers instead of gathers; :meth:`step` picks by the arrays it is given).
+        # Each chunk's kernel for tangent arrays with a leading direction axis, and in lanes one for
+        # direction-minor arrays (``tangent_directions.direction_minor``: contiguous transfers instead
+        # of gathers; :meth:`step` picks by the arrays it is given).
         for lanes, count in chunks:
             kernels = [string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), lanes,
                                                   LANES if solver.lanes else 0, self.maps, first == 0, segment_lanes,
                                                   minor)
-                       for minor in ((False, True) if lanes > 1 and count == lanes else (False,))]
-            self._launches.append((kernels, first, count))
+                       for minor in ((False, True) if lanes > 1 else (False,))]
+            self._launches.append((kernels, first, lanes, count))
             first += count
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
         # Where the tangent finds each string's rows of the kept factorisation (laned: its group's rows, its lane).
@@ -139,10 +139,11 @@ class StringStepTangent:
             inverse, c = ws.scratch_inverse, ws.scratch_c
         tangents_in = (q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot)
         tangents_out = (q_out_dot, qd_out_dot, tie_force_dot)
-        minor = all(is_direction_minor(a) for a in (q_dot, qd_dot, q_out_dot, qd_out_dot, mass_dot))
-        for kernels, first, count in self._launches:
+        particles = (q_dot, qd_dot, q_out_dot, qd_out_dot, mass_dot)
+        for kernels, first, lanes, count in self._launches:
             chunk = slice(first, first + count)
             whole = count == self.directions
+            minor = all(is_direction_minor(a, first, lanes) for a in particles)
             wp.launch(
                 kernels[-1] if minor else kernels[0],
                 dim=m.string_count,

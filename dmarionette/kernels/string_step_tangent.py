@@ -34,7 +34,8 @@ particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_cou
 direction-minor instead (``tangent_directions.direction_minor``: the ``(particle_count, P)`` array's
 transposed view, the same ``(P, particle_count)`` indexing for every other kernel), and the kernel
 built with ``minor`` reads and writes a group of directions of one particle as contiguous lane
-vectors (``grad.string_tangent`` picks it for launches whose lane groups are whole). The kept factorisation is read where the forward left it: the scalar
+vectors (``grad.string_tangent`` picks it where every array has room for the launch's lane groups:
+real directions, or the padding ``direction_minor`` allocates, which the padding lanes then write). The kept factorisation is read where the forward left it: the scalar
 step's layout, or the laned step's (``factor_lanes``: a string's lane of its group's ``9 x 4`` rows,
 no unpacking launch). First a pass over the string's segments, once per step for all directions:
 each segment's spring parts (``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps`` its part of
@@ -108,7 +109,8 @@ direction axis in the same process (``bench_string_tangent.py --repeats 5 --layo
 time, load 1.1, then 1.6; thread CPU time, load 1.0), ms: P = 4 24.5, 23.9, 23.8 -> 21.2, 21.7, 21.0;
 P = 12 47.5, 49.4, 48.6 -> 41.3, 41.3, 43.0; P = 16 59.5, 58.6, 55.3 -> 51.8, 50.3, 49.3 (P = 1: the
 scalar kernel, the same); in laned forward rollouts (the second run) 3.07, 5.84, 7.10 against 3.38,
-6.97, 8.28, P = 1 2.48. A runtime test of the layout per transfer (instead of a kernel per layout)
+6.97, 8.28, P = 1 2.48; with padding lanes in the last group (into the storage's padding),
+``--directions 3 6 10``, load 2.0: 23.3, 34.0, 49.3 -> 21.2, 30.7, 41.4. A runtime test of the layout per transfer (instead of a kernel per layout)
 cost more than the gathers it saved (P = 16 60.0 ms). What is left at P = 1 (2.4-2.5 forwards, the
 target 1.5): the scalar kernel's 1.3 per direction; it would need the strings in lanes (as the
 forward has them, 4 strings per lane vector) rather than the directions. With one group of directions (P = 2-8) the

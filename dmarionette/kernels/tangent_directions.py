@@ -37,24 +37,33 @@ import warp as wp
 
 from .lane_ops import native_direction_memory
 
-__all__ = ["direction_minor", "is_direction_minor", "tangent_directions"]
+__all__ = ["MINOR_PADDING", "direction_minor", "is_direction_minor", "tangent_directions"]
+
+
+# The direction-minor arrays' storage holds a multiple of this many directions (the widest lane vector),
+# so that a last lane group with padding lanes also loads and stores contiguously (into the padding).
+MINOR_PADDING = 8
 
 
 def direction_minor(directions: int, count: int, dtype, device) -> wp.array:
-    """A zero ``(P, count)`` tangent array (``P = directions``) stored direction-minor: the
-    ``(count, P)`` array's transposed view, so that the P directions of one entry are contiguous
-    (strides ``(size, P size)``). Any kernel indexes it as ``a[k, i]``; the lane loads of
-    :func:`tangent_directions` read a group of ``K`` directions of one entry as contiguous lane
-    vectors (no gather)."""
-    return wp.zeros((count, directions), dtype=dtype, device=device).transpose()
+    """A zero ``(P, count)`` tangent array (``P = directions``) stored direction-minor: a view of the
+    first P rows of the ``(count, P')`` array's transpose (``P'``: P rounded up to a multiple of
+    :data:`MINOR_PADDING`), so that the directions of one entry are contiguous (strides ``(size, P'
+    size)``). Any kernel indexes it as ``a[k, i]``; the lane loads of :func:`tangent_directions` with
+    ``minor`` read a group of ``K`` directions of one entry as contiguous lane vectors (no gather),
+    and a last group's padding lanes read and write the storage past P (scratch, never read as a
+    direction)."""
+    padded = -(-directions // MINOR_PADDING) * MINOR_PADDING
+    return wp.zeros((count, padded), dtype=dtype, device=device).transpose()[:directions]
 
 
 @functools.cache
 def tangent_directions(scalar, lanes: int = 1, minor: bool = False) -> SimpleNamespace:
     """The namespace of the module doc for a float type and ``lanes`` directions per value.
     ``minor`` (lanes only): ``load``, ``load3`` and ``store3`` take direction-minor arrays
-    (:func:`direction_minor`) whose every lane group is whole (``k + lanes <= directions``): one
-    contiguous transfer per group, no gather; the caller checks both (:func:`is_direction_minor`)."""
+    (:func:`direction_minor`) with room for every lane group (``k + lanes`` directions: real or
+    padding): one contiguous transfer per group, no gather, the padding lanes' values written into
+    the padding; the caller checks both (:func:`is_direction_minor`)."""
     if lanes == 1:
         return _scalar_directions(scalar)
     if scalar is not wp.float64:
@@ -62,9 +71,14 @@ def tangent_directions(scalar, lanes: int = 1, minor: bool = False) -> SimpleNam
     return _lane_directions(lanes, minor)
 
 
-def is_direction_minor(a: wp.array) -> bool:
-    """Whether the ``(P, n)`` array ``a``'s directions are contiguous (:func:`direction_minor`'s layout)."""
-    return a.strides[0] == wp.types.type_size_in_bytes(a.dtype)
+def is_direction_minor(a: wp.array, first: int = 0, lanes: int = 1) -> bool:
+    """Whether the ``(P, n)`` array ``a``'s directions are contiguous (:func:`direction_minor`'s layout)
+    with room for lane groups of ``lanes`` directions from direction ``first`` on: the directions
+    ``first ... first + lanes - 1`` real (``< P``) or in its storage's padding."""
+    size = wp.types.type_size_in_bytes(a.dtype)
+    if a.strides[0] != size:
+        return False
+    return first + lanes <= max(a.shape[0], a.strides[1] // size if a.ndim > 1 and a.shape[1] > 1 else 0)
 
 
 def _scalar_directions(scalar) -> SimpleNamespace:
@@ -259,9 +273,9 @@ def _lane_directions(lanes: int, minor_layout: bool) -> SimpleNamespace:
 
 # Direction-minor arrays (:func:`direction_minor`): the ``K`` directions ``k ... k + K - 1`` of entry
 # ``i`` are ``3 K`` contiguous doubles ``x_0 y_0 z_0 x_1 ...``, loaded as ``3 K / 4`` 4-wide vectors and
-# transposed into the lane matrix's rows by shuffles (and back for the store). Only where every lane
-# is a real direction (``k + K <= directions``); else the per-lane gathers (their padding rule): the
-# layout is a static choice of the kernel (a runtime test per transfer measured slower than the gathers).
+# transposed into the lane matrix's rows by shuffles (and back for the store); a last group's padding
+# lanes are the storage's padding (``direction_minor``). The layout is a static choice of the kernel
+# (a runtime test per transfer measured slower than the gathers it saved).
 _MINOR_ENTRY = "((char*)a.data + (long)k * (long)a.strides[0] + (long)i * (long)a.strides[1])"
 _QUAD = "typedef double quad_t __attribute__((ext_vector_type(4)));\n"
 
