@@ -35,20 +35,21 @@ direction-minor instead (``tangent_directions.direction_minor``: the ``(particle
 transposed view, the same ``(P, particle_count)`` indexing for every other kernel), and the kernel
 built with ``minor`` reads and writes a group of directions of one particle as contiguous lane
 vectors (``grad.string_tangent`` picks it where every array has room for the launch's lane groups:
-real directions, or the padding ``direction_minor`` allocates, which the padding lanes then write). The kept factorisation is read where the forward left it: the scalar
-step's layout, or the laned step's (``factor_lanes``: a string's lane of its group's ``9 x 4`` rows,
-no unpacking launch). First a pass over the string's segments, once per step for all directions:
-each segment's spring parts (``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps`` its part of
-``b' - A' dv`` as a linear map of the direction (``E``, ``C`` below); where the directions are in
-lanes, 4 consecutive segments per lane vector (:func:`_segment_pass`, one body for both). Then one
-group of directions at a time (the string's constants' tangents read once per group): the forward
-sweep row by row, ``x'``, ``v'`` of the next particle, the upper segment's part ``c`` and the
-substitution's ``y`` carried from row to row in registers (``y`` also kept in
-``particle_qd_out_dot``), then the back substitution bottom to top, ``dv'`` carried, with ``v1'``
-and ``x1'`` written as it goes. Each segment's part of a row is computed once per direction and
-shared by its two rows (+c in the row above, -c in the row below, exactly), the internal friction's
-terms of the segment folded into it; the other terms (mass, air drag, ground, tie) are diagonal,
-each added to ``r`` on its own as a product of the direction with primal coefficients of the row.
+real directions, or the padding ``direction_minor`` allocates, which the padding lanes then write).
+The kept factorisation is read where the forward left it: the scalar step's layout, or the laned
+step's (``factor_lanes``: a string's lane of its group's ``9 x 4`` rows, no unpacking launch). First
+a pass over the string's segments, once per step for all directions: each segment's spring parts
+(``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps`` its part of ``b' - A' dv`` as a linear
+map of the direction (``E``, ``C`` below); where the directions are in lanes, 4 consecutive segments
+per lane vector (:func:`_segment_pass`, one body for both). Then one group of directions at a time
+(the string's constants' tangents read once per group): the forward sweep row by row, ``x'``, ``v'``
+of the next particle, the upper segment's part ``c`` and the substitution's ``y`` carried from row
+to row in registers (``y`` also kept in ``particle_qd_out_dot``), then the back substitution bottom
+to top, ``dv'`` carried, with ``v1'`` and ``x1'`` written as it goes. Each segment's part of a row
+is computed once per direction and shared by its two rows (+c in the row above, -c in the row below,
+exactly), the internal friction's terms of the segment folded into it; the other terms (mass, air
+drag, ground, tie) are diagonal, each added to ``r`` on its own as a product of the direction with
+primal coefficients of the row.
 
 Directions in SIMD lanes (``lanes = 4`` or ``8``, float64 on the CPU, the default of
 ``grad.string_tangent`` from P = 2, in launches of 8, then 4, then 1, :func:`direction_chunks`; each
@@ -97,25 +98,25 @@ pass keeping each group of 4 segments as one 9 x 4 block, P = 4 18.5, 19.1 -> 16
 noise): the gathers' addresses with one multiply per access instead of one per lane (~3 %), ``y``,
 ``v0'``, ``x0'`` kept contiguous per group for the back substitution instead of gathered again, the
 segments' ``h^2 K - h k_f I`` stored as a matrix, ``E`` built entry by entry or from precomputed
-scaled vectors, the (scalar) segment pass two segments per iteration; for P = 1, the segment pass
-on lanes of segments (the scalar kernel's otherwise; 16.7 -> 16.7 ms, the rollout, 1,000 steps). Measured pieces at P = 12
-(tangent kernel 47.5 ms; removing each, results wrong, as an experiment): the back substitution
-10.4, the rows' diagonal terms 4.9, the maps' products ``E e' + C k'`` 5.1, the fixed part 9.2 (then
-a scalar segment pass, one mat33 per segment). Then the particles' tangents
+scaled vectors, the (scalar) segment pass two segments per iteration; for P = 1, the segment pass on
+lanes of segments (the scalar kernel's otherwise; 16.7 -> 16.7 ms, the rollout, 1,000 steps).
+Measured pieces at P = 12 (tangent kernel 47.5 ms; removing each, results wrong, as an experiment):
+the back substitution 10.4, the rows' diagonal terms 4.9, the maps' products ``E e' + C k'`` 5.1,
+the fixed part 9.2 (then a scalar segment pass, one mat33 per segment). Then the particles' tangents
 direction-minor (``minor``, the rollouts' layout: a group's directions of one particle three 4-wide
 loads or stores and shuffles instead of a gather or scatter of one vec3 per lane; seven per row and
 group, and the masses' one load), the rollout of P = 1, 4, 12, 16 tangents against the leading
 direction axis in the same process (``bench_string_tangent.py --repeats 5 --layout both``, wall
-time, load 1.1, then 1.6; thread CPU time, load 1.0), ms: P = 4 24.5, 23.9, 23.8 -> 21.2, 21.7, 21.0;
-P = 12 47.5, 49.4, 48.6 -> 41.3, 41.3, 43.0; P = 16 59.5, 58.6, 55.3 -> 51.8, 50.3, 49.3 (P = 1: the
-scalar kernel, the same); in laned forward rollouts (the second run) 3.07, 5.84, 7.10 against 3.38,
-6.97, 8.28, P = 1 2.48; with padding lanes in the last group (into the storage's padding),
-``--directions 3 6 10``, load 2.0: 23.3, 34.0, 49.3 -> 21.2, 30.7, 41.4. A runtime test of the layout per transfer (instead of a kernel per layout)
-cost more than the gathers it saved (P = 16 60.0 ms). What is left at P = 1 (2.4-2.5 forwards, the
-target 1.5): the scalar kernel's 1.3 per direction; it would need the strings in lanes (as the
-forward has them, 4 strings per lane vector) rather than the directions. With one group of directions (P = 2-8) the
-linear maps and the spring tangents now tie (measured within 1 ms); the spring tangents are kept
-there.
+time, load 1.1, then 1.6; thread CPU time, load 1.0), ms: P = 4 24.5, 23.9, 23.8 -> 21.2, 21.7,
+21.0; P = 12 47.5, 49.4, 48.6 -> 41.3, 41.3, 43.0; P = 16 59.5, 58.6, 55.3 -> 51.8, 50.3, 49.3 (P =
+1: the scalar kernel, the same); in laned forward rollouts (the second run) 3.07, 5.84, 7.10 against
+3.38, 6.97, 8.28, P = 1 2.48; with padding lanes in the last group (into the storage's padding),
+``--directions 3 6 10``, load 2.0: 23.3, 34.0, 49.3 -> 21.2, 30.7, 41.4. A runtime test of the
+layout per transfer (instead of a kernel per layout) cost more than the gathers it saved (P = 16
+60.0 ms). What is left at P = 1 (2.4-2.5 forwards, the target 1.5): the scalar kernel's 1.3 per
+direction; it would need the strings in lanes (as the forward has them, 4 strings per lane vector)
+rather than the directions. With one group of directions (P = 2-8) the linear maps and the spring
+tangents now tie (measured within 1 ms); the spring tangents are kept there.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change

@@ -20,13 +20,15 @@ Both give the same names, each the scalar operation it stands for (one rounding 
 the order written): ``TS``, ``TV`` (the types, also the zero constructors ``TS(zero)``,
 ``TV(zero)``), ``step`` (directions per value), ``load(a, k, directions, i)`` (``a[k, i]`` of a
 ``(P, n)`` scalar array), ``load_constant(a, k, directions, i, c)`` (``a[k, i, c]``), ``load3`` and
-``store3(a, k, directions, i, v)`` (of a ``(P, n)`` vec3 array; the store writes the real
-directions only; with ``minor``, of a direction-minor one, :func:`direction_minor`), ``sload3``
-and ``sstore3`` (the same, always of an array with a leading direction axis); on tangent vectors ``vadd(a, b)``, ``vsub(a, b)``, ``vneg(a)``, ``vscl(c, a)``
-(``c`` a primal scalar), on tangent scalars ``sadd``, ``ssub``, ``sneg``, ``sscl``; ``outer(v, a)``
-(the primal vector ``v`` times the tangent scalar ``a``), ``dot(u, r)`` (the primal ``u`` dotted
-with the tangent vector ``r``), ``mat(m, r)`` (the primal ``mat33`` times ``r``), ``tvec(a, b, c)``
-(the tangent vector of three tangent scalars, component-wise).
+``store3(a, k, directions, i, v)`` (of a ``(P, n)`` vec3 array; the store writes the real directions
+only; with ``minor``, of a direction-minor one, :func:`direction_minor`, whose storage's padding
+the padding lanes write), ``sload3`` and ``sstore3`` (the same, always of an array with a leading
+direction axis); on tangent vectors ``vadd(a, b)``,
+``vsub(a, b)``, ``vneg(a)``, ``vscl(c, a)`` (``c`` a primal scalar), on tangent scalars ``sadd``,
+``ssub``, ``sneg``, ``sscl``; ``outer(v, a)`` (the primal vector ``v`` times the tangent scalar
+``a``), ``dot(u, r)`` (the primal ``u`` dotted with the tangent vector ``r``), ``mat(m, r)`` (the
+primal ``mat33`` times ``r``), ``tvec(a, b, c)`` (the tangent vector of three tangent scalars,
+component-wise).
 """
 
 import functools
@@ -150,8 +152,9 @@ def _scalar_directions(scalar) -> SimpleNamespace:
         return vec3(a, b, c)
 
     return SimpleNamespace(TS=scalar, TV=vec3, step=1, load=load, load_constant=load_constant, load3=load3,
-                           store3=store3, sload3=load3, sstore3=store3, vadd=vadd, vsub=vsub, vneg=vneg, vscl=vscl, sadd=sadd, ssub=ssub,
-                           sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat, tvec=tvec)
+                           store3=store3, sload3=load3, sstore3=store3, vadd=vadd, vsub=vsub, vneg=vneg,
+                           vscl=vscl, sadd=sadd, ssub=ssub, sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat,
+                           tvec=tvec)
 
 
 # Clang vector snippets (``lane_ops``' style): a tangent scalar's K lanes, a tangent vector's three rows.
@@ -267,8 +270,9 @@ def _lane_directions(lanes: int, minor_layout: bool) -> SimpleNamespace:
         return wp.matrix_from_rows(a, b, c)
 
     return SimpleNamespace(TS=lane, TV=lvec, step=lanes, load=load, load_constant=load_constant, load3=load3,
-                           store3=store3, sload3=mem.gather3, sstore3=mem.scatter3, vadd=vadd, vsub=vsub, vneg=vneg, vscl=vscl, sadd=sadd, ssub=ssub,
-                           sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat, tvec=tvec)
+                           store3=store3, sload3=mem.gather3, sstore3=mem.scatter3, vadd=vadd, vsub=vsub,
+                           vneg=vneg, vscl=vscl, sadd=sadd, ssub=ssub, sneg=sneg, sscl=sscl, outer=outer, dot=dot,
+                           mat=mat, tvec=tvec)
 
 
 # Direction-minor arrays (:func:`direction_minor`): the ``K`` directions ``k ... k + K - 1`` of entry
@@ -282,8 +286,8 @@ _QUAD = "typedef double quad_t __attribute__((ext_vector_type(4)));\n"
 
 @functools.cache
 def _minor_memory(lanes: int) -> SimpleNamespace:
-    """``load3(a, k, i)``, ``store3(a, k, i, v)``,
-    ``load(a, k, i)``: the direction-minor transfers (each lane the value the gather would read)."""
+    """``load3(a, k, i)``, ``store3(a, k, i, v)``, ``load(a, k, i)``: the direction-minor transfers
+    (each real lane the value the gather would read; :func:`direction_minor`)."""
     lane = wp.types.vector(lanes, wp.float64)
     lvec = wp.types.matrix((3, lanes), wp.float64)
     quads = lanes // 4
