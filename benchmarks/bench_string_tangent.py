@@ -1,6 +1,7 @@
 """Forward-mode cost of string rollouts: P tangents against one plain forward rollout (issue 13, item 4).
 
 Run:  python benchmarks/bench_string_tangent.py [--repeats 5] [--steps 1000] [--clock wall|cpu] [--no-lanes]
+          [--layout minor|major|both] [--directions 1 4 12 16]
 
 The strings of the built-in ``strings`` scene (six strings of 50 particles, every effect on, the
 two hand strings tied as in ``tests/grad/test_string_rollout_tangent.py``), 1 kHz, tops swaying.
@@ -14,7 +15,10 @@ Timed (median of ``--repeats`` runs after an untimed warm-up, spread printed):
   steps, including the upload of the per-step tangents and the download of the tie forces' tangents;
   the tangent kernel as ``StringRolloutTangent`` chooses it (4 or 8 directions per SIMD lane
   vector for P >= 2, ``string_step_tangent.direction_chunks``, the scalar kernel for P = 1), or
-  with ``--no-lanes`` one direction at a time (the scalar tangent kernel) for every P.
+  with ``--no-lanes`` one direction at a time (the scalar tangent kernel) for every P; the carried
+  particle tangents stored direction-minor (``--layout minor``, the default: a lane group's
+  directions of one particle contiguous) or with a leading direction axis (``major``), or both
+  one after the other for each P (``both``: an A/B in one process).
 
 The issue's target: P tangents cost at most (1 + 0.5 P) x one forward rollout (P <= 16). The
 ratio is printed against both forwards (the laned default is the harder reference).
@@ -73,6 +77,9 @@ def main() -> None:
                         help="wall: wall-clock time (default); cpu: the thread's CPU time (shared machines)")
     parser.add_argument("--no-lanes", action="store_true",
                         help="the scalar tangent kernel (one direction at a time) instead of directions in lanes")
+    parser.add_argument("--layout", choices=("minor", "major", "both"), default="minor",
+                        help="the carried particle tangents' layout (StringRolloutTangent(minor=)); both: A/B per P")
+    parser.add_argument("--directions", type=int, nargs="+", default=list(DIRECTIONS), help="the P to time")
     args = parser.parse_args()
     clock = time.perf_counter if args.clock == "wall" else time.thread_time
     steps = CHUNK * max(1, args.steps // CHUNK)
@@ -94,17 +101,19 @@ def main() -> None:
         print(f"forward rollout, {'laned step (default)' if lanes else 'scalar step'}: "
               f"{forward[lanes][0] * 1e3:.1f} ms (spread {forward[lanes][1]:.0%})")
     print()
-    print("| P | tangent rollout [ms] | spread | / laned forward | / scalar forward | target 1 + 0.5 P |")
-    print("|---|---|---|---|---|---|")
+    print("| P | layout | tangent rollout [ms] | spread | / laned forward | / scalar forward | target 1 + 0.5 P |")
+    print("|---|---|---|---|---|---|---|")
     rng = np.random.default_rng(0)
-    for p in DIRECTIONS:
-        rollout = StringRolloutTangent(SolverStringImplicit(model), DT, p, chunk_steps=CHUNK,
-                                       lanes=False if args.no_lanes else None)
+    layouts = ("minor", "major") if args.layout == "both" else (args.layout,)
+    for p in args.directions:
         tangents = _tangents(model, p, steps, rng)
-        median, spread = _timed(lambda r=rollout, v=tangents: r.run(model.state(), tops, tie, tie_v, v),
-                                args.repeats, clock)
-        print(f"| {p} | {median * 1e3:.1f} | {spread:.0%} | {median / forward[True][0]:.2f} | "
-              f"{median / forward[False][0]:.2f} | {1 + 0.5 * p:.1f} |")
+        for layout in layouts:
+            rollout = StringRolloutTangent(SolverStringImplicit(model), DT, p, chunk_steps=CHUNK,
+                                           lanes=False if args.no_lanes else None, minor=layout == "minor")
+            median, spread = _timed(lambda r=rollout, v=tangents: r.run(model.state(), tops, tie, tie_v, v),
+                                    args.repeats, clock)
+            print(f"| {p} | {layout} | {median * 1e3:.1f} | {spread:.0%} | {median / forward[True][0]:.2f} | "
+                  f"{median / forward[False][0]:.2f} | {1 + 0.5 * p:.1f} |")
     print(f"\nload average after: {os.getloadavg()[0]:.2f}")
 
 

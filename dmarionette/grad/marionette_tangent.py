@@ -48,6 +48,7 @@ from dmarionette.articulation.step_tangent import PuppetStepTangent, TangentStat
 from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
 from dmarionette.kernels.articulation_forces import eval_body_points
 from dmarionette.kernels.kernel_tangent import UNROLL, tangent_kernel
+from dmarionette.kernels.tangent_directions import direction_minor
 from dmarionette.kernels.bar_feedback import eval_bar_feedback_kernel
 from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anchors_kernel,
                                                       eval_string_response_kernel, eval_tie_path)
@@ -63,7 +64,8 @@ class MarionetteTangentState:
 
     Attributes:
         puppet: the puppet state's (``joint_q``, ``joint_qd``, ``joint_qdd``).
-        particle_q, particle_qd: ``(P, particles)`` vec3d.
+        particle_q, particle_qd: ``(P, particles)`` vec3d (stored direction-minor: a view of
+            ``(particles, P)``, ``kernels.tangent_directions.direction_minor``).
         tie_force: ``(P, n, S)``; tie_target: ``(P, S)``.
         bar_feedback, bar_reaction: ``(P, n, W B)``.
     """
@@ -72,8 +74,9 @@ class MarionetteTangentState:
         P, n, dev = direction_count, model.substeps, model.device
         s, b = model.strings.string_count, model.bar_rows * model.world_count
         self.puppet = TangentState(model.puppet, P, model.world_count)
-        self.particle_q = wp.zeros((P, model.strings.particle_count), dtype=wp.vec3d, device=dev)
-        self.particle_qd = wp.zeros((P, model.strings.particle_count), dtype=wp.vec3d, device=dev)
+        # stored direction-minor, as the string tangent loads them fastest (``tangent_directions``)
+        self.particle_q = direction_minor(P, model.strings.particle_count, wp.vec3d, dev)
+        self.particle_qd = direction_minor(P, model.strings.particle_count, wp.vec3d, dev)
         self.tie_force = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
         self.tie_target = wp.zeros((P, s), dtype=wp.vec3d, device=dev)
         self.bar_feedback = wp.zeros((P, n, max(b, 1)), dtype=wp.vec3d, device=dev)
@@ -133,9 +136,9 @@ class MarionetteTangent:
         self.trial_point_qd = wp.zeros((P, m.world_count, points), dtype=wp.vec3d, device=dev)
         self.tie_q = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
         self.tie_qd = wp.zeros((P, n, s), dtype=wp.vec3d, device=dev)
-        self.particles = [(wp.zeros((P, m.strings.particle_count), dtype=wp.vec3d, device=dev),
-                           wp.zeros((P, m.strings.particle_count), dtype=wp.vec3d, device=dev)) for _ in range(2)]
-        self.mass_dot = wp.zeros((P, m.strings.particle_count), dtype=m.strings.scalar, device=dev)
+        self.particles = [(direction_minor(P, m.strings.particle_count, wp.vec3d, dev),
+                           direction_minor(P, m.strings.particle_count, wp.vec3d, dev)) for _ in range(2)]
+        self.mass_dot = direction_minor(P, m.strings.particle_count, m.strings.scalar, dev)
         self.constants_dot = wp.zeros((P, s, len(CONSTANTS)), dtype=m.strings.scalar, device=dev)
         self.puppet_control = self.puppet.control_tangent()  # zero but for the anchors
         self._zeros: dict = {}

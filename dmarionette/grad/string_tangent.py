@@ -18,11 +18,15 @@ order) and, per step, the tops, the tie targets and their velocities. The output
 springs only (a tension-only model is refused: the active-set step has no tangent here).
 
 Checked against reverse mode (the taped steps) by the dot-product identity and against central
-differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). Cost:
-``benchmarks/bench_string_tangent.py --repeats 5 --clock cpu`` (thread CPU time under load 2.3:
-P = 1, 4, 12, 16 tangents cost 2.42, 3.29, 6.59, 7.63 laned forward rollouts with the directions in
-SIMD lanes for P >= 2, 2.39, 5.75, 13.00, 16.78 one direction at a time; the issue's 1 + 0.5 P =
-1.5, 3, 7, 9 met at P = 12 and 16: ``kernels/string_step_tangent``'s doc says where it goes).
+differences of whole rollouts (``tests/grad/test_string_rollout_tangent.py``). The rollout
+carries the particles' tangents direction-minor (``tangent_directions.direction_minor``; the
+masses' too), where the tangent kernel loads a lane group's directions contiguously. Cost:
+``benchmarks/bench_string_tangent.py --repeats 5 --layout both`` (wall time under load 1.6: P = 1,
+4, 12, 16 tangents cost 2.48, 3.07, 5.84, 7.10 laned forward rollouts with the directions in SIMD
+lanes for P >= 2 and direction-minor, 2.48, 3.38, 6.97, 8.28 with a leading direction axis; earlier,
+thread CPU time, one direction at a time: 2.39, 5.75, 13.00, 16.78); the issue's 1 + 0.5 P = 1.5,
+3, 7, 9 met at P = 12 and 16, not at 1 and (just) 4: ``kernels/string_step_tangent``'s doc says
+where it goes).
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
 from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_chunks, lane_factor_rows,
                                                      string_step_tangent_kernel)
+from dmarionette.kernels.tangent_directions import direction_minor, is_direction_minor
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit, StringWorkspace
@@ -82,10 +87,15 @@ class StringStepTangent:
         # The segment pass on lanes of 4 segments where the directions are in lanes (float64 CPU),
         # its results in that laned layout for every launch of the step.
         segment_lanes = DIRECTION_LANES if self.lanes else 1
+        # Each chunk's kernel for tangent arrays with a leading direction axis, and in lanes one for
+        # direction-minor arrays (``tangent_directions.direction_minor``: contiguous transfers instead
+        # of gathers; :meth:`step` picks by the arrays it is given).
         for lanes, count in chunks:
-            kernel = string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), lanes,
-                                                LANES if solver.lanes else 0, self.maps, first == 0, segment_lanes)
-            self._launches.append((kernel, first, count))
+            kernels = [string_step_tangent_kernel(model.scalar, model.effects.as_tuple(), lanes,
+                                                  LANES if solver.lanes else 0, self.maps, first == 0, segment_lanes,
+                                                  minor)
+                       for minor in ((False, True) if lanes > 1 else (False,))]
+            self._launches.append((kernels, first, lanes, count))
             first += count
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # the forward's kept factorisation
         # Where the tangent finds each string's rows of the kept factorisation (laned: its group's rows, its lane).
@@ -98,9 +108,12 @@ class StringStepTangent:
         segment_type = model.mat33 if segment_lanes == 1 else wp.types.matrix((9, segment_lanes), wp.float64)
         self._segments = [wp.zeros(model.particle_count, dtype=segment_type, device=model.device) for _ in range(3)]
 
-    def zeros(self, count: int, dtype=None) -> wp.array:
-        """A ``(P, count)`` tangent array (vec3 by default)."""
+    def zeros(self, count: int, dtype=None, minor: bool = False) -> wp.array:
+        """A ``(P, count)`` tangent array (vec3 by default); ``minor``: stored direction-minor
+        (``tangent_directions.direction_minor``, the layout the laned tangent loads fastest)."""
         m = self.model
+        if minor:
+            return direction_minor(self.directions, count, dtype or m.vec3, m.device)
         return wp.zeros((self.directions, count), dtype=dtype or m.vec3, device=m.device)
 
     def step(self, state_in: StringState, state_out: StringState, control: StringControl, dt: float,
@@ -126,11 +139,13 @@ class StringStepTangent:
             inverse, c = ws.scratch_inverse, ws.scratch_c
         tangents_in = (q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot)
         tangents_out = (q_out_dot, qd_out_dot, tie_force_dot)
-        for kernel, first, count in self._launches:
+        particles = (q_dot, qd_dot, q_out_dot, qd_out_dot, mass_dot)
+        for kernels, first, lanes, count in self._launches:
             chunk = slice(first, first + count)
             whole = count == self.directions
+            minor = all(is_direction_minor(a, first, lanes) for a in particles)
             wp.launch(
-                kernel,
+                kernels[-1] if minor else kernels[0],
                 dim=m.string_count,
                 inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
                         m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
@@ -188,10 +203,10 @@ class StringTangentResult:
 class _Carry:
     """A rollout's carried state and its tangents (``ping_pong``'s state)."""
 
-    def __init__(self, stepper: StringStepTangent):
+    def __init__(self, stepper: StringStepTangent, minor: bool):
         self.state = stepper.model.state()
-        self.q_dot = stepper.zeros(stepper.model.particle_count)
-        self.qd_dot = stepper.zeros(stepper.model.particle_count)
+        self.q_dot = stepper.zeros(stepper.model.particle_count, minor=minor)
+        self.qd_dot = stepper.zeros(stepper.model.particle_count, minor=minor)
 
     def assign(self, other: _Carry) -> None:
         self.state.assign(other.state)
@@ -208,25 +223,29 @@ class StringRolloutTangent:
         directions: the number of tangent directions ``P``.
         chunk_steps: steps per captured graph (``T`` must be a multiple).
         lanes: the tangent directions in SIMD lanes (:class:`StringStepTangent`; default: where supported).
+        minor: the carried particle tangents and the masses' stored direction-minor
+            (``tangent_directions.direction_minor``: a lane group's directions of one particle
+            contiguous, loaded without gathers; the same numbers), else with a leading direction axis.
     """
 
     def __init__(self, solver: SolverStringImplicit, dt: float, directions: int, chunk_steps: int = 50,
-                 lanes: bool | None = None):
+                 lanes: bool | None = None, minor: bool = True):
         self.stepper = StringStepTangent(solver, directions, lanes)
         m = self.model = solver.model
         self.dt = float(dt)
         self.directions = int(directions)
         self.chunk_steps = int(chunk_steps)
+        self.minor = bool(minor)
         c, p, s, n = self.chunk_steps, self.directions, m.string_count, m.particle_count
         with wp.ScopedDevice(m.device):
             self._top_q, self._tie_q, self._tie_qd, self._tie_force = (wp.zeros((c, s), dtype=m.vec3) for _ in range(4))
             self._top_q_dot, self._tie_q_dot, self._tie_qd_dot, self._tie_force_dot = (
                 wp.zeros((c, p, s), dtype=m.vec3) for _ in range(4))
-            self._mass_dot = wp.zeros((p, n), dtype=m.scalar)
+            self._mass_dot = self.stepper.zeros(n, m.scalar, self.minor)
             self._constants_dot = wp.zeros((p, s, len(CONSTANTS)), dtype=m.scalar)
         self._controls = [StringControl(self._top_q[k], self._tie_q[k], self._tie_qd[k]) for k in range(c)]
-        self._carry = _Carry(self.stepper)
-        self._spare = _Carry(self.stepper)
+        self._carry = _Carry(self.stepper, self.minor)
+        self._spare = _Carry(self.stepper, self.minor)
         self._chunk = CapturedChunk(self._launch, m.device, warm_up=self._warm_up)
 
     def _step(self, k: int, a: _Carry, b: _Carry) -> None:
@@ -244,7 +263,7 @@ class StringRolloutTangent:
 
     def _warm_up(self) -> None:
         # One eager step on scratch arrays loads every module before capture begins.
-        self._step(0, self._spare, _Carry(self.stepper))
+        self._step(0, self._spare, _Carry(self.stepper, self.minor))
 
     def run(self, state: StringState, top_q: np.ndarray, tie_q: np.ndarray | None = None,
             tie_qd: np.ndarray | None = None, tangents: StringTangentInputs | None = None) -> StringTangentResult:

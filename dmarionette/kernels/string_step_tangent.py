@@ -30,20 +30,26 @@ Printed springs only: the tension-only springs' step (an active-set solve) has n
 
 Layout: one thread per string, ``dim = S``. The tangents have a leading direction axis (``(P,
 particle_count)``, ``(P, string_count)`` of vec3; the constants ``(P, string_count, 10)`` in
-:data:`CONSTANTS` order). The kept factorisation is read where the forward left it: the scalar
-step's layout, or the laned step's (``factor_lanes``: a string's lane of its group's ``9 x 4`` rows,
-no unpacking launch). First a pass over the string's segments, once per step for all directions:
-each segment's spring parts (``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps`` its part of
-``b' - A' dv`` as a linear map of the direction (``E``, ``C`` below); where the directions are in
-lanes, 4 consecutive segments per lane vector (:func:`_segment_pass`, one body for both). Then one
-group of directions at a time (the string's constants' tangents read once per group): the forward
-sweep row by row, ``x'``, ``v'`` of the next particle, the upper segment's part ``c`` and the
-substitution's ``y`` carried from row to row in registers (``y`` also kept in
-``particle_qd_out_dot``), then the back substitution bottom to top, ``dv'`` carried, with ``v1'``
-and ``x1'`` written as it goes. Each segment's part of a row is computed once per direction and
-shared by its two rows (+c in the row above, -c in the row below, exactly), the internal friction's
-terms of the segment folded into it; the other terms (mass, air drag, ground, tie) are diagonal,
-each added to ``r`` on its own as a product of the direction with primal coefficients of the row.
+:data:`CONSTANTS` order); the particles' (``x0'``, ``v0'``, ``x1'``, ``v1'``, ``m'``) may be stored
+direction-minor instead (``tangent_directions.direction_minor``: the ``(particle_count, P)`` array's
+transposed view, the same ``(P, particle_count)`` indexing for every other kernel), and the kernel
+built with ``minor`` reads and writes a group of directions of one particle as contiguous lane
+vectors (``grad.string_tangent`` picks it where every array has room for the launch's lane groups:
+real directions, or the padding ``direction_minor`` allocates, which the padding lanes then write).
+The kept factorisation is read where the forward left it: the scalar step's layout, or the laned
+step's (``factor_lanes``: a string's lane of its group's ``9 x 4`` rows, no unpacking launch). First
+a pass over the string's segments, once per step for all directions: each segment's spring parts
+(``u, l, 1 / l, 1 - d/l, alpha, beta``), and with ``maps`` its part of ``b' - A' dv`` as a linear
+map of the direction (``E``, ``C`` below); where the directions are in lanes, 4 consecutive segments
+per lane vector (:func:`_segment_pass`, one body for both). Then one group of directions at a time
+(the string's constants' tangents read once per group): the forward sweep row by row, ``x'``, ``v'``
+of the next particle, the upper segment's part ``c`` and the substitution's ``y`` carried from row
+to row in registers (``y`` also kept in ``particle_qd_out_dot``), then the back substitution bottom
+to top, ``dv'`` carried, with ``v1'`` and ``x1'`` written as it goes. Each segment's part of a row
+is computed once per direction and shared by its two rows (+c in the row above, -c in the row below,
+exactly), the internal friction's terms of the segment folded into it; the other terms (mass, air
+drag, ground, tie) are diagonal, each added to ``r`` on its own as a product of the direction with
+primal coefficients of the row.
 
 Directions in SIMD lanes (``lanes = 4`` or ``8``, float64 on the CPU, the default of
 ``grad.string_tangent`` from P = 2, in launches of 8, then 4, then 1, :func:`direction_chunks`; each
@@ -92,15 +98,25 @@ pass keeping each group of 4 segments as one 9 x 4 block, P = 4 18.5, 19.1 -> 16
 noise): the gathers' addresses with one multiply per access instead of one per lane (~3 %), ``y``,
 ``v0'``, ``x0'`` kept contiguous per group for the back substitution instead of gathered again, the
 segments' ``h^2 K - h k_f I`` stored as a matrix, ``E`` built entry by entry or from precomputed
-scaled vectors, the (scalar) segment pass two segments per iteration. Measured pieces at P = 12
-(tangent kernel 47.5 ms; removing each, results wrong, as an experiment): the back substitution
-10.4, the rows' diagonal terms 4.9, the maps' products ``E e' + C k'`` 5.1, the fixed part 9.2 (then
-a scalar segment pass, one mat33 per segment). What is left is mostly per direction: the lane
-gathers and scatters of the ``(P, N)`` vec3 arrays (nine per row and group); a direction-minor
-layout of the tangent arrays would make them plain loads, and P = 1 would need the strings in lanes
-(as the forward has them) rather than the directions. With one group of directions (P = 2-8) the
-linear maps and the spring tangents now tie (measured within 1 ms); the spring tangents are kept
-there.
+scaled vectors, the (scalar) segment pass two segments per iteration; for P = 1, the segment pass on
+lanes of segments (the scalar kernel's otherwise; 16.7 -> 16.7 ms, the rollout, 1,000 steps).
+Measured pieces at P = 12 (tangent kernel 47.5 ms; removing each, results wrong, as an experiment):
+the back substitution 10.4, the rows' diagonal terms 4.9, the maps' products ``E e' + C k'`` 5.1,
+the fixed part 9.2 (then a scalar segment pass, one mat33 per segment). Then the particles' tangents
+direction-minor (``minor``, the rollouts' layout: a group's directions of one particle three 4-wide
+loads or stores and shuffles instead of a gather or scatter of one vec3 per lane; seven per row and
+group, and the masses' one load), the rollout of P = 1, 4, 12, 16 tangents against the leading
+direction axis in the same process (``bench_string_tangent.py --repeats 5 --layout both``, wall
+time, load 1.1, then 1.6; thread CPU time, load 1.0), ms: P = 4 24.5, 23.9, 23.8 -> 21.2, 21.7,
+21.0; P = 12 47.5, 49.4, 48.6 -> 41.3, 41.3, 43.0; P = 16 59.5, 58.6, 55.3 -> 51.8, 50.3, 49.3 (P =
+1: the scalar kernel, the same); in laned forward rollouts (the second run) 3.07, 5.84, 7.10 against
+3.38, 6.97, 8.28, P = 1 2.48; with padding lanes in the last group (into the storage's padding),
+``--directions 3 6 10``, load 2.0: 23.3, 34.0, 49.3 -> 21.2, 30.7, 41.4. A runtime test of the
+layout per transfer (instead of a kernel per layout) cost more than the gathers it saved (P = 16
+60.0 ms). What is left at P = 1 (2.4-2.5 forwards, the target 1.5): the scalar kernel's 1.3 per
+direction; it would need the strings in lanes (as the forward has them, 4 strings per lane vector)
+rather than the directions. With one group of directions (P = 2-8) the linear maps and the spring
+tangents now tie (measured within 1 ms); the spring tangents are kept there.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,
 ``string_terms``, ``string_tie``); the springs' is ``string_spring_tangent_functions``. A change
@@ -153,7 +169,7 @@ CONSTANTS = ("string_stiffness", "string_rest_length", "string_internal_friction
 @functools.cache
 def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bool], lanes: int = 1,
                                factor_lanes: int = 0, maps: bool = True, segments: bool = True,
-                               segment_lanes: int = 1):
+                               segment_lanes: int = 1, minor: bool = False):
     """Builds ``integrate_string_implicit_tangent`` for a float type, an effect set (``effects`` as
     ``integrate_string_implicit_kernel``'s) and ``lanes`` directions per value (1: one at a time,
     any float type and device; 4 or 8: in SIMD lanes, float64 on the CPU; ``tangent_directions``),
@@ -169,7 +185,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     same step (its other directions, the same ``maps`` and ``segment_lanes``) left.
     ``segment_lanes``: the pass one segment at a time (1) or ``DIRECTION_LANES`` consecutive ones in
     SIMD lanes (float64 CPU), each group of them kept as one laned ``9 x K`` block
-    (:func:`_segment_values`)."""
+    (:func:`_segment_values`). ``minor`` (with ``lanes``): the particles' tangent arrays (in, out, the
+    masses') stored direction-minor (``tangent_directions.direction_minor``) and every lane group
+    whole (``directions`` a multiple of ``lanes``): each group's transfer one contiguous load or
+    store (``tangent_directions``), no gather."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     MAPS = maps
     SEGMENTS = segments
@@ -182,9 +201,10 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     SM, load_segment = segment_values.SM, segment_values.load9
     FM, load_factor = factor.FM, factor.load
     compute_spring_parts = string_spring_adjoint_functions(scalar).compute_spring_parts
-    t = tangent_directions(scalar, lanes)
+    t = tangent_directions(scalar, lanes, minor)
     TS, TV, STEP = t.TS, t.TV, t.step
     load, load_constant, load3, store3 = t.load, t.load_constant, t.load3, t.store3
+    sload3, sstore3 = t.sload3, t.sstore3  # the strings' (P, S) arrays: a leading direction axis
     vadd, vsub, vneg, vscl, sadd, ssub, sneg, sscl = t.vadd, t.vsub, t.vneg, t.vscl, t.sadd, t.ssub, t.sneg, t.sscl
     outer, mat, tvec = t.outer, t.mat, t.tvec
     spring = string_spring_tangent_functions(scalar, lanes)
@@ -325,7 +345,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                     u_t, l_t, ratio_t, alpha_t, beta_t = compute_spring_parts(particle_q[start], x, stiffness,
                                                                               rest_length)
                     x_top_dot = load3(particle_q_dot, k, directions, start)
-                    top_dx_dot = vsub(load3(top_q_dot, k, directions, s), x_top_dot)
+                    top_dx_dot = vsub(sload3(top_q_dot, k, directions, s), x_top_dot)
                     u_t_dot, alpha_t_dot, beta_t_dot, f_t_dot = compute_spring_tangent(
                         u_t, l_t, scalar(1.0) / l_t, ratio_t, stiffness, rest_length, vsub(x_top_dot, x_dot),
                         stiffness_dot, rest_dot)
@@ -403,8 +423,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                                            sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
                     r = vadd(vadd(vadd(r, outer(dt * (tie_x - x) - h2 * (v + dv), tie_stiffness_dot)),
                                   outer(dt * (tie_v - v - dv), tie_damping_dot)),
-                             vsub(vadd(vscl(dt * tie_stiffness, vsub(load3(tie_q_dot, k, directions, s), x_dot)),
-                                       vscl(dt * tie_damping, vsub(load3(tie_qd_dot, k, directions, s), v_dot))),
+                             vsub(vadd(vscl(dt * tie_stiffness, vsub(sload3(tie_q_dot, k, directions, s), x_dot)),
+                                       vscl(dt * tie_damping, vsub(sload3(tie_qd_dot, k, directions, s), v_dot))),
                                   vscl(h2 * tie_stiffness, v_dot)))
                 # Forward substitution with the stored pivot inverse; A_{p,p-1} = A_{p-1,p}, the upper segment's W.
                 if j > 1:
@@ -431,7 +451,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 store3(particle_qd_out_dot, k, directions, p, v1_dot)
                 store3(particle_q_out_dot, k, directions, p, vadd(load3(particle_q_dot, k, directions, p),
                                                                  vscl(dt, v1_dot)))
-            top_dot = load3(top_q_dot, k, directions, s)
+            top_dot = sload3(top_q_dot, k, directions, s)
             store3(particle_q_out_dot, k, directions, start, top_dot)
             store3(particle_qd_out_dot, k, directions, start,
                    vscl(inv_dt, vsub(top_dot, load3(particle_q_dot, k, directions, start))))
@@ -441,12 +461,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             tie_damping_dot = sadd(sscl(tie_damping_k, tied_dot),
                                    sscl(tied, load_constant(string_constants_dot, k, directions, s, 8)))
             # F' = -k_t' (x_tie - x1) - k_t (x_tie' - x1') - k_dt' (v_tie - v1) - k_dt (v_tie' - v1')
-            store3(tie_force_dot, k, directions, s, vsub(vsub(vsub(
+            sstore3(tie_force_dot, k, directions, s, vsub(vsub(vsub(
                 outer(tie_x - x_last, sneg(tie_stiffness_dot)),
-                vscl(tie_stiffness, vsub(load3(tie_q_dot, k, directions, s),
+                vscl(tie_stiffness, vsub(sload3(tie_q_dot, k, directions, s),
                                          load3(particle_q_out_dot, k, directions, last)))),
                 outer(tie_v - v_last, tie_damping_dot)),
-                vscl(tie_damping, vsub(load3(tie_qd_dot, k, directions, s),
+                vscl(tie_damping, vsub(sload3(tie_qd_dot, k, directions, s),
                                        load3(particle_qd_out_dot, k, directions, last)))))
 
     return integrate_string_implicit_tangent

@@ -27,6 +27,7 @@ import warp as wp
 from tests.support.strings import ALL_ON, make_model, spec, three_strings
 
 from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
+from dmarionette.kernels.tangent_directions import direction_minor
 from dmarionette.strings.model import StringControl
 from dmarionette.strings.rollout import upload_values
 from dmarionette.strings.solver import SolverStringImplicit
@@ -96,10 +97,11 @@ def _directions(model, scale, groups_per_direction, rng):
     return out
 
 
-def _tangent(model, problem, directions, lanes=True, tangent_lanes=None):
+def _tangent(model, problem, directions, lanes=True, tangent_lanes=None, minor=False):
     """The tangent kernel: (x1', v1', F') per direction, and the step's outputs (the forward: the
     laned step, its factorisation read in the laned layout, or the scalar one; the tangent:
-    ``tangent_lanes``, by default the directions in SIMD lanes where supported)."""
+    ``tangent_lanes``, by default the directions in SIMD lanes where supported; ``minor``: the
+    particles' tangent arrays, in and out, stored direction-minor, ``tangent_directions.direction_minor``)."""
     solver = SolverStringImplicit(model)
     solver.lanes = lanes
     p = len(directions)
@@ -108,20 +110,27 @@ def _tangent(model, problem, directions, lanes=True, tangent_lanes=None):
     s1 = model.state()
     control = StringControl.from_numpy(model, problem["top"], problem["tie"], problem["tie_v"])
 
-    def stack(name, dtype):
-        return wp.array(np.stack([d[name] for d in directions]), dtype=dtype, device=model.device)
+    def stack(name, dtype, minor_layout=False):
+        values = np.stack([d[name] for d in directions])
+        if not minor_layout:
+            return wp.array(values, dtype=dtype, device=model.device)
+        a = direction_minor(p, values.shape[1], dtype, model.device)
+        upload_values(a, values)
+        return a
 
     vec3 = model.vec3
     consts = wp.array(np.stack([np.stack([d[c] for c in CONSTANTS], axis=-1) for d in directions]),
                       dtype=model.scalar)
     # The outputs: the first P rows of arrays with GUARD_ROWS more (which no direction may write).
     counts = (model.particle_count, model.particle_count, model.string_count)
-    guarded = [wp.zeros((p + GUARD_ROWS, n), dtype=model.vec3, device=model.device) for n in counts]
+    # (Direction-minor: the particles' outputs in their own storage, whose padding the last group may write.)
+    guarded = [direction_minor(p, n, model.vec3, model.device) if minor and n == model.particle_count
+               else wp.zeros((p + GUARD_ROWS, n), dtype=model.vec3, device=model.device) for n in counts]
     out = [a[:p] for a in guarded]
-    stepper.step(s0, s1, control, DT, stack("particle_q", vec3), stack("particle_qd", vec3), *out,
+    stepper.step(s0, s1, control, DT, stack("particle_q", vec3, minor), stack("particle_qd", vec3, minor), *out,
                  stack("top_q", vec3), stack("tie_q", vec3), stack("tie_qd", vec3),
-                 stack("particle_mass", model.scalar), consts)
-    assert all(not np.any(a.numpy()[p:]) for a in guarded), "a tangent written past direction P"
+                 stack("particle_mass", model.scalar, minor), consts)
+    assert all(not np.any(a.numpy()[p:]) for a in guarded), "a tangent written past direction P"  # (major rows)
     return [a.numpy() for a in out], [s1.particle_q.numpy(), s1.particle_qd.numpy(), s1.tie_force.numpy()]
 
 
@@ -199,6 +208,23 @@ def test_laned_and_scalar_tangents_agree(directions):
             size = np.max(np.abs(b[k]))
             assert size > 0.0, (name, k)
             assert np.max(np.abs(a[k] - b[k])) <= 1e-13 * size, (name, k, np.max(np.abs(a[k] - b[k])) / size)
+
+
+@pytest.mark.parametrize("directions", [3, 4, 9, 10, 12, 16])
+def test_direction_minor_layout_gives_the_same_tangents(directions):
+    """The particles' tangent arrays stored direction-minor (``tangent_directions.direction_minor``:
+    each lane group one contiguous load and store, shuffled into lanes) against the leading direction
+    axis (per-lane gathers): the same arithmetic on the same values, so equal to the last bit, where
+    every lane of a group is a real direction (P = 4, 12, 16) and where the last group has padding
+    lanes (P = 3, 10: they read and write the storage's padding; P = 9's last direction runs alone)."""
+    model = _model()
+    problem, scale = _problem(model)
+    v = _directions(model, scale, [GROUPS] * directions, np.random.default_rng(29))
+    minor, _ = _tangent(model, problem, v, tangent_lanes=True, minor=True)
+    major, _ = _tangent(model, problem, v, tangent_lanes=True)
+    for name, a, b in zip(("x1'", "v1'", "F'"), minor, major, strict=True):
+        assert np.any(b), name
+        assert np.array_equal(a, b), (name, np.max(np.abs(a - b)))
 
 
 def _plain_outputs(model, problem, v, t):
