@@ -151,9 +151,18 @@ def test_open_read_write_close_end_to_end(fake, fake_lib_path):
 
 def test_stale_force_goes_to_zero_in_the_callback(fake, fake_lib_path):
     with HapticDeviceOpenHaptics(fake_lib_path, force_timeout=0.005) as dev:
-        dev.write_force([1.0, 0.0, 0.0])
+        # Written every 1 ms until a callback has sent it (one write alone can go stale before
+        # libHD's thread first runs on a loaded machine, and then 1.0 is never sent), then not.
         t_write = time.perf_counter()
-        wait_for(lambda: fake.force_log()[1][-1][0] == 1.0)
+
+        def written() -> bool:
+            nonlocal t_write
+            dev.write_force([1.0, 0.0, 0.0])
+            t_write = time.perf_counter()
+            time.sleep(0.001)
+            return fake.force_log()[1][-1][0] == 1.0
+
+        wait_for(written)
         time.sleep(0.05)  # nobody writes
         times, forces = fake.force_log()
         zero = times[(times > t_write) & np.all(forces == 0.0, axis=1)]
