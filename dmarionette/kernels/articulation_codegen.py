@@ -128,6 +128,11 @@ class ArticulationTopology:
         return lam
 
 
+def _axes(j: JointTopology) -> list[tuple[int, str]]:
+    """Each axis of a hinge or universal joint ``j``: its dof and its coordinate's expression."""
+    return [(j.qd_start + k, f"joint_q[w, {j.q_start + k}]") for k in range(len(j.axes))]
+
+
 def _f(x: float) -> str:
     return f"wp.float64({float(x)!r})"
 
@@ -420,9 +425,7 @@ def solve_body_dynamics(
         for b, j in enumerate(self.t.joints):
             d = j.qd_start
             if j.type in ("hinge", "universal"):
-                for k in range(len(j.axes)):
-                    i = d + k
-                    q = f"joint_q[w, {j.q_start + k}]"
+                for i, q in _axes(j):
                     e(f"qe{i} = {q} + h_implicit * qd{i}")
                     ua = la = ""
                     if one_sided:
@@ -511,9 +514,7 @@ def solve_body_dynamics(
         for b, j in enumerate(self.t.joints):
             d = j.qd_start
             if j.type in ("hinge", "universal"):
-                for k in range(len(j.axes)):
-                    i = d + k
-                    q = f"joint_q[w, {j.q_start + k}]"
+                for i, q in _axes(j):
                     e(f"ta{i} = h * (qd{i} + h * {x[i]})")
                     inverse_diagonal(f"{i}", i, {i: "one"})
                     e(f"bt{i} = wp.max(h * dl * hi{i}, btiny)")
