@@ -40,6 +40,7 @@ from dmarionette.capture import CapturedChunk
 from dmarionette.kernels.string_step_lanes import LANES
 from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_chunks, lane_factor_rows,
                                                      string_step_tangent_kernel)
+from dmarionette.kernels.string_step_tangent_lanes import string_step_tangent_lanes_kernel
 from dmarionette.kernels.tangent_directions import direction_minor, is_direction_minor
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
@@ -76,6 +77,12 @@ class StringStepTangent:
         if lanes and not supported:
             raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
         self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
+        # One direction with the laned forward: the strings in SIMD lanes instead (one thread per group
+        # of the forward's, its factorisation read in place; ``kernels/string_step_tangent_lanes``),
+        # unless lanes are switched off (``lanes=False``: the scalar kernel, one thread per string).
+        self.string_lanes = supported and solver.lanes and self.directions == 1 and lanes is not False
+        self._string_lanes_kernel = (string_step_tangent_lanes_kernel(model.effects.as_tuple(), LANES)
+                                     if self.string_lanes else None)
         # One launch per chunk of directions (in lanes: 8, then 4, then one alone, ``direction_chunks``),
         # the first computing the segments' parts for the others; the segments' linear maps where
         # there is more than one group of directions per string in all (built once per step, they
@@ -140,6 +147,23 @@ class StringStepTangent:
         tangents_in = (q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot)
         tangents_out = (q_out_dot, qd_out_dot, tie_force_dot)
         particles = (q_dot, qd_dot, q_out_dot, qd_out_dot, mass_dot)
+        if self.string_lanes:
+            group_string, group_real, group_base = self.solver.lane_group_arrays
+            wp.launch(
+                self._string_lanes_kernel,
+                dim=group_real.shape[0],
+                inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                        m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
+                        m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
+                        m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
+                        state_in.particle_q, state_in.particle_qd, inverse, c, group_string, group_real, group_base,
+                        ws.particle_dv, state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q,
+                        control.tie_qd, h, *(a[0] for a in tangents_in)],
+                outputs=[a[0] for a in tangents_out],
+                device=m.device,
+                record_tape=False,
+            )
+            return
         for kernels, first, lanes, count in self._launches:
             chunk = slice(first, first + count)
             whole = count == self.directions
