@@ -37,7 +37,7 @@ import numpy as np
 import warp as wp
 
 from dmarionette.capture import CapturedChunk
-from dmarionette.kernels.string_step_lanes import LANES
+from dmarionette.kernels.string_step_lanes import LANES, lane_groups
 from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_chunks, lane_factor_rows,
                                                      string_step_tangent_kernel)
 from dmarionette.kernels.string_step_tangent_lanes import string_step_tangent_lanes_kernel
@@ -83,6 +83,9 @@ class StringStepTangent:
         self.string_lanes = supported and solver.lanes and self.directions == 1 and lanes is not False
         self._string_lanes_kernel = (string_step_tangent_lanes_kernel(model.effects.as_tuple(), LANES)
                                      if self.string_lanes else None)
+        # Its scratch: the forward substitution's y, one 3 x K lane matrix per laned row (as ``lane_c``).
+        self._lane_y = (wp.zeros(lane_groups(model.string_start.numpy(), LANES)[3], dtype=wp.types.matrix((3, LANES), wp.float64),
+                                 device=model.device) if self.string_lanes else None)
         # One launch per chunk of directions (in lanes: 8, then 4, then one alone, ``direction_chunks``),
         # the first computing the segments' parts for the others; the segments' linear maps where
         # there is more than one group of directions per string in all (built once per step, they
@@ -159,7 +162,7 @@ class StringStepTangent:
                         state_in.particle_q, state_in.particle_qd, inverse, c, group_string, group_real, group_base,
                         ws.particle_dv, state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q,
                         control.tie_qd, h, *(a[0] for a in tangents_in)],
-                outputs=[a[0] for a in tangents_out],
+                outputs=[self._lane_y, *(a[0] for a in tangents_out)],
                 device=m.device,
                 record_tape=False,
             )

@@ -174,7 +174,8 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         tie_qd_dot: wp.array(dtype=vec3),
         particle_mass_dot: wp.array(dtype=f64),
         string_constants_dot: wp.array2d(dtype=f64),
-        # Tangent out:
+        # Tangent out (first a scratch: the forward substitution's y of each laned row, within the launch):
+        lane_y: wp.array(dtype=lvec),
         particle_q_out_dot: wp.array(dtype=vec3),
         particle_qd_out_dot: wp.array(dtype=vec3),
         tie_force_dot: wp.array(dtype=vec3),
@@ -242,7 +243,7 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         x_top_dot = tgather3(particle_q_dot, starts, 0)
 
         # The forward sweep (``string_step_tangent``'s, one direction): row j's r = b' - A' dv, its
-        # forward substitution y = inv_j (r - A_{j,j-1} y_prev), y kept in particle_qd_out_dot; the
+        # forward substitution y = inv_j (r - A_{j,j-1} y_prev), y kept in lane_y (the group's rows); the
         # segment (j, j + 1)'s parts and its c computed at row j (+c), carried to row j + 1 (-c).
         x = gather_particle3(particle_q, starts, 1)
         v = gather_particle3(particle_qd, starts, 1)
@@ -329,7 +330,7 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             if j > 1:
                 r = vsub(r, k_product(u_a, mul(h2, alpha_a), add(mul(h2, beta_a), g_upper), y_prev))
             y_prev = mul_vec(lane_inverse[base + j], r)
-            tscatter3(particle_qd_out_dot, starts, j, real, y_prev)
+            lane_y[base + j] = y_prev
             c_a = c_b
             u_a = u_b
             alpha_a = alpha_b
@@ -346,7 +347,7 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         for i in range(last):
             j = last - i
             if j < last:
-                dv_dot = vsub(tgather3(particle_qd_out_dot, starts, j), mul_vec(lane_c[base + j], dv_dot))
+                dv_dot = vsub(lane_y[base + j], mul_vec(lane_c[base + j], dv_dot))
             v1_dot = vadd(tgather3(particle_qd_dot, starts, j), dv_dot)
             tscatter3(particle_qd_out_dot, starts, j, real, v1_dot)
             tscatter3(particle_q_out_dot, starts, j, real, vadd(tgather3(particle_q_dot, starts, j), scale(h, v1_dot)))
