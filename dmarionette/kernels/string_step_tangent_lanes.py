@@ -19,6 +19,23 @@ ground_height``, both sides computed, the term added where true, else ``+ 0``) a
 ``g' = 0`` while a segment is compressed. Clang may contract a snippet's products and sums into
 ``fma`` where the scalar kernel's Warp code rounds each (not bit for bit, within 1e-13).
 
+Cost (the ``strings`` scene's six strings of 50 particles: groups of 4 + 2; 1,000 steps; 2-core
+machine shared with other work, load 1.1-1.8): the rollout of one tangent 13.0-13.3 ms against
+16.7-17.4 with the scalar kernel (``--no-lanes``), wall time, ``bench_string_tangent.py --repeats 5``
+then ``--directions 1 --no-lanes``, two runs each; 1.90-1.92 laned forward rollouts against 2.49
+(thread CPU time, ``--clock cpu --repeats 9 --directions 1`` with and without ``--no-lanes``, five
+alternating runs: 13.5-14.2 against 17.0-17.5 ms).
+Where it goes (thread CPU time, experiments with wrong results): the forward with ``keep``, the
+uploads and the launch ~7.0 ms (the kernel returning at once), this kernel ~6.5 ms, of it the back
+substitution ~1 ms and the forward sweep's loads alone (five gathers of ``3 x K`` per row, the mass,
+the pivot inverse, a mat-vec) ~2.6 ms; the segment's spring tangent and ``K' r`` ~0.5 ms. Tried and
+dropped (no gain beyond the noise; thread CPU time as above, A/B alternating, three runs each):
+``x0'``, ``v0'`` of each row kept
+contiguous with ``y`` for the back substitution instead of gathered again (13.1-13.8 -> 13.4-14.1
+ms); the top segment's row hoisted out of the row loop (13.0-13.2 -> 13.1-13.4 ms); ``y`` in
+``particle_qd_out_dot`` (scattered, gathered back) instead of the laned scratch ``lane_y`` (the same
+within noise; ``lane_y`` kept: no scatter).
+
 Layout: one direction (``P = 1``), passed as the direction's row of each tangent array (``a[0]``
 of a ``(1, n)`` array with a leading direction axis or direction-minor,
 ``tangent_directions.direction_minor``: a 1-d view, any stride; the laned forward's gathers and
@@ -49,7 +66,8 @@ def _constant_gather(lanes: int):
     @wp.func_native(f"""
     wp::vec_t<{lanes}, wp::float64> r;
     for (int k = 0; k < {lanes}; ++k)
-        r.c[k] = *(const double*)((char*)a.data + (long)strings.c[k] * (long)a.strides[0] + (long)c * (long)a.strides[1]);
+        r.c[k] = *(const double*)((char*)a.data + (long)strings.c[k] * (long)a.strides[0]
+                                  + (long)c * (long)a.strides[1]);
     return r;
     """)
     def gather_constant(a: wp.array2d(dtype=wp.float64), strings: ivec, c: int) -> lane:
