@@ -34,7 +34,12 @@ dropped (no gain beyond the noise; thread CPU time as above, A/B alternating, th
 contiguous with ``y`` for the back substitution instead of gathered again (13.1-13.8 -> 13.4-14.1
 ms); the top segment's row hoisted out of the row loop (13.0-13.2 -> 13.1-13.4 ms); ``y`` in
 ``particle_qd_out_dot`` (scattered, gathered back) instead of the laned scratch ``lane_y`` (the same
-within noise; ``lane_y`` kept: no scatter).
+within noise; ``lane_y`` kept: no scatter). Measured, not built: the particles' tangents carried in
+the laned layout between steps (contiguous ``3 x K`` loads and stores instead of four gathers and
+two scatters per row; timed with every such access on ``lane_y``, results wrong): 12.4-12.9 ms,
+~4 % for a laned carry in the rollout and its conversions. Meeting the issue's 1.5 forwards at
+P = 1 would need this kernel at about half its cost (the forward with ``keep``, the uploads and the
+launch cost ~1.0 forward already).
 
 Layout: one direction (``P = 1``), passed as the direction's row of each tangent array (``a[0]``
 of a ``(1, n)`` array with a leading direction axis or direction-minor,
