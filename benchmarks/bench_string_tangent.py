@@ -14,8 +14,9 @@ Timed (median of ``--repeats`` runs after an untimed warm-up, spread printed):
   and the P tangents (one launch per chunk of directions per step), in captured chunks of 100
   steps, including the upload of the per-step tangents and the download of the tie forces' tangents;
   the tangent kernel as ``StringRolloutTangent`` chooses it (4 or 8 directions per SIMD lane
-  vector for P >= 2, ``string_step_tangent.direction_chunks``, the scalar kernel for P = 1), or
-  with ``--no-lanes`` one direction at a time (the scalar tangent kernel) for every P; the carried
+  vector for P >= 2, ``string_step_tangent.direction_chunks``; for P = 1 the strings 4 per SIMD
+  lane vector, ``string_step_tangent_lanes``), or with ``--no-lanes`` one direction at a time (the
+  scalar tangent kernel, one thread per string) for every P; the carried
   particle tangents stored direction-minor (``--layout minor``, the default: a lane group's
   directions of one particle contiguous) or with a leading direction axis (``major``), or both
   one after the other for each P (``both``: an A/B in one process).

@@ -7,9 +7,10 @@ the laned layout, where the solver's lanes are on; else the one-launch scalar st
 and then the step's tangent-linear model for P directions (``kernels/string_step_tangent``: a
 substitution with the stored factorisation; on the CPU in float64, 4 or 8 directions per SIMD lane
 vector, ``kernels/tangent_directions``, one launch per chunk of 8, 4 or 1 directions,
-``direction_chunks``). :class:`StringRolloutTangent` carries P tangents through ``T`` steps with
-prescribed motion (tops and tie targets given per step), as ``StringRollout`` runs the plain steps:
-chunks of steps captured once as a Warp graph and replayed.
+``direction_chunks``; one direction alone with the laned forward: its 4 strings per SIMD lane
+vector instead, ``kernels/string_step_tangent_lanes``). :class:`StringRolloutTangent` carries P
+tangents through ``T`` steps with prescribed motion (tops and tie targets given per step), as
+``StringRollout`` runs the plain steps: chunks of steps captured once as a Warp graph and replayed.
 
 What is differentiated, per direction (:class:`StringTangentInputs`): the initial positions and
 velocities, the particle masses, each string's constants (``kernels.string_step_tangent.CONSTANTS``
@@ -26,7 +27,8 @@ masses' too), where the tangent kernel loads a lane group's directions contiguou
 lanes for P >= 2 and direction-minor, 2.48, 3.38, 6.97, 8.28 with a leading direction axis; earlier,
 thread CPU time, one direction at a time: 2.39, 5.75, 13.00, 16.78); the issue's 1 + 0.5 P = 1.5,
 3, 7, 9 met at P = 12 and 16, not at 1 and (just) 4: ``kernels/string_step_tangent``'s doc says
-where it goes).
+where it goes). P = 1 with the strings in lanes (``kernels/string_step_tangent_lanes``): 1.90-1.92
+laned forward rollouts against 2.49 with the scalar kernel (the same session, load 1.1-1.3).
 """
 
 from __future__ import annotations
@@ -37,9 +39,10 @@ import numpy as np
 import warp as wp
 
 from dmarionette.capture import CapturedChunk
-from dmarionette.kernels.string_step_lanes import LANES
+from dmarionette.kernels.string_step_lanes import LANES, lane_groups
 from dmarionette.kernels.string_step_tangent import (CONSTANTS, DIRECTION_LANES, direction_chunks, lane_factor_rows,
                                                      string_step_tangent_kernel)
+from dmarionette.kernels.string_step_tangent_lanes import string_step_tangent_lanes_kernel
 from dmarionette.kernels.tangent_directions import direction_minor, is_direction_minor
 from dmarionette.strings.model import StringControl, StringModel, StringState
 from dmarionette.strings.rollout import upload_values
@@ -59,7 +62,9 @@ class StringStepTangent:
             (``kernels.string_step_tangent.direction_chunks``; ``kernels/tangent_directions``: float64
             on the CPU; the same tangents to rounding), else one direction at a time. Default: in
             lanes where supported and ``P >= 2`` (one direction alone fills one lane of four: its
-            tangent kernel measured ~1.6x the scalar one's).
+            tangent kernel measured ~1.6x the scalar one's); for ``P = 1`` with the solver's lanes
+            on, the strings in SIMD lanes instead (``kernels/string_step_tangent_lanes``: the laned
+            forward's groups, ``string_lanes``), unless ``lanes=False`` (the scalar kernel).
     """
 
     def __init__(self, solver: SolverStringImplicit, directions: int, lanes: bool | None = None):
@@ -76,6 +81,16 @@ class StringStepTangent:
         if lanes and not supported:
             raise ValueError("string tangents in lanes: float64 on the CPU only (the lane snippets are Clang C++)")
         self.lanes = (supported and self.directions >= 2) if lanes is None else bool(lanes)
+        # One direction with the laned forward: the strings in SIMD lanes instead (one thread per group
+        # of the forward's, its factorisation read in place; ``kernels/string_step_tangent_lanes``),
+        # unless lanes are switched off (``lanes=False``: the scalar kernel, one thread per string).
+        self.string_lanes = supported and solver.lanes and self.directions == 1 and lanes is not False
+        self._string_lanes_kernel = (string_step_tangent_lanes_kernel(model.effects.as_tuple(), LANES)
+                                     if self.string_lanes else None)
+        # Its scratch: the forward substitution's y, one 3 x K lane matrix per laned row (as ``lane_c``).
+        self._lane_y = (wp.zeros(lane_groups(model.string_start.numpy(), LANES)[3],
+                                 dtype=wp.types.matrix((3, LANES), wp.float64), device=model.device)
+                        if self.string_lanes else None)
         # One launch per chunk of directions (in lanes: 8, then 4, then one alone, ``direction_chunks``),
         # the first computing the segments' parts for the others; the segments' linear maps where
         # there is more than one group of directions per string in all (built once per step, they
@@ -140,6 +155,23 @@ class StringStepTangent:
         tangents_in = (q_dot, qd_dot, top_q_dot, tie_q_dot, tie_qd_dot, mass_dot, constants_dot)
         tangents_out = (q_out_dot, qd_out_dot, tie_force_dot)
         particles = (q_dot, qd_dot, q_out_dot, qd_out_dot, mass_dot)
+        if self.string_lanes:
+            group_string, group_real, group_base = self.solver.lane_group_arrays
+            wp.launch(
+                self._string_lanes_kernel,
+                dim=group_real.shape[0],
+                inputs=[m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
+                        m.string_internal_friction, m.string_air_drag, m.string_ground_stiffness,
+                        m.string_ground_absorption, m.string_ground_friction, m.string_tie_stiffness,
+                        m.string_tie_damping, m.string_tied, m.gravity, m.ground_height,
+                        state_in.particle_q, state_in.particle_qd, inverse, c, group_string, group_real, group_base,
+                        ws.particle_dv, state_out.particle_q, state_out.particle_qd, control.top_q, control.tie_q,
+                        control.tie_qd, h, *(a[0] for a in tangents_in)],
+                outputs=[self._lane_y, *(a[0] for a in tangents_out)],
+                device=m.device,
+                record_tape=False,
+            )
+            return
         for kernels, first, lanes, count in self._launches:
             chunk = slice(first, first + count)
             whole = count == self.directions

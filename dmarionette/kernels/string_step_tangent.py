@@ -113,9 +113,9 @@ time, load 1.1, then 1.6; thread CPU time, load 1.0), ms: P = 4 24.5, 23.9, 23.8
 3.38, 6.97, 8.28, P = 1 2.48; with padding lanes in the last group (into the storage's padding),
 ``--directions 3 6 10``, load 2.0: 23.3, 34.0, 49.3 -> 21.2, 30.7, 41.4. A runtime test of the
 layout per transfer (instead of a kernel per layout) cost more than the gathers it saved (P = 16
-60.0 ms). What is left at P = 1 (2.4-2.5 forwards, the target 1.5): the scalar kernel's 1.3 per
-direction; it would need the strings in lanes (as the forward has them, 4 strings per lane vector)
-rather than the directions. With one group of directions (P = 2-8) the linear maps and the spring
+60.0 ms). At P = 1 (2.4-2.5 forwards with this kernel, the target 1.5) ``grad.string_tangent`` runs
+``string_step_tangent_lanes`` instead where the forward is laned: the strings in lanes, as the
+forward has them (4 strings per lane vector), not the directions (its doc has the cost). With one group of directions (P = 2-8) the linear maps and the spring
 tangents now tie (measured within 1 ms); the spring tangents are kept there.
 
 Each term is the derivative of the forward's (``string_system.compute_string_system_row``,

@@ -238,3 +238,27 @@ def test_rollout_tangent_against_central_differences_of_whole_rollouts(problem):
         for i in range(len(FD_STEPS) - 1):
             if truncated[i] and truncated[i + 1]:
                 assert 1.6 < np.log10(errors[i] / errors[i + 1]) < 2.4, group
+
+
+def test_string_lanes_rollout_tangent_follows_the_scalar_one(problem):
+    """One direction (every input group at once) through the whole rollout with the strings in SIMD
+    lanes (``kernels/string_step_tangent_lanes``, the default at P = 1 with the laned forward; the six
+    strings in groups of 4 + 2) against the scalar tangent kernel (``lanes=False``): the same
+    operations up to rounding (a step's outputs differ by ~1e-16 relative,
+    ``tests/grad/test_string_step_tangent.py``), so the gap is rounding carried through the steps: at
+    most T = 1,000 steps' worth of a few eps through the solve, ~1e-12 of each output's largest
+    entry, asserted (measured 3e-15, the printout)."""
+    model, directions, start, controls, _ = problem
+    one = {name: sum(d[name] for d in directions) for name in GROUPS}
+    results = []
+    for lanes in (None, False):
+        rollout = StringRolloutTangent(SolverStringImplicit(model), DT, 1, chunk_steps=CHUNK, lanes=lanes)
+        assert rollout.stepper.string_lanes == (lanes is None)
+        results.append(rollout.run(model.state(*start), *controls, tangents=_tangent_inputs([one])))
+    laned, scalar = results
+    for name in ("tie_force_dot", "particle_q_dot", "particle_qd_dot"):
+        a, b = getattr(laned, name), getattr(scalar, name)
+        size = np.max(np.abs(b))
+        gap = np.max(np.abs(a - b)) / size
+        print(f"{name}: string lanes against scalar {gap:.1e} of {size:.2e}")
+        assert size > 0.0 and gap <= 1e-12, name

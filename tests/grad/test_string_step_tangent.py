@@ -24,7 +24,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import ALL_ON, make_model, spec, three_strings
+from tests.support.strings import ALL_ON, make_model, repeated_specs, spec, three_strings
 
 from dmarionette.grad.string_tangent import CONSTANTS, StringStepTangent
 from dmarionette.kernels.tangent_directions import direction_minor
@@ -65,6 +65,13 @@ def _problem(model):
     assert np.min(ratio) < -0.2  # the slack string is compressed
     depth = q[:, 1] - float(model.ground_height.value)
     assert np.min(np.abs(depth)) > MARGIN * np.min(rest)
+    return _with_controls(model, q, qd)
+
+
+def _with_controls(model, q, qd):
+    """The problem of the start state ``q``, ``qd``: the tops and tie targets moved, the ties' velocities,
+    and each input group's scale."""
+    rest = model.string_rest_length.numpy()
     top = np.array([s.top for s in model.specs]) + np.array([0.002, -0.001, 0.0015])
     tie = model.tie_points() + np.array([0.003, 0.002, -0.001])
     tie_v = np.array([[0.2, -0.1, 0.3]] * model.string_count)
@@ -225,6 +232,61 @@ def test_direction_minor_layout_gives_the_same_tangents(directions):
     for name, a, b in zip(("x1'", "v1'", "F'"), minor, major, strict=True):
         assert np.any(b), name
         assert np.array_equal(a, b), (name, np.max(np.abs(a - b)))
+
+
+def _laned_model_and_problem():
+    """Strings for the string-lanes tangent (``kernels/string_step_tangent_lanes``): the three strings
+    repeated 5, 3 and 6 times (groups of 4 + 1, 3, 4 + 2 strings: padding lanes in three groups),
+    constants differing per copy, every other copy of the tied string cut; each copy ``i`` of the
+    ground string with its last ``i % 4`` particles below the ground (lanes of one group in and out
+    of contact), the slack copies compressed."""
+    def keywords(s):
+        return {k: v for k, v in vars(s).items() if k not in ("name", "stiffness")}
+
+    ground, tied, slack = three_strings()
+    model = make_model(repeated_specs([(5, keywords(ground)), (3, keywords(tied)), (6, keywords(slack))],
+                                      (0.03, 0.0, -0.02)), effects=ALL_ON, requires_grad=True)
+    rng = np.random.default_rng(41)
+    q = model.initial_positions() + rng.normal(scale=2e-3, size=(model.particle_count, 3))
+    start = model.string_start_np
+    for i in range(5):  # the ground string's copies: strings 0 ... 4
+        below = i % 4
+        if below:
+            q[start[i + 1] - below:start[i + 1], 1] = -0.004 * np.arange(1, below + 1)
+    return model, _with_controls(model, q, rng.normal(scale=0.2, size=q.shape))
+
+
+def test_string_lanes_tangent_agrees_with_the_scalar_one():
+    """One direction with the strings in SIMD lanes (the laned forward's groups, its factorisation read
+    in place; the branches as selects) against the scalar tangent kernel, one thread per string: the
+    same operations per lane in the same order (rounding only: the kernel's doc), asserted to 1e-13
+    of each output's largest entry, on the three strings (each its own group, three padding lanes)
+    and on groups of 4 + 1, 3 and 4 + 2 strings with the ground and the tie on in some lanes only;
+    the padding lanes write nothing (``_tangent`` checks the rows after the direction's; the real
+    strings' outputs are all compared)."""
+    cases = [(_model(), _problem(_model())), _laned_model_and_problem()]
+    for model, (problem, scale) in cases:
+        assert StringStepTangent(SolverStringImplicit(model), 1).string_lanes
+        assert np.any(problem["q"][:, 1] < 0.0) and np.any(model.string_tied.numpy() == 1.0)
+        for minor in (False, True):
+            v = _directions(model, scale, [GROUPS], np.random.default_rng(31))
+            laned, _ = _tangent(model, problem, v, minor=minor)
+            scalar, _ = _tangent(model, problem, v, tangent_lanes=False, minor=minor)
+            for name, a, b in zip(("x1'", "v1'", "F'"), laned, scalar, strict=True):
+                size = np.max(np.abs(b))
+                assert size > 0.0, name
+                gap = np.max(np.abs(a - b)) / size
+                print(f"{model.string_count} strings, minor {minor}, {name}: {gap:.1e}")
+                assert gap <= 1e-13, (name, gap)
+
+
+def test_string_lanes_tangent_and_adjoint_satisfy_the_dot_product_identity():
+    """The string-lanes tangent (P = 1) against the hand adjoint on groups with padding lanes, ground
+    contact and ties in some lanes: every input group at once, then each group alone."""
+    model, (problem, scale) = _laned_model_and_problem()
+    _check_identity(model, problem, scale, [GROUPS], seed=43)
+    for k, name in enumerate(GROUPS):
+        _check_identity(model, problem, scale, [(name,)], seed=47 + k)
 
 
 def _plain_outputs(model, problem, v, t):
