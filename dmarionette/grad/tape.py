@@ -14,7 +14,8 @@ every segment (a shorter last one uses its first steps): for each segment length
 forward launches on the tape and the reverse pass are captured as two Warp graphs (CPU
 or CUDA, :class:`dmarionette.capture.CapturedChunk`) and replayed per segment, with the
 checkpoint, the inputs and the cotangent seeds written into the planned arrays in place
-between the replays. Without capture the same launches run one by one.
+between the replays (one copy per field and segment: the per-step arrays are rows of
+segment-wide blocks, :class:`_Blocks`). Without capture the same launches run one by one.
 """
 
 from __future__ import annotations
@@ -50,7 +51,13 @@ def _arrays_in(obj, seen: set[int]) -> list[wp.array]:
 
 class _Plan:
     """Every array of a ``steps``-long taped segment (allocated once): its states, controls and
-    per-step workspaces, and the final state's body poses and points."""
+    per-step workspaces, and the final state's body poses and points.
+
+    What the host writes or reads per segment is laid out as one array per field over the
+    segment (:class:`_Blocks`): the steps' controls, the seeded outputs (``joint_q``, the
+    points, body poses, tie forces and bar forces of every state) are views of them, so that a
+    segment's inputs, seeds and input gradients move in one copy per field, not one per step.
+    """
 
     def __init__(self, model, solver, steps: int):
         self.steps = steps
@@ -58,6 +65,7 @@ class _Plan:
         self.controls = [MarionetteControl(model, requires_grad=True) for _ in range(steps)]
         self.workspaces = [solver.new_workspace(taped=True) for _ in range(steps)]
         self.final_points = PuppetPoints.allocate(model.puppet, requires_grad=True, world_count=model.world_count)
+        self.blocks = _Blocks(self)
         self.arrays = _arrays_in([self.states, self.controls, self.workspaces, self.final_points], set())
         self.grads = [a.grad for a in self.arrays if a.requires_grad]  # cleared before a reverse pass
 
@@ -70,6 +78,43 @@ class _Plan:
         """Body poses and points of state ``k`` of a ``steps``-long segment (the input of step
         ``k``, or for ``k = steps`` the final state)."""
         return self.workspaces[k].points if k < steps else self.final_points
+
+
+def _stacked(owners: list, name: str) -> wp.array:
+    """One array ``(len(owners), *shape)`` holding ``owner.<name>`` of every owner (their values
+    copied in); each owner's attribute becomes a view of its row (with its gradient's row)."""
+    first = getattr(owners[0], name)
+    block = wp.array(np.stack([getattr(o, name).numpy() for o in owners]), dtype=first.dtype, device=first.device,
+                     requires_grad=first.requires_grad)
+    for k, owner in enumerate(owners):
+        setattr(owner, name, block[k])
+    return block
+
+
+class _Blocks:
+    """The segment-wide arrays of a :class:`_Plan` (``C`` = its steps), whose rows the plan's
+    per-step arrays are:
+
+    - ``top_q``, ``bar_q``, ``bar_qd``: the controls, ``(C, n, ...)``;
+    - ``joint_q``, ``tie_force``, ``bar_feedback``, ``bar_reaction``: of states ``0 .. C``, ``(C + 1, ...)``;
+    - ``point_pos``, ``body_pos``, ``body_rot``: the body points and poses of the steps' input states
+      (rows ``0 .. C - 1``, the workspaces') and of the final state (row ``C``, ``final_points``).
+    """
+
+    CONTROLS = ("top_q", "bar_q", "bar_qd")
+    STATE_OUTPUTS = ("tie_force", "bar_feedback", "bar_reaction")
+
+    def __init__(self, plan: _Plan):
+        for name in self.CONTROLS:
+            setattr(self, name, _stacked(plan.controls, name))
+        self.joint_q = _stacked([s.puppet for s in plan.states], "joint_q")
+        for name in self.STATE_OUTPUTS:
+            setattr(self, name, _stacked(plan.states, name))
+        points = [ws.points for ws in plan.workspaces] + [plan.final_points]
+        self.point_pos = _stacked(points, "point_q")
+        kinematics = [p.kinematics for p in points]
+        self.body_pos = _stacked(kinematics, "body_pos")
+        self.body_rot = _stacked(kinematics, "body_rot")
 
 
 class StateAdjoint:
@@ -192,47 +237,51 @@ class TapedSegment:
         if steps > self.steps:
             raise ValueError(f"segment {a}..{b}: {steps} puppet steps; planned for at most {self.steps}")
         plan, graphs = self._prepare(steps, last)
+        blocks = plan.blocks
         states = plan.states[:steps + 1]
-        controls = plan.controls[:steps]
         checkpoint.load(states[0])
-        for k, control in enumerate(controls):
-            rows = slice((a + k) * n, (a + k + 1) * n)
-            upload_values(control.top_q, inputs.top_q[rows])
-            upload_values(control.bar_q, inputs.bar_q[rows])
-            upload_values(control.bar_qd, inputs.bar_qd[rows])
+        rows = slice(a * n, b * n)  # the segment's string steps
+        for name in blocks.CONTROLS:
+            _upload_rows(getattr(blocks, name), steps, getattr(inputs, name)[rows])
         if graphs is not None:
             graphs[0].run()
         else:
             tape = wp.Tape()  # not reset(): that would clear the parameters' accumulated gradients
             self._forward(plan, steps, last, tape, plan.grads)
-        # Seed: the per-step outputs of this segment, then the state adjoint from the next one.
-        for k in range(steps + 1 if last else steps):
-            p, points = a + k, plan.points(k, steps)
-            if "joint_q" in cotangents:
-                _add_grad(states[k].puppet.joint_q, cotangents["joint_q"][p])
-            if "point_pos" in cotangents:
-                _add_grad(points.point_q, cotangents["point_pos"][p])
-            if "body_pos" in cotangents:
-                _add_grad(points.kinematics.body_pos, cotangents["body_pos"][p])
-            if "body_rot" in cotangents:
-                _add_grad(points.kinematics.body_rot, cotangents["body_rot"][p])
-        for k in range(steps):
-            rows = slice((a + k) * n, (a + k + 1) * n)
-            for name in ("tie_force", "bar_feedback", "bar_reaction"):
-                if name in cotangents:
-                    _add_grad(getattr(states[k + 1], name), cotangents[name][rows])
+        # Seed the per-step outputs of this segment (written, not added: nothing else seeds those
+        # rows), then add the state adjoint from the next one. The final state's points are row C
+        # of their blocks whatever the segment's length.
+        seeded = steps + 1 if last else steps
+        if "joint_q" in cotangents:
+            _upload_rows(blocks.joint_q.grad, seeded, cotangents["joint_q"][a:a + seeded])
+        for name in ("point_pos", "body_pos", "body_rot"):
+            if name in cotangents:
+                grad = getattr(blocks, name).grad
+                _upload_rows(grad, steps, cotangents[name][a:b])
+                if last:
+                    upload_values(grad[self.steps], cotangents[name][b])
+        for name in blocks.STATE_OUTPUTS:
+            if name in cotangents:
+                _upload_rows(getattr(blocks, name).grad[1:], steps, cotangents[name][rows])
         if adjoint_end is not None:
             adjoint_end.seed(states[-1])
         if graphs is not None:
             graphs[1].run()
         else:
             tape.backward()
-        for k, control in enumerate(controls):
-            rows = slice((a + k) * n, (a + k + 1) * n)
-            grads["top_q"][rows] += control.top_q.grad.numpy()
-            grads["bar_q"][rows] += control.bar_q.grad.numpy()
-            grads["bar_qd"][rows] += control.bar_qd.grad.numpy()
+        for name in blocks.CONTROLS:
+            grads[name][rows] += getattr(blocks, name).grad.numpy()[:steps].reshape(grads[name][rows].shape)
         return StateAdjoint(states[0])
+
+
+def _upload_rows(block: wp.array, rows: int, values: np.ndarray) -> None:
+    """Writes ``values`` (host, ``rows`` rows' values in any shape) into the first ``rows`` rows of ``block``."""
+    if block.device.is_cpu:
+        host = block.numpy()  # a view: written in place
+        host[:rows] = np.reshape(values, (rows, *host.shape[1:]))
+        return
+    per_element = np.size(values) // (rows * int(np.prod(block.shape[1:])))  # 3 for a vec3d, 1 for a float
+    upload_values(block[:rows], np.reshape(values, (rows, *block.shape[1:], *((per_element,) if per_element > 1 else ()))))
 
 
 def _loaded() -> None:
