@@ -35,7 +35,7 @@ import warp as wp
 from .lane_ops import native_lane_memory, native_lane_ops
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 
-__all__ = ["OPTIONAL_CONSTANT_GRADIENTS", "lane_parts_type", "string_step_adjoint_lanes_kernel"]
+__all__ = ["lane_parts_type", "string_step_adjoint_lanes_kernel"]
 
 f64 = wp.float64
 
@@ -48,27 +48,11 @@ def lane_parts_type(lanes: int = LANES):
     return wp.types.matrix((8, lanes), f64)
 
 
-# The constants whose gradients a kernel built with ``all_constants=False`` leaves out (their
-# gradient arguments are still taken and left untouched), by their gradient argument's name.
-OPTIONAL_CONSTANT_GRADIENTS = ("particle_mass_grad", "string_rest_length_grad", "string_internal_friction_grad",
-                               "string_air_drag_grad", "string_ground_stiffness_grad",
-                               "string_ground_absorption_grad", "string_ground_friction_grad", "string_tied_grad")
-
-
 @functools.cache
-def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], lanes: int = LANES,
-                                     all_constants: bool = True):
+def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], lanes: int = LANES):
     """Builds ``integrate_string_lanes_adjoint`` for an effect set (``effects`` as
-    ``integrate_string_lanes_kernel``'s, compile-time switches) and ``lanes`` strings per thread.
-
-    ``all_constants=False``: the gradients of the constants a marionette fit does not read
-    (:data:`OPTIONAL_CONSTANT_GRADIENTS`: masses, rest lengths, friction, air drag, ground
-    constants, the tied flag) are not accumulated (for a caller whose arrays for them are scratch
-    nobody reads; measured about 8 % of the kernel); every other gradient is the same, bit for bit
-    (the same operations in the same order: only stores, and the sums that feed nothing else,
-    are left out)."""
+    ``integrate_string_lanes_kernel``'s, compile-time switches) and ``lanes`` strings per thread."""
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
-    ALL_CONSTANTS = all_constants
     LANES_ = lanes
     lane, ivec, lvec, lmat = lane_types(lanes)
     lacc = wp.types.matrix((21, lanes), f64)  # a row's running sums, as the scalar adjoint's acc_t
@@ -353,8 +337,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         if not first:
             qd_carry_out = vadd(qd_carry_out, lane_r[row - 1])
         qd_carry_out = vadd(qd_carry_out, v_prev_bar)
-        if wp.static(ALL_CONSTANTS):
-            scatter_add(particle_mass_grad, starts, j, real, mass_bar)
+        scatter_add(particle_mass_grad, starts, j, real, mass_bar)
         acc_out = lacc()
         acc_out[0] = stiffness_bar
         acc_out[1] = rest_bar
@@ -563,21 +546,19 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         scatter_add3(tie_q_grad, strings, 0, real, tie_x_bar)
         scatter_add3(tie_qd_grad, strings, 0, real, tie_v_bar)
         scatter_add(string_stiffness_grad, strings, 0, real, stiffness_bar)
-        if wp.static(ALL_CONSTANTS):
-            scatter_add(string_rest_length_grad, strings, 0, real, rest_bar)
-            scatter_add(string_internal_friction_grad, strings, 0, real, friction_bar)
-            scatter_add(string_air_drag_grad, strings, 0, real, air_bar)
-            scatter_add(string_ground_stiffness_grad, strings, 0, real, ground_stiffness_bar)
-            scatter_add(string_ground_absorption_grad, strings, 0, real, ground_absorption_bar)
-            scatter_add(string_ground_friction_grad, strings, 0, real, ground_friction_bar)
+        scatter_add(string_rest_length_grad, strings, 0, real, rest_bar)
+        scatter_add(string_internal_friction_grad, strings, 0, real, friction_bar)
+        scatter_add(string_air_drag_grad, strings, 0, real, air_bar)
+        scatter_add(string_ground_stiffness_grad, strings, 0, real, ground_stiffness_bar)
+        scatter_add(string_ground_absorption_grad, strings, 0, real, ground_absorption_bar)
+        scatter_add(string_ground_friction_grad, strings, 0, real, ground_friction_bar)
         # k_t = tied k, k_dt = tied k_d.
         scatter_add(string_tie_stiffness_grad, strings, 0, real, lmul(tied, tie_stiffness_bar))
         scatter_add(string_tie_damping_grad, strings, 0, real, lmul(tied, tie_damping_bar))
-        if wp.static(ALL_CONSTANTS):
-            for k in range(LANES_):
-                if k < real:
-                    s = strings[k]
-                    string_tied_grad[s] = (string_tied_grad[s] + string_tie_stiffness[s] * tie_stiffness_bar[k]
-                                           + string_tie_damping[s] * tie_damping_bar[k])
+        for k in range(LANES_):
+            if k < real:
+                s = strings[k]
+                string_tied_grad[s] = (string_tied_grad[s] + string_tie_stiffness[s] * tie_stiffness_bar[k]
+                                       + string_tie_damping[s] * tie_damping_bar[k])
 
     return integrate_string_lanes_adjoint

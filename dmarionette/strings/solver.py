@@ -160,7 +160,6 @@ class SolverStringImplicit:
         self._integrate_lanes = None
         self._integrate_lanes_keep = None  # a taped step's laned kernel, and its laned adjoint
         self._integrate_lanes_adjoint = None
-        self._integrate_lanes_adjoint_lean = None  # the same without the gradients nobody reads (below)
         self._lane_plan = None  # (group arrays, laned scratch), built when lanes are turned on
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
@@ -298,7 +297,6 @@ class SolverStringImplicit:
             self._integrate_lanes = integrate_string_lanes_kernel(effects, LANES)
             self._integrate_lanes_keep = integrate_string_lanes_kernel(effects, LANES, keep=True)
             self._integrate_lanes_adjoint = string_step_adjoint_lanes_kernel(effects, LANES)
-            self._integrate_lanes_adjoint_lean = string_step_adjoint_lanes_kernel(effects, LANES, all_constants=False)
             self._lane_plan = self._new_lane_plan()
         self._lanes = bool(on)
 
@@ -433,17 +431,10 @@ class SolverStringImplicit:
         m = self.model
         groups, (_lane_c, _lane_d, *adjoint_scratch) = self._lane_plan
         params, inputs, outputs = self._adjoint_arrays(state_in, state_out, control)
-        # Where every optional constant (mass, rest length, friction, ...) has no gradient (the
-        # marionette gradient engine drops them), the kernel that leaves their sums out: the same
-        # gradients, bit for bit (``string_step_adjoint_lanes``).
-        kernel = self._integrate_lanes_adjoint
-        fitted = (m.string_stiffness, m.string_tie_stiffness, m.string_tie_damping)
-        if all(a.grad is None for a in params if not any(a is f for f in fitted)):
-            kernel = self._integrate_lanes_adjoint_lean
 
         def backward():
             wp.launch(
-                kernel,
+                self._integrate_lanes_adjoint,
                 dim=groups[1].shape[0],
                 inputs=[
                     *groups, m.string_start, *params, m.gravity, m.ground_height,

@@ -20,12 +20,11 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from tests.support.strings import (ALL_ON, STRING_CONSTANTS, make_model, repeated_specs, rollout_gradients,
-                                  taped_rollout, wiggled_controls)
+from tests.support.strings import (ALL_ON, make_model, repeated_specs, rollout_gradients, taped_rollout,
+                                  wiggled_controls)
 
 import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
-from dmarionette.kernels.string_step_adjoint_lanes import string_step_adjoint_lanes_kernel
 from dmarionette.kernels.string_step_lanes import LANES, lane_groups
 from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.strings.model import StringEffects
@@ -116,41 +115,6 @@ def test_laned_taped_step_equals_the_scalar_one(effects):
         if name.endswith("_grad") and name not in off:
             assert np.max(np.abs(value)) > 0.0, name  # every group is exercised
         np.testing.assert_array_equal(laned[name], value, err_msg=name)
-
-
-def test_the_lean_laned_adjoint_gives_the_fitted_gradients_bit_for_bit(monkeypatch):
-    """With the optional constants' gradients dropped (as ``MarionetteGradient`` drops them), the
-    solver records the laned adjoint built with ``all_constants=False`` (and only it): every remaining
-    gradient is the full kernel's, bit for bit."""
-    full = _taped_run(True, ALL_ON)
-    model = _model(ALL_ON)
-    dropped = [name for name in STRING_CONSTANTS
-               if name not in ("string_stiffness", "string_tie_stiffness", "string_tie_damping")]
-    for name in dropped:
-        getattr(model, name).requires_grad = False
-    solver = SolverStringImplicit(model)
-    controls = wiggled_controls(model, STEPS, DT)
-    states = [model.state() for _ in range(STEPS + 1)]
-    workspaces = [solver.new_workspace() for _ in range(STEPS)]
-    tape, loss = taped_rollout(solver, states, controls, DT, np.random.default_rng(11), workspaces)
-    launched = []
-    launch = wp.launch
-    monkeypatch.setattr(wp, "launch", lambda kernel, *args, **kwargs: (launched.append(kernel),
-                                                                        launch(kernel, *args, **kwargs)))
-    tape.backward(loss)
-    monkeypatch.undo()
-    lean_kernel = string_step_adjoint_lanes_kernel(ALL_ON.as_tuple(), LANES, all_constants=False)
-    assert launched.count(lean_kernel) == STEPS
-    assert string_step_adjoint_lanes_kernel(ALL_ON.as_tuple(), LANES) not in launched
-    lean = {"particle_q0_grad": states[0].particle_q.grad.numpy(),
-            "particle_qd0_grad": states[0].particle_qd.grad.numpy()}
-    for name in ("top_q", "tie_q", "tie_qd"):
-        lean[name + "_grad"] = np.array([getattr(c, name).grad.numpy() for c in controls])
-    for name in ("string_stiffness", "string_tie_stiffness", "string_tie_damping"):
-        lean[name + "_grad"] = getattr(model, name).grad.numpy()
-    for name, value in lean.items():
-        assert np.max(np.abs(value)) > 0.0, name
-        np.testing.assert_array_equal(value, full[name], err_msg=name)
 
 
 def test_the_laned_taped_step_is_the_laned_kernel():
