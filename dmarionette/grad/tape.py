@@ -154,6 +154,7 @@ class TapedSegment:
         self.capture = bool(capture)
         self._plan: _Plan | None = None
         self._graphs: dict[tuple[int, bool], tuple] = {}
+        self._clears: dict[tuple[int, bool], list[wp.array]] = {}  # without capture: _residue per segment kind
 
     @property
     def nbytes(self) -> int:
@@ -201,9 +202,11 @@ class TapedSegment:
         if self._plan is None:
             self._plan = _Plan(self.model, self.solver, self.steps)
         plan = self._plan
-        if not self.capture:
-            return plan, None
         key = (steps, last)
+        if not self.capture:
+            if key not in self._clears:  # the eager re-run, too, clears only the residue (one call per buffer)
+                self._clears[key] = self._residue(plan, steps, last)
+            return plan, None
         if key not in self._graphs:
             # The eager pass of _residue also loads every module before capture begins.
             clear = self._residue(plan, steps, last)
@@ -247,7 +250,7 @@ class TapedSegment:
             graphs[0].run()
         else:
             tape = wp.Tape()  # not reset(): that would clear the parameters' accumulated gradients
-            self._forward(plan, steps, last, tape, plan.grads)
+            self._forward(plan, steps, last, tape, self._clears[(steps, last)])
         # Seed the per-step outputs of this segment (written, not added: nothing else seeds those
         # rows), then add the state adjoint from the next one. The final state's points are row C
         # of their blocks whatever the segment's length.
