@@ -494,12 +494,10 @@ class MarionetteGradient:
         for a in params:
             a.grad.zero_()
         grads = {name: np.zeros(np.shape(getattr(self._inputs, name))) for name in INPUT_FIELDS}
-        adjoint = None
-        for index in reversed(range(len(self.segments))):
+        for index in reversed(range(len(self.segments))):  # the state adjoint goes from one to the next
             a, b = self.segments[index]
             adjoint = self._taped.backward(self._checkpoints[index], self._inputs, a, b,
-                                           last=b == self.puppet_steps, cotangents=cot, adjoint_end=adjoint,
-                                           grads=grads)
+                                           last=b == self.puppet_steps, cotangents=cot, grads=grads)
         grads["joint_q0"] = adjoint.joint_q
         grads["joint_qd0"] = adjoint.joint_qd
         grads["particle_q0"] = adjoint.particle_q

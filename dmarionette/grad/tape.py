@@ -118,20 +118,11 @@ class _Blocks:
 
 
 class StateAdjoint:
-    """Adjoint of the carried state at a segment boundary (host arrays, ``Checkpoint`` layout)."""
+    """Adjoint of the carried state at the rollout's start (host arrays, ``Checkpoint`` layout)."""
 
     def __init__(self, state):
         for name, array in carried_arrays(state).items():
             setattr(self, name, array.grad.numpy().copy())
-
-    def seed(self, state) -> None:
-        for name, array in carried_arrays(state).items():
-            _add_grad(array, getattr(self, name))
-
-
-def _add_grad(array: wp.array, values) -> None:
-    current = array.grad.numpy()
-    upload_values(array.grad, current + np.asarray(values).reshape(current.shape))
 
 
 class TapedSegment:
@@ -163,13 +154,22 @@ class TapedSegment:
 
     # ------------------------------------------------------------------ the taped step
     def _forward(self, plan: _Plan, steps: int, last: bool, tape, clear: list[wp.array]) -> None:
-        """The launches of a ``steps``-long segment on ``tape``; then the gradient buffers ``clear`` zeroed."""
+        """The launches of a ``steps``-long segment on ``tape``; then, unless ``last``, the adjoint of
+        the next segment's start state (left in the plan's start state's gradients by the reverse
+        pass that ran before) copied to this segment's end state's; then the gradient buffers
+        ``clear`` zeroed (not those just written)."""
         with tape:
             for k in range(steps):
                 self.solver.step(plan.states[k], plan.states[k + 1], plan.controls[k], tape=tape,
                                  workspace=plan.workspaces[k])
             if last:
                 self.solver.eval_body_points(plan.states[steps], plan.final_points)
+        if not last:
+            end = carried_arrays(plan.states[steps])
+            for name, array in carried_arrays(plan.states[0]).items():
+                wp.copy(end[name].grad, array.grad)
+            written = {id(a.grad) for a in end.values()}
+            clear = [g for g in clear if id(g) not in written]
         for g in clear:
             g.zero_()
 
@@ -181,9 +181,11 @@ class TapedSegment:
         the segment (its start state, its inputs) or only accumulated into (atomic adds: the
         bar feedback) hold anything. Found by a reverse pass with every gradient buffer set
         to ones; only these are cleared before each replay (clearing all of them cost about
-        a fifth of the reverse pass). The model parameters' gradients are restored after.
+        a fifth of the reverse pass). The model parameters' gradients, and the start state's (the
+        adjoint a reverse pass that ran before hands to the next segment), are restored after.
         """
-        saved = [a.grad.numpy().copy() for a in self.parameters]
+        kept = self.parameters + list(carried_arrays(plan.states[0]).values())
+        saved = [a.grad.numpy().copy() for a in kept]
         warm = wp.Tape()
         self._forward(plan, steps, last, warm, plan.grads)
         for g in plan.grads:
@@ -192,7 +194,7 @@ class TapedSegment:
         residue = [g for g in plan.grads if np.any(g.numpy() != 0.0)]
         for g in plan.grads:
             g.zero_()
-        for a, g in zip(self.parameters, saved):
+        for a, g in zip(kept, saved):
             upload_values(a.grad, g)
         return residue
 
@@ -219,7 +221,7 @@ class TapedSegment:
 
     # ------------------------------------------------------------------ reverse pass
     def backward(self, checkpoint, inputs, a: int, b: int, *, last: bool, cotangents: dict,
-                 adjoint_end: StateAdjoint | None, grads: dict) -> StateAdjoint:
+                 grads: dict) -> StateAdjoint | None:
         """Re-runs puppet steps ``a .. b-1`` from ``checkpoint`` on a tape and pulls back.
 
         Args:
@@ -228,11 +230,13 @@ class TapedSegment:
             a, b: the segment's first and one-past-last puppet step.
             last: ``b`` is the rollout's end (its final row of per-puppet-step outputs is seeded here).
             cotangents: output name -> full-rollout cotangent array (missing: zero).
-            adjoint_end: adjoint of the state at step ``b`` (None: zero).
             grads: input name -> full-rollout gradient arrays; the segment's rows are added.
 
         Returns:
-            The adjoint of the state at step ``a``.
+            For ``a = 0``, the adjoint of the start state; else None. The segments run last to first:
+            the adjoint of step ``a``'s state stays in the plan's start state's gradients, and the
+            next call (the segment ending at ``a``, not the last) moves it to its end state inside
+            its re-run (no host copies between segments).
         """
         m = self.model
         n = m.substeps
@@ -263,18 +267,20 @@ class TapedSegment:
                 _upload_rows(grad, steps, cotangents[name][a:b])
                 if last:
                     upload_values(grad[self.steps], cotangents[name][b])
+        handed = None if last else states[steps].tie_force.grad.numpy().copy()  # the next segment's, carried
         for name in blocks.STATE_OUTPUTS:
             if name in cotangents:
                 _upload_rows(getattr(blocks, name).grad[1:], steps, cotangents[name][rows])
-        if adjoint_end is not None:
-            adjoint_end.seed(states[-1])
+        if handed is not None and "tie_force" in cotangents:
+            end = states[steps].tie_force.grad
+            upload_values(end, end.numpy() + handed)
         if graphs is not None:
             graphs[1].run()
         else:
             tape.backward()
         for name in blocks.CONTROLS:
             grads[name][rows] += getattr(blocks, name).grad.numpy()[:steps].reshape(grads[name][rows].shape)
-        return StateAdjoint(states[0])
+        return StateAdjoint(states[0]) if a == 0 else None
 
 
 def _upload_rows(block: wp.array, rows: int, values: np.ndarray) -> None:
