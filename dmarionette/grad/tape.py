@@ -74,11 +74,6 @@ class _Plan:
         """Bytes of the plan's arrays and their gradients."""
         return sum(a.capacity for a in self.arrays) + sum(g.capacity for g in self.grads)
 
-    def points(self, k: int, steps: int) -> PuppetPoints:
-        """Body poses and points of state ``k`` of a ``steps``-long segment (the input of step
-        ``k``, or for ``k = steps`` the final state)."""
-        return self.workspaces[k].points if k < steps else self.final_points
-
 
 def _stacked(owners: list, name: str) -> wp.array:
     """One array ``(len(owners), *shape)`` holding ``owner.<name>`` of every owner (their values
@@ -256,8 +251,9 @@ class TapedSegment:
             tape = wp.Tape()  # not reset(): that would clear the parameters' accumulated gradients
             self._forward(plan, steps, last, tape, self._clears[(steps, last)])
         # Seed the per-step outputs of this segment (written, not added: nothing else seeds those
-        # rows), then add the state adjoint from the next one. The final state's points are row C
-        # of their blocks whatever the segment's length.
+        # rows). The final state's points are row C of their blocks whatever the segment's length.
+        # The next segment's state adjoint is already in the end state's gradients (the re-run
+        # copied it there); the tie force's end row, also a seeded row, gets it added back.
         seeded = steps + 1 if last else steps
         if "joint_q" in cotangents:
             _upload_rows(blocks.joint_q.grad, seeded, cotangents["joint_q"][a:a + seeded])
