@@ -2,6 +2,7 @@
 pass, and the string step's hand-written adjoint against its forward.
 
     .venv/bin/python benchmarks/profile_gradients.py [--seconds 4] [--repeats 3] [--no-lanes] [--clock wall|cpu]
+        [--checkpoint-steps C]
 
 Prints, for the ``hanging`` scene (6 x 50 particles, 1 kHz / 30 Hz, smoothed contact):
 
@@ -20,6 +21,8 @@ Prints, for the ``hanging`` scene (6 x 50 particles, 1 kHz / 30 Hz, smoothed con
   5 replays of 20). The arrays of one step stay in the cache here, unlike in the engine's segments.
 
 ``--no-lanes``: the string steps of the engine and of the puppet step with the scalar kernels.
+``--checkpoint-steps C``: the engine's taped segments of ``C`` puppet steps (default: the engine's,
+``ceil(sqrt(P))`` capped at ``SEGMENT_STRING_STEPS // substeps``).
 ``--clock cpu``: the captured launches (the one string step and the puppet step's reverse) timed by
 the calling thread's CPU time (``time.thread_time``) instead of the wall clock (on a shared machine
 it leaves out the time the thread waited for a core; Warp runs a CPU graph on the calling thread).
@@ -57,8 +60,9 @@ class ChunkClock:
         capture.CapturedChunk.run = run
 
 
-def _engine_split(model, seconds: float, repeats: int, clock: ChunkClock) -> dict[str, float]:
-    engine = MarionetteGradient(model, int(round(seconds / model.puppet_dt)))
+def _engine_split(model, seconds: float, repeats: int, clock: ChunkClock,
+                  checkpoint_steps: int | None = None) -> dict[str, float]:
+    engine = MarionetteGradient(model, int(round(seconds / model.puppet_dt)), checkpoint_steps=checkpoint_steps)
     inputs = engine.scene_inputs()
     rng = np.random.default_rng(0)
     weights = {k: rng.normal(size=s) for k, s in engine.output_shapes.items()}
@@ -79,7 +83,9 @@ def _engine_split(model, seconds: float, repeats: int, clock: ChunkClock) -> dic
         reverse = sum(t for k, t in clock.times.items() if k in reverses)
         rows.append({"forward": forward, "backward": backward, "rerun": rerun, "reverse": reverse,
                      "rest": backward - rerun - reverse})
-    return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+    split = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+    split["C"], split["segments"] = engine.checkpoint_steps, len(engine.segments)
+    return split
 
 
 CLOCK = time.perf_counter  # --clock cpu: time.thread_time
@@ -160,16 +166,17 @@ def main() -> None:
     p.add_argument("--no-lanes", action="store_true", help="the scalar string kernels (plain and taped)")
     p.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                    help="the captured launches' clock (cpu: the thread's CPU time)")
+    p.add_argument("--checkpoint-steps", type=int, default=None, help="the engine's segment length C")
     args = p.parse_args()
     global CLOCK
     CLOCK = time.thread_time if args.clock == "cpu" else time.perf_counter
     clock = ChunkClock()
     model = MarionetteModel(dm.load_scene("hanging"), requires_grad=True)
     model.string_solver.lanes = not args.no_lanes
-    split = _engine_split(model, args.seconds, args.repeats, clock)
+    split = _engine_split(model, args.seconds, args.repeats, clock, args.checkpoint_steps)
     f = split["forward"]
-    print(f"# hanging 6 x 50, {args.seconds:g} s rollout, medians of {args.repeats}, string steps "
-          f"{'scalar (--no-lanes)' if args.no_lanes else 'in lanes'}")
+    print(f"# hanging 6 x 50, {args.seconds:g} s rollout, C = {split['C']} ({split['segments']} segments), medians of "
+          f"{args.repeats}, string steps {'scalar (--no-lanes)' if args.no_lanes else 'in lanes'}")
     print(f"forward {f:.3f} s; backward {split['backward']:.3f} s = {split['backward'] / f:.2f} forwards:")
     for name in ("rerun", "reverse", "rest"):
         print(f"  {name:8s} {split[name]:.3f} s  {split[name] / f:.2f} forwards")

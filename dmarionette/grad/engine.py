@@ -5,7 +5,7 @@ from host inputs (:class:`RolloutInputs`: the bars, per-string constants, the pu
 initial state) and returns its outputs (:class:`RolloutOutputs`); :meth:`backward` maps
 cotangents of any of the outputs to gradients with respect to every input.
 
-Checkpointing (memory like ``sqrt(T)``): the forward pass runs segments of
+Checkpointing: the forward pass runs segments of
 ``checkpoint_steps = C`` puppet steps without a tape (captured as Warp graphs) and keeps
 only the state at each segment's start: string particle positions and velocities, puppet
 ``joint_q``/``joint_qd``, the tie targets and the last step's tie forces (the coupling's
@@ -15,6 +15,13 @@ per step (:mod:`dmarionette.grad.tape`: ``SolverMarionette.step`` itself, a fres
 state adjoint arriving from the next segment, runs ``tape.backward`` and passes the adjoint
 of the segment's start state on. The peak memory is one segment's tape (``C n`` string
 steps) plus the checkpoints (``P / C``) and the host outputs.
+
+The default ``C`` is ``ceil(sqrt(P))`` (least memory when a checkpoint weighs as much as a
+step's tape), capped at ``SEGMENT_STRING_STEPS / n`` puppet steps. A taped string step weighs
+far more than a checkpoint (``hanging``: about 90 KiB of tape per string step, 19 KiB per
+checkpoint), and a short segment's arrays are still warm when its reverse pass reads them: the
+backward of the 16 s ``hanging`` rollout takes about 0.68x the time with ``C = 6`` (18 MiB of
+tape) as with ``ceil(sqrt(480)) = 22`` (70 MiB), and needs less memory (docs/gradients.md).
 
 What is differentiated, and the mapping to the kernels' constants:
 
@@ -63,8 +70,12 @@ from dmarionette.grad.tape import TapedSegment
 from dmarionette.marionette.solver import MarionetteControl, MarionetteModel, SolverMarionette, bar_inputs
 from dmarionette.strings.rollout import upload_values
 
-__all__ = ["INPUT_FIELDS", "OPTIONAL_INPUT_FIELDS", "OUTPUT_FIELDS", "MarionetteGradient", "RolloutInputs",
-           "RolloutOutputs"]
+__all__ = ["INPUT_FIELDS", "OPTIONAL_INPUT_FIELDS", "OUTPUT_FIELDS", "SEGMENT_STRING_STEPS", "MarionetteGradient",
+           "RolloutInputs", "RolloutOutputs"]
+
+
+SEGMENT_STRING_STEPS = 165
+"""The most string steps of a default taped segment (5 puppet steps at 30 Hz / 1 kHz; module doc)."""
 
 
 @dataclasses.dataclass
@@ -210,7 +221,8 @@ class MarionetteGradient:
         model: built with ``requires_grad=True``. The engine owns it: :meth:`forward` writes
             the inputs' constants into its arrays (:meth:`scene_inputs` keeps the scene's).
         puppet_steps: ``P``, the rollout length in puppet steps (``T = P * model.substeps``).
-        checkpoint_steps: puppet steps per taped segment ``C`` (default ``ceil(sqrt(P))``).
+        checkpoint_steps: puppet steps per taped segment ``C`` (default ``ceil(sqrt(P))``, at most
+            ``SEGMENT_STRING_STEPS // substeps`` and at least 1: module doc).
         capture: run the untaped forward segments, and the taped segments' forward and
             reverse passes, as captured Warp graphs (no per-launch Python cost: 5-6x faster
             on the CPU, measured); False launches them one by one (same numbers).
@@ -228,7 +240,7 @@ class MarionetteGradient:
         if not (isinstance(puppet_steps, (int, np.integer)) and puppet_steps >= 1):
             raise ValueError(f"puppet_steps: got {puppet_steps!r}; expected an integer >= 1")
         if checkpoint_steps is None:
-            checkpoint_steps = math.ceil(math.sqrt(puppet_steps))
+            checkpoint_steps = min(math.ceil(math.sqrt(puppet_steps)), max(1, SEGMENT_STRING_STEPS // model.substeps))
         if not (isinstance(checkpoint_steps, (int, np.integer)) and checkpoint_steps >= 1):
             raise ValueError(f"checkpoint_steps: got {checkpoint_steps!r}; expected an integer >= 1")
         self.model = model
@@ -482,12 +494,10 @@ class MarionetteGradient:
         for a in params:
             a.grad.zero_()
         grads = {name: np.zeros(np.shape(getattr(self._inputs, name))) for name in INPUT_FIELDS}
-        adjoint = None
-        for index in reversed(range(len(self.segments))):
+        for index in reversed(range(len(self.segments))):  # the state adjoint goes from one to the next
             a, b = self.segments[index]
             adjoint = self._taped.backward(self._checkpoints[index], self._inputs, a, b,
-                                           last=b == self.puppet_steps, cotangents=cot, adjoint_end=adjoint,
-                                           grads=grads)
+                                           last=b == self.puppet_steps, cotangents=cot, grads=grads)
         grads["joint_q0"] = adjoint.joint_q
         grads["joint_qd0"] = adjoint.joint_qd
         grads["particle_q0"] = adjoint.particle_q

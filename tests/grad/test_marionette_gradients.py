@@ -39,7 +39,7 @@ import warp as wp
 
 from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.grad.engine import (INPUT_FIELDS, OPTIONAL_INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient,
-                                         RolloutInputs)
+                                         SEGMENT_STRING_STEPS, RolloutInputs)
 from dmarionette.marionette.rollout import simulate_marionette
 from tests.support.marionette_gradients import CONTACT_GROUND, PUPPET_STEPS, Problem, string_margins
 
@@ -125,10 +125,12 @@ def test_gradients_with_smoothed_contact_match_finite_differences(contact, smoot
 
 def test_checkpointing_does_not_change_the_gradient(smooth):
     """``checkpoint_steps = puppet_steps`` (one taped segment) against 8 segments (7 of 4 steps, one of 2),
-    against the default ``ceil(sqrt(30)) = 6`` (5 segments of 6), and without graph capture."""
+    against the default (``ceil(sqrt(30)) = 6`` capped at ``SEGMENT_STRING_STEPS // substeps``: 6 segments of
+    5 at 33 substeps), and without graph capture."""
     assert len(smooth.engine.segments) == 8 and smooth.engine.segments[-1] == (28, 30)
     default = MarionetteGradient(smooth.model, PUPPET_STEPS)
-    assert default.checkpoint_steps == 6 and len(default.segments) == 5
+    assert smooth.model.substeps == 33 and SEGMENT_STRING_STEPS // 33 == 5
+    assert default.checkpoint_steps == 5 and len(default.segments) == 6
     whole = MarionetteGradient(smooth.model, PUPPET_STEPS, checkpoint_steps=PUPPET_STEPS)
     assert len(whole.segments) == 1
     plain = MarionetteGradient(smooth.model, PUPPET_STEPS, checkpoint_steps=4, capture=False)
