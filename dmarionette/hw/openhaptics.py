@@ -32,6 +32,8 @@ from .device import HapticDeviceSpec, HapticSample, as_force
 __all__ = ["HD", "HapticDeviceOpenHaptics", "find_hd_library"]
 
 LIBRARY_ENV = "OPENHAPTICS_HD_LIBRARY"
+# close(): the longest wait [s] for the servo loop to send the zero force before the scheduler stops.
+CLOSE_ZERO_WAIT = 0.1
 
 
 class HD:
@@ -365,8 +367,15 @@ class HapticDeviceOpenHaptics(AbstractHapticDevice):
         with self._lock:
             self._force = np.zeros(3)
             self._force_time = time.perf_counter()
+            ticks = self.tick_count
         if self.is_open and self._error is None:
-            time.sleep(0.003)  # let a few servo ticks send the zero
+            # Let a whole servo tick send the zero (the one in flight may have read the old force):
+            # two more ticks, or at most CLOSE_ZERO_WAIT s on a stalled machine, after which
+            # hdDisable(HD_FORCE_OUTPUT) turns the motors off anyway. A fixed 3 ms sleep was not
+            # always one tick under load.
+            end = time.perf_counter() + CLOSE_ZERO_WAIT
+            while self.tick_count < ticks + 2 and self._error is None and time.perf_counter() < end:
+                time.sleep(0.0005)
         self._shutdown()
 
     def _shutdown(self) -> None:
