@@ -62,10 +62,10 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     ladd, lsub, lmul, ldiv, lsqrt, lmax, lselect_less = (
         nat.add, nat.sub, nat.mul, nat.div, nat.sqrt, nat.max, nat.where_less)
     f = lane_step_functions(lanes)
-    gather_string, gather_string3, gather_particle, gather_particle3, scatter3 = (
-        f.gather_string, f.gather_string3, f.gather_particle, f.gather_particle3, f.scatter3)
+    gather_string3, gather_particle, gather_particle3, scatter3 = (
+        f.gather_string3, f.gather_particle, f.gather_particle3, f.scatter3)
     lneg, vadd, vsub, lsum3, lscale, lmul_vec = f.lneg, f.vadd, f.vsub, f.lsum3, f.lscale, f.lmul_vec
-    compute_lane_group = f.compute_lane_group
+    compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
 
     # --- accumulation into the gradients, real lanes only ---------------------------------------
 
@@ -424,16 +424,13 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         zv = lvec()
         hl = lane(dt)
         h2 = lane(dt * dt)
-        stiffness = gather_string(string_stiffness, strings)
-        rest_length = gather_string(string_rest_length, strings)
-        friction = gather_string(string_internal_friction, strings)
-        air_drag = gather_string(string_air_drag, strings)
-        ground_stiffness = gather_string(string_ground_stiffness, strings)
-        ground_absorption = gather_string(string_ground_absorption, strings)
-        ground_friction = gather_string(string_ground_friction, strings)
-        tied = gather_string(string_tied, strings)
-        tie_stiffness = lmul(tied, gather_string(string_tie_stiffness, strings))
-        tie_damping = lmul(tied, gather_string(string_tie_damping, strings))
+        (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
+         tie_stiffness_k, tie_damping_k) = gather_string_constants(
+            strings, string_stiffness, string_rest_length, string_internal_friction, string_air_drag,
+            string_ground_stiffness, string_ground_absorption, string_ground_friction, string_tied,
+            string_tie_stiffness, string_tie_damping)
+        tie_stiffness = lmul(tied, tie_stiffness_k)
+        tie_damping = lmul(tied, tie_damping_k)
         tie_x = gather_string3(tie_q, strings)
         tie_v = gather_string3(tie_qd, strings)
         top = gather_string3(top_q, strings)

@@ -78,7 +78,8 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
     """The laned step's ``@wp.func`` helpers for ``lanes`` strings per thread, shared by the laned
     step (``integrate_string_lanes``) and its adjoint (``string_step_adjoint_lanes``): gathers from
     and scatters to the simulator's arrays (``lane_ops.native_lane_memory``; a scatter writes the
-    real lanes only), a group's strings and their first particles (``compute_lane_group``), the scalar
+    real lanes only), a group's strings and their first particles (``compute_lane_group``) and
+    constants (``gather_string_constants``, also for the tangent, ``string_step_tangent_lanes``), the scalar
     kernel's vector and matrix operations on lanes in its order and rounding, and the printed spring
     (``compute_lane_spring``)."""
     LANES_ = lanes
@@ -123,6 +124,21 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
             starts[k] = string_start[strings[k]]
         s0 = strings[0]
         return strings, group_real[g], group_base[g], starts, string_start[s0 + 1] - string_start[s0]
+
+    @wp.func
+    def gather_string_constants(strings: ivec, stiffness: wp.array(dtype=f64), rest_length: wp.array(dtype=f64),
+                                internal_friction: wp.array(dtype=f64), air_drag: wp.array(dtype=f64),
+                                ground_stiffness: wp.array(dtype=f64), ground_absorption: wp.array(dtype=f64),
+                                ground_friction: wp.array(dtype=f64), tied: wp.array(dtype=f64),
+                                tie_stiffness: wp.array(dtype=f64), tie_damping: wp.array(dtype=f64)):
+        """The group's strings' ten constants, each a lane vector, in the order of the arguments (the
+        tie's ``k`` and ``k_d`` as stored: the step's ``k_t = tied k``, ``k_dt = tied k_d`` are the
+        caller's)."""
+        return (gather_string(stiffness, strings), gather_string(rest_length, strings),
+                gather_string(internal_friction, strings), gather_string(air_drag, strings),
+                gather_string(ground_stiffness, strings), gather_string(ground_absorption, strings),
+                gather_string(ground_friction, strings), gather_string(tied, strings),
+                gather_string(tie_stiffness, strings), gather_string(tie_damping, strings))
 
     # --- the scalar kernel's operations on lanes ----------------------------------------------
 
@@ -256,7 +272,8 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
 
     return SimpleNamespace(
         gather_string=gather_string, gather_string3=gather_string3, gather_particle=gather_particle,
-        gather_particle3=gather_particle3, scatter3=scatter3, compute_lane_group=compute_lane_group, lneg=lneg,
+        gather_particle3=gather_particle3, scatter3=scatter3, compute_lane_group=compute_lane_group,
+        gather_string_constants=gather_string_constants, lneg=lneg,
         vadd=vadd, vsub=vsub, madd=madd, msub=msub,
         lsum3=lsum3, lscale=lscale, lmatmul=lmatmul, ltmatmul=ltmatmul, lmul_vec=lmul_vec, ltmul_vec=ltmul_vec,
         linverse=linverse, compute_lane_spring=compute_lane_spring)
@@ -285,7 +302,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
     lneg, vadd, vsub, madd, msub, lsum3, lscale = f.lneg, f.vadd, f.vsub, f.madd, f.msub, f.lsum3, f.lscale
     lmatmul, ltmatmul, lmul_vec, ltmul_vec, linverse = f.lmatmul, f.ltmatmul, f.lmul_vec, f.ltmul_vec, f.linverse
     compute_lane_spring = f.compute_lane_spring
-    compute_lane_group = f.compute_lane_group
+    compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
 
     @wp.func
     def compute_lane_system_row(
@@ -468,16 +485,13 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
                                                             string_start)
         last = n - 1
         # The strings' constants, read once.
-        stiffness = gather_string(string_stiffness, strings)
-        rest_length = gather_string(string_rest_length, strings)
-        friction = gather_string(string_internal_friction, strings)
-        air_drag = gather_string(string_air_drag, strings)
-        ground_stiffness = gather_string(string_ground_stiffness, strings)
-        ground_absorption = gather_string(string_ground_absorption, strings)
-        ground_friction = gather_string(string_ground_friction, strings)
-        tied = gather_string(string_tied, strings)
-        tie_stiffness = lmul(tied, gather_string(string_tie_stiffness, strings))
-        tie_damping = lmul(tied, gather_string(string_tie_damping, strings))
+        (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
+         tie_stiffness_k, tie_damping_k) = gather_string_constants(
+            strings, string_stiffness, string_rest_length, string_internal_friction, string_air_drag,
+            string_ground_stiffness, string_ground_absorption, string_ground_friction, string_tied,
+            string_tie_stiffness, string_tie_damping)
+        tie_stiffness = lmul(tied, tie_stiffness_k)
+        tie_damping = lmul(tied, tie_damping_k)
         tie_x = gather_string3(tie_q, strings)
         tie_v = gather_string3(tie_qd, strings)
         top = gather_string3(top_q, strings)

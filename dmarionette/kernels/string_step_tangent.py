@@ -543,18 +543,6 @@ def _segment_values(scalar, lanes: int) -> SimpleNamespace:
             return a[p0 + j]
 
         @wp.func
-        def add(a: scalar, b: scalar):
-            return a + b
-
-        @wp.func
-        def sub(a: scalar, b: scalar):
-            return a - b
-
-        @wp.func
-        def mul(a: scalar, b: scalar):
-            return a * b
-
-        @wp.func
         def div(a: scalar, b: scalar):
             return a / b
 
@@ -574,22 +562,6 @@ def _segment_values(scalar, lanes: int) -> SimpleNamespace:
             return r
 
         @wp.func
-        def vadd(a: vec3, b: vec3):
-            return a + b
-
-        @wp.func
-        def vsub(a: vec3, b: vec3):
-            return a - b
-
-        @wp.func
-        def vscl(s: scalar, v: vec3):
-            return s * v
-
-        @wp.func
-        def vdot(a: vec3, b: vec3):
-            return wp.dot(a, b)
-
-        @wp.func
         def store9(a: wp.array(dtype=mat33), p0: int, count: int, m: M):
             a[p0] = mat33(m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
 
@@ -597,9 +569,11 @@ def _segment_values(scalar, lanes: int) -> SimpleNamespace:
         def load9(a: wp.array(dtype=mat33), p: int, first: int):
             return a[p]
 
+        # The arithmetic one direction at a time already has (the same operation each).
+        t = tangent_directions(scalar)
         return SimpleNamespace(L=L, V=V, M=M, SM=mat33, load9=load9, store9=store9, const=const, load3=load3,
-                               add=add, sub=sub, mul=mul, div=div, sqrt=sqrt, max=vmax, where_pos=where_pos,
-                               vadd=vadd, vsub=vsub, vscl=vscl, vdot=vdot)
+                               add=t.sadd, sub=t.ssub, mul=t.sscl, div=div, sqrt=sqrt, max=vmax, where_pos=where_pos,
+                               vadd=t.vadd, vsub=t.vsub, vscl=t.vscl, vdot=t.dot)
     if scalar is not wp.float64:
         raise TypeError(f"the segment pass in lanes: float64 only, got {scalar}")
     lane, ivec, lvec, _lmat = lane_types(lanes)

@@ -96,10 +96,9 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     nat = native_lane_ops(lanes)
     add, sub, mul, div, sqrt, vmax, where_less = nat.add, nat.sub, nat.mul, nat.div, nat.sqrt, nat.max, nat.where_less
     f = lane_step_functions(lanes)
-    gather_string, gather_string3, gather_particle3, gather_particle = (
-        f.gather_string, f.gather_string3, f.gather_particle3, f.gather_particle)
-    neg, vadd, vsub, scale, lsum3, mul_vec, compute_lane_group = (
-        f.lneg, f.vadd, f.vsub, f.lscale, f.lsum3, f.lmul_vec, f.compute_lane_group)
+    gather_string3, gather_particle3, gather_particle = f.gather_string3, f.gather_particle3, f.gather_particle
+    neg, vadd, vsub, scale, lsum3, mul_vec = f.lneg, f.vadd, f.vsub, f.lscale, f.lsum3, f.lmul_vec
+    compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
     tgather3, tgather, tscatter3 = gather_particle3, gather_particle, f.scatter3
     cgather = _constant_gather(lanes)
 
@@ -212,16 +211,11 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         h2 = lane(dt * dt)
         inv_dt = lane(f64(1.0) / dt)
         gh = lane(ground_height)
-        stiffness = gather_string(string_stiffness, strings)
-        rest_length = gather_string(string_rest_length, strings)
-        friction = gather_string(string_internal_friction, strings)
-        air_drag = gather_string(string_air_drag, strings)
-        ground_stiffness = gather_string(string_ground_stiffness, strings)
-        ground_absorption = gather_string(string_ground_absorption, strings)
-        ground_friction = gather_string(string_ground_friction, strings)
-        tied = gather_string(string_tied, strings)
-        tie_stiffness_k = gather_string(string_tie_stiffness, strings)
-        tie_damping_k = gather_string(string_tie_damping, strings)
+        (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
+         tie_stiffness_k, tie_damping_k) = gather_string_constants(
+            strings, string_stiffness, string_rest_length, string_internal_friction, string_air_drag,
+            string_ground_stiffness, string_ground_absorption, string_ground_friction, string_tied,
+            string_tie_stiffness, string_tie_damping)
         tie_stiffness = mul(tied, tie_stiffness_k)
         tie_damping = mul(tied, tie_damping_k)
         tie_x = gather_string3(tie_q, strings)

@@ -34,6 +34,7 @@ component-wise).
 import functools
 
 from types import SimpleNamespace
+from typing import Any
 
 import warp as wp
 
@@ -104,38 +105,6 @@ def _scalar_directions(scalar) -> SimpleNamespace:
         a[k, i] = v
 
     @wp.func
-    def vadd(a: vec3, b: vec3):
-        return a + b
-
-    @wp.func
-    def vsub(a: vec3, b: vec3):
-        return a - b
-
-    @wp.func
-    def vneg(a: vec3):
-        return -a
-
-    @wp.func
-    def vscl(c: scalar, a: vec3):
-        return c * a
-
-    @wp.func
-    def sadd(a: scalar, b: scalar):
-        return a + b
-
-    @wp.func
-    def ssub(a: scalar, b: scalar):
-        return a - b
-
-    @wp.func
-    def sneg(a: scalar):
-        return -a
-
-    @wp.func
-    def sscl(c: scalar, a: scalar):
-        return c * a
-
-    @wp.func
     def outer(v: vec3, a: scalar):
         return a * v
 
@@ -152,9 +121,33 @@ def _scalar_directions(scalar) -> SimpleNamespace:
         return vec3(a, b, c)
 
     return SimpleNamespace(TS=scalar, TV=vec3, step=1, load=load, load_constant=load_constant, load3=load3,
-                           store3=store3, sload3=load3, sstore3=store3, vadd=vadd, vsub=vsub, vneg=vneg,
-                           vscl=vscl, sadd=sadd, ssub=ssub, sneg=sneg, sscl=sscl, outer=outer, dot=dot, mat=mat,
+                           store3=store3, sload3=load3, sstore3=store3, vadd=_add, vsub=_sub, vneg=_neg,
+                           vscl=_scale, sadd=_add, ssub=_sub, sneg=_neg, sscl=_scale, outer=outer, dot=dot, mat=mat,
                            tvec=tvec)
+
+
+# One direction per value: a tangent scalar's and a tangent vector's sum, difference, negation and
+# product with a primal scalar are Warp's own operators, one function each for both (generic).
+
+
+@wp.func
+def _add(a: Any, b: Any):
+    return a + b
+
+
+@wp.func
+def _sub(a: Any, b: Any):
+    return a - b
+
+
+@wp.func
+def _neg(a: Any):
+    return -a
+
+
+@wp.func
+def _scale(c: Any, a: Any):
+    return c * a
 
 
 # Clang vector snippets (``lane_ops``' style): a tangent scalar's K lanes, a tangent vector's three rows.
