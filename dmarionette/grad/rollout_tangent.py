@@ -29,17 +29,15 @@ One world only (a batched model is refused with a ValueError).
 Checked (``tests/grad/test_rollout_jvp.py``, 1 s of ``hanging``): against the reverse engine by the
 dot-product identity for every input group (measured 1e-15 relative), against central differences.
 Cost (``python benchmarks/bench_gradients.py --seconds 1 --memory-seconds 0 --repeats 5 --jvp``,
-CPU, two runs at load 0.8-1.4): a 1 s rollout's JVP for P = 1, 4, 12, 16 directions takes 3.3-3.5,
-4.9-5.0, 10.8-11.0, 13.6-14.1 captured forward rollouts (3.5-3.6, 5.2-5.4, 11.5-11.7, 14.7-15.2
-before the host writes were batched and the trial's contact tangents kept for the step, same
-session; issue 13's target ``1 + 0.5 P``: 1.5, 3, 7, 9): missed. Where it goes
-(``benchmarks/profile_tangent.py``, thread CPU time, in forwards, P = 1 / 4 / 16): the string
-steps keeping their factorisation 1.0 / 0.9 / 0.9 and their tangent kernel 1.9 / 2.8 / 9.3
-(``kernels/string_step_tangent``'s module doc); everything else 0.4 / 0.7 / 2.1, of which the
-contact tangent (the interleaved kernel, its primal recomputed per direction: 7 us of a 12 us
-direction) 0.07 / 0.23 / 0.8, the generated puppet kernels 0.07 / 0.14 / 0.42, the bar feedback
-0.07 / 0.13 / 0.32, the coupling 0.02 / 0.06 / 0.20, the host (:meth:`load`, :meth:`read`)
-0.07 / 0.11 / 0.26.
+CPU, two runs at load 0.7-0.9, stop 28): a 1 s rollout's JVP for P = 1, 4, 12, 16 directions takes
+1.9, 2.9-3.0, 5.9-6.1, 7.2-7.3 captured forward rollouts (issue 13's target ``1 + 0.5 P``: 1.5, 3,
+7, 9; missed at P = 1). This module's part of that (measured against the code before, same
+session): the host writes every step's controls and their tangents as one array per field
+(3.5-3.6, 5.2-5.4, 11.5-11.7, 14.7-15.2 -> 3.3-3.5, 4.9-5.0, 10.8-11.0, 13.6-14.1 forwards at the
+time, together with the step's kept contact tangents). Where it goes
+(``benchmarks/profile_tangent.py``; ``docs/gradients.md``, "Forward mode"): mostly the string
+steps keeping their factorisation (about one forward) and their tangent kernels
+(``kernels/string_step_tangent``, ``kernels/string_step_tangent_lanes``).
 """
 
 from __future__ import annotations
