@@ -270,7 +270,7 @@ def build_articulation_model(
     springs: tuple[tuple[str, float, float], ...] = (),
     contacts: ContactSettings | None = None,
     joint_limits: bool = True,
-    one_sided_limits: bool = False,
+    one_sided_limits: bool = True,
     limit_stiffness: float = 5.0,
     limit_damping: float = 0.05,
     gravity: tuple[float, float, float] = GRAVITY,

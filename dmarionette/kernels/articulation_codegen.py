@@ -97,7 +97,7 @@ class ArticulationTopology:
 
     joints: tuple[JointTopology, ...]
     joint_limits: bool = True
-    one_sided_limits: bool = False
+    one_sided_limits: bool = True
 
     @property
     def body_count(self) -> int:

@@ -69,7 +69,7 @@ _STRING_CONSTANTS = {
 }
 _STRING_KEYS = {"name", "top", "bottom", "length", "bottom_end", "tie_point", "body_point", *_STRING_CONSTANTS}
 _EFFECTS = [f.name for f in dataclasses.fields(StringEffects)]
-_BODY_EFFECTS = {"body_ground": True, "chair": False, "ball": False, "joint_limits": True, "one_sided_limits": False,
+_BODY_EFFECTS = {"body_ground": True, "chair": False, "ball": False, "joint_limits": True, "one_sided_limits": True,
                  "feedback": True}
 _CONTACT = {
     # key: (default, reader options); see dmarionette.kernels.body_contact.ContactSettings

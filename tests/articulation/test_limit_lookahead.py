@@ -4,11 +4,11 @@ A limit acts in a step that starts past it or whose start velocity carries the j
 it (``docs/puppet.md``). The look-ahead band (``LIMIT_BAND``, 0.05 rad) acts whatever the
 direction, so it also brakes motion away from a limit: the left elbow 0.03 rad inside its
 upper limit (5 deg), moving away at 1 rad/s, has its acceleration changed from 15.9 to
-29.7 rad/s^2 at 30 Hz (41.4 -> 499 at h = 1e-3 s, 43.4 -> 848 at 1e-4 s) by the default band.
-The one-sided look-ahead (``one_sided_limits``, off by default: ``docs/puppet.md``) switches
-the start band off for a start velocity away from the limit and brakes by the step's end angle
-(``_limit_brake``) only an end velocity towards it; these tests say what that must do, and are
-strict expected failures for the default band.
+29.7 rad/s^2 at 30 Hz (41.4 -> 499 at h = 1e-3 s, 43.4 -> 848 at 1e-4 s) by the two-sided band
+(``one_sided_limits = false``, no longer the default). The one-sided look-ahead (the default
+since issue 13: ``docs/puppet.md``) switches the start band off for a start velocity away from
+the limit and brakes by the step's end angle (``_limit_brake``) only an end velocity towards
+it; these tests say what that must do, and are strict expected failures for the band.
 The limit acting on the mirror case (moving towards it) and past it is checked as well.
 """
 
@@ -24,12 +24,12 @@ ELBOW_DOF = 11  # root 0-5, neck 6-8, shoulder_left 9-10, elbow_left 11
 INSIDE = 0.03  # rad inside the upper limit
 
 
-VARIANTS = {"band": dict(joint_limits=True), "one_sided": dict(joint_limits=True, one_sided_limits=True),
+VARIANTS = {"band": dict(joint_limits=True, one_sided_limits=False), "one_sided": dict(joint_limits=True),
             "off": dict(joint_limits=False)}
-# The default two-sided band brakes motion away from a limit: an open defect of the default
-# (issue 13), strict so that a fix shows; the one-sided look-ahead (``one_sided_limits``) passes.
+# The two-sided band (``one_sided_limits = false``) brakes motion away from a limit: the defect
+# issue 13 fixed by making the one-sided look-ahead the default; strict, so that it shows.
 ONE_SIDED_ONLY = [pytest.param("band", marks=pytest.mark.xfail(
-    strict=True, reason="issue 13: the default look-ahead band also brakes motion away from a limit")), "one_sided"]
+    strict=True, reason="issue 13: the two-sided band also brakes motion away from a limit")), "one_sided"]
 
 
 def _models():

@@ -2,7 +2,7 @@
 over a range of jump speeds, 4-6 m/s (issue 13).
 
 Why a sweep: the 5 m/s case alone hid what the joint limits do at neighbouring speeds. With
-the two-sided look-ahead band (the default), 4.6 m/s takes the right elbow 2.02 rad through its limit
+the two-sided look-ahead band (the default before issue 13; ``one_sided_limits = false``), 4.6 m/s takes the right elbow 2.02 rad through its limit
 (0.158 rad at 5 m/s); a one-sided look-ahead braking by the end angle with its brake's
 weight capped at 1 (issue 13's "limits v5") gained 0.67 J at 4.6 m/s with the neck's cone
 1.28 rad past (docs/puppet.md, "Joint limits"). The energy check and the bounds are
@@ -11,7 +11,7 @@ joint-limit violation within the energy bound and within 1.5x the violation meas
 each speed (a guard against regressions; the runs are deterministic on the CPU).
 
 Measured, largest violation at 4.0 / 4.3 / 4.6 / 4.8 / 5.0 / 5.2 / 5.4 / 5.7 / 6.0 m/s: with
-the one-sided look-ahead (``[effects] one_sided_limits``, ``articulation_codegen._limits``,
+the one-sided look-ahead (the default; ``[effects] one_sided_limits``, ``articulation_codegen._limits``,
 ``_limit_brake``) 0.042 / 0.064 / 0.079 / 0.161 / 0.221 / 0.316 / 0.487 / 0.486 / 0.048 rad;
 with the two-sided band 0.449 / 1.702 / 2.025 / 0.090 / 0.158 / 0.195 / 0.217 / 0.348 /
 0.218; energy at most -1.66e-2 J from ``E(0) + W`` at every speed (both). About 1 s a speed

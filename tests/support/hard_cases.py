@@ -45,8 +45,8 @@ def jerked_bars(scene, speed, distance=0.1):
 
 
 def with_lookahead(scene, variant: str):
-    """``scene`` with the joint-limit look-ahead ``variant``: ``"band"`` (the default, two-sided)
-    or ``"one_sided"`` (``[effects] one_sided_limits``, issue 13)."""
+    """``scene`` with the joint-limit look-ahead ``variant``: ``"band"`` (two-sided,
+    ``[effects] one_sided_limits = false``) or ``"one_sided"`` (the default since issue 13)."""
     return dataclasses.replace(scene, body_effects={**scene.body_effects, "one_sided_limits": variant == "one_sided"})
 
 
