@@ -291,7 +291,7 @@ def build_articulation_model(
         contacts: which contacts to compile in (default: none).
         joint_limits: compile joint limits in.
         one_sided_limits: the one-sided limit look-ahead (issue 13, ``docs/puppet.md``, "Joint
-            limits"; off by default) instead of the two-sided band.
+            limits"; the default); False: the two-sided band of before.
         limit_stiffness, limit_damping: joint-limit penalty [N m/rad], [N m s/rad].
         gravity: [m/s^2].
         device: Warp device.

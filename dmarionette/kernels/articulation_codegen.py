@@ -90,9 +90,9 @@ class ArticulationTopology:
     Attributes:
         joints: per body, in body order.
         joint_limits: whether joint limits are compiled in.
-        one_sided_limits: the one-sided look-ahead (issue 13; ``_limits``, ``_limit_brake``)
-            instead of the two-sided band; off by default (it moves the authored ``ball`` and
-            ``chair`` scenes off their keyframes, ``docs/puppet.md``, "Joint limits").
+        one_sided_limits: the one-sided look-ahead (issue 13; ``_limits``, ``_limit_brake``;
+            the default); False: the two-sided band, which also brakes motion away from a
+            limit (``docs/puppet.md``, "Joint limits").
     """
 
     joints: tuple[JointTopology, ...]
@@ -409,7 +409,7 @@ def solve_body_dynamics(
         band + 1, 0, 1)``, so that the step is continuous in ``q`` and ``qd`` (an on/off
         switch there turned float32 rounding of the strings into different motions: 7x the
         rounding bound of ``tests/marionette/test_marionette_float32.py``). With
-        ``one_sided_limits`` (issue 13; off by default, ``docs/puppet.md``) ``w`` is multiplied by ``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` (upper limit; the
+        ``one_sided_limits`` (issue 13; the default, ``docs/puppet.md``) ``w`` is multiplied by ``clamp(1 + qd / LIMIT_AWAY_SPEED, 0, 1)`` (upper limit; the
         cone: ``qd`` is the rate of its angle, ``n . omega``), so motion away from a limit is
         not braked; a joint turned round within the step is caught by ``_limit_brake``.
         """
