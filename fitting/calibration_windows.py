@@ -217,7 +217,12 @@ class WindowedRollout:
         On a batched model (``world_count`` ``W``), ``inputs`` is a list of ``W`` (and ``refine``
         None or a list of ``W``) and so is the result: ``W`` rollouts of the session (e.g. the
         finite-difference columns of a Jacobian) in the same launches, each world bit for bit the
-        one-world rollout."""
+        one-world rollout.
+
+        A world whose state goes non-finite (a trial point of the solver far out, e.g. one
+        ``k_d`` at 1e18) returns NaN everywhere, which the least-squares solvers reject as a
+        step; its later windows start from another world's hand-over (their outputs are
+        discarded) so that the batch's launches stay finite."""
         from dmarionette.grad.carried import carried_arrays
 
         worlds = list(inputs) if isinstance(inputs, (list, tuple)) else [inputs]
@@ -227,14 +232,17 @@ class WindowedRollout:
         shape = next(iter(self.engines.values())).output_shapes["body_pos"][1:]
         body_pos = [np.zeros((p + 1, *shape)) for _ in worlds]
         bar_reaction = [np.zeros((p * n, *x.bar_q.shape[1:])) for x in worlds]
-        ends = None
+        ends, diverged = None, [False] * len(worlds)
         for a, b in self.windows:
+            if all(diverged):
+                break
             rows = slice(a * n, b * n)
             windows, extras = [], []
             for w, x in enumerate(worlds):
                 window = dataclasses.replace(x, top_q=x.top_q[rows], bar_q=x.bar_q[rows], bar_qd=x.bar_qd[rows])
                 if a > 0:
-                    start, extra = self.handed_over(a, *ends[w], (refines[w] or {}).get(a))
+                    source = diverged.index(False) if diverged[w] else w
+                    start, extra = self.handed_over(a, *ends[source], (refines[source] or {}).get(a))
                     window = dataclasses.replace(window, **start)
                     extras.append(extra)
                 windows.append(window)
@@ -251,6 +259,10 @@ class WindowedRollout:
                     body_pos[w][0] = out.body_pos[0]
                 body_pos[w][a + 1:b + 1] = out.body_pos[1:]
                 bar_reaction[w][rows] = out.bar_reaction
+                diverged[w] = diverged[w] or not _finite(out.body_pos, ends[w][1], *ends[w][0].values())
+        for w in np.flatnonzero(diverged):
+            body_pos[w][:] = np.nan
+            bar_reaction[w][:] = np.nan
         results = [{"body_pos": q, "bar_reaction": r} for q, r in zip(body_pos, bar_reaction)]
         return results if batched else results[0]
 
@@ -264,3 +276,8 @@ class WindowedRollout:
         return {"particle_q": carried["particle_q"][particles], "particle_qd": carried["particle_qd"][particles],
                 "joint_q": carried["joint_q"][world:world + 1], "joint_qd": carried["joint_qd"][world:world + 1],
                 "tie_target": carried["tie_target"][strings], "tie_force": carried["tie_force"][:, strings]}
+
+
+def _finite(*arrays) -> bool:
+    """Whether every value of ``arrays`` is finite."""
+    return all(bool(np.all(np.isfinite(a))) for a in arrays)

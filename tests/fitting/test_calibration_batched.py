@@ -86,3 +86,19 @@ def test_the_secant_solver_says_when_its_budget_ran_out_and_converges_when_given
     print(f"\n{fit['steps']} steps, {fit['forward_passes']} rollouts; largest remaining step "
           f"{np.max(np.abs(step) / sd):.3f} standard errors")
     assert np.all(np.abs(step) <= 0.1 * sd)
+
+
+def test_a_trial_point_that_blows_up_gives_nan_residuals_not_an_error(data):
+    """A solver's trial point far out (one string's ``k_d`` at e^41 N s/m, where the ten-step
+    windows' states go non-finite) is a rejected step, not a traceback: the residuals are NaN
+    (``levenberg_marquardt`` then raises its damping). In a batch, only that world is NaN; the
+    others are bit for bit their one-world rollouts."""
+    problem = CalibrationProblem(data, parse_parameters("k,k_d", data), optimization_level=0, window_steps=10,
+                                 noise_position=SUITE_NOISE[0], noise_force=SUITE_NOISE[1])
+    far = problem.theta_start.copy()
+    far[8] = 41.46  # log k_d of the third string
+    assert np.all(np.isnan(problem.host_residuals(far)))
+    near = problem.theta_start + 0.05
+    batched = problem.residuals_at([near, far])  # the worlds of one batched rollout
+    assert np.array_equal(batched[0], problem.host_residuals(near)) and np.all(np.isfinite(batched[0]))
+    assert np.all(np.isnan(batched[1]))
