@@ -48,8 +48,8 @@ that energy and handed it back (+1.14 J with a shoulder thrown at 20 rad/s into 
 at 30 Hz, when the motion had 0.17 J). The trial step sees the limit (whose activation
 looks ahead, ``articulation_codegen._limits``) and the strings' pull, so the path is where
 the body goes: that case now loses energy like the 1 kHz reference, and the body points
-stay within 5.8 mm (RMS) of it instead of 74 mm (``tests/marionette/test_hard_cases_puppet.py``); on
-the default sway the torso stays within 1.5 mm of the fully coupled run instead of 21.7 mm
+stay within 5.3 mm (RMS) of it instead of 74 mm (``tests/marionette/test_hard_cases_puppet.py``); on
+the default sway the torso stays within 1.4 mm of the fully coupled run instead of 21.7 mm
 (``tests/marionette/test_marionette.py``), and a puppet as slow as 10 Hz under 1 kHz strings keeps
 within the energy bound (``settings_check``).
 

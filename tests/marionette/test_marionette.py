@@ -123,8 +123,9 @@ def test_slow_motion_at_30_hz_and_1_khz_agree_and_converge(hanging):
     1 kHz run, and the gap shrinks with the puppet step at first order or better.
 
     Rates 31.25 and 62.5 Hz (32 and 16 string steps per puppet step) share frames with the
-    1 kHz run. Measured torso gaps, largest / RMS over the run: 1.76 / 0.89 mm at 31.25 Hz,
-    1.14 / 0.47 mm at 62.5 Hz (0.56 / 0.22 mm at 125 Hz, 0.27 / 0.08 mm at 250 Hz): the RMS
+    1 kHz run. Measured torso gaps, largest / RMS over the run: 1.42 / 0.80 mm at 31.25 Hz,
+    1.11 / 0.39 mm at 62.5 Hz, ratio 2.07 (with the two-sided limit band of before issue 13:
+    1.76 / 0.89 mm, 1.14 / 0.47 mm; 0.56 / 0.22 mm at 125 Hz, 0.27 / 0.08 mm at 250 Hz): the RMS
     gap halves or better with each halving of the step (ratios 1.9, 2.2, 2.6; first order is
     2); the largest is the start's transient (at 0.1 s), whose ratio here is 1.5. With the
     ``x + H v`` tie path of before (``string_body_coupling``) the largest gap was 21.7 mm at
