@@ -9,7 +9,23 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["graph_cost", "time_forward_backward"]
+__all__ = ["CLOCKS", "add_clock_flag", "graph_cost", "median_spread", "time_forward_backward"]
+
+CLOCKS = {"wall": time.perf_counter, "cpu": time.thread_time}
+"""What ``--clock`` names: the wall clock, or the calling thread's CPU time (which leaves out the
+time the thread waited for a core on a machine shared with other work)."""
+
+
+def add_clock_flag(parser, help: str = "wall: wall-clock time (default); cpu: the thread's CPU time "
+                                       "(shared machines)") -> None:
+    """Adds ``--clock wall|cpu`` to ``parser``; ``CLOCKS[args.clock]`` is the clock it names."""
+    parser.add_argument("--clock", choices=tuple(CLOCKS), default="wall", help=help)
+
+
+def median_spread(times: list[float]) -> tuple[float, float]:
+    """The median of ``times`` and their relative spread, ``(max - min) / median``."""
+    median = statistics.median(times)
+    return median, (max(times) - min(times)) / median
 
 
 def graph_cost(fn, count: int, repeats: int, least: bool = False) -> float:
