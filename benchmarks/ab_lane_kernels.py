@@ -36,7 +36,7 @@ import dmarionette as dm  # noqa: E402
 from dmarionette.kernels.string_step_adjoint_lanes import string_step_adjoint_lanes_kernel  # noqa: E402
 from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 
-from bench_support import CLOCKS, add_clock_flag  # noqa: E402
+from bench_support import CLOCKS, add_clock_flag, capture_graph  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = {"lane_ops": "rev_lane_ops", "string_step_lanes": "rev_string_step_lanes",
@@ -61,14 +61,6 @@ def _revision_modules(rev: str):
     return rev_string_step_lanes, rev_string_step_adjoint_lanes
 
 
-def _graph(launch):
-    launch()
-    with wp.ScopedCapture(device="cpu") as capture:
-        for _ in range(LAUNCHES):
-            launch()
-    return capture.graph
-
-
 def _graphs(model, kernels) -> dict[str, object]:
     """The three graphs of one version: its ``(adjoint, keep step, plain step)`` kernels."""
     solver, strings = model.string_solver, model.strings
@@ -83,11 +75,12 @@ def _graphs(model, kernels) -> dict[str, object]:
     tape = wp.Tape()
     solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
     solver.record_step_adjoint(state_in, state_out, control, h, ws, tape, lanes=True)
-    graphs = {
-        "adjoint": _graph(tape.launches[-1]),
-        "keep step": _graph(lambda: solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)),
-        "plain step": _graph(lambda: solver.integrate_string_lanes(state_in, state_out, control, h, solver.workspace)),
+    launches = {
+        "adjoint": tape.launches[-1],
+        "keep step": lambda: solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True),
+        "plain step": lambda: solver.integrate_string_lanes(state_in, state_out, control, h, solver.workspace),
     }
+    graphs = {name: capture_graph(launch, LAUNCHES, "cpu") for name, launch in launches.items()}
     solver._lane_plan = plan
     return graphs
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["CLOCKS", "add_clock_flag", "graph_cost", "median_spread", "time_forward_backward"]
+__all__ = ["CLOCKS", "add_clock_flag", "capture_graph", "graph_cost", "median_spread", "time_forward_backward"]
 
 CLOCKS = {"wall": time.perf_counter, "cpu": time.thread_time}
 """What ``--clock`` names: the wall clock, or the calling thread's CPU time (which leaves out the
@@ -28,18 +28,26 @@ def median_spread(times: list[float]) -> tuple[float, float]:
     return median, (max(times) - min(times)) / median
 
 
-def graph_cost(fn, count: int, repeats: int, least: bool = False) -> float:
-    """Thread CPU time [s] of one ``fn()`` replayed from a Warp graph of ``count`` calls, over
-    ``repeats`` replays: their median, or with ``least`` the least."""
-    fn()  # loads the modules (no compiling while capturing)
-    with wp.ScopedCapture() as capture:
+def capture_graph(fn, count: int, device=None):
+    """A Warp graph of ``count`` calls of ``fn()`` on ``device`` (default: Warp's), captured after
+    one call outside it (which loads the modules: no compiling while capturing)."""
+    fn()
+    with wp.ScopedCapture(device=device) as capture:
         for _ in range(count):
             fn()
+    return capture.graph
+
+
+def graph_cost(fn, count: int, repeats: int, least: bool = False, clock=time.thread_time, device=None) -> float:
+    """Time [s] of one ``fn()`` replayed from a Warp graph of ``count`` calls (:func:`capture_graph`),
+    over ``repeats`` replays: their median, or with ``least`` the least. ``clock``: the thread's CPU
+    time (default) or another of :data:`CLOCKS`."""
+    graph = capture_graph(fn, count, device)
     times = []
     for _ in range(repeats):
-        start = time.thread_time()
-        wp.capture_launch(capture.graph)
-        times.append(time.thread_time() - start)
+        start = clock()
+        wp.capture_launch(graph)
+        times.append(clock() - start)
     return (min(times) if least else statistics.median(times)) / count
 
 
