@@ -9,7 +9,8 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["CLOCKS", "add_clock_flag", "capture_graph", "graph_cost", "median_spread", "time_forward_backward"]
+__all__ = ["CLOCKS", "add_clock_flag", "capture_graph", "graph_cost", "median_spread", "time_forward_backward",
+           "time_interleaved"]
 
 CLOCKS = {"wall": time.perf_counter, "cpu": time.thread_time}
 """What ``--clock`` names: the wall clock, or the calling thread's CPU time (which leaves out the
@@ -51,6 +52,18 @@ def graph_cost(fn, count: int, repeats: int, least: bool = False, clock=time.thr
     return (min(times) if least else statistics.median(times)) / count
 
 
+def time_interleaved(calls, repeats: int) -> list[list[float]]:
+    """Wall times [s] of ``repeats`` rounds of ``calls`` (functions of no arguments), called one after
+    another in each round: one list of ``repeats`` times per call, in the order of ``calls``."""
+    times = [[] for _ in calls]
+    for _ in range(repeats):
+        for call, out in zip(calls, times):
+            start = time.perf_counter()
+            call()
+            out.append(time.perf_counter() - start)
+    return times
+
+
 def time_forward_backward(engine: Any, inputs: Any, cot: dict, repeats: int) -> tuple[list[float], list[float]]:
     """Wall times [s] of ``repeats`` alternating ``engine.forward(inputs)`` / ``engine.backward(cot)`` calls.
 
@@ -64,12 +77,5 @@ def time_forward_backward(engine: Any, inputs: Any, cot: dict, repeats: int) -> 
     Returns:
         ``(forward, backward)``: one time per repeat each.
     """
-    forward, backward = [], []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        engine.forward(inputs)
-        forward.append(time.perf_counter() - start)
-        start = time.perf_counter()
-        engine.backward(cot)
-        backward.append(time.perf_counter() - start)
+    forward, backward = time_interleaved([lambda: engine.forward(inputs), lambda: engine.backward(cot)], repeats)
     return forward, backward
