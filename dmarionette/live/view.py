@@ -28,6 +28,7 @@ from typing import final
 
 import numpy as np
 
+from dmarionette.render.pyplot import headless_pyplot
 from dmarionette.rotations import euler_to_matrix, from_wxyz, quat_rotate, to_wxyz
 
 __all__ = ["AbstractLiveView", "LiveSnapshot", "LiveViewGeometry", "LiveViewHeadless", "LiveViewPublisher", "SLACK_RGB",
@@ -324,12 +325,7 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
     as lines from their centre to their attach points, the reaction on each bar (red) and the
     force sent to the device (blue) as arrows of ``arrow_scale`` [m/N].
     """
-    try:
-        import matplotlib
-    except ImportError:
-        raise RuntimeError("--snapshot needs matplotlib: pip install 'dmarionette[viz]'") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot("--snapshot pictures")
 
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
     edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .marionette import bar_polyline, body_polyline, frame_extent
+from .pyplot import headless_pyplot
 
 __all__ = ["render_marionette_frames"]
 
@@ -31,12 +32,7 @@ def render_marionette_frames(path: str | Path, trajectory, times, *, title: str 
         ball_radius: the ball's radius [m] when the scene has one (the last body), or None.
         dpi: pixels per inch (each panel is 2.4 x 4 inches).
     """
-    try:
-        import matplotlib
-    except ImportError:
-        raise RuntimeError("pictures need matplotlib: pip install -e '.[viz]'") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     path = Path(path)
     if path.suffix != ".png":

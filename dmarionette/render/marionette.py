@@ -21,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dmarionette.marionette.rollout import MarionetteTrajectory
+from dmarionette.render.pyplot import headless_pyplot
 from dmarionette.rotations import quat_to_matrix
 
 __all__ = ["frame_extent", "gif_delays_ms", "render_marionette_animation"]
@@ -110,13 +111,11 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
         progress: show a tqdm bar over the frames on stderr.
         dpi: pixels per inch of the 12 x 5 inch figure.
     """
+    plt = headless_pyplot("animations")
     try:
-        import matplotlib
         from PIL import Image
     except ImportError:
-        raise RuntimeError("animations need matplotlib and imageio: pip install -e '.[viz]'") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        raise RuntimeError("animations need Pillow: pip install -e '.[viz]'") from None
 
     path = Path(path)
     if path.suffix not in (".gif", ".mp4"):
