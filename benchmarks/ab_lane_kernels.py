@@ -26,7 +26,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import warp as wp
@@ -36,6 +35,8 @@ wp.config.log_level = wp.LOG_WARNING
 import dmarionette as dm  # noqa: E402
 from dmarionette.kernels.string_step_adjoint_lanes import string_step_adjoint_lanes_kernel  # noqa: E402
 from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
+
+from bench_support import CLOCKS, add_clock_flag, capture_graph  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = {"lane_ops": "rev_lane_ops", "string_step_lanes": "rev_string_step_lanes",
@@ -60,14 +61,6 @@ def _revision_modules(rev: str):
     return rev_string_step_lanes, rev_string_step_adjoint_lanes
 
 
-def _graph(launch):
-    launch()
-    with wp.ScopedCapture(device="cpu") as capture:
-        for _ in range(LAUNCHES):
-            launch()
-    return capture.graph
-
-
 def _graphs(model, kernels) -> dict[str, object]:
     """The three graphs of one version: its ``(adjoint, keep step, plain step)`` kernels."""
     solver, strings = model.string_solver, model.strings
@@ -82,11 +75,12 @@ def _graphs(model, kernels) -> dict[str, object]:
     tape = wp.Tape()
     solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)
     solver.record_step_adjoint(state_in, state_out, control, h, ws, tape, lanes=True)
-    graphs = {
-        "adjoint": _graph(tape.launches[-1]),
-        "keep step": _graph(lambda: solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True)),
-        "plain step": _graph(lambda: solver.integrate_string_lanes(state_in, state_out, control, h, solver.workspace)),
+    launches = {
+        "adjoint": tape.launches[-1],
+        "keep step": lambda: solver.integrate_string_lanes(state_in, state_out, control, h, ws, keep=True),
+        "plain step": lambda: solver.integrate_string_lanes(state_in, state_out, control, h, solver.workspace),
     }
+    graphs = {name: capture_graph(launch, LAUNCHES, "cpu") for name, launch in launches.items()}
     solver._lane_plan = plan
     return graphs
 
@@ -95,9 +89,9 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--rev", required=True, help="the git revision to compare with")
     p.add_argument("--pairs", type=int, default=300)
-    p.add_argument("--clock", choices=("wall", "cpu"), default="wall")
+    add_clock_flag(p)
     args = p.parse_args()
-    clock = time.thread_time if args.clock == "cpu" else time.perf_counter
+    clock = CLOCKS[args.clock]
     model = MarionetteModel(dm.load_scene("hanging"), requires_grad=True)
     solver = model.string_solver
     solver.lanes = True

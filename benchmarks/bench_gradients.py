@@ -56,7 +56,7 @@ import dmarionette as dm  # noqa: E402
 from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 from dmarionette.grad.engine import MarionetteGradient  # noqa: E402
 
-from bench_support import time_forward_backward  # noqa: E402
+from bench_support import time_forward_backward, time_interleaved  # noqa: E402
 
 MIB = 2**20
 
@@ -70,12 +70,18 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | None = None, lanes: bool = True) -> dict:
+def _hanging_smooth(seconds: float, lanes: bool) -> tuple[MarionetteModel, int]:
+    """The ``hanging`` scene with smooth contact, taped (``requires_grad``), and its puppet steps in
+    ``seconds``; ``lanes``: the string steps in SIMD lanes."""
     scene = dm.load_scene("hanging")
     scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
     model = MarionetteModel(scene, requires_grad=True)
     model.string_solver.lanes = lanes
-    steps = round(seconds / model.puppet_dt)
+    return model, round(seconds / model.puppet_dt)
+
+
+def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | None = None, lanes: bool = True) -> dict:
+    model, steps = _hanging_smooth(seconds, lanes)
     engine = MarionetteGradient(model, steps, capture=capture, checkpoint_steps=checkpoint_steps)
     inputs = engine.scene_inputs()
     cot = {k: np.ones(s) for k, s in engine.output_shapes.items()}
@@ -97,11 +103,7 @@ def one(seconds: float, repeats: int, capture: bool, checkpoint_steps: int | Non
 
 def one_jvp(seconds: float, repeats: int, directions: list[int], lanes: bool = True) -> list[dict]:
     """The JVP rows (module doc): ``seconds`` of rollout, each P in ``directions``."""
-    scene = dm.load_scene("hanging")
-    scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
-    model = MarionetteModel(scene, requires_grad=True)
-    model.string_solver.lanes = lanes
-    steps = round(seconds / model.puppet_dt)
+    model, steps = _hanging_smooth(seconds, lanes)
     engine = MarionetteGradient(model, steps)
     plain = MarionetteGradient(model, steps, capture=False)
     inputs = engine.scene_inputs()
@@ -112,17 +114,9 @@ def one_jvp(seconds: float, repeats: int, directions: list[int], lanes: bool = T
         engine.forward(inputs)
         plain.forward(inputs)
         engine.jvp(inputs, tangents)  # builds the tangent kernels and arrays for this P
-        forward, uncaptured, jvp = [], [], []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            engine.forward(inputs)
-            forward.append(time.perf_counter() - start)
-            start = time.perf_counter()
-            engine.jvp(inputs, tangents)
-            jvp.append(time.perf_counter() - start)
-            start = time.perf_counter()
-            plain.forward(inputs)
-            uncaptured.append(time.perf_counter() - start)
+        forward, jvp, uncaptured = time_interleaved(
+            [lambda: engine.forward(inputs), lambda t=tangents: engine.jvp(inputs, t), lambda: plain.forward(inputs)],
+            repeats)
         rows.append({"seconds": seconds, "puppet_steps": steps, "P": p, "forward_s": statistics.median(forward),
                      "forward_uncaptured_s": statistics.median(uncaptured), "jvp_s": statistics.median(jvp),
                      "ratio": statistics.median(j / f for f, j in zip(forward, jvp))})

@@ -30,9 +30,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +44,8 @@ from dmarionette.strings.rollout import StringRollout  # noqa: E402
 from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
 from tests.grad.test_string_rollout_tangent import DT, scene_controls, scene_model  # noqa: E402
 
+from bench_support import CLOCKS, add_clock_flag, median_spread  # noqa: E402
+
 CHUNK = 100
 DIRECTIONS = (1, 4, 12, 16)
 
@@ -57,8 +57,7 @@ def _timed(run, repeats: int, clock) -> tuple[float, float]:
         start = clock()
         run()
         times.append(clock() - start)
-    median = statistics.median(times)
-    return median, (max(times) - min(times)) / median
+    return median_spread(times)
 
 
 def _tangents(model, p: int, steps: int, rng) -> StringTangentInputs:
@@ -74,15 +73,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--steps", type=int, default=1000)
-    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
-                        help="wall: wall-clock time (default); cpu: the thread's CPU time (shared machines)")
+    add_clock_flag(parser)
     parser.add_argument("--no-lanes", action="store_true",
                         help="the scalar tangent kernel (one direction at a time) instead of directions in lanes")
     parser.add_argument("--layout", choices=("minor", "major", "both"), default="minor",
                         help="the carried particle tangents' layout (StringRolloutTangent(minor=)); both: A/B per P")
     parser.add_argument("--directions", type=int, nargs="+", default=list(DIRECTIONS), help="the P to time")
     args = parser.parse_args()
-    clock = time.perf_counter if args.clock == "wall" else time.thread_time
+    clock = CLOCKS[args.clock]
     steps = CHUNK * max(1, args.steps // CHUNK)
     model = scene_model()
     tops, tie, tie_v = scene_controls(model, steps)

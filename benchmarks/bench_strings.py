@@ -22,7 +22,6 @@ import argparse
 import dataclasses
 import os
 import platform
-import statistics
 import time
 
 import numpy as np
@@ -34,6 +33,8 @@ from dmarionette.scene.scene import load_scene  # noqa: E402
 from dmarionette.strings.model import StringEffects, StringModel  # noqa: E402
 from dmarionette.strings.rollout import StringRollout  # noqa: E402
 from dmarionette.strings.solver import SolverStringImplicit  # noqa: E402
+
+from bench_support import CLOCKS, add_clock_flag, median_spread  # noqa: E402
 
 DT = 1e-3
 CHUNK = 100
@@ -66,23 +67,22 @@ def measure(model: StringModel, steps: int, repeats: int, clock=time.perf_counte
         start = clock()
         rollout.run(state, top_q)
         times.append(clock() - start)
-    median = statistics.median(times)
-    return steps / median, (max(times) - min(times)) / median
+    median, spread = median_spread(times)
+    return steps / median, spread
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
-                        help="wall: wall-clock time (default); cpu: the thread's CPU time (shared machines)")
+    add_clock_flag(parser)
     parser.add_argument("--only-6x50", action="store_true", help="only the 6 x 50 table")
     parser.add_argument("--no-lanes", action="store_true",
                         help="float64 with the scalar kernel (SolverStringImplicit.lanes = False)")
     args = parser.parse_args()
     global LANES
     LANES = not args.no_lanes
-    clock = time.perf_counter if args.clock == "wall" else time.thread_time
+    clock = CLOCKS[args.clock]
     print(f"# String benchmark — {platform.processor() or platform.machine()}, Python {platform.python_version()}, "
           f"Warp {wp.config.version}; dt = {DT * 1e3:g} ms; median of {args.repeats} runs of {args.steps} steps"
           f"{'' if args.clock == 'wall' else ', thread CPU time'}; float64 lanes {'on' if LANES else 'off'}"

@@ -44,6 +44,8 @@ import dmarionette.capture as capture  # noqa: E402
 from dmarionette.grad.engine import MarionetteGradient  # noqa: E402
 from dmarionette.marionette.solver import MarionetteModel  # noqa: E402
 
+from bench_support import CLOCKS, add_clock_flag, graph_cost  # noqa: E402
+
 
 class ChunkClock:
     """Times every ``CapturedChunk.run`` by chunk (the engine's re-run and reverse graphs)."""
@@ -92,16 +94,8 @@ CLOCK = time.perf_counter  # --clock cpu: time.thread_time
 
 
 def _per_launch(launch, n: int = 100) -> float:
-    launch()
-    with wp.ScopedCapture(device="cpu") as c:
-        for _ in range(n):
-            launch()
-    times = []
-    for _ in range(5):
-        t0 = CLOCK()
-        wp.capture_launch(c.graph)
-        times.append((CLOCK() - t0) / n * 1e6)
-    return statistics.median(times)
+    """µs per ``launch()``, the median of 5 replays of a CPU graph of ``n`` launches (``--clock``)."""
+    return graph_cost(launch, n, 5, clock=CLOCK, device="cpu") * 1e6
 
 
 def _string_step(model) -> dict[str, float]:
@@ -164,12 +158,11 @@ def main() -> None:
     p.add_argument("--seconds", type=float, default=4.0)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--no-lanes", action="store_true", help="the scalar string kernels (plain and taped)")
-    p.add_argument("--clock", choices=("wall", "cpu"), default="wall",
-                   help="the captured launches' clock (cpu: the thread's CPU time)")
+    add_clock_flag(p, help="the captured launches' clock (cpu: the thread's CPU time)")
     p.add_argument("--checkpoint-steps", type=int, default=None, help="the engine's segment length C")
     args = p.parse_args()
     global CLOCK
-    CLOCK = time.thread_time if args.clock == "cpu" else time.perf_counter
+    CLOCK = CLOCKS[args.clock]
     clock = ChunkClock()
     model = MarionetteModel(dm.load_scene("hanging"), requires_grad=True)
     model.string_solver.lanes = not args.no_lanes

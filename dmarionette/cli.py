@@ -57,7 +57,7 @@ from pathlib import Path
 
 from .extras import check_command_extras
 from .first_run import build_marionette, init_warp, load_string_kernels, versions
-from .cli_checks import Outputs, PromptInterrupt, integer, number, refuse_empty_option_values
+from .cli_checks import Outputs, PromptInterrupt, integer, number, optimization_level, refuse_empty_option_values
 
 __all__ = ["COMMAND_GROUP", "find_commands", "main"]
 
@@ -306,7 +306,7 @@ def _run_marionette(scene, out: Path, args: argparse.Namespace) -> int:
 
     if not args.quiet:
         print("building the marionette (the first run compiles the puppet kernels)", file=sys.stderr)
-    model = build_marionette(scene, optimization_level=0 if args.fast_compile else 2, quiet=args.quiet)
+    model = build_marionette(scene, optimization_level=optimization_level(args), quiet=args.quiet)
     duration = scene.duration if args.duration is None else args.duration
     trajectory = simulate_marionette(model, duration, progress=not args.quiet)
     check_finite(trajectory)
@@ -341,7 +341,7 @@ def _run_replay(args: argparse.Namespace) -> int:
     from .io.session import read_session, replay_session
 
     out = args.outputs.folder("--out", args.out) if args.out is not None else None
-    level = 0 if args.fast_compile else 2
+    level = optimization_level(args)
     build_marionette(read_session(args.session).scene, optimization_level=level, quiet=args.quiet)  # compiles
     trajectory, report = replay_session(args.session, optimization_level=level, progress=not args.quiet)
     if out is not None:
@@ -397,7 +397,7 @@ def _run_live(args: argparse.Namespace) -> int:
     for flag, path in (("--record", args.record), ("--snapshot", args.snapshot)):
         if path is not None:
             args.outputs.file(flag, path)
-    level = 0 if args.fast_compile else 2
+    level = optimization_level(args)
     model = build_marionette(scene, optimization_level=level)  # compiles here; the child then loads the cache
     args.interrupt.disarm()  # from here devices open and the servo loop turns the motors off on Ctrl-C
     from .live.view import LiveViewGeometry, LiveViewHeadless, render_live_snapshot
@@ -470,8 +470,8 @@ def _run_bench(args: argparse.Namespace) -> int:
     from .scene.scene import DEFAULT_SCENE, load_scene
 
     # The sweep's puppet kernels (one topology) compiled under a progress bar before its first row.
-    build_marionette(load_scene(DEFAULT_SCENE), optimization_level=0 if args.fast_compile else 2)
-    rows, summary = run_sweep(args.seconds, args.grid, 0 if args.fast_compile else 2, args.repeats,
+    build_marionette(load_scene(DEFAULT_SCENE), optimization_level=optimization_level(args))
+    rows, summary = run_sweep(args.seconds, args.grid, optimization_level(args), args.repeats,
                               progress=lambda line: print(line, file=sys.stderr))
     files = write_outputs(rows, summary, args.out)
     print(files["table"].read_text())

@@ -31,7 +31,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 __all__ = ["NonFiniteError", "Outputs", "PromptInterrupt", "check_finite", "check_host", "check_trajectory_fits",
-           "format_bytes", "integer", "live_input_bytes", "number", "refuse_empty_option_values", "start_values"]
+           "format_bytes", "integer", "live_input_bytes", "number", "optimization_level", "refuse_empty_option_values",
+           "start_values"]
 
 
 def _range_text(low: float | None, high: float | None, low_open: bool, unit: str, kind: str) -> str:
@@ -119,6 +120,12 @@ def add_ray_flags(parser: argparse.ArgumentParser, what: str, *, one_in_process:
                              f"(host:port, or auto){single}")
     parser.add_argument("--workers", type=integer(1, 100_000), default=None,
                         help="Ray workers (default: one per CPU of the cluster)")
+
+
+def optimization_level(args: argparse.Namespace) -> int:
+    """The C++ optimisation level of the puppet kernels a command builds: 0 with ``--fast-compile``
+    (seconds to compile, slower to run), else 2 (the library's default)."""
+    return 0 if args.fast_compile else 2
 
 
 def refuse_empty_option_values(parser: argparse.ArgumentParser, argv) -> None:

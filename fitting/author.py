@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmarionette.scene.bars import BarTrajectory
+from dmarionette.render.pyplot import headless_pyplot
 from dmarionette.scene.scene import SCENE_DIR
 
 from .keyframes import AuthorSpec
@@ -149,10 +150,7 @@ def _plain_verdicts(spec: AuthorSpec, report: list[dict], stopped: str) -> list[
 
 
 def _convergence_plot(path: Path, history: list[dict], title: str) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     steps = [h["step"] for h in history]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))

@@ -129,6 +129,7 @@ def _table(rows: list[dict]) -> str:
 def run_author_batch(args: argparse.Namespace, mode: str, verdict_text: Callable[[dict], str]) -> int:
     """Runs ``dmarionette author`` on several files (``args.keyframes``) in ``mode`` (module doc);
     ``verdict_text(summary)``: a finished job's verdict lines (printed as it finishes)."""
+    from dmarionette.cli_checks import optimization_level
     from dmarionette.scale import WorkerLostError, imap_variants
 
     from .keyframes import load_keyframes
@@ -146,7 +147,7 @@ def run_author_batch(args: argparse.Namespace, mode: str, verdict_text: Callable
     options = {"max_steps": args.max_steps, "method": args.method, "max_seconds": args.max_seconds,
                "continuation": args.continuation, "jacobian": args.jacobian, "warm_start": args.warm_start,
                "animation": not args.no_animation,
-               "exports": not args.no_export, "optimization_level": 0 if args.fast_compile else 2,
+               "exports": not args.no_export, "optimization_level": optimization_level(args),
                "checkpoint_steps": args.checkpoint_steps, "fps": args.fps}
     jobs = [AuthorJob(spec, str(folder.resolve()), options) for spec, folder in zip(specs, folders)]
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if not args.quiet else (lambda text: None)

@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from dmarionette.render.pyplot import headless_pyplot
+
 from .calibration_fit import CalibrationResult
 from .synthetic_session import SPEC_FIELDS
 
@@ -178,10 +180,7 @@ def write_plot(result: CalibrationResult, path: str | Path) -> Path:
     """``calibration.png``: RMS residual over time per target before and after, the constants
     (start, fitted with 2 standard errors, "± ∞" where unidentifiable, the prior's band), the
     verdict in the title and the warnings under the panels."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     d = result.data
     names = [name for name in ("k", "k_d", "k_s") if any(label.split("[")[0] == name for label in result.labels)]

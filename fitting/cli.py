@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from dmarionette.cli_checks import Outputs, add_ray_flags, integer, number, start_values
+from dmarionette.cli_checks import Outputs, add_ray_flags, integer, number, optimization_level, start_values
 
 __all__ = ["add_author_command", "add_calibrate_command"]
 
@@ -120,7 +120,7 @@ def _run_author(args: argparse.Namespace) -> int:
                      continuation=args.continuation, jacobian=args.jacobian, warm_start=args.warm_start,
                      progress=not args.quiet,
                      animation=not args.no_animation, exports=not args.no_export,
-                     optimization_level=0 if args.fast_compile else 2, checkpoint_steps=args.checkpoint_steps,
+                     optimization_level=optimization_level(args), checkpoint_steps=args.checkpoint_steps,
                      fps=args.fps)
     keys = ("status", "exit_code", "loss_before", "loss_after", "steps", "converged", "replay_gap", "seconds",
             "files")
@@ -331,7 +331,7 @@ def _run_calibrate(args: argparse.Namespace) -> int:
                                    validate=args.validate, loss=args.loss, huber_scale=args.huber_scale,
                                    delay=args.delay, fit_delay=args.fit_delay,
                                    fit_initial_state=args.fit_initial_state, noise_joint=args.noise_joint,
-                                   optimization_level=0 if args.fast_compile else 2,
+                                   optimization_level=optimization_level(args),
                                    progress=progress if bar is not None else None, ray=mode, workers=args.workers)
     except WorkerLostError as error:  # not the user's input (exit code 2): the cluster lost a worker for good
         print(f"error: {error}; nothing was written to {out} (run it again, or with --ray off)", file=sys.stderr)

@@ -20,6 +20,7 @@ from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.marionette.rollout import MarionetteTrajectory, simulate_marionette
 from dmarionette.scene.scene import Scene
 from dmarionette.io.session import SessionWriter
+from dmarionette.io.session.replay import write_simulated_run
 
 __all__ = ["SPEC_FIELDS", "record_synthetic_session", "with_string_constants"]
 
@@ -71,24 +72,10 @@ def record_synthetic_session(scene: Scene, scene_text: str, truth: Mapping[str, 
     body_pos = trajectory.body_pos + noise_position * rng.standard_normal(trajectory.body_pos.shape)
     reaction = trajectory.bar_reaction + noise_force * rng.standard_normal(trajectory.bar_reaction.shape)
     eq4 = trajectory.bar_feedback + noise_force * rng.standard_normal(trajectory.bar_feedback.shape)
-    times = np.concatenate([[0.0], trajectory.step_time])
-    poses = [(bar.name, bar.trajectory.pose(times + delay)[0], bar.trajectory.angles(times + delay))
-             for bar in scene.bars]
     path = Path(path)
     with SessionWriter(path, scene, scene_text, recorder="simulation") as writer:
-        for k, t in enumerate(times):
-            t = float(t)
-            for name, position, angles in poses:
-                writer.write_bar_pose(name, t, position[k], angles[k])
-            if k > 0:
-                if scene.body_effects["feedback"]:
-                    for b, name in enumerate(trajectory.bar_names):
-                        writer.write_feedback(name, t, eq4[k - 1, b], reaction[k - 1, b])
-                writer.write_taut(t, trajectory.string_taut[k - 1])
-            if k % trajectory.frame_steps == 0:
-                f = k // trajectory.frame_steps
-                writer.write_puppet_state(float(trajectory.frame_time[f]), trajectory.joint_q[f], body_pos[f],
-                                          trajectory.body_rot[f])
+        write_simulated_run(writer, trajectory, scene.bars, feedback=scene.body_effects["feedback"], delay=delay,
+                            body_pos=body_pos, bar_feedback=eq4, bar_reaction=reaction)
         writer.write_metadata("synthetic", {"truth": {k: np.broadcast_to(np.asarray(v, float), (len(scene.strings),))
                                                       .tolist() for k, v in truth.items()},
                                             "noise_position": noise_position, "noise_force": noise_force,

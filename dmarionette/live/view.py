@@ -28,6 +28,7 @@ from typing import final
 
 import numpy as np
 
+from dmarionette.render.pyplot import headless_pyplot
 from dmarionette.rotations import euler_to_matrix, from_wxyz, quat_rotate, to_wxyz
 
 __all__ = ["AbstractLiveView", "LiveSnapshot", "LiveViewGeometry", "LiveViewHeadless", "LiveViewPublisher", "SLACK_RGB",
@@ -324,12 +325,8 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
     as lines from their centre to their attach points, the reaction on each bar (red) and the
     force sent to the device (blue) as arrows of ``arrow_scale`` [m/N].
     """
-    try:
-        import matplotlib
-    except ImportError:
-        raise RuntimeError("--snapshot needs matplotlib: pip install 'dmarionette[viz]'") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot("--snapshot pictures")
+    from dmarionette.render.marionette import draw_chair  # here, not at the top: it imports the simulator
 
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
     edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
@@ -350,10 +347,7 @@ def render_live_snapshot(path: str | Path, geometry: LiveViewGeometry, snapshot:
         ax.axhspan(lo[1], geometry.ground_height, color="0.88")
         ax.set_xlabel(label)
         ax.set_ylabel("y [m]")
-        if geometry.chair is not None:
-            c, h = geometry.chair
-            ax.add_patch(plt.Rectangle((c[axis] - h[axis], c[1] - h[1]), 2 * h[axis], 2 * h[1], color="tan",
-                                       alpha=0.7))
+        draw_chair(ax, geometry.chair, axis)
         for (shape, size), centre3, q in zip(geometry.body_shape, snapshot.body_pos, snapshot.body_wxyz):
             if shape == "box":
                 world = centre3 + quat_rotate(from_wxyz(q), corners * 0.5 * np.asarray(size))

@@ -33,6 +33,7 @@ import numpy as np
 from dmarionette.scene.bars import BarTrajectory
 from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.marionette.rollout import MarionetteTrajectory, simulate_marionette
+from dmarionette.render.pyplot import headless_pyplot
 from dmarionette.scene.scene import Scene, load_scene
 
 __all__ = ["Setting", "accuracy_scene", "run_sweep", "sweep_settings", "write_outputs"]
@@ -240,10 +241,7 @@ def write_outputs(rows: Sequence[dict], summary: dict, out: Path) -> dict[str, P
                      f"| {r['feedback_rms_N']:.3f} | {r['wall_s_per_sim_s']:.4f} |")
     files["table"].write_text("\n".join(lines) + "\n")
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     fig, ax = plt.subplots(figsize=(8, 5.5))
     markers = {"particles": "o", "particles @ 1 kHz puppet": "v", "string_step": "s", "puppet_hz": "^",

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .marionette import bar_polyline, body_polyline, frame_extent
+from .marionette import bar_polyline, body_polyline, draw_chair, frame_extent
+from .pyplot import headless_pyplot
 
 __all__ = ["render_marionette_frames"]
 
@@ -31,12 +32,7 @@ def render_marionette_frames(path: str | Path, trajectory, times, *, title: str 
         ball_radius: the ball's radius [m] when the scene has one (the last body), or None.
         dpi: pixels per inch (each panel is 2.4 x 4 inches).
     """
-    try:
-        import matplotlib
-    except ImportError:
-        raise RuntimeError("pictures need matplotlib: pip install -e '.[viz]'") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     path = Path(path)
     if path.suffix != ".png":
@@ -53,10 +49,7 @@ def render_marionette_frames(path: str | Path, trajectory, times, *, title: str 
         ax.set_ylim(lo[1], hi[1])
         ax.set_aspect("equal", adjustable="box")
         ax.axhspan(lo[1] - 1.0, ground_height, color="0.85", zorder=0)
-        if chair is not None:
-            c, h = chair
-            ax.add_patch(plt.Rectangle((c[axis] - h[axis], c[1] - h[1]), 2 * h[axis], 2 * h[1], color="tan",
-                                       alpha=0.7))
+        draw_chair(ax, chair, axis)
         step = min(len(trajectory.string_taut) - 1, max(0, f * trajectory.frame_steps - 1))
         for s in range(len(trajectory.string_names)):
             a, b = trajectory.string_start[s], trajectory.string_start[s + 1]

@@ -21,9 +21,10 @@ import numpy as np
 from tqdm import tqdm
 
 from dmarionette.marionette.rollout import MarionetteTrajectory
+from dmarionette.render.pyplot import headless_pyplot
 from dmarionette.rotations import quat_to_matrix
 
-__all__ = ["frame_extent", "gif_delays_ms", "render_marionette_animation"]
+__all__ = ["draw_chair", "frame_extent", "gif_delays_ms", "render_marionette_animation"]
 
 _BOX_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
 _BOX_EDGES = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
@@ -61,6 +62,17 @@ def bar_polyline(trajectory: MarionetteTrajectory, f: int) -> np.ndarray:
     for b in range(len(trajectory.bar_names)):
         pieces += [trajectory.bar_pos[f, b] + ends @ trajectory.bar_rot[f, b].T, _NAN]
     return np.concatenate(pieces) if pieces else np.zeros((0, 3))
+
+
+def draw_chair(ax, chair, axis: int) -> None:
+    """Draws the chair box ``(centre, half_extents)`` on ``ax`` as a rectangle in the plane of world
+    ``axis`` (0: x, the front view; 2: z, the side view) and y; nothing for None."""
+    if chair is None:
+        return
+    from matplotlib.patches import Rectangle
+
+    c, h = chair
+    ax.add_patch(Rectangle((c[axis] - h[axis], c[1] - h[1]), 2 * h[axis], 2 * h[1], color="tan", alpha=0.7))
 
 
 def frame_extent(trajectory: MarionetteTrajectory, *, chair=None, ball_radius: float | None = None,
@@ -110,13 +122,11 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
         progress: show a tqdm bar over the frames on stderr.
         dpi: pixels per inch of the 12 x 5 inch figure.
     """
+    plt = headless_pyplot("animations")
     try:
-        import matplotlib
         from PIL import Image
     except ImportError:
-        raise RuntimeError("animations need matplotlib and imageio: pip install -e '.[viz]'") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        raise RuntimeError("animations need Pillow: pip install -e '.[viz]'") from None
 
     path = Path(path)
     if path.suffix not in (".gif", ".mp4"):
@@ -150,10 +160,7 @@ def render_marionette_animation(path: str | Path, trajectory: MarionetteTrajecto
         ax.axhspan(min(lo[1], ground_height) - 1.0, ground_height, color="0.85", zorder=0)
         ax.set_xlabel(name)
         ax.tick_params(labelsize=7)
-        if chair is not None:
-            c, h = chair
-            ax.add_patch(plt.Rectangle((c[axis] - h[axis], c[1] - h[1]), 2 * h[axis], 2 * h[1], color="tan",
-                                       alpha=0.7))
+        draw_chair(ax, chair, axis)
         strings = [animated(ax.plot([], [], lw=0.9)[0]) for _ in trajectory.string_names]
         bodies = animated(ax.plot([], [], color="steelblue", lw=1.0)[0])
         bars = animated(ax.plot([], [], color="saddlebrown", lw=4, solid_capstyle="butt")[0])

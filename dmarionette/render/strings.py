@@ -7,25 +7,15 @@ from pathlib import Path
 import numpy as np
 
 from dmarionette.strings.simulate import StringTrajectory
+from dmarionette.render.pyplot import headless_pyplot
 
 __all__ = ["render_string_picture"]
-
-
-def _pyplot():
-    try:
-        import matplotlib
-    except ImportError:
-        raise RuntimeError("pictures need matplotlib: pip install 'dmarionette[viz]'") from None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def render_string_picture(path: str | Path, trajectory: StringTrajectory, title: str = "", snapshots: int = 8,
                           ground_height: float = 0.0) -> Path:
     """Writes a PNG: front (x-y) and side (z-y) views at ``snapshots`` times, and stretch vs. time."""
-    plt = _pyplot()
+    plt = headless_pyplot()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     q = trajectory.particle_q

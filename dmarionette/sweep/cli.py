@@ -15,7 +15,7 @@ import math
 import sys
 from pathlib import Path
 
-from dmarionette.cli_checks import add_ray_flags, integer, number
+from dmarionette.cli_checks import add_ray_flags, integer, number, optimization_level
 
 __all__ = ["EXIT_NON_FINITE", "EXIT_WORKER_LOST", "add_sweep_command", "run_sweep_command"]
 
@@ -124,7 +124,7 @@ def run_sweep_command(args: argparse.Namespace) -> int:
                                  "(the table is rewritten) or with the same --duration")
             done[variant.index] = row
     pending = [v for v in variants if v.index not in done]
-    level = 0 if args.fast_compile else 2
+    level = optimization_level(args)
     # Ray up (or the cluster reached) before any work: a wrong address is an error, not a half-written table.
     started = connect_ray(mode, args.workers) if mode != "off" and pending else False
     if started and getattr(args, "interrupt", None) is not None:

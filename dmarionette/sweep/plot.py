@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dmarionette.render.pyplot import headless_pyplot
+
 __all__ = ["plot_sweep"]
 
 
@@ -38,10 +40,7 @@ def plot_sweep(path: Path, rows: Sequence[Mapping[str, object]], keys: Sequence[
         string_names, bar_names: the strings and bars of the scene (column names).
         title: the figure's title.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     rows = sorted(rows, key=lambda r: int(r["variant"]))
     varying = [k for k in keys if len({str(r[k]) for r in rows}) > 1]

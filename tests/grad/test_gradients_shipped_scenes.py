@@ -74,9 +74,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.marionette.solver import MarionetteModel
+from tests.support.marionette_gradients import smooth_scene
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -107,10 +107,7 @@ KINK_STEPS = (1e-8, 1e-9)
 
 class Shipped:
     def __init__(self, name: str):
-        scene = dm.load_scene(name)
-        scene = dataclasses.replace(
-            scene, strings=tuple(dataclasses.replace(s, particle_count=PARTICLES) for s in scene.strings),
-            contact=dict(scene.contact, smooth=True))
+        scene = smooth_scene(name, PARTICLES)
         assert scene.body_effects["joint_limits"]
         self.model = MarionetteModel(scene, optimization_level=0, requires_grad=True)
         self.engine = MarionetteGradient(self.model, int(round(SECONDS / self.model.puppet_dt)))

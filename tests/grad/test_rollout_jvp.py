@@ -24,9 +24,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-import dmarionette as dm
 from dmarionette.grad.engine import INPUT_FIELDS, OUTPUT_FIELDS, MarionetteGradient
 from dmarionette.marionette.solver import MarionetteModel
+from tests.support.marionette_gradients import smooth_scene
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -48,10 +48,7 @@ FD_TOLERANCE = {"bar_q": 3e-11, "tie_damping": 1e-6}
 
 class Hanging:
     def __init__(self):
-        scene = dm.load_scene("hanging")
-        scene = dataclasses.replace(
-            scene, strings=tuple(dataclasses.replace(s, particle_count=PARTICLES) for s in scene.strings),
-            contact=dict(scene.contact, smooth=True))
+        scene = smooth_scene("hanging", PARTICLES)
         assert scene.body_effects["joint_limits"]
         self.model = MarionetteModel(scene, optimization_level=0, requires_grad=True)
         self.engine = MarionetteGradient(self.model, int(round(1.0 / self.model.puppet_dt)))

@@ -34,6 +34,7 @@ from dmarionette.grad.string_tangent import CONSTANTS, StringRolloutTangent, Str
 from dmarionette.strings.model import StringControl, StringModel
 from dmarionette.strings.rollout import StringRollout
 from dmarionette.strings.solver import SolverStringImplicit
+from tests.support.strings import weighted_sum
 
 DT = 1e-3
 STEPS_T = 1000
@@ -43,12 +44,6 @@ TOLERANCE = 1e-10
 GROUPS = ("particle_q", "particle_qd", "particle_mass") + CONSTANTS + ("top_q", "tie_q", "tie_qd")
 GROUND = ("string_ground_stiffness", "string_ground_absorption", "string_ground_friction")
 FD_STEPS = 10.0 ** -np.arange(3, 8)
-
-
-@wp.kernel
-def weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
 
 
 def scene_model(requires_grad: bool = False) -> StringModel:

@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 from tests.support.strings import (ALL_ON, make_model, rollout_gradients, taped_rollout, three_strings,
                                   wiggled_controls)
+from tests.support.marionette_gradients import smooth_scene
 
-import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.strings.solver import SolverStringImplicit
@@ -74,11 +74,7 @@ def test_hand_adjoint_equals_the_taped_passes_on_strings(tension_only):
 
 
 def _chair_gradients(hand: bool) -> dict[str, np.ndarray]:
-    scene = dm.load_scene("chair_scripted")
-    scene = dataclasses.replace(
-        scene, strings=tuple(dataclasses.replace(s, particle_count=10) for s in scene.strings),
-        contact=dict(scene.contact, smooth=True))
-    model = MarionetteModel(scene, optimization_level=0, requires_grad=True)
+    model = MarionetteModel(smooth_scene("chair_scripted", 10), optimization_level=0, requires_grad=True)
     model.string_solver.hand_adjoint = hand  # before the engine plans its taped segment
     engine = MarionetteGradient(model, 10)
     rng = np.random.default_rng(3)

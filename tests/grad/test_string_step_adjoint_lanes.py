@@ -22,8 +22,8 @@ import pytest
 import warp as wp
 from tests.support.strings import (ALL_ON, make_model, repeated_specs, rollout_gradients, taped_rollout,
                                   wiggled_controls)
+from tests.support.marionette_gradients import smooth_scene
 
-import dmarionette as dm
 from dmarionette.grad.engine import MarionetteGradient
 from dmarionette.kernels.string_step_lanes import LANES, lane_groups
 from dmarionette.marionette.solver import MarionetteModel
@@ -145,12 +145,7 @@ def test_the_laned_taped_step_is_the_laned_kernel():
 
 
 def _engine_gradients(scene_name: str, lanes: bool, seconds: float, particle_count: int | None):
-    scene = dm.load_scene(scene_name)
-    if particle_count is not None:
-        scene = dataclasses.replace(
-            scene, strings=tuple(dataclasses.replace(s, particle_count=particle_count) for s in scene.strings))
-    scene = dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
-    model = MarionetteModel(scene, optimization_level=0, requires_grad=True)
+    model = MarionetteModel(smooth_scene(scene_name, particle_count), optimization_level=0, requires_grad=True)
     model.string_solver.lanes = lanes  # before the engine plans its taped segment
     engine = MarionetteGradient(model, int(round(seconds / model.puppet_dt)))
     rng = np.random.default_rng(3)

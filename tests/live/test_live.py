@@ -6,15 +6,9 @@ import warp as wp
 
 import dmarionette as dm
 from dmarionette.live.run import run_live
-from dmarionette.marionette.solver import MarionetteModel
 from tests.support.live import drive_like_the_scene
 
 wp.config.log_level = wp.LOG_WARNING
-
-
-@pytest.fixture(scope="module")
-def model():
-    return MarionetteModel(dm.load_scene("hanging"), optimization_level=0)
 
 
 def assert_the_loop_ran(model, stats, summary, duration):

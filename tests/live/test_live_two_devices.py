@@ -9,13 +9,11 @@ import warp as wp
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import dmarionette as dm
 from dmarionette.hw import DeviceMapping, HapticSample, SafetyConfig, ServoLoop
 from dmarionette.hw.device import AbstractHapticDevice, DeviceDisconnectedError, HapticDeviceError, HapticDeviceSpec
 from dmarionette.hw.simulated import HapticDeviceSimulated
 from dmarionette.live.run import LiveMarionette, make_physics_step, run_live
 from dmarionette.live.setup import bar_mapping, make_device
-from dmarionette.marionette.solver import MarionetteModel
 from dmarionette.marionette.rollout import simulate_marionette
 
 wp.config.log_level = wp.LOG_WARNING
@@ -23,11 +21,6 @@ wp.config.log_level = wp.LOG_WARNING
 BARS = ["main", "hand"]
 # Full force at once, and again at once after a watchdog trip (a loaded machine trips it).
 NO_RAMP = SafetyConfig(ramp_time=0.0, continuous_time_constant=0.0, rearm_ramp_time=0.0)
-
-
-@pytest.fixture(scope="module")
-def model():
-    return MarionetteModel(dm.load_scene("hanging"), optimization_level=0)
 
 
 def rot_z(angle):

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import warp as wp
 
-import dmarionette as dm
 from dmarionette.hw import HapticDeviceSimulated, HapticSample
 from dmarionette.live.run import LiveMarionette, make_physics_step, run_live
 from dmarionette.live.setup import make_device
@@ -25,7 +24,6 @@ from dmarionette.live.view import (
     SnapshotBuffer,
     string_colors,
 )
-from dmarionette.marionette.solver import MarionetteModel
 
 viser = pytest.importorskip("viser")
 from dmarionette.live.view_viser import LiveViewServer  # noqa: E402
@@ -33,11 +31,6 @@ from tests.support.live_view_client import ViewClient  # noqa: E402
 from viser import _messages as vm  # noqa: E402
 
 wp.config.log_level = wp.LOG_WARNING
-
-
-@pytest.fixture(scope="module")
-def model():
-    return MarionetteModel(dm.load_scene("hanging"), optimization_level=0)
 
 
 def _stop_session(out: dict, thread) -> tuple:

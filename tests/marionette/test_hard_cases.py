@@ -50,13 +50,13 @@ import dmarionette as dm
 from dmarionette.marionette.energy import simulate_energy_balance
 from tests.support.hard_cases import (
     G,
-    PiecewiseLinearPath,
     SwayPath,
     check_case,
     contact_bound,
     fast_model,
     jerked_bars,
     limit_bound,
+    lowered_bars,
     still_bar,
     with_lookahead,
 )
@@ -209,11 +209,7 @@ def test_all_strings_slack_and_lying_on_the_ground(hanging_limits):
     bar, see ``test_hard_cases_strings.py::test_a_lowered_string_does_not_push_into_the_ground``.
     """
     hanging = hanging_limits
-    main, hand = hanging.bars
-    p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
-    times = [0.0, 1.0, 3.0]
-    bars = (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, [p0, p0, p0 - [0, 1.2, 0]])),
-            dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, [h0, h0, h0 - [0, 1.1, 0]])))
+    bars = lowered_bars(hanging)
     model = fast_model(hanging, bars=bars)
     r = simulate_energy_balance(model, 6.0)
     v = np.sqrt(2 * G * 0.1) + 0.6

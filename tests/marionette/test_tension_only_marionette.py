@@ -18,7 +18,7 @@ from dmarionette.marionette.energy import simulate_energy_balance
 from dmarionette.marionette.rollout import simulate_marionette
 from dmarionette.scene.scene import SCENE_DIR
 from dmarionette.scene.settings_check import check_marionette_settings
-from tests.support.hard_cases import G, PiecewiseLinearPath, check_case, contact_bound, limit_bound, still_bar
+from tests.support.hard_cases import G, check_case, contact_bound, limit_bound, lowered_bars, still_bar
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -55,11 +55,7 @@ def test_fully_coupled_all_strings_slack_and_lying_on_the_ground(tension_only):
     rod there and pushed its lower end 46 mm into the ground (at 1 kHz fully coupled:
     52 mm); tension-only, the strings fold onto the ground. Measured: lowest particle 1.9 mm
     below the ground, puppet 3.6 mm, energy at most -5.1e-3 J from ``E(0) + W``."""
-    main, hand = tension_only.bars
-    p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
-    times = [0.0, 1.0, 3.0]
-    bars = (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, [p0, p0, p0 - [0, 1.2, 0]])),
-            dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, [h0, h0, h0 - [0, 1.1, 0]])))
+    bars = lowered_bars(tension_only)
     model = MarionetteModel(dataclasses.replace(tension_only, bars=bars), optimization_level=0)
     r = simulate_energy_balance(model, 6.0)
     v = np.sqrt(2 * G * 0.1) + 0.6

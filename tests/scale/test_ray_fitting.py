@@ -18,7 +18,6 @@ tomli_w = pytest.importorskip("tomli_w")
 
 import dmarionette.scale.ray_map  # noqa: E402
 from dmarionette.cli import main  # noqa: E402
-from dmarionette.scale import start_local_ray  # noqa: E402
 from fitting.author_batch import worst_exit_code  # noqa: E402
 
 from tests.support.calibration_problem import NOISE_POSITION, record_motion  # noqa: E402
@@ -27,14 +26,7 @@ from tests.support.scale import KillWorkerMidTask, without  # noqa: E402
 TIMINGS = {"seconds", "total_seconds", "elapsed", "forward_s", "backward_s", "files"}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def ray():
-    assert start_local_ray(workers=2)
-    import ray
-
-    yield ray
-    ray.shutdown()
-    assert not ray.is_initialized()
+pytestmark = pytest.mark.usefixtures("ray")  # the cluster (tests/conftest.py), started once for the module
 
 
 @pytest.fixture(scope="module")

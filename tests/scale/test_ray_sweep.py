@@ -11,7 +11,7 @@ import os
 import pytest
 
 from dmarionette.cli import main
-from dmarionette.scale import WarmStates, WorkerLostError, default_ray_mode, map_variants, start_local_ray
+from dmarionette.scale import WarmStates, WorkerLostError, default_ray_mode, map_variants
 from dmarionette.sweep.table import read_rows, summary_columns
 from tests.support.scale import (KillWorkerMidTask, always_die, build_counter, count_call, die_once, refuse_three,
                                  square_and_pid)
@@ -21,16 +21,7 @@ KEYS = ["strings.particle_count", "strings.tie_stiffness", "strings.tie_damping"
 SUMMARY = summary_columns(["head", "back", "knee_left", "knee_right", "hand_left", "hand_right"], ["main", "hand"])
 
 
-@pytest.fixture(scope="module", autouse=True)
-def ray():
-    """The cluster, started once for the module; Ray is imported after dmarionette.scale has set the
-    environment that keeps its services on loopback (read by Ray when it is first imported)."""
-    assert start_local_ray(workers=2)
-    import ray
-
-    yield ray
-    ray.shutdown()
-    assert not ray.is_initialized()
+pytestmark = pytest.mark.usefixtures("ray")  # the cluster (tests/conftest.py), started once for the module
 
 
 def sweep(out, *extra) -> list[dict]:

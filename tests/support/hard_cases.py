@@ -44,6 +44,16 @@ def jerked_bars(scene, speed, distance=0.1):
             dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, h0 + offsets)))
 
 
+def lowered_bars(scene):
+    """Both bars of ``scene`` still for 1 s, then lowered steadily until 3 s, the main bar by 1.2 m
+    (0.6 m/s) and the hand bar by 1.1 m, then held: the strings go slack and the puppet lies down."""
+    main, hand = scene.bars
+    p0, h0 = np.array(main.trajectory.positions[0]), np.array(hand.trajectory.positions[0])
+    times = [0.0, 1.0, 3.0]
+    return (dataclasses.replace(main, trajectory=PiecewiseLinearPath(times, [p0, p0, p0 - [0, 1.2, 0]])),
+            dataclasses.replace(hand, trajectory=PiecewiseLinearPath(times, [h0, h0, h0 - [0, 1.1, 0]])))
+
+
 def with_lookahead(scene, variant: str):
     """``scene`` with the joint-limit look-ahead ``variant``: ``"band"`` (two-sided,
     ``[effects] one_sided_limits = false``) or ``"one_sided"`` (the default since issue 13)."""

@@ -17,6 +17,16 @@ PRETENSION = (3.0, 2.0, 2.0, 2.0)  # N, head, back, knees
 CONTACT_GROUND = 0.075      # m: the feet come down on it after about 0.35 s
 
 
+def smooth_scene(name: str, particle_count: int | None = None):
+    """The built-in scene ``name`` as shipped (joint limits and its other effects on) with smooth
+    contact, and ``particle_count`` particles per string when given (fewer: a cheaper rollout)."""
+    scene = dm.load_scene(name)
+    if particle_count is not None:
+        scene = dataclasses.replace(
+            scene, strings=tuple(dataclasses.replace(s, particle_count=particle_count) for s in scene.strings))
+    return dataclasses.replace(scene, contact=dict(scene.contact, smooth=True))
+
+
 def gradient_scene(contact: bool):
     scene = dm.load_scene("hanging")
     keep = [i for i, s in enumerate(scene.strings) if not s.name.startswith("hand")]

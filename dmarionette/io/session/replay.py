@@ -22,12 +22,44 @@ from dmarionette.scene.scene import Scene
 from dmarionette.io.session.read import Session, read_session, session_bar_trajectories
 from dmarionette.io.session.write import SessionWriter
 
-__all__ = ["record_simulation", "replay_session", "scene_for_replay"]
+__all__ = ["record_simulation", "replay_session", "scene_for_replay", "write_simulated_run"]
 
 
-def _bar_angles(bar, times: np.ndarray) -> np.ndarray:
-    """The bar's XYZ Euler angles [deg] at ``times``, from its spline (as its pose uses them)."""
-    return bar.trajectory.angles(times)
+def write_simulated_run(writer: SessionWriter, trajectory: MarionetteTrajectory, bars, *, feedback: bool,
+                        delay: float = 0.0, body_pos: np.ndarray | None = None,
+                        bar_feedback: np.ndarray | None = None, bar_reaction: np.ndarray | None = None) -> None:
+    """Writes a simulated run into an open session as a live run records it: every bar's pose at
+    t = 0 and after every step of ``trajectory.step_time``, the bars' feedback (with ``feedback``)
+    and the taut flags after every step, the puppet state at every frame.
+
+    Args:
+        writer: the open session.
+        trajectory: the run (simulated with one frame per puppet step).
+        bars: the scene's bars (``Scene.bars``); each pose from its spline at ``t + delay``.
+        feedback: write the bars' feedback channels.
+        delay: the recorded bar poses lead the rest by this many seconds (0: none).
+        body_pos, bar_feedback, bar_reaction: written instead of the trajectory's own when given
+            (e.g. with measurement noise added), same shapes.
+    """
+    body_pos = trajectory.body_pos if body_pos is None else body_pos
+    bar_feedback = trajectory.bar_feedback if bar_feedback is None else bar_feedback
+    bar_reaction = trajectory.bar_reaction if bar_reaction is None else bar_reaction
+    times = np.concatenate([[0.0], trajectory.step_time])
+    poses = [(bar.name, bar.trajectory.pose(times + delay)[0], bar.trajectory.angles(times + delay)) for bar in bars]
+    steps = trajectory.frame_steps  # string steps per recorded puppet state (one puppet step)
+    for k, t in enumerate(times):
+        t = float(t)
+        for name, position, angles in poses:
+            writer.write_bar_pose(name, t, position[k], angles[k])
+        if k > 0:
+            if feedback:
+                for b, name in enumerate(trajectory.bar_names):
+                    writer.write_feedback(name, t, bar_feedback[k - 1, b], bar_reaction[k - 1, b])
+            writer.write_taut(t, trajectory.string_taut[k - 1])
+        if k % steps == 0:
+            f = k // steps
+            writer.write_puppet_state(float(trajectory.frame_time[f]), trajectory.joint_q[f], body_pos[f],
+                                      trajectory.body_rot[f])
 
 
 def record_simulation(model: MarionetteModel, duration: float, path: str | Path, *,
@@ -58,26 +90,10 @@ def record_simulation(model: MarionetteModel, duration: float, path: str | Path,
                              "pass scene_text= (the scene's TOML text)")
         scene_text = source.read_text()
     trajectory = simulate_marionette(model, duration, progress=progress, frame_hz=1.0 / model.puppet_dt)
-    times = np.concatenate([[0.0], trajectory.step_time])
-    poses = [(bar.name, bar.trajectory.pose(times)[0], _bar_angles(bar, times)) for bar in scene.bars]
-    steps = trajectory.frame_steps  # string steps per recorded puppet state (one puppet step)
-    feedback = scene.body_effects["feedback"] and model.bar_count > 0
     path = Path(path)
     with SessionWriter(path, scene, scene_text, flush_seconds=flush_seconds, recorder="simulation") as writer:
-        for k, t in enumerate(times):
-            t = float(t)
-            for name, position, angles in poses:
-                writer.write_bar_pose(name, t, position[k], angles[k])
-            if k > 0:
-                for b, name in enumerate(trajectory.bar_names):
-                    if feedback:
-                        writer.write_feedback(name, t, trajectory.bar_feedback[k - 1, b],
-                                              trajectory.bar_reaction[k - 1, b])
-                writer.write_taut(t, trajectory.string_taut[k - 1])
-            if k % steps == 0:
-                f = k // steps
-                writer.write_puppet_state(float(trajectory.frame_time[f]), trajectory.joint_q[f],
-                                          trajectory.body_pos[f], trajectory.body_rot[f])
+        write_simulated_run(writer, trajectory, scene.bars,
+                            feedback=scene.body_effects["feedback"] and model.bar_count > 0)
     return trajectory, path
 
 
