@@ -38,6 +38,7 @@ import functools
 import warp as wp
 
 from .string_integrate import string_output_function
+from .string_model_arrays import string_constants_function, string_model_arrays_type
 from .string_solve import thomas_row_functions
 from .string_spring import string_spring_functions
 from .string_system import string_system_row_function
@@ -61,6 +62,8 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     compute_string_spring = string_spring_functions(scalar).compute_string_spring_printed
     compute_string_system_row = string_system_row_function(scalar, effects)
     compute_string_outputs = string_output_function(scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
+    compute_string_constants = string_constants_function(scalar)
     thomas = thomas_row_functions(scalar)
     compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
 
@@ -134,21 +137,7 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        string_taut_distance: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -168,20 +157,15 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         string_taut: wp.array(dtype=wp.int32),
     ):
         s = wp.tid()
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         zero = scalar(0.0)
+        gravity = model.gravity
+        ground_height = model.ground_height
+        particle_mass = model.particle_mass
         # The string's constants, read once.
-        stiffness = string_stiffness[s]
-        rest_length = string_rest_length[s]
-        friction = string_internal_friction[s]
-        air_drag = string_air_drag[s]
-        ground_stiffness = string_ground_stiffness[s]
-        ground_absorption = string_ground_absorption[s]
-        ground_friction = string_ground_friction[s]
-        tied = string_tied[s]
-        tie_stiffness = tied * string_tie_stiffness[s]
-        tie_damping = tied * string_tie_damping[s]
+        (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, _tied,
+         tie_stiffness, tie_damping) = compute_string_constants(model, s)
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
@@ -229,7 +213,7 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         particle_q_out[start] = top
         force, taut = compute_string_outputs(
             particle_q_out[start], particle_q_out[last], particle_qd_out[last], tie_x, tie_v,
-            tie_stiffness, tie_damping, string_taut_distance[s],
+            tie_stiffness, tie_damping, model.string_taut_distance[s],
         )
         tie_force[s] = force
         string_taut[s] = taut

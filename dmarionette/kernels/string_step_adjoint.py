@@ -43,6 +43,7 @@ import functools
 
 import warp as wp
 
+from .string_model_arrays import string_constants_function, string_model_arrays_type
 from .string_spring import string_spring_adjoint_functions
 
 __all__ = ["string_step_adjoint_kernel"]
@@ -56,6 +57,8 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     TENSION_ONLY = tension_only
     vec3 = wp.types.vector(3, scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
+    compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     spring = string_spring_adjoint_functions(scalar)
     compute_outer_moments = spring.compute_outer_moments
@@ -294,20 +297,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_adjoint(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in (the step's start, then what the forward, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -347,20 +337,15 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         string_tied_grad: wp.array(dtype=scalar),
     ):
         s = wp.tid()
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         zero = scalar(0.0)
         h2 = dt * dt
-        stiffness = string_stiffness[s]
-        rest_length = string_rest_length[s]
-        friction = string_internal_friction[s]
-        air_drag = string_air_drag[s]
-        ground_stiffness = string_ground_stiffness[s]
-        ground_absorption = string_ground_absorption[s]
-        ground_friction = string_ground_friction[s]
-        tied = string_tied[s]
-        tie_stiffness = tied * string_tie_stiffness[s]
-        tie_damping = tied * string_tie_damping[s]
+        particle_mass = model.particle_mass
+        gravity = model.gravity
+        ground_height = model.ground_height
+        (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
+         tie_stiffness, tie_damping) = compute_string_constants(model, s)
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
@@ -481,7 +466,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # k_t = tied k, k_dt = tied k_d.
         string_tie_stiffness_grad[s] = string_tie_stiffness_grad[s] + tied * tie_stiffness_bar
         string_tie_damping_grad[s] = string_tie_damping_grad[s] + tied * tie_damping_bar
-        string_tied_grad[s] = (string_tied_grad[s] + string_tie_stiffness[s] * tie_stiffness_bar
-                               + string_tie_damping[s] * tie_damping_bar)
+        string_tied_grad[s] = (string_tied_grad[s] + model.string_tie_stiffness[s] * tie_stiffness_bar
+                               + model.string_tie_damping[s] * tie_damping_bar)
 
     return integrate_string_implicit_adjoint

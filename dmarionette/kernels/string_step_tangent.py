@@ -132,6 +132,7 @@ import numpy as np
 import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
+from .string_model_arrays import string_constants_function, string_model_arrays_type
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
 from .string_step_lanes import lane_step_functions, lane_types
 from .tangent_directions import tangent_directions
@@ -193,6 +194,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     MAPS = maps
     SEGMENTS = segments
     vec3 = wp.types.vector(3, scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
+    compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)
     SEGMENT_LANES = segment_lanes
@@ -215,20 +218,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_tangent(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in (the step's start, then what the forward, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -262,22 +252,16 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     ):
         s = wp.tid()
         directions = particle_q_dot.shape[0]
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         factor_row = string_factor_row[s]
         factor_lane = string_factor_lane[s]
         zero = scalar(0.0)
         h2 = dt * dt
-        stiffness = string_stiffness[s]
-        rest_length = string_rest_length[s]
-        friction = string_internal_friction[s]
-        air_drag = string_air_drag[s]
-        ground_stiffness = string_ground_stiffness[s]
-        ground_absorption = string_ground_absorption[s]
-        ground_friction = string_ground_friction[s]
-        tied = string_tied[s]
-        tie_stiffness = tied * string_tie_stiffness[s]
-        tie_damping = tied * string_tie_damping[s]
+        gravity = model.gravity
+        ground_height = model.ground_height
+        (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
+         tie_stiffness, tie_damping) = compute_string_constants(model, s)
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
@@ -307,8 +291,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             for p0 in range(start + 1, last, SEGMENT_LANES):
                 store_segments(p0, wp.min(SEGMENT_LANES, last - p0), particle_q, particle_qd, particle_dv, stiffness,
                                rest_length, dt, segment_parts, segment_e, segment_c)
-        tie_stiffness_k = string_tie_stiffness[s]
-        tie_damping_k = string_tie_damping[s]
+        tie_stiffness_k = model.string_tie_stiffness[s]
+        tie_damping_k = model.string_tie_damping[s]
         x_last = particle_q_out[last]
         v_last = particle_qd_out[last]
         v0_top = particle_qd[start]

@@ -267,13 +267,7 @@ class SolverStringImplicit:
     def _step_inputs(self, state_in, control, h) -> list:
         """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in,
         the control and the step."""
-        m = self.model
-        return [m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
-                m.string_internal_friction, m.string_air_drag,
-                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
-                m.string_tie_stiffness, m.string_tie_damping, m.string_tied, m.string_taut_distance,
-                m.gravity, m.ground_height,
-                state_in.particle_q, state_in.particle_qd,
+        return [self.model.arrays, state_in.particle_q, state_in.particle_qd,
                 control.top_q, control.tie_q, control.tie_qd, h]
 
     @property
@@ -401,8 +395,7 @@ class SolverStringImplicit:
                 self._integrate_implicit_adjoint,
                 dim=m.string_count,
                 inputs=[
-                    m.string_start, *params, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd,
+                    m.arrays, state_in.particle_q, state_in.particle_qd,
                     ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
                     forced, control.top_q, control.tie_q, control.tie_qd, h,
                 ],
@@ -437,8 +430,7 @@ class SolverStringImplicit:
                 self._integrate_lanes_adjoint,
                 dim=groups[1].shape[0],
                 inputs=[
-                    *groups, m.string_start, *params, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd,
+                    *groups, m.arrays, state_in.particle_q, state_in.particle_qd,
                     ws.lane_inverse, ws.lane_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
                     control.top_q, control.tie_q, control.tie_qd, h,
                 ],
