@@ -24,7 +24,7 @@ __all__ = ["string_constants_function", "string_model_arrays", "string_model_arr
 
 # The struct's fields that are arrays of the model (in the kernels' old argument order).
 ARRAY_FIELDS = (
-    "string_start", "particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
+    "string_start", "particle_string", "particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction",
     "string_air_drag", "string_ground_stiffness", "string_ground_absorption", "string_ground_friction",
     "string_tie_stiffness", "string_tie_damping", "string_tied", "string_taut_distance",
 )
@@ -41,6 +41,7 @@ def string_model_arrays_type(scalar):
         and scalars of the same names (units and shapes: ``StringModel``'s attributes)."""
 
         string_start: wp.array(dtype=wp.int32)
+        particle_string: wp.array(dtype=wp.int32)
         particle_mass: wp.array(dtype=scalar)
         string_stiffness: wp.array(dtype=scalar)
         string_rest_length: wp.array(dtype=scalar)

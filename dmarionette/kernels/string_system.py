@@ -35,6 +35,7 @@ import functools
 
 import warp as wp
 
+from .string_model_arrays import string_model_arrays_type
 from .string_terms import string_terms
 
 
@@ -45,14 +46,12 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
     ``string_spring``; the printed spring is always active)."""
     t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
+    StringModelArrays = string_model_arrays_type(scalar)
 
     @wp.kernel(module="unique")
     def eval_string_spring(
         # Model:
-        particle_string: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         segment_forced: wp.array(dtype=wp.int32),
@@ -67,16 +66,16 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
         or forced, and ``segment_jacobian`` holds its block if active, zero if not. The
         printed spring writes only ``segment_force`` and ``segment_jacobian`` (always active)."""
         p = wp.tid()
-        s = particle_string[p]
-        if p == string_start[s + 1] - 1:
+        s = model.particle_string[p]
+        if p == model.string_start[s + 1] - 1:
             # The last particle starts no segment.
             segment_force[p] = vec3(scalar(0.0))
             segment_jacobian[p] = mat33(scalar(0.0))
             segment_jacobian_active[p] = mat33(scalar(0.0))
             segment_active[p] = 0
             return
-        f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s],
-                                             string_rest_length[s])
+        f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], model.string_stiffness[s],
+                                             model.string_rest_length[s])
         segment_force[p] = f
         if wp.static(not tension_only):
             segment_jacobian[p] = k  # the printed spring is always active
@@ -239,23 +238,12 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
     t = string_terms(scalar)
     vec3, mat33 = t.vec3, t.mat33
     compute_string_system_row = string_system_row_function(scalar, effects)
+    StringModelArrays = string_model_arrays_type(scalar)
 
     @wp.kernel(module="unique")
     def eval_string_system(
         # Model:
-        particle_string: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -272,9 +260,9 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         system_rhs: wp.array(dtype=vec3),
     ):
         p = wp.tid()
-        s = particle_string[p]
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        s = model.particle_string[p]
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         j = p - start
         zero = scalar(0.0)
         if j == 0:
@@ -294,14 +282,15 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         # Motion of the kinematic top particle over the step (used when j == 1).
         top_dx = top_q[s] - particle_q[start]
         top_dv = top_dx / dt - particle_qd[start]
-        tied = string_tied[s]
+        # (Not ``compute_string_constants``: a taped kernel reads only the constants it differentiates.)
+        tied = model.string_tied[s]
         diag, upper, rhs = compute_string_system_row(
-            j, is_last, particle_q[p], particle_qd[p], particle_qd[p - 1], v_next, particle_mass[p],
+            j, is_last, particle_q[p], particle_qd[p], particle_qd[p - 1], v_next, model.particle_mass[p],
             segment_force[p - 1], segment_jacobian[p - 1], f_next, k_next, top_dx, top_dv,
-            string_internal_friction[s], string_air_drag[s], string_ground_stiffness[s],
-            string_ground_absorption[s], string_ground_friction[s],
-            tied * string_tie_stiffness[s], tied * string_tie_damping[s], tie_q[s], tie_qd[s],
-            gravity, ground_height, dt,
+            model.string_internal_friction[s], model.string_air_drag[s], model.string_ground_stiffness[s],
+            model.string_ground_absorption[s], model.string_ground_friction[s],
+            tied * model.string_tie_stiffness[s], tied * model.string_tie_damping[s], tie_q[s], tie_qd[s],
+            model.gravity, model.ground_height, dt,
         )
         system_diag[p] = diag
         system_upper[p] = upper

@@ -462,8 +462,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_spring,
             dim=m.particle_count,
-            inputs=[m.particle_string, m.string_start, m.string_stiffness, m.string_rest_length,
-                    state_in.particle_q, forced],
+            inputs=[m.arrays, state_in.particle_q, forced],
             outputs=[ws.segment_force, ws.segment_jacobian, ws.segment_jacobian_active, ws.segment_active],
             device=m.device,
             record_tape=record,
@@ -476,12 +475,7 @@ class SolverStringImplicit:
             self._eval_system,
             dim=m.particle_count,
             inputs=[
-                m.particle_string, m.string_start, m.particle_mass,
-                m.string_internal_friction, m.string_air_drag,
-                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
-                m.string_tie_stiffness, m.string_tie_damping, m.string_tied,
-                m.gravity, m.ground_height,
-                state_in.particle_q, state_in.particle_qd, ws.segment_force, ws.segment_jacobian,
+                m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_force, ws.segment_jacobian,
                 control.top_q, control.tie_q, control.tie_qd, h,
             ],
             outputs=[ws.system_diag, ws.system_upper, ws.system_rhs],
@@ -496,8 +490,7 @@ class SolverStringImplicit:
         wp.launch(
             self._solve_active,
             dim=m.string_count,
-            inputs=[m.string_start, m.string_rest_length, state_in.particle_q, state_in.particle_qd,
-                    ws.segment_jacobian_active, control.top_q, h],
+            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_jacobian_active, control.top_q, h],
             outputs=[ws.segment_active, ws.system_diag, ws.system_upper, ws.system_rhs,
                      ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
@@ -540,10 +533,7 @@ class SolverStringImplicit:
         wp.launch(
             self._integrate,
             dim=m.particle_count,
-            inputs=[
-                m.particle_string, m.string_start,
-                state_in.particle_q, state_in.particle_qd, ws.particle_dv, control.top_q, h,
-            ],
+            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.particle_dv, control.top_q, h],
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=m.device,
             record_tape=record,
@@ -554,11 +544,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_tie,
             dim=m.string_count,
-            inputs=[
-                m.string_start, m.string_tie_stiffness, m.string_tie_damping, m.string_tied,
-                m.string_taut_distance, state_out.particle_q, state_out.particle_qd,
-                control.tie_q, control.tie_qd,
-            ],
+            inputs=[m.arrays, state_out.particle_q, state_out.particle_qd, control.tie_q, control.tie_qd],
             outputs=[state_out.tie_force, state_out.string_taut],
             device=m.device,
             record_tape=record,
