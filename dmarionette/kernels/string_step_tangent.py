@@ -258,10 +258,9 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         factor_lane = string_factor_lane[s]
         zero = scalar(0.0)
         h2 = dt * dt
-        gravity = model.gravity
-        ground_height = model.ground_height
-        (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
-         tie_stiffness, tie_damping) = compute_string_constants(model, s)
+        constants = compute_string_constants(model, s)
+        stiffness, rest_length = constants.stiffness, constants.rest_length
+        tied, tie_stiffness, tie_damping = constants.tied, constants.tie_stiffness, constants.tie_damping
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
@@ -270,7 +269,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         g_upper = zero  # the friction's part of A_{p,p+1}: h D = -h k_f I
         inv_dt = scalar(1.0) / dt  # (a product per direction, not a division: not the forward's rounding)
         if wp.static(FRICTION):
-            g_upper = -dt * friction
+            g_upper = -dt * constants.friction
 
         # Each segment's part of b' - A' dv as a linear map of the direction, once per step (P-independent),
         # for the segment (p, p + 1) below the top one (spring parts u, l, g = max(1 - d/l, 0), alpha,
@@ -342,7 +341,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                         # h k_f' (dv_0 - (v - v_0) - dv) + h k_f (dv_0' - (v' - v_0')).
                         v_top_dot = load3(particle_qd_dot, k, directions, start)
                         r = vadd(vadd(r, outer(dt * (top_dv - (v - v0_top) - dv), friction_dot)),
-                                 vscl(dt * friction, vsub(vsub(vscl(inv_dt, top_dx_dot), v_top_dot),
+                                 vscl(dt * constants.friction, vsub(vsub(vscl(inv_dt, top_dx_dot), v_top_dot),
                                                           vsub(v_dot, v_top_dot))))
                 else:  # the upper segment's -c, from row p - 1
                     r = vneg(c_a)
@@ -371,30 +370,31 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 # The mass: h g m' of the force, -m' dv of the diagonal.
                 mass_coefficient = -dv
                 if wp.static(GRAVITY):
-                    mass_coefficient = dt * gravity - dv
+                    mass_coefficient = dt * constants.gravity - dv
                 r = vadd(r, outer(mass_coefficient, load(particle_mass_dot, k, directions, p)))
                 if wp.static(AIR):
                     # f = -k_a v, D = -k_a I: h (-k_a' v - k_a v') - h k_a' dv.
-                    r = vsub(r, vadd(outer(dt * (v + dv), air_dot), vscl(dt * air_drag, v_dot)))
+                    r = vsub(r, vadd(outer(dt * (v + dv), air_dot), vscl(dt * constants.air_drag, v_dot)))
                 if wp.static(GROUND):
-                    if x[1] < ground_height:
+                    if x[1] < constants.ground_height:
                         # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs: the force's
                         # h f_y', b's h^2 K_yy' v_y + h^2 K_yy v_y', the diagonal's -(h k_abs' + h^2 k_rep') dv_y.
                         ground_stiffness_dot = load_constant(string_constants_dot, k, directions, s, 4)
                         ground_absorption_dot = load_constant(string_constants_dot, k, directions, s, 5)
-                        r_y = sadd(sadd(sscl(dt * (ground_height - x[1]) - h2 * (v[1] + dv[1]), ground_stiffness_dot),
+                        k_rep, k_abs = constants.ground_stiffness, constants.ground_absorption
+                        r_y = sadd(sadd(sscl(dt * (constants.ground_height - x[1]) - h2 * (v[1] + dv[1]),
+                                             ground_stiffness_dot),
                                         sscl(-dt * (v[1] + dv[1]), ground_absorption_dot)),
-                                   ssub(sscl(-dt * ground_stiffness, x_dot[1]),
-                                        sscl(dt * ground_absorption + h2 * ground_stiffness, v_dot[1])))
+                                   ssub(sscl(-dt * k_rep, x_dot[1]), sscl(dt * k_abs + h2 * k_rep, v_dot[1])))
                         r_x = TS(zero)
                         r_z = TS(zero)
                         if wp.static(GROUND_FRICTION):
                             # f_xz = -k_gf v_xz, D_xz = -k_gf: h (-k_gf' v - k_gf v') - h k_gf' dv.
                             ground_friction_dot = load_constant(string_constants_dot, k, directions, s, 6)
                             r_x = ssub(sscl(-dt * (v[0] + dv[0]), ground_friction_dot),
-                                       sscl(dt * ground_friction, v_dot[0]))
+                                       sscl(dt * constants.ground_friction, v_dot[0]))
                             r_z = ssub(sscl(-dt * (v[2] + dv[2]), ground_friction_dot),
-                                       sscl(dt * ground_friction, v_dot[2]))
+                                       sscl(dt * constants.ground_friction, v_dot[2]))
                         r = vadd(r, tvec(r_x, r_y, r_z))
                 if is_last:
                     # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;
