@@ -65,21 +65,23 @@ def _revision_modules(rev: str):
 
 def _launch_expanding(launch):
     """``wp.launch`` that, for a kernel taking the string model's constants one by one (a revision
-    before ``kernels/string_model_arrays``), passes the ``StringModelArrays`` argument's fields the
-    kernel names in its place, in the kernel's order."""
+    before ``kernels/string_model_arrays``), passes a ``StringModelArrays`` argument's fields the
+    kernel names in its place, in the kernel's order (of the model gradients' struct, the fields
+    its ``<name>_grad`` arguments name)."""
 
-    def expanding(kernel, dim, inputs=(), **kwargs):
+    def expanding(kernel, dim, inputs=(), outputs=(), **kwargs):
         labels = [a.label for a in kernel.adj.args]
         if "model" in labels:
-            return launch(kernel, dim, inputs=inputs, **kwargs)
+            return launch(kernel, dim, inputs=inputs, outputs=outputs, **kwargs)
         flat = []
-        for value in inputs:
+        for value in [*inputs, *outputs]:
             if hasattr(value, "_cls") and hasattr(value, "string_start"):  # a StringModelArrays
-                fields = list(itertools.takewhile(lambda name: hasattr(value, name), labels[len(flat):]))
+                fields = [name.removesuffix("_grad") for name in itertools.takewhile(
+                    lambda name: hasattr(value, name.removesuffix("_grad")), labels[len(flat):])]
                 flat += [getattr(value, name) for name in fields]
             else:
                 flat.append(value)
-        return launch(kernel, dim, inputs=flat, **kwargs)
+        return launch(kernel, dim, inputs=flat, **kwargs)  # (Warp reads inputs and outputs as one list)
 
     return expanding
 

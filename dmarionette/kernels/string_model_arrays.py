@@ -21,13 +21,21 @@ import functools
 
 import warp as wp
 
-__all__ = ["string_constants_function", "string_constants_type", "string_model_arrays", "string_model_arrays_type"]
+__all__ = ["ARRAY_FIELDS", "DIFFERENTIABLE_FIELDS", "string_constants_function", "string_constants_type",
+           "string_model_arrays", "string_model_arrays_type"]
 
 # The struct's fields that are arrays of the model (in the kernels' old argument order).
 ARRAY_FIELDS = (
     "string_start", "particle_string", "particle_mass", "string_stiffness", "string_rest_length",
     "string_internal_friction", "string_air_drag", "string_ground_stiffness", "string_ground_absorption",
     "string_ground_friction", "string_tie_stiffness", "string_tie_damping", "string_tied", "string_taut_distance",
+)
+
+# The fields a step differentiates (a taped step's constants, in the step adjoints' order).
+DIFFERENTIABLE_FIELDS = (
+    "particle_mass", "string_stiffness", "string_rest_length", "string_internal_friction", "string_air_drag",
+    "string_ground_stiffness", "string_ground_absorption", "string_ground_friction", "string_tie_stiffness",
+    "string_tie_damping", "string_tied",
 )
 
 

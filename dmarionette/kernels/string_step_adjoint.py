@@ -312,23 +312,13 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_q_out_grad: wp.array(dtype=vec3),
         particle_qd_out_grad: wp.array(dtype=vec3),
         tie_force_grad: wp.array(dtype=vec3),
-        # Adjoint out (accumulated):
+        # Adjoint out (accumulated; ``model_grad``: the model's, its arrays' ``.grad`` as a ``StringModelArrays``):
         particle_q_grad: wp.array(dtype=vec3),
         particle_qd_grad: wp.array(dtype=vec3),
         top_q_grad: wp.array(dtype=vec3),
         tie_q_grad: wp.array(dtype=vec3),
         tie_qd_grad: wp.array(dtype=vec3),
-        particle_mass_grad: wp.array(dtype=scalar),
-        string_stiffness_grad: wp.array(dtype=scalar),
-        string_rest_length_grad: wp.array(dtype=scalar),
-        string_internal_friction_grad: wp.array(dtype=scalar),
-        string_air_drag_grad: wp.array(dtype=scalar),
-        string_ground_stiffness_grad: wp.array(dtype=scalar),
-        string_ground_absorption_grad: wp.array(dtype=scalar),
-        string_ground_friction_grad: wp.array(dtype=scalar),
-        string_tie_stiffness_grad: wp.array(dtype=scalar),
-        string_tie_damping_grad: wp.array(dtype=scalar),
-        string_tied_grad: wp.array(dtype=scalar),
+        model_grad: StringModelArrays,
     ):
         s = wp.tid()
         start = model.string_start[s]
@@ -405,23 +395,23 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
             compute_row_adjoint(
                 last, last - start, True, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
-                segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, constants, tie_x, tie_v, dt,
-                top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n,
+                segment_forced, particle_q_grad, particle_qd_grad, model_grad.particle_mass, constants, tie_x, tie_v,
+                dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n,
                 tr_n, sym_n, acc))
         for i in range(last - start - 2):
             x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
                 compute_row_adjoint(
                     last - 1 - i, 2, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c,
-                    solve_bar, segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, constants,
+                    solve_bar, segment_forced, particle_q_grad, particle_qd_grad, model_grad.particle_mass, constants,
                     tie_x, tie_v, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n,
                     beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
         if last > start + 1:
             x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
                 compute_row_adjoint(
                     start + 1, 1, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
-                    segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, constants, tie_x, tie_v,
-                    dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n,
-                    uu_n, tr_n, sym_n, acc))
+                    segment_forced, particle_q_grad, particle_qd_grad, model_grad.particle_mass, constants, tie_x,
+                    tie_v, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n,
+                    f_bar_n, uu_n, tr_n, sym_n, acc))
         (stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar,
          ground_friction_bar, rows_tie_stiffness_bar, rows_tie_damping_bar, rows_tie_x_bar, rows_tie_v_bar, top_dx_bar,
          top_dv_bar) = compute_running_sums(acc)
@@ -446,17 +436,19 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_q_grad[s] = top_q_grad[s] + top_bar
         tie_q_grad[s] = tie_q_grad[s] + tie_x_bar
         tie_qd_grad[s] = tie_qd_grad[s] + tie_v_bar
-        string_stiffness_grad[s] = string_stiffness_grad[s] + stiffness_bar
-        string_rest_length_grad[s] = string_rest_length_grad[s] + rest_bar
-        string_internal_friction_grad[s] = string_internal_friction_grad[s] + friction_bar
-        string_air_drag_grad[s] = string_air_drag_grad[s] + air_bar
-        string_ground_stiffness_grad[s] = string_ground_stiffness_grad[s] + ground_stiffness_bar
-        string_ground_absorption_grad[s] = string_ground_absorption_grad[s] + ground_absorption_bar
-        string_ground_friction_grad[s] = string_ground_friction_grad[s] + ground_friction_bar
+        model_grad.string_stiffness[s] = model_grad.string_stiffness[s] + stiffness_bar
+        model_grad.string_rest_length[s] = model_grad.string_rest_length[s] + rest_bar
+        model_grad.string_internal_friction[s] = model_grad.string_internal_friction[s] + friction_bar
+        model_grad.string_air_drag[s] = model_grad.string_air_drag[s] + air_bar
+        model_grad.string_ground_stiffness[s] = model_grad.string_ground_stiffness[s] + ground_stiffness_bar
+        model_grad.string_ground_absorption[s] = (model_grad.string_ground_absorption[s]
+                                                  + ground_absorption_bar)
+        model_grad.string_ground_friction[s] = model_grad.string_ground_friction[s] + ground_friction_bar
         # k_t = tied k, k_dt = tied k_d.
-        string_tie_stiffness_grad[s] = string_tie_stiffness_grad[s] + constants.tied * tie_stiffness_bar
-        string_tie_damping_grad[s] = string_tie_damping_grad[s] + constants.tied * tie_damping_bar
-        string_tied_grad[s] = (string_tied_grad[s] + model.string_tie_stiffness[s] * tie_stiffness_bar
+        model_grad.string_tie_stiffness[s] = (model_grad.string_tie_stiffness[s]
+                                              + constants.tied * tie_stiffness_bar)
+        model_grad.string_tie_damping[s] = model_grad.string_tie_damping[s] + constants.tied * tie_damping_bar
+        model_grad.string_tied[s] = (model_grad.string_tied[s] + model.string_tie_stiffness[s] * tie_stiffness_bar
                                + model.string_tie_damping[s] * tie_damping_bar)
 
     return integrate_string_implicit_adjoint

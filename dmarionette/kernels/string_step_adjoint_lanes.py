@@ -388,23 +388,13 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         particle_q_out_grad: wp.array(dtype=vec3),
         particle_qd_out_grad: wp.array(dtype=vec3),
         tie_force_grad: wp.array(dtype=vec3),
-        # Adjoint out (accumulated):
+        # Adjoint out (accumulated; ``model_grad``: the model's, its arrays' ``.grad`` as a ``StringModelArrays``):
         particle_q_grad: wp.array(dtype=vec3),
         particle_qd_grad: wp.array(dtype=vec3),
         top_q_grad: wp.array(dtype=vec3),
         tie_q_grad: wp.array(dtype=vec3),
         tie_qd_grad: wp.array(dtype=vec3),
-        particle_mass_grad: wp.array(dtype=f64),
-        string_stiffness_grad: wp.array(dtype=f64),
-        string_rest_length_grad: wp.array(dtype=f64),
-        string_internal_friction_grad: wp.array(dtype=f64),
-        string_air_drag_grad: wp.array(dtype=f64),
-        string_ground_stiffness_grad: wp.array(dtype=f64),
-        string_ground_absorption_grad: wp.array(dtype=f64),
-        string_ground_friction_grad: wp.array(dtype=f64),
-        string_tie_stiffness_grad: wp.array(dtype=f64),
-        string_tie_damping_grad: wp.array(dtype=f64),
-        string_tied_grad: wp.array(dtype=f64),
+        model_grad: StringModelArrays,
     ):
         strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
                                                             model.string_start)
@@ -415,6 +405,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         h2 = lane(dt * dt)
         gravity = model.gravity
         ground_height = model.ground_height
+        particle_mass_grad = model_grad.particle_mass
         (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
          tie_stiffness_k, tie_damping_k) = gather_string_constants(strings, model)
         tie_stiffness = lmul(tied, tie_stiffness_k)
@@ -530,20 +521,21 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         scatter_add3(top_q_grad, strings, 0, real, top_bar)
         scatter_add3(tie_q_grad, strings, 0, real, tie_x_bar)
         scatter_add3(tie_qd_grad, strings, 0, real, tie_v_bar)
-        scatter_add(string_stiffness_grad, strings, 0, real, stiffness_bar)
-        scatter_add(string_rest_length_grad, strings, 0, real, rest_bar)
-        scatter_add(string_internal_friction_grad, strings, 0, real, friction_bar)
-        scatter_add(string_air_drag_grad, strings, 0, real, air_bar)
-        scatter_add(string_ground_stiffness_grad, strings, 0, real, ground_stiffness_bar)
-        scatter_add(string_ground_absorption_grad, strings, 0, real, ground_absorption_bar)
-        scatter_add(string_ground_friction_grad, strings, 0, real, ground_friction_bar)
+        scatter_add(model_grad.string_stiffness, strings, 0, real, stiffness_bar)
+        scatter_add(model_grad.string_rest_length, strings, 0, real, rest_bar)
+        scatter_add(model_grad.string_internal_friction, strings, 0, real, friction_bar)
+        scatter_add(model_grad.string_air_drag, strings, 0, real, air_bar)
+        scatter_add(model_grad.string_ground_stiffness, strings, 0, real, ground_stiffness_bar)
+        scatter_add(model_grad.string_ground_absorption, strings, 0, real, ground_absorption_bar)
+        scatter_add(model_grad.string_ground_friction, strings, 0, real, ground_friction_bar)
         # k_t = tied k, k_dt = tied k_d.
-        scatter_add(string_tie_stiffness_grad, strings, 0, real, lmul(tied, tie_stiffness_bar))
-        scatter_add(string_tie_damping_grad, strings, 0, real, lmul(tied, tie_damping_bar))
+        scatter_add(model_grad.string_tie_stiffness, strings, 0, real, lmul(tied, tie_stiffness_bar))
+        scatter_add(model_grad.string_tie_damping, strings, 0, real, lmul(tied, tie_damping_bar))
         for k in range(LANES_):
             if k < real:
                 s = strings[k]
-                string_tied_grad[s] = (string_tied_grad[s] + model.string_tie_stiffness[s] * tie_stiffness_bar[k]
-                                       + model.string_tie_damping[s] * tie_damping_bar[k])
+                model_grad.string_tied[s] = (model_grad.string_tied[s]
+                                             + model.string_tie_stiffness[s] * tie_stiffness_bar[k]
+                                             + model.string_tie_damping[s] * tie_damping_bar[k])
 
     return integrate_string_lanes_adjoint

@@ -46,6 +46,7 @@ import dataclasses
 import warp as wp
 
 from dmarionette.kernels.string_integrate import integrate_string_kernels
+from dmarionette.kernels.string_model_arrays import DIFFERENTIABLE_FIELDS, string_model_arrays_type
 from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_system_kernels
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
 from dmarionette.kernels.string_step_lanes import LANES, integrate_string_lanes_kernel, lane_groups, lane_types
@@ -162,6 +163,7 @@ class SolverStringImplicit:
         self._integrate_lanes_adjoint = None
         self._lane_plan = None  # (group arrays, laned scratch), built when lanes are turned on
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
+        self._model_grad_cache = None  # (the gradient arrays, their StringModelArrays): _model_grad
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
         self.lanes = self._lanes_supported  # on wherever the laned kernel applies (issue 19)
@@ -400,20 +402,31 @@ class SolverStringImplicit:
                     forced, control.top_q, control.tie_q, control.tie_qd, h,
                 ],
                 outputs=[ws.scratch_rhs_bar, *[self._grad(a) for a in outputs],
-                         *[self._grad(a) for a in inputs + params]],
+                         *[self._grad(a) for a in inputs], self._model_grad(params)],
                 device=m.device,
                 record_tape=False,
             )
 
         tape.record_func(backward, arrays=[a for a in outputs + inputs + params if a.grad is not None])
 
+    def _model_grad(self, params: list[wp.array]):
+        """The gradients of the model's differentiable arrays ``params`` (``_adjoint_arrays``), each
+        its ``.grad`` or a sink (:meth:`_grad`), as a ``StringModelArrays`` of the same field names
+        (the step adjoints' ``model_grad``); rebuilt only when one of those arrays changed."""
+        grads = [self._grad(a) for a in params]
+        cached = self._model_grad_cache
+        if cached is None or any(g is not c for g, c in zip(grads, cached[0])):
+            arrays = string_model_arrays_type(self.model.scalar)()
+            for name, grad in zip(DIFFERENTIABLE_FIELDS, grads):
+                setattr(arrays, name, grad)
+            self._model_grad_cache = cached = (grads, arrays)
+        return cached[1]
+
     def _adjoint_arrays(self, state_in, state_out, control) -> tuple[list, list, list]:
         """The step adjoints' differentiable arrays: the constants, the inputs and the outputs
         (in the adjoint kernels' order of their gradients)."""
         m = self.model
-        params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
-                  m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
-                  m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
+        params = [getattr(m, name) for name in DIFFERENTIABLE_FIELDS]
         inputs = [state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd]
         outputs = [state_out.particle_q, state_out.particle_qd, state_out.tie_force]
         return params, inputs, outputs
@@ -435,7 +448,7 @@ class SolverStringImplicit:
                     control.top_q, control.tie_q, control.tie_qd, h,
                 ],
                 outputs=[*adjoint_scratch, *[self._grad(a) for a in outputs],
-                         *[self._grad(a) for a in inputs + params]],
+                         *[self._grad(a) for a in inputs], self._model_grad(params)],
                 device=m.device,
                 record_tape=False,
             )
