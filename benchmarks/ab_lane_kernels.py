@@ -9,7 +9,9 @@ does), the laned step with ``keep`` (a taped step's) and the plain laned step
 (``kernels/string_step_lanes``). The revision's ``lane_ops``, ``string_step_lanes`` and
 ``string_step_adjoint_lanes`` are read with ``git show`` into a temporary folder and imported from
 there (the rest, the solver and its launch code included, is this tree's; the revision's adjoint
-gets as many laned scratch arrays as its signature names). Each sample replays the two versions'
+gets as many laned scratch arrays as its signature names; a revision from before the kernels took
+the string model as one ``StringModelArrays`` argument gets that struct's fields its signature
+names in its place, ``_launch_expanding``). Each sample replays the two versions'
 graphs back to back (which one first alternates), so that a change of the machine's load between
 samples cancels in their ratio; printed: the median of the ratios (this tree / the revision) and
 its quartiles, and each version's median and least time per launch (µs). ``--clock cpu``: the
@@ -54,6 +56,7 @@ def _revision_modules(rev: str):
                               capture_output=True, text=True, check=True).stdout
         for other, other_alias in MODULES.items():
             text = text.replace(f"from .{other} import", f"from {other_alias} import")
+        text = text.replace("from .", "from dmarionette.kernels.")  # this tree's other kernel modules
         (folder / f"{alias}.py").write_text(text)
     sys.path.insert(0, str(folder))
     import rev_string_step_adjoint_lanes
@@ -61,11 +64,36 @@ def _revision_modules(rev: str):
     return rev_string_step_lanes, rev_string_step_adjoint_lanes
 
 
+def _launch_expanding(launch):
+    """``wp.launch`` that, for a kernel taking the string model's constants one by one (a revision
+    before ``kernels/string_model_arrays``), passes a ``StringModelArrays`` argument's fields the
+    kernel names in its place, in the kernel's order (of the model gradients' struct, the fields
+    its ``<name>_grad`` arguments name)."""
+
+    def expanding(kernel, dim, inputs=(), outputs=(), **kwargs):
+        labels = [a.label for a in kernel.adj.args]
+        if "model" in labels:
+            return launch(kernel, dim, inputs=inputs, outputs=outputs, **kwargs)
+        flat = []
+        for value in [*inputs, *outputs]:
+            if hasattr(value, "_cls") and hasattr(value, "string_start"):  # a StringModelArrays
+                fields = [name.removesuffix("_grad") for name in itertools.takewhile(
+                    lambda name: hasattr(value, name.removesuffix("_grad")), labels[len(flat):])]
+                flat += [getattr(value, name) for name in fields]
+            else:
+                flat.append(value)
+        return launch(kernel, dim, inputs=flat, **kwargs)  # (Warp reads inputs and outputs as one list)
+
+    return expanding
+
+
 def _graphs(model, kernels) -> dict[str, object]:
     """The three graphs of one version: its ``(adjoint, keep step, plain step)`` kernels."""
     solver, strings = model.string_solver, model.strings
     adjoint, keep, plain = kernels
     plan = solver._lane_plan
+    launch = wp.launch
+    wp.launch = _launch_expanding(launch)
     scratch = sum(1 for a in adjoint.adj.args if a.label in SCRATCH)
     solver._integrate_lanes_adjoint, solver._integrate_lanes_keep, solver._integrate_lanes = kernels
     solver._lane_plan = (plan[0], plan[1][:2 + scratch])  # C', d', then the adjoint's scratch
@@ -82,6 +110,7 @@ def _graphs(model, kernels) -> dict[str, object]:
     }
     graphs = {name: capture_graph(launch, LAUNCHES, "cpu") for name, launch in launches.items()}
     solver._lane_plan = plan
+    wp.launch = launch
     return graphs
 
 

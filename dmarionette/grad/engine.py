@@ -572,6 +572,7 @@ class MarionetteGradient:
             for value in vars(owner).values():
                 if isinstance(value, wp.array) and value.requires_grad and id(value) not in kept:
                     value.requires_grad = False
+        self.model.strings.refresh_arrays()  # the kernels' struct of the string arrays, with their gradients now
 
     def _parameter_arrays(self) -> list[wp.array]:
         s, pup = self.model.strings, self.model.puppet

@@ -12,6 +12,7 @@ import functools
 
 import warp as wp
 
+from .string_model_arrays import string_model_arrays_type
 from .string_tie import compute_tie_force
 
 
@@ -41,12 +42,12 @@ def integrate_string_kernels(scalar):
     """Builds ``(integrate_string_particles, eval_string_tie_force)`` for a float type."""
     vec3 = wp.types.vector(3, scalar)
     compute_string_outputs = string_output_function(scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
 
     @wp.kernel(module="unique")
     def integrate_string_particles(
         # Model:
-        particle_string: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -59,8 +60,8 @@ def integrate_string_kernels(scalar):
         particle_qd_out: wp.array(dtype=vec3),
     ):
         p = wp.tid()
-        s = particle_string[p]
-        if p == string_start[s]:
+        s = model.particle_string[p]
+        if p == model.string_start[s]:
             # The top particle follows its attach point; its velocity is the one that
             # moves it there in one backward-Euler step.
             target = top_q[s]
@@ -74,11 +75,7 @@ def integrate_string_kernels(scalar):
     @wp.kernel(module="unique")
     def eval_string_tie_force(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        string_taut_distance: wp.array(dtype=scalar),
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -90,15 +87,15 @@ def integrate_string_kernels(scalar):
         string_taut: wp.array(dtype=wp.int32),
     ):
         s = wp.tid()
-        first = string_start[s]
-        last = string_start[s + 1] - 1
+        first = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         x = particle_q[last]
         v = particle_qd[last]
-        tied = string_tied[s]
+        tied = model.string_tied[s]
         # Paper eq. 2, the force on the body (0 for a cut tie: ``tied`` is 1 or 0), and §3.2's taut flag.
         force, taut = compute_string_outputs(particle_q[first], x, v, tie_q[s], tie_qd[s],
-                                             tied * string_tie_stiffness[s], tied * string_tie_damping[s],
-                                             string_taut_distance[s])
+                                             tied * model.string_tie_stiffness[s], tied * model.string_tie_damping[s],
+                                             model.string_taut_distance[s])
         tie_force[s] = force
         string_taut[s] = taut
 

@@ -34,6 +34,8 @@ from typing import Any
 
 import warp as wp
 
+from .string_model_arrays import string_model_arrays_type
+
 MAX_ACTIVE_SET_PASSES = 8  # re-solves per chain and step at most (each activates >= 1 segment)
 
 
@@ -75,6 +77,7 @@ def solve_string_system_kernels(scalar):
     mat33 = wp.types.matrix((3, 3), scalar)
     thomas = thomas_row_functions(scalar)
     compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
+    StringModelArrays = string_model_arrays_type(scalar)
 
     @wp.func
     def compute_back_substitution(
@@ -232,8 +235,7 @@ def solve_string_system_kernels(scalar):
     @wp.kernel(module="unique", enable_backward=False)
     def solve_string_system_active(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        string_rest_length: wp.array(dtype=scalar),
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -252,13 +254,14 @@ def solve_string_system_kernels(scalar):
         particle_dv: wp.array(dtype=vec3),
     ):
         s = wp.tid()
+        string_start = model.string_start
         # (keeps nothing: its pivot_inverse argument, here scratch_c, is not touched)
         compute_block_thomas(
             string_start, s, system_diag, system_upper, system_rhs, scratch_c, scratch_c, scratch_d, particle_dv
         )
         for _pass in range(MAX_ACTIVE_SET_PASSES):
             added = compute_segment_activation(
-                string_start, s, string_rest_length[s], particle_q, particle_qd, top_q, dt,
+                string_start, s, model.string_rest_length[s], particle_q, particle_qd, top_q, dt,
                 segment_jacobian_active, particle_dv, segment_active, system_diag, system_upper, system_rhs,
             )
             if added == 0:

@@ -38,6 +38,7 @@ import functools
 import warp as wp
 
 from .string_integrate import string_output_function
+from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
 from .string_solve import thomas_row_functions
 from .string_spring import string_spring_functions
 from .string_system import string_system_row_function
@@ -61,6 +62,9 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     compute_string_spring = string_spring_functions(scalar).compute_string_spring_printed
     compute_string_system_row = string_system_row_function(scalar, effects)
     compute_string_outputs = string_output_function(scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
+    StringConstants = string_constants_type(scalar)
+    compute_string_constants = string_constants_function(scalar)
     thomas = thomas_row_functions(scalar)
     compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
 
@@ -80,21 +84,11 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
         particle_mass: wp.array(dtype=scalar),
-        stiffness: scalar,
-        rest_length: scalar,
+        constants: StringConstants,
         top_dx: vec3,
         top_dv: vec3,
-        friction: scalar,
-        air_drag: scalar,
-        ground_stiffness: scalar,
-        ground_absorption: scalar,
-        ground_friction: scalar,
-        tie_stiffness: scalar,
-        tie_damping: scalar,
         tie_x: vec3,
         tie_v: vec3,
-        gravity: vec3,
-        ground_height: scalar,
         dt: scalar,
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
@@ -112,11 +106,10 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         if not is_last:
             x_next = particle_q[p + 1]
             v_next = particle_qd[p + 1]
-            f_next, k_next, _active = compute_string_spring(x, x_next, stiffness, rest_length)
+            f_next, k_next, _active = compute_string_spring(x, x_next, constants.stiffness, constants.rest_length)
         diag, upper, rhs = compute_string_system_row(
             j, is_last, x, v, v_prev, v_next, particle_mass[p], f_prev, k_prev, f_next, k_next,
-            top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
-            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
+            top_dx, top_dv, constants, tie_x, tie_v, dt,
         )
         inv = mat33(zero)
         c = mat33(zero)
@@ -134,21 +127,7 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        string_taut_distance: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -168,20 +147,11 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         string_taut: wp.array(dtype=wp.int32),
     ):
         s = wp.tid()
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         zero = scalar(0.0)
-        # The string's constants, read once.
-        stiffness = string_stiffness[s]
-        rest_length = string_rest_length[s]
-        friction = string_internal_friction[s]
-        air_drag = string_air_drag[s]
-        ground_stiffness = string_ground_stiffness[s]
-        ground_absorption = string_ground_absorption[s]
-        ground_friction = string_ground_friction[s]
-        tied = string_tied[s]
-        tie_stiffness = tied * string_tie_stiffness[s]
-        tie_damping = tied * string_tie_damping[s]
+        particle_mass = model.particle_mass
+        constants = compute_string_constants(model, s)  # the string's constants, read once
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
@@ -193,24 +163,20 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         # The first row (next to the top) and the last (the tie) apart, so that the rows between
         # are compiled with their flags known (``compute_forward_row`` is inlined).
         x = particle_q[start + 1]
-        f_prev, k_prev, _active = compute_string_spring(particle_q[start], x, stiffness, rest_length)
+        f_prev, k_prev, _active = compute_string_spring(particle_q[start], x, constants.stiffness,
+                                                        constants.rest_length)
         c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
             start + 1, 1, start + 1 == last, x, particle_qd[start + 1], particle_qd[start], f_prev, k_prev,
-            mat33(zero), vec3(zero), mat33(zero), particle_q, particle_qd, particle_mass, stiffness, rest_length,
-            top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
-            tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, pivot_inverse, scratch_c, scratch_d)
+            mat33(zero), vec3(zero), mat33(zero), particle_q, particle_qd, particle_mass, constants, top_dx, top_dv,
+            tie_x, tie_v, dt, pivot_inverse, scratch_c, scratch_d)
         for p in range(start + 2, last):
             c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
-                p, 2, False, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd, particle_mass, stiffness,
-                rest_length, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption,
-                ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
-                pivot_inverse, scratch_c, scratch_d)
+                p, 2, False, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd, particle_mass,
+                constants, top_dx, top_dv, tie_x, tie_v, dt, pivot_inverse, scratch_c, scratch_d)
         if last > start + 1:
             c, d, upper, x_next, v_next, v, f_next, k_next = compute_forward_row(
-                last, last - start, True, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd, particle_mass,
-                stiffness, rest_length, top_dx, top_dv, friction, air_drag, ground_stiffness, ground_absorption,
-                ground_friction, tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt,
-                pivot_inverse, scratch_c, scratch_d)
+                last, last - start, True, x_next, v_next, v, f_next, k_next, upper, d, c, particle_q, particle_qd,
+                particle_mass, constants, top_dx, top_dv, tie_x, tie_v, dt, pivot_inverse, scratch_c, scratch_d)
         d_prev = d
 
         # Back substitution (x_j = d'_j - C'_j x_{j+1}) and v1 = v0 + dv, x1 = x0 + h v1, upwards.
@@ -229,7 +195,7 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         particle_q_out[start] = top
         force, taut = compute_string_outputs(
             particle_q_out[start], particle_q_out[last], particle_qd_out[last], tie_x, tie_v,
-            tie_stiffness, tie_damping, string_taut_distance[s],
+            constants.tie_stiffness, constants.tie_damping, model.string_taut_distance[s],
         )
         tie_force[s] = force
         string_taut[s] = taut

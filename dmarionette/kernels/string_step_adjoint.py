@@ -43,6 +43,7 @@ import functools
 
 import warp as wp
 
+from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
 from .string_spring import string_spring_adjoint_functions
 
 __all__ = ["string_step_adjoint_kernel"]
@@ -56,6 +57,9 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     TENSION_ONLY = tension_only
     vec3 = wp.types.vector(3, scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
+    StringConstants = string_constants_type(scalar)
+    compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     spring = string_spring_adjoint_functions(scalar)
     compute_outer_moments = spring.compute_outer_moments
@@ -100,19 +104,9 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_q_grad: wp.array(dtype=vec3),
         particle_qd_grad: wp.array(dtype=vec3),
         particle_mass_grad: wp.array(dtype=scalar),
-        stiffness: scalar,
-        rest_length: scalar,
-        friction: scalar,
-        air_drag: scalar,
-        ground_stiffness: scalar,
-        ground_absorption: scalar,
-        ground_friction: scalar,
-        tie_stiffness: scalar,
-        tie_damping: scalar,
+        constants: StringConstants,
         tie_x: vec3,
         tie_v: vec3,
-        gravity: vec3,
-        ground_height: scalar,
         dt: scalar,
         top_dx: vec3,
         top_dv: vec3,
@@ -147,7 +141,8 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
          top_dv_bar) = compute_running_sums(acc)
         x_prev = particle_q[p - 1]
         v_prev = particle_qd[p - 1]
-        u_p, l_p, ratio_p, alpha_p, beta_p = compute_parts(x_prev, x, stiffness, rest_length, segment_forced[p - 1])
+        u_p, l_p, ratio_p, alpha_p, beta_p = compute_parts(x_prev, x, constants.stiffness, constants.rest_length,
+                                                           segment_forced[p - 1])
         lam = solve_bar[p]
         if not is_last:
             lam = lam - scratch_c[p] * lam_next
@@ -168,12 +163,12 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         k_c = zero
         k_y = zero
         if is_last:
-            k_c = -tie_stiffness
+            k_c = -constants.tie_stiffness
         below = False
         if wp.static(GROUND):
-            below = x[1] < ground_height
+            below = x[1] < constants.ground_height
             if below:
-                k_y = -ground_stiffness
+                k_y = -constants.ground_stiffness
         k_c_bar = h2 * wp.dot(rhs_bar, v) - h2 * (a_xz_bar + a_y_bar)
         k_y_bar = h2 * rhs_bar[1] * v[1] - h2 * a_y_bar
         v_bar = v_bar + h2 * vec3(k_c * rhs_bar[0], (k_c + k_y) * rhs_bar[1], k_c * rhs_bar[2])
@@ -183,42 +178,43 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         d_base_bar = d_xz_bar + d_y_bar  # d_y starts as d_xz (friction and air drag)
         if is_last:
             # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I.
-            tie_x_bar = tie_x_bar + tie_stiffness * force_row_bar
-            tie_v_bar = tie_v_bar + tie_damping * force_row_bar
-            x_bar = x_bar - tie_stiffness * force_row_bar
-            v_bar = v_bar - tie_damping * force_row_bar
+            tie_x_bar = tie_x_bar + constants.tie_stiffness * force_row_bar
+            tie_v_bar = tie_v_bar + constants.tie_damping * force_row_bar
+            x_bar = x_bar - constants.tie_stiffness * force_row_bar
+            v_bar = v_bar - constants.tie_damping * force_row_bar
             tie_stiffness_bar = tie_stiffness_bar + wp.dot(tie_x - x, force_row_bar) - k_c_bar
             tie_damping_bar = tie_damping_bar + wp.dot(tie_v - v, force_row_bar) - d_base_bar
         if wp.static(GROUND):
             if below:
                 # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs.
-                ground_stiffness_bar = ground_stiffness_bar + (ground_height - x[1]) * force_row_bar[1] - k_y_bar
-                x_bar = x_bar - vec3(zero, ground_stiffness * force_row_bar[1], zero)
+                ground_stiffness_bar = (ground_stiffness_bar + (constants.ground_height - x[1]) * force_row_bar[1]
+                                        - k_y_bar)
+                x_bar = x_bar - vec3(zero, constants.ground_stiffness * force_row_bar[1], zero)
                 ground_absorption_bar = ground_absorption_bar - v[1] * force_row_bar[1] - d_y_bar
-                v_bar = v_bar - vec3(zero, ground_absorption * force_row_bar[1], zero)
+                v_bar = v_bar - vec3(zero, constants.ground_absorption * force_row_bar[1], zero)
                 if wp.static(GROUND_FRICTION):
                     ground_friction_bar = (ground_friction_bar - v[0] * force_row_bar[0]
                                            - v[2] * force_row_bar[2] - d_xz_bar)
-                    v_bar = v_bar - vec3(ground_friction * force_row_bar[0], zero,
-                                         ground_friction * force_row_bar[2])
+                    v_bar = v_bar - vec3(constants.ground_friction * force_row_bar[0], zero,
+                                         constants.ground_friction * force_row_bar[2])
         if wp.static(AIR):
             air_bar = air_bar - wp.dot(v, force_row_bar) - d_base_bar
-            v_bar = v_bar - air_drag * force_row_bar
+            v_bar = v_bar - constants.air_drag * force_row_bar
         if wp.static(GRAVITY):
-            mass_bar = mass_bar + wp.dot(gravity, force_row_bar)
+            mass_bar = mass_bar + wp.dot(constants.gravity, force_row_bar)
         if wp.static(FRICTION):
             friction_bar = friction_bar - wp.dot(v - v_prev, force_row_bar) - d_base_bar
-            v_bar = v_bar - friction * force_row_bar
-            v_prev_bar = v_prev_bar + friction * force_row_bar
+            v_bar = v_bar - constants.friction * force_row_bar
+            v_prev_bar = v_prev_bar + constants.friction * force_row_bar
             if j == 1:
                 friction_bar = friction_bar + dt * wp.dot(top_dv, rhs_bar)
-                top_dv_bar = top_dv_bar + (dt * friction) * rhs_bar
+                top_dv_bar = top_dv_bar + (dt * constants.friction) * rhs_bar
             if not is_last:
                 # tr(upper_bar) = -(lambda . dv_next + dv . lambda_next); upper's -h k_f I.
                 friction_bar = (friction_bar - wp.dot(v - v_next, force_row_bar) - d_base_bar
                                 + dt * (wp.dot(lam, dv_next) + wp.dot(dv, lam_next)))
-                v_bar = v_bar - friction * force_row_bar
-                v_next_bar = v_next_bar + friction * force_row_bar
+                v_bar = v_bar - constants.friction * force_row_bar
+                v_next_bar = v_next_bar + constants.friction * force_row_bar
         # The segment above: force -f_prev, diag's -h^2 K_prev, rhs_k's K_prev w_prev.
         w_prev = h2 * (v - v_prev)
         if j == 1:
@@ -258,8 +254,9 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             w_next_bar = h2 * (alpha_n * wp.dot(u_n, rhs_bar) * u_n + beta_n * rhs_bar)
             v_bar = v_bar + w_next_bar
             v_next_bar = v_next_bar - w_next_bar
-            e_bar, k_s_bar, d_bar = compute_segment_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
-                                                             f_bar_n, uu_n, tr_n, sym_n, segment_forced[p])
+            e_bar, k_s_bar, d_bar = compute_segment_adjoint(u_n, l_n, ratio_n, alpha_n, constants.stiffness,
+                                                             constants.rest_length, f_bar_n, uu_n, tr_n, sym_n,
+                                                             segment_forced[p])
             stiffness_bar = stiffness_bar + k_s_bar
             rest_bar = rest_bar + d_bar
             x_bar = x_bar + e_bar
@@ -294,20 +291,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_adjoint(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in (the step's start, then what the forward, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -328,39 +312,21 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         particle_q_out_grad: wp.array(dtype=vec3),
         particle_qd_out_grad: wp.array(dtype=vec3),
         tie_force_grad: wp.array(dtype=vec3),
-        # Adjoint out (accumulated):
+        # Adjoint out (accumulated; ``model_grad``: the model's, its arrays' ``.grad`` as a ``StringModelArrays``):
         particle_q_grad: wp.array(dtype=vec3),
         particle_qd_grad: wp.array(dtype=vec3),
         top_q_grad: wp.array(dtype=vec3),
         tie_q_grad: wp.array(dtype=vec3),
         tie_qd_grad: wp.array(dtype=vec3),
-        particle_mass_grad: wp.array(dtype=scalar),
-        string_stiffness_grad: wp.array(dtype=scalar),
-        string_rest_length_grad: wp.array(dtype=scalar),
-        string_internal_friction_grad: wp.array(dtype=scalar),
-        string_air_drag_grad: wp.array(dtype=scalar),
-        string_ground_stiffness_grad: wp.array(dtype=scalar),
-        string_ground_absorption_grad: wp.array(dtype=scalar),
-        string_ground_friction_grad: wp.array(dtype=scalar),
-        string_tie_stiffness_grad: wp.array(dtype=scalar),
-        string_tie_damping_grad: wp.array(dtype=scalar),
-        string_tied_grad: wp.array(dtype=scalar),
+        model_grad: StringModelArrays,
     ):
         s = wp.tid()
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         zero = scalar(0.0)
         h2 = dt * dt
-        stiffness = string_stiffness[s]
-        rest_length = string_rest_length[s]
-        friction = string_internal_friction[s]
-        air_drag = string_air_drag[s]
-        ground_stiffness = string_ground_stiffness[s]
-        ground_absorption = string_ground_absorption[s]
-        ground_friction = string_ground_friction[s]
-        tied = string_tied[s]
-        tie_stiffness = tied * string_tie_stiffness[s]
-        tie_damping = tied * string_tie_damping[s]
+        particle_mass = model.particle_mass
+        constants = compute_string_constants(model, s)
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
@@ -368,15 +334,15 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_dv = top_dx / dt - particle_qd[start]
         g_upper = zero  # the friction's part of A_{j,j+1}: h D_j,j+1 = -h k_f I
         if wp.static(FRICTION):
-            g_upper = -dt * friction
+            g_upper = -dt * constants.friction
 
         # 1. The outputs: the tie force (eq. 2 on the new state) and the top particle.
         force_bar = tie_force_grad[s]
         tie_force_grad[s] = vec3(zero)
         tie_stiffness_bar = -wp.dot(tie_x - particle_q_out[last], force_bar)
         tie_damping_bar = -wp.dot(tie_v - particle_qd_out[last], force_bar)
-        tie_x_bar = -tie_stiffness * force_bar
-        tie_v_bar = -tie_damping * force_bar
+        tie_x_bar = -constants.tie_stiffness * force_bar
+        tie_v_bar = -constants.tie_damping * force_bar
         x_top_bar = particle_q_out_grad[start]
         v_top_bar = particle_qd_out_grad[start]
         particle_q_out_grad[start] = vec3(zero)
@@ -394,13 +360,14 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             particle_q_out_grad[p] = vec3(zero)
             particle_qd_out_grad[p] = vec3(zero)
             if p == last:
-                x_bar = x_bar + tie_stiffness * force_bar
-                v_bar = v_bar + tie_damping * force_bar
+                x_bar = x_bar + constants.tie_stiffness * force_bar
+                v_bar = v_bar + constants.tie_damping * force_bar
             r = v_bar + dt * x_bar  # dv_bar: x1 = x0 + h (v0 + dv)
             particle_q_grad[p] = particle_q_grad[p] + x_bar
             particle_qd_grad[p] = particle_qd_grad[p] + r
             if p > start + 1:
-                u, _l, _ratio, alpha, beta = compute_parts(x_prev, x, stiffness, rest_length, segment_forced[p - 1])
+                u, _l, _ratio, alpha, beta = compute_parts(x_prev, x, constants.stiffness, constants.rest_length,
+                                                           segment_forced[p - 1])
                 r = r - (h2 * (alpha * wp.dot(u, y_prev)) * u + (h2 * beta + g_upper) * y_prev)
             y_prev = pivot_inverse[p] * r
             solve_bar[p] = y_prev
@@ -428,26 +395,23 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
             compute_row_adjoint(
                 last, last - start, True, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
-                segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length,
-                friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
-                tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
-                dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+                segment_forced, particle_q_grad, particle_qd_grad, model_grad.particle_mass, constants, tie_x, tie_v,
+                dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n,
+                tr_n, sym_n, acc))
         for i in range(last - start - 2):
             x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
                 compute_row_adjoint(
                     last - 1 - i, 2, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c,
-                    solve_bar, segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness,
-                    rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction,
-                    tie_stiffness, tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v,
-                    v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+                    solve_bar, segment_forced, particle_q_grad, particle_qd_grad, model_grad.particle_mass, constants,
+                    tie_x, tie_v, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n,
+                    beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
         if last > start + 1:
             x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc = (
                 compute_row_adjoint(
                     start + 1, 1, False, particle_q, particle_qd, particle_mass, particle_dv, scratch_c, solve_bar,
-                    segment_forced, particle_q_grad, particle_qd_grad, particle_mass_grad, stiffness, rest_length,
-                    friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tie_stiffness,
-                    tie_damping, tie_x, tie_v, gravity, ground_height, dt, top_dx, top_dv, x, v, v_next, lam_next,
-                    dv_next, u_n, l_n, ratio_n, alpha_n, beta_n, f_bar_n, uu_n, tr_n, sym_n, acc))
+                    segment_forced, particle_q_grad, particle_qd_grad, model_grad.particle_mass, constants, tie_x,
+                    tie_v, dt, top_dx, top_dv, x, v, v_next, lam_next, dv_next, u_n, l_n, ratio_n, alpha_n, beta_n,
+                    f_bar_n, uu_n, tr_n, sym_n, acc))
         (stiffness_bar, rest_bar, friction_bar, air_bar, ground_stiffness_bar, ground_absorption_bar,
          ground_friction_bar, rows_tie_stiffness_bar, rows_tie_damping_bar, rows_tie_x_bar, rows_tie_v_bar, top_dx_bar,
          top_dv_bar) = compute_running_sums(acc)
@@ -456,8 +420,9 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         tie_x_bar = tie_x_bar + rows_tie_x_bar
         tie_v_bar = tie_v_bar + rows_tie_v_bar
         # The top segment (the top particle at the start of the step to particle start + 1).
-        e_bar, k_s_bar, d_bar = compute_segment_adjoint(u_n, l_n, ratio_n, alpha_n, stiffness, rest_length,
-                                                         f_bar_n, uu_n, tr_n, sym_n, segment_forced[start])
+        e_bar, k_s_bar, d_bar = compute_segment_adjoint(u_n, l_n, ratio_n, alpha_n, constants.stiffness,
+                                                         constants.rest_length, f_bar_n, uu_n, tr_n, sym_n,
+                                                         segment_forced[start])
         stiffness_bar = stiffness_bar + k_s_bar
         rest_bar = rest_bar + d_bar
         particle_q_grad[start] = particle_q_grad[start] + e_bar
@@ -471,17 +436,19 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_q_grad[s] = top_q_grad[s] + top_bar
         tie_q_grad[s] = tie_q_grad[s] + tie_x_bar
         tie_qd_grad[s] = tie_qd_grad[s] + tie_v_bar
-        string_stiffness_grad[s] = string_stiffness_grad[s] + stiffness_bar
-        string_rest_length_grad[s] = string_rest_length_grad[s] + rest_bar
-        string_internal_friction_grad[s] = string_internal_friction_grad[s] + friction_bar
-        string_air_drag_grad[s] = string_air_drag_grad[s] + air_bar
-        string_ground_stiffness_grad[s] = string_ground_stiffness_grad[s] + ground_stiffness_bar
-        string_ground_absorption_grad[s] = string_ground_absorption_grad[s] + ground_absorption_bar
-        string_ground_friction_grad[s] = string_ground_friction_grad[s] + ground_friction_bar
+        model_grad.string_stiffness[s] = model_grad.string_stiffness[s] + stiffness_bar
+        model_grad.string_rest_length[s] = model_grad.string_rest_length[s] + rest_bar
+        model_grad.string_internal_friction[s] = model_grad.string_internal_friction[s] + friction_bar
+        model_grad.string_air_drag[s] = model_grad.string_air_drag[s] + air_bar
+        model_grad.string_ground_stiffness[s] = model_grad.string_ground_stiffness[s] + ground_stiffness_bar
+        model_grad.string_ground_absorption[s] = (model_grad.string_ground_absorption[s]
+                                                  + ground_absorption_bar)
+        model_grad.string_ground_friction[s] = model_grad.string_ground_friction[s] + ground_friction_bar
         # k_t = tied k, k_dt = tied k_d.
-        string_tie_stiffness_grad[s] = string_tie_stiffness_grad[s] + tied * tie_stiffness_bar
-        string_tie_damping_grad[s] = string_tie_damping_grad[s] + tied * tie_damping_bar
-        string_tied_grad[s] = (string_tied_grad[s] + string_tie_stiffness[s] * tie_stiffness_bar
-                               + string_tie_damping[s] * tie_damping_bar)
+        model_grad.string_tie_stiffness[s] = (model_grad.string_tie_stiffness[s]
+                                              + constants.tied * tie_stiffness_bar)
+        model_grad.string_tie_damping[s] = model_grad.string_tie_damping[s] + constants.tied * tie_damping_bar
+        model_grad.string_tied[s] = (model_grad.string_tied[s] + model.string_tie_stiffness[s] * tie_stiffness_bar
+                               + model.string_tie_damping[s] * tie_damping_bar)
 
     return integrate_string_implicit_adjoint

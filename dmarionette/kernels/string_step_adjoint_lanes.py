@@ -33,6 +33,7 @@ import functools
 import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
+from .string_model_arrays import string_model_arrays_type
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 
 __all__ = ["lane_parts_type", "string_step_adjoint_lanes_kernel"]
@@ -66,6 +67,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         f.gather_string3, f.gather_particle, f.gather_particle3, f.scatter3)
     lneg, vadd, vsub, lsum3, lscale, lmul_vec = f.lneg, f.vadd, f.vsub, f.lsum3, f.lscale, f.lmul_vec
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
+    StringModelArrays = string_model_arrays_type(f64)
 
     # --- accumulation into the gradients, real lanes only ---------------------------------------
 
@@ -363,20 +365,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         group_string: wp.array(dtype=ivec),
         group_real: wp.array(dtype=wp.int32),
         group_base: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=f64),
-        string_stiffness: wp.array(dtype=f64),
-        string_rest_length: wp.array(dtype=f64),
-        string_internal_friction: wp.array(dtype=f64),
-        string_air_drag: wp.array(dtype=f64),
-        string_ground_stiffness: wp.array(dtype=f64),
-        string_ground_absorption: wp.array(dtype=f64),
-        string_ground_friction: wp.array(dtype=f64),
-        string_tie_stiffness: wp.array(dtype=f64),
-        string_tie_damping: wp.array(dtype=f64),
-        string_tied: wp.array(dtype=f64),
-        gravity: vec3,
-        ground_height: f64,
+        model: StringModelArrays,
         # State in (the step's start, then what the laned step, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -399,36 +388,26 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         particle_q_out_grad: wp.array(dtype=vec3),
         particle_qd_out_grad: wp.array(dtype=vec3),
         tie_force_grad: wp.array(dtype=vec3),
-        # Adjoint out (accumulated):
+        # Adjoint out (accumulated; ``model_grad``: the model's, its arrays' ``.grad`` as a ``StringModelArrays``):
         particle_q_grad: wp.array(dtype=vec3),
         particle_qd_grad: wp.array(dtype=vec3),
         top_q_grad: wp.array(dtype=vec3),
         tie_q_grad: wp.array(dtype=vec3),
         tie_qd_grad: wp.array(dtype=vec3),
-        particle_mass_grad: wp.array(dtype=f64),
-        string_stiffness_grad: wp.array(dtype=f64),
-        string_rest_length_grad: wp.array(dtype=f64),
-        string_internal_friction_grad: wp.array(dtype=f64),
-        string_air_drag_grad: wp.array(dtype=f64),
-        string_ground_stiffness_grad: wp.array(dtype=f64),
-        string_ground_absorption_grad: wp.array(dtype=f64),
-        string_ground_friction_grad: wp.array(dtype=f64),
-        string_tie_stiffness_grad: wp.array(dtype=f64),
-        string_tie_damping_grad: wp.array(dtype=f64),
-        string_tied_grad: wp.array(dtype=f64),
+        model_grad: StringModelArrays,
     ):
         strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
-                                                            string_start)
+                                                            model.string_start)
         last = n - 1
         zero = lane(f64(0.0))
         zv = lvec()
         hl = lane(dt)
         h2 = lane(dt * dt)
+        gravity = model.gravity
+        ground_height = model.ground_height
+        particle_mass_grad = model_grad.particle_mass
         (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
-         tie_stiffness_k, tie_damping_k) = gather_string_constants(
-            strings, string_stiffness, string_rest_length, string_internal_friction, string_air_drag,
-            string_ground_stiffness, string_ground_absorption, string_ground_friction, string_tied,
-            string_tie_stiffness, string_tie_damping)
+         tie_stiffness_k, tie_damping_k) = gather_string_constants(strings, model)
         tie_stiffness = lmul(tied, tie_stiffness_k)
         tie_damping = lmul(tied, tie_damping_k)
         tie_x = gather_string3(tie_q, strings)
@@ -542,20 +521,21 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         scatter_add3(top_q_grad, strings, 0, real, top_bar)
         scatter_add3(tie_q_grad, strings, 0, real, tie_x_bar)
         scatter_add3(tie_qd_grad, strings, 0, real, tie_v_bar)
-        scatter_add(string_stiffness_grad, strings, 0, real, stiffness_bar)
-        scatter_add(string_rest_length_grad, strings, 0, real, rest_bar)
-        scatter_add(string_internal_friction_grad, strings, 0, real, friction_bar)
-        scatter_add(string_air_drag_grad, strings, 0, real, air_bar)
-        scatter_add(string_ground_stiffness_grad, strings, 0, real, ground_stiffness_bar)
-        scatter_add(string_ground_absorption_grad, strings, 0, real, ground_absorption_bar)
-        scatter_add(string_ground_friction_grad, strings, 0, real, ground_friction_bar)
+        scatter_add(model_grad.string_stiffness, strings, 0, real, stiffness_bar)
+        scatter_add(model_grad.string_rest_length, strings, 0, real, rest_bar)
+        scatter_add(model_grad.string_internal_friction, strings, 0, real, friction_bar)
+        scatter_add(model_grad.string_air_drag, strings, 0, real, air_bar)
+        scatter_add(model_grad.string_ground_stiffness, strings, 0, real, ground_stiffness_bar)
+        scatter_add(model_grad.string_ground_absorption, strings, 0, real, ground_absorption_bar)
+        scatter_add(model_grad.string_ground_friction, strings, 0, real, ground_friction_bar)
         # k_t = tied k, k_dt = tied k_d.
-        scatter_add(string_tie_stiffness_grad, strings, 0, real, lmul(tied, tie_stiffness_bar))
-        scatter_add(string_tie_damping_grad, strings, 0, real, lmul(tied, tie_damping_bar))
+        scatter_add(model_grad.string_tie_stiffness, strings, 0, real, lmul(tied, tie_stiffness_bar))
+        scatter_add(model_grad.string_tie_damping, strings, 0, real, lmul(tied, tie_damping_bar))
         for k in range(LANES_):
             if k < real:
                 s = strings[k]
-                string_tied_grad[s] = (string_tied_grad[s] + string_tie_stiffness[s] * tie_stiffness_bar[k]
-                                       + string_tie_damping[s] * tie_damping_bar[k])
+                model_grad.string_tied[s] = (model_grad.string_tied[s]
+                                             + model.string_tie_stiffness[s] * tie_stiffness_bar[k]
+                                             + model.string_tie_damping[s] * tie_damping_bar[k])
 
     return integrate_string_lanes_adjoint

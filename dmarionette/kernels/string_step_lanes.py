@@ -39,6 +39,7 @@ import numpy as np
 import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
+from .string_model_arrays import string_model_arrays_type
 
 f64 = wp.float64
 
@@ -88,6 +89,7 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
     nat = native_lane_ops(lanes)
     ladd, lsub, lmul, ldiv, lsqrt, lmax, fma = nat.add, nat.sub, nat.mul, nat.div, nat.sqrt, nat.max, nat.fma
     mem = native_lane_memory(lanes)
+    StringModelArrays = string_model_arrays_type(f64)
 
     # --- gathers from and scatters to the simulator's arrays (lane_ops.native_lane_memory) ------
 
@@ -126,19 +128,16 @@ def lane_step_functions(lanes: int = LANES) -> SimpleNamespace:
         return strings, group_real[g], group_base[g], starts, string_start[s0 + 1] - string_start[s0]
 
     @wp.func
-    def gather_string_constants(strings: ivec, stiffness: wp.array(dtype=f64), rest_length: wp.array(dtype=f64),
-                                internal_friction: wp.array(dtype=f64), air_drag: wp.array(dtype=f64),
-                                ground_stiffness: wp.array(dtype=f64), ground_absorption: wp.array(dtype=f64),
-                                ground_friction: wp.array(dtype=f64), tied: wp.array(dtype=f64),
-                                tie_stiffness: wp.array(dtype=f64), tie_damping: wp.array(dtype=f64)):
-        """The group's strings' ten constants, each a lane vector, in the order of the arguments (the
-        tie's ``k`` and ``k_d`` as stored: the step's ``k_t = tied k``, ``k_dt = tied k_d`` are the
-        caller's)."""
-        return (gather_string(stiffness, strings), gather_string(rest_length, strings),
-                gather_string(internal_friction, strings), gather_string(air_drag, strings),
-                gather_string(ground_stiffness, strings), gather_string(ground_absorption, strings),
-                gather_string(ground_friction, strings), gather_string(tied, strings),
-                gather_string(tie_stiffness, strings), gather_string(tie_damping, strings))
+    def gather_string_constants(strings: ivec, model: StringModelArrays):
+        """The group's strings' ten constants, each a lane vector: ``k_s, d, k_f, k_air``, the ground's
+        stiffness, absorption and friction, ``tied`` and the tie's ``k`` and ``k_d`` as stored (the
+        step's ``k_t = tied k``, ``k_dt = tied k_d`` are the caller's)."""
+        return (gather_string(model.string_stiffness, strings), gather_string(model.string_rest_length, strings),
+                gather_string(model.string_internal_friction, strings), gather_string(model.string_air_drag, strings),
+                gather_string(model.string_ground_stiffness, strings),
+                gather_string(model.string_ground_absorption, strings),
+                gather_string(model.string_ground_friction, strings), gather_string(model.string_tied, strings),
+                gather_string(model.string_tie_stiffness, strings), gather_string(model.string_tie_damping, strings))
 
     # --- the scalar kernel's operations on lanes ----------------------------------------------
 
@@ -303,6 +302,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
     lmatmul, ltmatmul, lmul_vec, ltmul_vec, linverse = f.lmatmul, f.ltmatmul, f.lmul_vec, f.ltmul_vec, f.linverse
     compute_lane_spring = f.compute_lane_spring
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
+    StringModelArrays = string_model_arrays_type(f64)
 
     @wp.func
     def compute_lane_system_row(
@@ -448,21 +448,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         group_string: wp.array(dtype=ivec),
         group_real: wp.array(dtype=wp.int32),
         group_base: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=f64),
-        string_stiffness: wp.array(dtype=f64),
-        string_rest_length: wp.array(dtype=f64),
-        string_internal_friction: wp.array(dtype=f64),
-        string_air_drag: wp.array(dtype=f64),
-        string_ground_stiffness: wp.array(dtype=f64),
-        string_ground_absorption: wp.array(dtype=f64),
-        string_ground_friction: wp.array(dtype=f64),
-        string_tie_stiffness: wp.array(dtype=f64),
-        string_tie_damping: wp.array(dtype=f64),
-        string_tied: wp.array(dtype=f64),
-        string_taut_distance: wp.array(dtype=f64),
-        gravity: vec3,
-        ground_height: f64,
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -482,14 +468,14 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         string_taut: wp.array(dtype=wp.int32),
     ):
         strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
-                                                            string_start)
+                                                            model.string_start)
         last = n - 1
+        particle_mass = model.particle_mass
+        gravity = model.gravity
+        ground_height = model.ground_height
         # The strings' constants, read once.
         (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
-         tie_stiffness_k, tie_damping_k) = gather_string_constants(
-            strings, string_stiffness, string_rest_length, string_internal_friction, string_air_drag,
-            string_ground_stiffness, string_ground_absorption, string_ground_friction, string_tied,
-            string_tie_stiffness, string_tie_damping)
+         tie_stiffness_k, tie_damping_k) = gather_string_constants(strings, model)
         tie_stiffness = lmul(tied, tie_stiffness_k)
         tie_damping = lmul(tied, tie_damping_k)
         tie_x = gather_string3(tie_q, strings)
@@ -552,7 +538,7 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         force = vsub(lscale(lneg(tie_stiffness), vsub(tie_x, x_last)), lscale(tie_damping, vsub(tie_v, v_last)))
         e = vsub(x_last, top)
         length = lsqrt(lsum3(e[0], e[1], e[2], e[0], e[1], e[2]))
-        taut_distance = gather_string(string_taut_distance, strings)
+        taut_distance = gather_string(model.string_taut_distance, strings)
         scatter3(tie_force, strings, 0, real, force)
         for k in range(LANES_):
             if k < real:

@@ -132,6 +132,7 @@ import numpy as np
 import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
+from .string_model_arrays import string_constants_function, string_model_arrays_type
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
 from .string_step_lanes import lane_step_functions, lane_types
 from .tangent_directions import tangent_directions
@@ -193,6 +194,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     MAPS = maps
     SEGMENTS = segments
     vec3 = wp.types.vector(3, scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
+    compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)
     SEGMENT_LANES = segment_lanes
@@ -215,20 +218,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_tangent(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in (the step's start, then what the forward, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -262,22 +252,15 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     ):
         s = wp.tid()
         directions = particle_q_dot.shape[0]
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         factor_row = string_factor_row[s]
         factor_lane = string_factor_lane[s]
         zero = scalar(0.0)
         h2 = dt * dt
-        stiffness = string_stiffness[s]
-        rest_length = string_rest_length[s]
-        friction = string_internal_friction[s]
-        air_drag = string_air_drag[s]
-        ground_stiffness = string_ground_stiffness[s]
-        ground_absorption = string_ground_absorption[s]
-        ground_friction = string_ground_friction[s]
-        tied = string_tied[s]
-        tie_stiffness = tied * string_tie_stiffness[s]
-        tie_damping = tied * string_tie_damping[s]
+        constants = compute_string_constants(model, s)
+        stiffness, rest_length = constants.stiffness, constants.rest_length
+        tied, tie_stiffness, tie_damping = constants.tied, constants.tie_stiffness, constants.tie_damping
         tie_x = tie_q[s]
         tie_v = tie_qd[s]
         top = top_q[s]
@@ -286,7 +269,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         g_upper = zero  # the friction's part of A_{p,p+1}: h D = -h k_f I
         inv_dt = scalar(1.0) / dt  # (a product per direction, not a division: not the forward's rounding)
         if wp.static(FRICTION):
-            g_upper = -dt * friction
+            g_upper = -dt * constants.friction
 
         # Each segment's part of b' - A' dv as a linear map of the direction, once per step (P-independent),
         # for the segment (p, p + 1) below the top one (spring parts u, l, g = max(1 - d/l, 0), alpha,
@@ -307,8 +290,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             for p0 in range(start + 1, last, SEGMENT_LANES):
                 store_segments(p0, wp.min(SEGMENT_LANES, last - p0), particle_q, particle_qd, particle_dv, stiffness,
                                rest_length, dt, segment_parts, segment_e, segment_c)
-        tie_stiffness_k = string_tie_stiffness[s]
-        tie_damping_k = string_tie_damping[s]
+        tie_stiffness_k = model.string_tie_stiffness[s]
+        tie_damping_k = model.string_tie_damping[s]
         x_last = particle_q_out[last]
         v_last = particle_qd_out[last]
         v0_top = particle_qd[start]
@@ -358,7 +341,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                         # h k_f' (dv_0 - (v - v_0) - dv) + h k_f (dv_0' - (v' - v_0')).
                         v_top_dot = load3(particle_qd_dot, k, directions, start)
                         r = vadd(vadd(r, outer(dt * (top_dv - (v - v0_top) - dv), friction_dot)),
-                                 vscl(dt * friction, vsub(vsub(vscl(inv_dt, top_dx_dot), v_top_dot),
+                                 vscl(dt * constants.friction, vsub(vsub(vscl(inv_dt, top_dx_dot), v_top_dot),
                                                           vsub(v_dot, v_top_dot))))
                 else:  # the upper segment's -c, from row p - 1
                     r = vneg(c_a)
@@ -387,30 +370,31 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                 # The mass: h g m' of the force, -m' dv of the diagonal.
                 mass_coefficient = -dv
                 if wp.static(GRAVITY):
-                    mass_coefficient = dt * gravity - dv
+                    mass_coefficient = dt * constants.gravity - dv
                 r = vadd(r, outer(mass_coefficient, load(particle_mass_dot, k, directions, p)))
                 if wp.static(AIR):
                     # f = -k_a v, D = -k_a I: h (-k_a' v - k_a v') - h k_a' dv.
-                    r = vsub(r, vadd(outer(dt * (v + dv), air_dot), vscl(dt * air_drag, v_dot)))
+                    r = vsub(r, vadd(outer(dt * (v + dv), air_dot), vscl(dt * constants.air_drag, v_dot)))
                 if wp.static(GROUND):
-                    if x[1] < ground_height:
+                    if x[1] < constants.ground_height:
                         # f_y = k_rep (h_ground - y) - k_abs v_y; K_yy = -k_rep, D_yy = -k_abs: the force's
                         # h f_y', b's h^2 K_yy' v_y + h^2 K_yy v_y', the diagonal's -(h k_abs' + h^2 k_rep') dv_y.
                         ground_stiffness_dot = load_constant(string_constants_dot, k, directions, s, 4)
                         ground_absorption_dot = load_constant(string_constants_dot, k, directions, s, 5)
-                        r_y = sadd(sadd(sscl(dt * (ground_height - x[1]) - h2 * (v[1] + dv[1]), ground_stiffness_dot),
+                        k_rep, k_abs = constants.ground_stiffness, constants.ground_absorption
+                        r_y = sadd(sadd(sscl(dt * (constants.ground_height - x[1]) - h2 * (v[1] + dv[1]),
+                                             ground_stiffness_dot),
                                         sscl(-dt * (v[1] + dv[1]), ground_absorption_dot)),
-                                   ssub(sscl(-dt * ground_stiffness, x_dot[1]),
-                                        sscl(dt * ground_absorption + h2 * ground_stiffness, v_dot[1])))
+                                   ssub(sscl(-dt * k_rep, x_dot[1]), sscl(dt * k_abs + h2 * k_rep, v_dot[1])))
                         r_x = TS(zero)
                         r_z = TS(zero)
                         if wp.static(GROUND_FRICTION):
                             # f_xz = -k_gf v_xz, D_xz = -k_gf: h (-k_gf' v - k_gf v') - h k_gf' dv.
                             ground_friction_dot = load_constant(string_constants_dot, k, directions, s, 6)
                             r_x = ssub(sscl(-dt * (v[0] + dv[0]), ground_friction_dot),
-                                       sscl(dt * ground_friction, v_dot[0]))
+                                       sscl(dt * constants.ground_friction, v_dot[0]))
                             r_z = ssub(sscl(-dt * (v[2] + dv[2]), ground_friction_dot),
-                                       sscl(dt * ground_friction, v_dot[2]))
+                                       sscl(dt * constants.ground_friction, v_dot[2]))
                         r = vadd(r, tvec(r_x, r_y, r_z))
                 if is_last:
                     # The tie (eq. 2), f = k_t (x_tie - x) + k_dt (v_tie - v); K = -k_t I, D = -k_dt I;

@@ -53,6 +53,7 @@ import functools
 
 import warp as wp
 
+from .string_model_arrays import string_model_arrays_type
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 from .lane_ops import native_lane_ops
 
@@ -99,6 +100,7 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     gather_string3, gather_particle3, gather_particle = f.gather_string3, f.gather_particle3, f.gather_particle
     neg, vadd, vsub, scale, lsum3, mul_vec = f.lneg, f.vadd, f.vsub, f.lscale, f.lsum3, f.lmul_vec
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
+    StringModelArrays = string_model_arrays_type(f64)
     tgather3, tgather, tscatter3 = gather_particle3, gather_particle, f.scatter3
     cgather = _constant_gather(lanes)
 
@@ -158,20 +160,7 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     @wp.kernel(module="unique", enable_backward=False)
     def integrate_string_implicit_tangent_lanes(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=f64),
-        string_stiffness: wp.array(dtype=f64),
-        string_rest_length: wp.array(dtype=f64),
-        string_internal_friction: wp.array(dtype=f64),
-        string_air_drag: wp.array(dtype=f64),
-        string_ground_stiffness: wp.array(dtype=f64),
-        string_ground_absorption: wp.array(dtype=f64),
-        string_ground_friction: wp.array(dtype=f64),
-        string_tie_stiffness: wp.array(dtype=f64),
-        string_tie_damping: wp.array(dtype=f64),
-        string_tied: wp.array(dtype=f64),
-        gravity: vec3,
-        ground_height: f64,
+        model: StringModelArrays,
         # State in (the step's start, then what the laned forward, built with ``keep``, wrote):
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -203,19 +192,16 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         tie_force_dot: wp.array(dtype=vec3),
     ):
         strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
-                                                            string_start)
+                                                            model.string_start)
         last = n - 1
         zero = lane(f64(0.0))
         one = lane(f64(1.0))
         h = lane(dt)
         h2 = lane(dt * dt)
         inv_dt = lane(f64(1.0) / dt)
-        gh = lane(ground_height)
+        gh = lane(model.ground_height)
         (stiffness, rest_length, friction, air_drag, ground_stiffness, ground_absorption, ground_friction, tied,
-         tie_stiffness_k, tie_damping_k) = gather_string_constants(
-            strings, string_stiffness, string_rest_length, string_internal_friction, string_air_drag,
-            string_ground_stiffness, string_ground_absorption, string_ground_friction, string_tied,
-            string_tie_stiffness, string_tie_damping)
+         tie_stiffness_k, tie_damping_k) = gather_string_constants(strings, model)
         tie_stiffness = mul(tied, tie_stiffness_k)
         tie_damping = mul(tied, tie_damping_k)
         tie_x = gather_string3(tie_q, strings)
@@ -232,7 +218,7 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             g_upper = mul(lane(-dt), friction)
         h_gravity = lvec()
         for i in range(3):
-            h_gravity[i] = lane(dt * gravity[i])
+            h_gravity[i] = lane(dt * model.gravity[i])
 
         # The direction's constants, read once.
         stiffness_dot = cgather(string_constants_dot, strings, 0)

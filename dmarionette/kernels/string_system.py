@@ -35,6 +35,7 @@ import functools
 
 import warp as wp
 
+from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
 from .string_terms import string_terms
 
 
@@ -45,14 +46,12 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
     ``string_spring``; the printed spring is always active)."""
     t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
+    StringModelArrays = string_model_arrays_type(scalar)
 
     @wp.kernel(module="unique")
     def eval_string_spring(
         # Model:
-        particle_string: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         segment_forced: wp.array(dtype=wp.int32),
@@ -67,16 +66,16 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
         or forced, and ``segment_jacobian`` holds its block if active, zero if not. The
         printed spring writes only ``segment_force`` and ``segment_jacobian`` (always active)."""
         p = wp.tid()
-        s = particle_string[p]
-        if p == string_start[s + 1] - 1:
+        s = model.particle_string[p]
+        if p == model.string_start[s + 1] - 1:
             # The last particle starts no segment.
             segment_force[p] = vec3(scalar(0.0))
             segment_jacobian[p] = mat33(scalar(0.0))
             segment_jacobian_active[p] = mat33(scalar(0.0))
             segment_active[p] = 0
             return
-        f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], string_stiffness[s],
-                                             string_rest_length[s])
+        f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], model.string_stiffness[s],
+                                             model.string_rest_length[s])
         segment_force[p] = f
         if wp.static(not tension_only):
             segment_jacobian[p] = k  # the printed spring is always active
@@ -100,6 +99,7 @@ def string_system_row_function(scalar, effects: tuple[bool, bool, bool, bool, bo
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     t = string_terms(scalar)
     vec3, mat33 = t.vec3, t.mat33
+    StringConstants = string_constants_type(scalar)
 
     @wp.func
     def compute_string_system_row(
@@ -116,17 +116,9 @@ def string_system_row_function(scalar, effects: tuple[bool, bool, bool, bool, bo
         k_next: mat33,
         top_dx: vec3,
         top_dv: vec3,
-        friction: scalar,
-        air_drag: scalar,
-        ground_stiffness: scalar,
-        ground_absorption: scalar,
-        ground_friction: scalar,
-        tie_stiffness: scalar,
-        tie_damping: scalar,
+        constants: StringConstants,
         tie_x: vec3,
         tie_v: vec3,
-        gravity: vec3,
-        ground_height: scalar,
         dt: scalar,
     ):
         """The block row of free particle ``j >= 1`` of a chain (module doc).
@@ -141,11 +133,10 @@ def string_system_row_function(scalar, effects: tuple[bool, bool, bool, bool, bo
                 ``K_aa`` [N/m]: ``compute_string_spring``); the particle feels ``-f_prev``.
             f_next, k_next: the segment below, seen from this particle (unused if ``is_last``).
             top_dx, top_dv: the kinematic top particle's motion over the step [m], [m/s].
-            friction, air_drag, ground_stiffness, ground_absorption, ground_friction: the
-                string's ``k_f``, ``k_air``, repulsion [N/m], absorption and ``k_ground`` [N s/m].
-            tie_stiffness, tie_damping: eq. 2 ``k``, ``k_d`` times the string's ``tied`` flag.
+            constants: the string's (``compute_string_constants``: ``k_f``, ``k_air``, the ground's,
+                the tie's ``k``, ``k_d`` times its ``tied`` flag, gravity, the ground's height).
             tie_x, tie_v: the tie target [m], [m/s].
-            gravity: [m/s^2]; ground_height: [m]; dt: the step [s].
+            dt: the step [s].
 
         Returns:
             ``(A_jj, A_{j,j+1}, b_j)`` (``A_{j,j+1}`` zero for the last particle).
@@ -177,6 +168,7 @@ def string_system_row_function(scalar, effects: tuple[bool, bool, bool, bool, bo
             rhs_k = rhs_k + k_next * (h2 * (v - v_next))
         if wp.static(FRICTION):
             # Internal friction (term 2) with each neighbour; its D = -k_f I per segment.
+            friction = constants.friction  # read once: Warp's tape sums its two uses' adjoints as before
             f_f, d_f = t.compute_internal_friction(v, v_prev, friction)
             force = force + f_f
             d_xz = d_xz + d_f[0, 0]
@@ -189,26 +181,28 @@ def string_system_row_function(scalar, effects: tuple[bool, bool, bool, bool, bo
                 g = dt * d_f[0, 0]
                 upper = upper + mat33(g, zero, zero, zero, g, zero, zero, zero, g)
         if wp.static(GRAVITY):
-            force = force + mass * gravity  # paper term 3
+            force = force + mass * constants.gravity  # paper term 3
         if wp.static(AIR):
-            f_a, d_a = t.compute_air_drag(v, air_drag)  # paper term 4, D = -k_air I
+            f_a, d_a = t.compute_air_drag(v, constants.air_drag)  # paper term 4, D = -k_air I
             force = force + f_a
             d_xz = d_xz + d_a[0, 0]
         d_y = d_xz
         if wp.static(GROUND):
-            if x[1] < ground_height:
+            if x[1] < constants.ground_height:
                 # Paper term 6 (penalty and damper, ``compute_ground_contact``), term 5 in x and z.
-                f_g, k_g, d_g = t.compute_ground_contact(x, v, ground_height, ground_stiffness, ground_absorption)
+                f_g, k_g, d_g = t.compute_ground_contact(x, v, constants.ground_height, constants.ground_stiffness,
+                                                         constants.ground_absorption)
                 force = force + f_g
                 k_y = k_g[1, 1]
                 d_y = d_y + d_g[1, 1]
                 if wp.static(GROUND_FRICTION):
-                    f_gf, d_gf = t.compute_ground_friction(v, ground_friction)
+                    f_gf, d_gf = t.compute_ground_friction(v, constants.ground_friction)
                     force = force + f_gf
                     d_xz = d_xz + d_gf[0, 0]
         if is_last:
             # The tie (eq. 2): K = -k I, D = -k_d I.
-            f_t, k_t, d_t = t.compute_string_tie(x, v, tie_x, tie_v, tie_stiffness, tie_damping)
+            f_t, k_t, d_t = t.compute_string_tie(x, v, tie_x, tie_v, constants.tie_stiffness,
+                                                 constants.tie_damping)
             force = force + f_t
             k_c = k_t[0, 0]
             d_xz = d_xz + d_t[0, 0]
@@ -239,23 +233,13 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
     t = string_terms(scalar)
     vec3, mat33 = t.vec3, t.mat33
     compute_string_system_row = string_system_row_function(scalar, effects)
+    StringModelArrays = string_model_arrays_type(scalar)
+    compute_string_constants = string_constants_function(scalar)
 
     @wp.kernel(module="unique")
     def eval_string_system(
         # Model:
-        particle_string: wp.array(dtype=wp.int32),
-        string_start: wp.array(dtype=wp.int32),
-        particle_mass: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
-        string_air_drag: wp.array(dtype=scalar),
-        string_ground_stiffness: wp.array(dtype=scalar),
-        string_ground_absorption: wp.array(dtype=scalar),
-        string_ground_friction: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_tie_damping: wp.array(dtype=scalar),
-        string_tied: wp.array(dtype=scalar),
-        gravity: vec3,
-        ground_height: scalar,
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -272,9 +256,9 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         system_rhs: wp.array(dtype=vec3),
     ):
         p = wp.tid()
-        s = particle_string[p]
-        start = string_start[s]
-        last = string_start[s + 1] - 1
+        s = model.particle_string[p]
+        start = model.string_start[s]
+        last = model.string_start[s + 1] - 1
         j = p - start
         zero = scalar(0.0)
         if j == 0:
@@ -294,14 +278,10 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         # Motion of the kinematic top particle over the step (used when j == 1).
         top_dx = top_q[s] - particle_q[start]
         top_dv = top_dx / dt - particle_qd[start]
-        tied = string_tied[s]
         diag, upper, rhs = compute_string_system_row(
-            j, is_last, particle_q[p], particle_qd[p], particle_qd[p - 1], v_next, particle_mass[p],
+            j, is_last, particle_q[p], particle_qd[p], particle_qd[p - 1], v_next, model.particle_mass[p],
             segment_force[p - 1], segment_jacobian[p - 1], f_next, k_next, top_dx, top_dv,
-            string_internal_friction[s], string_air_drag[s], string_ground_stiffness[s],
-            string_ground_absorption[s], string_ground_friction[s],
-            tied * string_tie_stiffness[s], tied * string_tie_damping[s], tie_q[s], tie_qd[s],
-            gravity, ground_height, dt,
+            compute_string_constants(model, s), tie_q[s], tie_qd[s], dt,
         )
         system_diag[p] = diag
         system_upper[p] = upper

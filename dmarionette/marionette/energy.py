@@ -70,6 +70,7 @@ import numpy as np
 import warp as wp
 
 from dmarionette.kernels.bar_feedback import bar_reaction_function
+from dmarionette.kernels.string_model_arrays import string_model_arrays_type
 from dmarionette.rotations import quat_to_matrix
 from dmarionette.strings.model import StringModel, string_energy
 
@@ -90,16 +91,14 @@ _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in 
 @functools.cache
 def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
     vec3 = wp.types.vector(3, scalar)
+    StringModelArrays = string_model_arrays_type(scalar)
     # The force of the state itself, as the feedback's exact reaction.
     compute_top_force = bar_reaction_function(scalar, internal_friction, tension_only)
 
     @wp.kernel(module="unique")
     def eval_bar_work(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
+        model: StringModelArrays,
         # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
@@ -110,10 +109,10 @@ def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
     ):
         """Work [J] of the bar on each string's top particle over one step (trapezoid rule)."""
         s = wp.tid()
-        a = string_start[s]
-        k = string_stiffness[s]
-        d = string_rest_length[s]
-        c = string_internal_friction[s]
+        a = model.string_start[s]
+        k = model.string_stiffness[s]
+        d = model.string_rest_length[s]
+        c = model.string_internal_friction[s]
         r0 = compute_top_force(particle_q[a], particle_q[a + 1], particle_qd[a], particle_qd[a + 1], k, d, c)
         r1 = compute_top_force(particle_q_next[a], particle_q_next[a + 1], particle_qd_next[a],
                                particle_qd_next[a + 1], k, d, c)
@@ -156,8 +155,8 @@ class BarWorkMeter:
         self.solver.step(state_in, state_out, control, dt, tape=tape, workspace=workspace)
         m = self.model
         wp.launch(self._kernel, dim=m.string_count,
-                  inputs=[m.string_start, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
-                          state_in.particle_q, state_in.particle_qd, state_out.particle_q, state_out.particle_qd],
+                  inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, state_out.particle_q,
+                          state_out.particle_qd],
                   outputs=[self.bar_work], device=m.device)
 
     def __getattr__(self, name):

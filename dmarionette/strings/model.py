@@ -30,6 +30,7 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
+from dmarionette.kernels.string_model_arrays import string_model_arrays
 from dmarionette.scene.strings import StringEffects, StringSpec
 
 __all__ = [
@@ -70,6 +71,10 @@ class StringModel:
         string_taut_distance: first-to-last distance above which a string is taut [m], ``(S,)``.
         gravity: gravitational acceleration [m/s^2], a 3-vector.
         ground_height: height of the ground plane ``y`` [m].
+        arrays: the above (``string_start`` .. ``ground_height``) as one kernel argument, a
+            ``StringModelArrays`` (``kernels/string_model_arrays``) holding these same arrays; it
+            also holds each array's gradient as it was when built: after changing an array's
+            ``requires_grad``, call :meth:`refresh_arrays` (a captured launch checks them and raises).
     """
 
     def __init__(self, specs: Sequence[StringSpec], *, effects: StringEffects, gravity, ground_height: float,
@@ -124,7 +129,11 @@ class StringModel:
             self.particle_mass = self._array(mass)
             for name, values in per_string.items():
                 setattr(self, name, self._array(np.asarray(values, dtype=np.float64)))
+        self.arrays = string_model_arrays(self)
 
+    def refresh_arrays(self) -> None:
+        """Rebuilds :attr:`arrays` from the model's arrays (after their ``requires_grad`` changed)."""
+        self.arrays = string_model_arrays(self)
 
     @classmethod
     def from_scene(cls, scene, *, device=None, requires_grad: bool = False, precision: str | None = None,

@@ -46,6 +46,7 @@ import dataclasses
 import warp as wp
 
 from dmarionette.kernels.string_integrate import integrate_string_kernels
+from dmarionette.kernels.string_model_arrays import DIFFERENTIABLE_FIELDS, string_model_arrays_type
 from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_system_kernels
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
 from dmarionette.kernels.string_step_lanes import LANES, integrate_string_lanes_kernel, lane_groups, lane_types
@@ -162,6 +163,7 @@ class SolverStringImplicit:
         self._integrate_lanes_adjoint = None
         self._lane_plan = None  # (group arrays, laned scratch), built when lanes are turned on
         self._grad_sinks: dict = {}  # stand-ins for the gradients of arrays that have none
+        self._model_grad_cache = None  # (the gradient arrays, their StringModelArrays): _model_grad
         self.workspace = StringWorkspace.allocate(model, requires_grad=False)  # plain steps reuse it
         self._none_forced = wp.zeros(model.particle_count, dtype=wp.int32, device=model.device)
         self.lanes = self._lanes_supported  # on wherever the laned kernel applies (issue 19)
@@ -267,13 +269,7 @@ class SolverStringImplicit:
     def _step_inputs(self, state_in, control, h) -> list:
         """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in,
         the control and the step."""
-        m = self.model
-        return [m.string_start, m.particle_mass, m.string_stiffness, m.string_rest_length,
-                m.string_internal_friction, m.string_air_drag,
-                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
-                m.string_tie_stiffness, m.string_tie_damping, m.string_tied, m.string_taut_distance,
-                m.gravity, m.ground_height,
-                state_in.particle_q, state_in.particle_qd,
+        return [self.model.arrays, state_in.particle_q, state_in.particle_qd,
                 control.top_q, control.tie_q, control.tie_qd, h]
 
     @property
@@ -401,26 +397,36 @@ class SolverStringImplicit:
                 self._integrate_implicit_adjoint,
                 dim=m.string_count,
                 inputs=[
-                    m.string_start, *params, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd,
+                    m.arrays, state_in.particle_q, state_in.particle_qd,
                     ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
                     forced, control.top_q, control.tie_q, control.tie_qd, h,
                 ],
                 outputs=[ws.scratch_rhs_bar, *[self._grad(a) for a in outputs],
-                         *[self._grad(a) for a in inputs + params]],
+                         *[self._grad(a) for a in inputs], self._model_grad(params)],
                 device=m.device,
                 record_tape=False,
             )
 
         tape.record_func(backward, arrays=[a for a in outputs + inputs + params if a.grad is not None])
 
+    def _model_grad(self, params: list[wp.array]):
+        """The gradients of the model's differentiable arrays ``params`` (``_adjoint_arrays``), each
+        its ``.grad`` or a sink (:meth:`_grad`), as a ``StringModelArrays`` of the same field names
+        (the step adjoints' ``model_grad``); rebuilt only when one of those arrays changed."""
+        grads = [self._grad(a) for a in params]
+        cached = self._model_grad_cache
+        if cached is None or any(g is not c for g, c in zip(grads, cached[0])):
+            arrays = string_model_arrays_type(self.model.scalar)()
+            for name, grad in zip(DIFFERENTIABLE_FIELDS, grads):
+                setattr(arrays, name, grad)
+            self._model_grad_cache = cached = (grads, arrays)
+        return cached[1]
+
     def _adjoint_arrays(self, state_in, state_out, control) -> tuple[list, list, list]:
         """The step adjoints' differentiable arrays: the constants, the inputs and the outputs
         (in the adjoint kernels' order of their gradients)."""
         m = self.model
-        params = [m.particle_mass, m.string_stiffness, m.string_rest_length, m.string_internal_friction,
-                  m.string_air_drag, m.string_ground_stiffness, m.string_ground_absorption,
-                  m.string_ground_friction, m.string_tie_stiffness, m.string_tie_damping, m.string_tied]
+        params = [getattr(m, name) for name in DIFFERENTIABLE_FIELDS]
         inputs = [state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q, control.tie_qd]
         outputs = [state_out.particle_q, state_out.particle_qd, state_out.tie_force]
         return params, inputs, outputs
@@ -437,13 +443,12 @@ class SolverStringImplicit:
                 self._integrate_lanes_adjoint,
                 dim=groups[1].shape[0],
                 inputs=[
-                    *groups, m.string_start, *params, m.gravity, m.ground_height,
-                    state_in.particle_q, state_in.particle_qd,
+                    *groups, m.arrays, state_in.particle_q, state_in.particle_qd,
                     ws.lane_inverse, ws.lane_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
                     control.top_q, control.tie_q, control.tie_qd, h,
                 ],
                 outputs=[*adjoint_scratch, *[self._grad(a) for a in outputs],
-                         *[self._grad(a) for a in inputs + params]],
+                         *[self._grad(a) for a in inputs], self._model_grad(params)],
                 device=m.device,
                 record_tape=False,
             )
@@ -470,8 +475,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_spring,
             dim=m.particle_count,
-            inputs=[m.particle_string, m.string_start, m.string_stiffness, m.string_rest_length,
-                    state_in.particle_q, forced],
+            inputs=[m.arrays, state_in.particle_q, forced],
             outputs=[ws.segment_force, ws.segment_jacobian, ws.segment_jacobian_active, ws.segment_active],
             device=m.device,
             record_tape=record,
@@ -484,12 +488,7 @@ class SolverStringImplicit:
             self._eval_system,
             dim=m.particle_count,
             inputs=[
-                m.particle_string, m.string_start, m.particle_mass,
-                m.string_internal_friction, m.string_air_drag,
-                m.string_ground_stiffness, m.string_ground_absorption, m.string_ground_friction,
-                m.string_tie_stiffness, m.string_tie_damping, m.string_tied,
-                m.gravity, m.ground_height,
-                state_in.particle_q, state_in.particle_qd, ws.segment_force, ws.segment_jacobian,
+                m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_force, ws.segment_jacobian,
                 control.top_q, control.tie_q, control.tie_qd, h,
             ],
             outputs=[ws.system_diag, ws.system_upper, ws.system_rhs],
@@ -504,8 +503,7 @@ class SolverStringImplicit:
         wp.launch(
             self._solve_active,
             dim=m.string_count,
-            inputs=[m.string_start, m.string_rest_length, state_in.particle_q, state_in.particle_qd,
-                    ws.segment_jacobian_active, control.top_q, h],
+            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_jacobian_active, control.top_q, h],
             outputs=[ws.segment_active, ws.system_diag, ws.system_upper, ws.system_rhs,
                      ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
@@ -548,10 +546,7 @@ class SolverStringImplicit:
         wp.launch(
             self._integrate,
             dim=m.particle_count,
-            inputs=[
-                m.particle_string, m.string_start,
-                state_in.particle_q, state_in.particle_qd, ws.particle_dv, control.top_q, h,
-            ],
+            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.particle_dv, control.top_q, h],
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=m.device,
             record_tape=record,
@@ -562,11 +557,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_tie,
             dim=m.string_count,
-            inputs=[
-                m.string_start, m.string_tie_stiffness, m.string_tie_damping, m.string_tied,
-                m.string_taut_distance, state_out.particle_q, state_out.particle_qd,
-                control.tie_q, control.tie_qd,
-            ],
+            inputs=[m.arrays, state_out.particle_q, state_out.particle_qd, control.tie_q, control.tie_qd],
             outputs=[state_out.tie_force, state_out.string_taut],
             device=m.device,
             record_tape=record,
