@@ -40,6 +40,7 @@ import warp as wp
 from .string_integrate import string_output_function
 from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
 from .string_solve import thomas_row_functions
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 from .string_spring import string_spring_functions
 from .string_system import string_system_row_function
 
@@ -63,6 +64,8 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     compute_string_system_row = string_system_row_function(scalar, effects)
     compute_string_outputs = string_output_function(scalar)
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
+    StringControlArrays = string_control_arrays_type(scalar)
     StringConstants = string_constants_type(scalar)
     compute_string_constants = string_constants_function(scalar)
     thomas = thomas_row_functions(scalar)
@@ -129,24 +132,21 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
         # Model:
         model: StringModelArrays,
         # State in:
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         # Control:
-        top_q: wp.array(dtype=vec3),
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: scalar,
-        # State out (``pivot_inverse``: only if built with ``keep``):
+        # State out (``pivot_inverse``: only if built with ``keep``; the state out last):
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
         particle_dv: wp.array(dtype=vec3),
-        particle_q_out: wp.array(dtype=vec3),
-        particle_qd_out: wp.array(dtype=vec3),
-        tie_force: wp.array(dtype=vec3),
-        string_taut: wp.array(dtype=wp.int32),
+        state_out: StringStateArrays,
     ):
         s = wp.tid()
+        particle_q, particle_qd = state_in.particle_q, state_in.particle_qd
+        top_q, tie_q, tie_qd = control.top_q, control.tie_q, control.tie_qd
+        particle_q_out, particle_qd_out = state_out.particle_q, state_out.particle_qd
         start = model.string_start[s]
         last = model.string_start[s + 1] - 1
         zero = scalar(0.0)
@@ -197,7 +197,7 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
             particle_q_out[start], particle_q_out[last], particle_qd_out[last], tie_x, tie_v,
             constants.tie_stiffness, constants.tie_damping, model.string_taut_distance[s],
         )
-        tie_force[s] = force
-        string_taut[s] = taut
+        state_out.tie_force[s] = force
+        state_out.string_taut[s] = taut
 
     return integrate_string_implicit

@@ -1,0 +1,79 @@
+"""The strings' state and control as kernel arguments: ``StringStateArrays`` and ``StringControlArrays``.
+
+A string step reads a state (``strings.model.StringState``: the particles' positions and
+velocities) and a control (``StringControl``: the tops, the tie points and their velocities), and
+writes a state (positions, velocities, the ties' forces, the taut flags). The one-launch steps
+took these arrays one by one, the same twelve arguments repeated in every step kernel's signature
+and every launch's input list; a ``wp.struct`` of each object's arrays holds them instead, built
+by the object itself (``StringState.arrays``, ``StringControl.arrays``) and passed as
+``state_in``, ``control`` and ``state_out``. Like ``StringModelArrays`` (``string_model_arrays``)
+they hold the objects' own arrays (the same objects, not copies): a value written into one of
+them in place is seen by every launch. A struct value holds its arrays' pointers (and their
+``.grad``'s), as a captured graph does: the objects rebuild it when one of their arrays, or its
+gradient, is another object than the one it was built from.
+
+Per float type (:func:`string_state_arrays_type`, :func:`string_control_arrays_type`), as the
+kernels are.
+"""
+
+import functools
+
+import warp as wp
+
+__all__ = ["CONTROL_FIELDS", "STATE_FIELDS", "string_control_arrays_type", "string_state_arrays_type",
+           "struct_of_arrays"]
+
+# The fields of each struct (in the kernels' old argument order).
+STATE_FIELDS = ("particle_q", "particle_qd", "tie_force", "string_taut")
+CONTROL_FIELDS = ("top_q", "tie_q", "tie_qd")
+
+
+@functools.cache
+def string_state_arrays_type(scalar):
+    """The ``StringStateArrays`` struct for the float type ``scalar`` (``wp.float64`` or ``wp.float32``)."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.struct
+    class StringStateArrays:
+        """A string state's arrays, one kernel argument: ``StringState``'s (the same objects; units
+        and shapes: its attributes)."""
+
+        particle_q: wp.array(dtype=vec3)
+        particle_qd: wp.array(dtype=vec3)
+        tie_force: wp.array(dtype=vec3)
+        string_taut: wp.array(dtype=wp.int32)
+
+    return StringStateArrays
+
+
+@functools.cache
+def string_control_arrays_type(scalar):
+    """The ``StringControlArrays`` struct for the float type ``scalar``."""
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.struct
+    class StringControlArrays:
+        """A string control's arrays, one kernel argument: ``StringControl``'s (the same objects;
+        units and shapes: its attributes)."""
+
+        top_q: wp.array(dtype=vec3)
+        tie_q: wp.array(dtype=vec3)
+        tie_qd: wp.array(dtype=vec3)
+
+    return StringControlArrays
+
+
+def struct_of_arrays(struct_type, owner, fields, cached):
+    """``cached`` (a ``(key, struct)`` pair or None) if it was built from ``owner``'s arrays
+    ``fields`` and their gradients as they are now, else a new ``(key, struct)``: a
+    ``struct_type(scalar)`` (:func:`string_state_arrays_type` or :func:`string_control_arrays_type`,
+    ``scalar`` the first array's vectors' float type) holding them. The key is the arrays and
+    gradients themselves (compared by identity)."""
+    arrays = [getattr(owner, name) for name in fields]
+    key = [*arrays, *[a.grad for a in arrays]]
+    if cached is not None and all(a is b for a, b in zip(key, cached[0])):
+        return cached
+    struct = struct_type(arrays[0].dtype._wp_scalar_type_)()
+    for name, array in zip(fields, arrays):
+        setattr(struct, name, array)
+    return key, struct
