@@ -65,20 +65,24 @@ def _revision_modules(rev: str):
     return rev_string_step_lanes, rev_string_step_adjoint_lanes
 
 
-def _field(value, label: str):
-    """The field of the struct ``value`` that a kernel's argument ``label`` names (``x``,
-    ``x_grad``: of a gradients' struct, ``x_out``: of the state out), or None."""
-    for name in (label, label.removesuffix("_grad"), label.removesuffix("_out")):
-        if name in value._cls.vars:
-            return name
-    return None
+def _fields(value, labels: list[str]) -> list[str]:
+    """The fields of the struct ``value`` that a kernel's next arguments ``labels`` name, in their
+    order (``x``; ``x_out``: of a state out; ``x_grad``, ``x_out_grad``: of a gradients' struct), up
+    to the first that names none or one already taken."""
+    fields = []
+    for label in labels:
+        name = label if label in value._cls.vars else label.removesuffix("_grad").removesuffix("_out")
+        if name not in value._cls.vars or name in fields:
+            break
+        fields.append(name)
+    return fields
 
 
 def _launch_expanding(launch):
     """``wp.launch`` that, for a kernel of a revision that takes one by one what this tree's takes
     as a struct (the string model's constants before ``kernels/string_model_arrays``, the state and
     control before ``kernels/string_state_arrays``), passes a struct argument's fields the kernel
-    names in its place, in the kernel's order (``_field``)."""
+    names in its place, in the kernel's order (``_fields``)."""
 
     def expanding(kernel, dim, inputs=(), outputs=(), **kwargs):
         labels = [a.label for a in kernel.adj.args]
@@ -87,9 +91,7 @@ def _launch_expanding(launch):
         for value in [*inputs, *outputs]:
             label = labels[len(flat)] if len(flat) < len(labels) else None
             if hasattr(value, "_cls") and not (label and types[label] is value._cls):  # a struct it takes apart
-                fields = [_field(value, name) for name in itertools.takewhile(
-                    lambda name: _field(value, name) is not None, labels[len(flat):])]
-                flat += [getattr(value, name) for name in fields]
+                flat += [getattr(value, name) for name in _fields(value, labels[len(flat):])]
             else:
                 flat.append(value)
         return launch(kernel, dim, inputs=flat, **kwargs)  # (Warp reads inputs and outputs as one list)

@@ -20,12 +20,15 @@ import functools
 
 import warp as wp
 
-__all__ = ["CONTROL_FIELDS", "STATE_FIELDS", "string_control_arrays_type", "string_state_arrays_type",
-           "struct_of_arrays"]
+__all__ = ["CONTROL_FIELDS", "STATE_FIELDS", "STATE_GRAD_FIELDS", "string_control_arrays_type",
+           "string_state_arrays_type", "struct_of", "struct_of_arrays"]
 
 # The fields of each struct (in the kernels' old argument order).
 STATE_FIELDS = ("particle_q", "particle_qd", "tie_force", "string_taut")
 CONTROL_FIELDS = ("top_q", "tie_q", "tie_qd")
+# The state's fields a step differentiates (a gradients' ``StringStateArrays`` holds these; the taut
+# flags have none).
+STATE_GRAD_FIELDS = ("particle_q", "particle_qd", "tie_force")
 
 
 @functools.cache
@@ -63,17 +66,25 @@ def string_control_arrays_type(scalar):
     return StringControlArrays
 
 
-def struct_of_arrays(struct_type, owner, fields, cached):
-    """``cached`` (a ``(key, struct)`` pair or None) if it was built from ``owner``'s arrays
-    ``fields`` and their gradients as they are now, else a new ``(key, struct)``: a
-    ``struct_type(scalar)`` (:func:`string_state_arrays_type` or :func:`string_control_arrays_type`,
-    ``scalar`` the first array's vectors' float type) holding them. The key is the arrays and
-    gradients themselves (compared by identity)."""
-    arrays = [getattr(owner, name) for name in fields]
-    key = [*arrays, *[a.grad for a in arrays]]
-    if cached is not None and all(a is b for a, b in zip(key, cached[0])):
+def struct_of(struct_type, fields, arrays, cached):
+    """``cached`` (a ``(arrays, struct)`` pair or None) if it was built from these ``arrays`` (the
+    same objects), else a new pair: a ``struct_type(scalar)`` (:func:`string_state_arrays_type` or
+    :func:`string_control_arrays_type`, ``scalar`` the first array's vectors' float type) holding
+    ``arrays`` as its ``fields`` (the others left empty)."""
+    if cached is not None and len(cached[0]) == len(arrays) and all(a is b for a, b in zip(arrays, cached[0])):
         return cached
     struct = struct_type(arrays[0].dtype._wp_scalar_type_)()
     for name, array in zip(fields, arrays):
         setattr(struct, name, array)
-    return key, struct
+    return list(arrays), struct
+
+
+def struct_of_arrays(struct_type, owner, fields, cached):
+    """:func:`struct_of` ``owner``'s arrays ``fields``, rebuilt when one of them or its gradient is
+    another object than the one it was built from (both held by the returned pair)."""
+    arrays = [getattr(owner, name) for name in fields]
+    if cached is not None and all(a is b for a, b in zip(arrays, cached[0])) and all(
+            a.grad is b for a, b in zip(arrays, cached[0][len(arrays):])):
+        return cached
+    _key, struct = struct_of(struct_type, fields, arrays, None)
+    return [*arrays, *[a.grad for a in arrays]], struct
