@@ -482,7 +482,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_spring,
             dim=m.particle_count,
-            inputs=[m.arrays, state_in.particle_q, forced],
+            inputs=[m.arrays, state_in.arrays, forced],
             outputs=[ws.segment_force, ws.segment_jacobian, ws.segment_jacobian_active, ws.segment_active],
             device=m.device,
             record_tape=record,
@@ -494,10 +494,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_system,
             dim=m.particle_count,
-            inputs=[
-                m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_force, ws.segment_jacobian,
-                control.top_q, control.tie_q, control.tie_qd, h,
-            ],
+            inputs=[m.arrays, state_in.arrays, ws.segment_force, ws.segment_jacobian, control.arrays, h],
             outputs=[ws.system_diag, ws.system_upper, ws.system_rhs],
             device=m.device,
             record_tape=record,
@@ -510,7 +507,7 @@ class SolverStringImplicit:
         wp.launch(
             self._solve_active,
             dim=m.string_count,
-            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_jacobian_active, control.top_q, h],
+            inputs=[m.arrays, state_in.arrays, ws.segment_jacobian_active, control.arrays, h],
             outputs=[ws.segment_active, ws.system_diag, ws.system_upper, ws.system_rhs,
                      ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
@@ -553,8 +550,8 @@ class SolverStringImplicit:
         wp.launch(
             self._integrate,
             dim=m.particle_count,
-            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.particle_dv, control.top_q, h],
-            outputs=[state_out.particle_q, state_out.particle_qd],
+            inputs=[m.arrays, state_in.arrays, ws.particle_dv, control.arrays, h],
+            outputs=[state_out.arrays],
             device=m.device,
             record_tape=record,
         )
@@ -564,8 +561,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_tie,
             dim=m.string_count,
-            inputs=[m.arrays, state_out.particle_q, state_out.particle_qd, control.tie_q, control.tie_qd],
-            outputs=[state_out.tie_force, state_out.string_taut],
+            inputs=[m.arrays, control.arrays, state_out.arrays],
             device=m.device,
             record_tape=record,
         )
