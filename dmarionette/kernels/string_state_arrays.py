@@ -8,9 +8,9 @@ and every launch's input list; a ``wp.struct`` of each object's arrays holds the
 by the object itself (``StringState.arrays``, ``StringControl.arrays``) and passed as
 ``state_in``, ``control`` and ``state_out``. Like ``StringModelArrays`` (``string_model_arrays``)
 they hold the objects' own arrays (the same objects, not copies): a value written into one of
-them in place is seen by every launch. A struct value holds its arrays' pointers (and their
-``.grad``'s), as a captured graph does: the objects rebuild it when one of their arrays, or its
-gradient, is another object than the one it was built from.
+them in place is seen by every launch. A struct value holds its arrays' pointers, as a captured
+graph does: the objects rebuild it when one of their arrays is another object than the one it was
+built from (:func:`struct_of_arrays`).
 
 Per float type (:func:`string_state_arrays_type`, :func:`string_control_arrays_type`), as the
 kernels are.
@@ -80,11 +80,16 @@ def struct_of(struct_type, fields, arrays, cached):
 
 
 def struct_of_arrays(struct_type, owner, fields, cached):
-    """:func:`struct_of` ``owner``'s arrays ``fields``, rebuilt when one of them or its gradient is
-    another object than the one it was built from (both held by the returned pair)."""
-    arrays = [getattr(owner, name) for name in fields]
-    if cached is not None and all(a is b for a, b in zip(arrays, cached[0])) and all(
-            a.grad is b for a, b in zip(arrays, cached[0][len(arrays):])):
-        return cached
-    _key, struct = struct_of(struct_type, fields, arrays, None)
-    return [*arrays, *[a.grad for a in arrays]], struct
+    """:func:`struct_of` ``owner``'s arrays ``fields``, rebuilt only when one of them is another
+    object than the one it was built from. (Not when an array's gradient is: no kernel reads a
+    gradient through these structs; Warp's tape mirrors a struct argument with its arrays' ``.grad``
+    as they are at the backward pass, and the hand-written adjoints get structs of the gradients,
+    ``SolverStringImplicit._grad_arrays``.)"""
+    if cached is not None:
+        key = cached[0]
+        for i, name in enumerate(fields):
+            if getattr(owner, name) is not key[i]:
+                break
+        else:
+            return cached
+    return struct_of(struct_type, fields, [getattr(owner, name) for name in fields], None)

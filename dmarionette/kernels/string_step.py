@@ -31,6 +31,14 @@ from particle to particle). The tension-only springs (``StringEffects.tension_on
 five passes, on a tape or not: their active-set solve re-solves a chain after adding blocks to
 ``A``, which needs ``A`` stored. Both schedules call the same ``@wp.func``\\ s in the same order,
 so they agree bit for bit (``tests/strings/test_string_step_schedules.py``).
+
+Arguments: the control and the state out's ties as structs (``string_state_arrays``), but the
+particles' arrays of the state in and out one by one. Warp (1.19) compiles a CPU kernel whose 1D
+array arguments are all contiguous with their strides known (``sizeof`` the element; codegen's
+``cpu_linear_contiguous``), and a struct's arrays keep their strides at run time: read per row,
+the particles' arrays in ``StringStateArrays`` made the laned keep step 4-8 % slower
+(``benchmarks/ab_lane_kernels.py``), so the one-launch steps (this one and the laned one,
+``string_step_lanes``) take them as arrays.
 """
 
 import functools
@@ -131,22 +139,23 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     def integrate_string_implicit(
         # Model:
         model: StringModelArrays,
-        # State in:
-        state_in: StringStateArrays,
+        # State in (the particles' arrays one by one: the module doc's "Arguments"):
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
         # Control:
         control: StringControlArrays,
         dt: scalar,
-        # State out (``pivot_inverse``: only if built with ``keep``; the state out last):
+        # State out (``pivot_inverse``: only if built with ``keep``; the state out last, its particles one by one):
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
         particle_dv: wp.array(dtype=vec3),
+        particle_q_out: wp.array(dtype=vec3),
+        particle_qd_out: wp.array(dtype=vec3),
         state_out: StringStateArrays,
     ):
         s = wp.tid()
-        particle_q, particle_qd = state_in.particle_q, state_in.particle_qd
         top_q, tie_q, tie_qd = control.top_q, control.tie_q, control.tie_qd
-        particle_q_out, particle_qd_out = state_out.particle_q, state_out.particle_qd
         start = model.string_start[s]
         last = model.string_start[s + 1] - 1
         zero = scalar(0.0)

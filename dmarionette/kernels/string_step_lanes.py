@@ -452,8 +452,9 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         group_real: wp.array(dtype=wp.int32),
         group_base: wp.array(dtype=wp.int32),
         model: StringModelArrays,
-        # State in:
-        state_in: StringStateArrays,
+        # State in (the particles' arrays one by one, as ``string_step``'s module doc says why):
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
         # Control:
         control: StringControlArrays,
         dt: f64,
@@ -462,13 +463,13 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         lane_c: wp.array(dtype=lmat),
         lane_d: wp.array(dtype=lvec),
         particle_dv: wp.array(dtype=vec3),
+        particle_q_out: wp.array(dtype=vec3),
+        particle_qd_out: wp.array(dtype=vec3),
         state_out: StringStateArrays,
     ):
         strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
                                                             model.string_start)
-        particle_q, particle_qd = state_in.particle_q, state_in.particle_qd
         top_q, tie_q, tie_qd = control.top_q, control.tie_q, control.tie_qd
-        particle_q_out, particle_qd_out = state_out.particle_q, state_out.particle_qd
         tie_force, string_taut = state_out.tie_force, state_out.string_taut
         last = n - 1
         particle_mass = model.particle_mass

@@ -263,15 +263,21 @@ class SolverStringImplicit:
             self._integrate_implicit_keep if keep else self._integrate_implicit,
             dim=m.string_count,
             inputs=self._step_inputs(state_in, control, h),
-            outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv, state_out.arrays],
+            outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv, *self._step_outputs(state_out)],
             device=m.device,
             record_tape=False,
         )
 
     def _step_inputs(self, state_in, control, h) -> list:
-        """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in,
-        the control (each its struct of arrays) and the step."""
-        return [self.model.arrays, state_in.arrays, control.arrays, h]
+        """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in's
+        particles (as arrays: ``kernels/string_step``'s module doc), the control and the step."""
+        return [self.model.arrays, state_in.particle_q, state_in.particle_qd, control.arrays, h]
+
+    @staticmethod
+    def _step_outputs(state_out) -> list:
+        """The one-launch steps' state out: its particles (as arrays), then its ``StringStateArrays``
+        (for its ties' forces and taut flags)."""
+        return [state_out.particle_q, state_out.particle_qd, state_out.arrays]
 
     @property
     def lanes(self) -> bool:
@@ -318,7 +324,7 @@ class SolverStringImplicit:
             self._integrate_lanes_keep if keep else self._integrate_lanes,
             dim=groups[1].shape[0],
             inputs=[*groups, *self._step_inputs(state_in, control, h)],
-            outputs=[lane_inverse, lane_c, lane_d, ws.particle_dv, state_out.arrays],
+            outputs=[lane_inverse, lane_c, lane_d, ws.particle_dv, *self._step_outputs(state_out)],
             device=m.device,
             record_tape=False,
         )
