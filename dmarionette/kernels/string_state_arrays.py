@@ -8,9 +8,9 @@ and every launch's input list; a ``wp.struct`` of each object's arrays holds the
 by the object itself (``StringState.arrays``, ``StringControl.arrays``) and passed as
 ``state_in``, ``control`` and ``state_out``. Like ``StringModelArrays`` (``string_model_arrays``)
 they hold the objects' own arrays (the same objects, not copies): a value written into one of
-them in place is seen by every launch. A struct value holds its arrays' pointers, as a captured
-graph does: the objects rebuild it when one of their arrays is another object than the one it was
-built from (:func:`struct_of_arrays`).
+them in place is seen by every launch. A struct value holds its arrays' pointers and their
+gradients', as a captured graph does: the objects rebuild it when one of their arrays, or its
+``.grad``, is another object than the one it was built from (:func:`struct_of_arrays`).
 
 Per float type (:func:`string_state_arrays_type`, :func:`string_control_arrays_type`), as the
 kernels are.
@@ -80,16 +80,19 @@ def struct_of(struct_type, fields, arrays, cached):
 
 
 def struct_of_arrays(struct_type, owner, fields, cached):
-    """:func:`struct_of` ``owner``'s arrays ``fields``, rebuilt only when one of them is another
-    object than the one it was built from. (Not when an array's gradient is: no kernel reads a
-    gradient through these structs; Warp's tape mirrors a struct argument with its arrays' ``.grad``
-    as they are at the backward pass, and the hand-written adjoints get structs of the gradients,
-    ``SolverStringImplicit._grad_arrays``.)"""
+    """:func:`struct_of` ``owner``'s arrays ``fields``, rebuilt only when one of them, or its
+    gradient, is another object than the one it was built from (a struct value holds its arrays'
+    gradient pointers too, which a captured launch checks: ``requires_grad`` set or cleared after
+    the struct was built)."""
     if cached is not None:
         key = cached[0]
+        n = len(fields)
         for i, name in enumerate(fields):
-            if getattr(owner, name) is not key[i]:
+            array = getattr(owner, name)
+            if array is not key[i] or array.grad is not key[n + i]:
                 break
         else:
             return cached
-    return struct_of(struct_type, fields, [getattr(owner, name) for name in fields], None)
+    arrays = [getattr(owner, name) for name in fields]
+    _arrays, struct = struct_of(struct_type, fields, arrays, None)
+    return [*arrays, *[a.grad for a in arrays]], struct

@@ -32,13 +32,14 @@ five passes, on a tape or not: their active-set solve re-solves a chain after ad
 ``A``, which needs ``A`` stored. Both schedules call the same ``@wp.func``\\ s in the same order,
 so they agree bit for bit (``tests/strings/test_string_step_schedules.py``).
 
-Arguments: the control and the state out's ties as structs (``string_state_arrays``), but the
-particles' arrays of the state in and out one by one. Warp (1.19) compiles a CPU kernel whose 1D
-array arguments are all contiguous with their strides known (``sizeof`` the element; codegen's
-``cpu_linear_contiguous``), and a struct's arrays keep their strides at run time: read per row,
-the particles' arrays in ``StringStateArrays`` made the laned keep step 4-8 % slower
-(``benchmarks/ab_lane_kernels.py``), so the one-launch steps (this one and the laned one,
-``string_step_lanes``) take them as arrays.
+Arguments: the model as its ``StringModelArrays``, but the state in, the control and the state out
+as arrays one by one, not as the ``StringStateArrays``/``StringControlArrays`` the other step
+kernels take (``string_state_arrays``). Warp (1.19) compiles a CPU kernel whose 1D array arguments
+are all contiguous with their strides known (``sizeof`` the element; codegen's
+``cpu_linear_contiguous``), and a struct's arrays keep their strides at run time: with the structs,
+the laned keep step (``string_step_lanes``, the same arguments) was 4-8 % slower with the particles'
+arrays in them and 2-5 % slower (some replays 20-60 %) with only the control and the ties' outputs
+in them (``benchmarks/ab_lane_kernels.py``, against e8888c7), so the one-launch steps keep arrays.
 """
 
 import functools
@@ -48,7 +49,6 @@ import warp as wp
 from .string_integrate import string_output_function
 from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
 from .string_solve import thomas_row_functions
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 from .string_spring import string_spring_functions
 from .string_system import string_system_row_function
 
@@ -72,8 +72,6 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     compute_string_system_row = string_system_row_function(scalar, effects)
     compute_string_outputs = string_output_function(scalar)
     StringModelArrays = string_model_arrays_type(scalar)
-    StringStateArrays = string_state_arrays_type(scalar)
-    StringControlArrays = string_control_arrays_type(scalar)
     StringConstants = string_constants_type(scalar)
     compute_string_constants = string_constants_function(scalar)
     thomas = thomas_row_functions(scalar)
@@ -139,23 +137,25 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
     def integrate_string_implicit(
         # Model:
         model: StringModelArrays,
-        # State in (the particles' arrays one by one: the module doc's "Arguments"):
+        # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
         # Control:
-        control: StringControlArrays,
+        top_q: wp.array(dtype=vec3),
+        tie_q: wp.array(dtype=vec3),
+        tie_qd: wp.array(dtype=vec3),
         dt: scalar,
-        # State out (``pivot_inverse``: only if built with ``keep``; the state out last, its particles one by one):
+        # State out (``pivot_inverse``: only if built with ``keep``):
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         scratch_d: wp.array(dtype=vec3),
         particle_dv: wp.array(dtype=vec3),
         particle_q_out: wp.array(dtype=vec3),
         particle_qd_out: wp.array(dtype=vec3),
-        state_out: StringStateArrays,
+        tie_force: wp.array(dtype=vec3),
+        string_taut: wp.array(dtype=wp.int32),
     ):
         s = wp.tid()
-        top_q, tie_q, tie_qd = control.top_q, control.tie_q, control.tie_qd
         start = model.string_start[s]
         last = model.string_start[s + 1] - 1
         zero = scalar(0.0)
@@ -206,7 +206,7 @@ def integrate_string_implicit_kernel(scalar, effects: tuple[bool, bool, bool, bo
             particle_q_out[start], particle_q_out[last], particle_qd_out[last], tie_x, tie_v,
             constants.tie_stiffness, constants.tie_damping, model.string_taut_distance[s],
         )
-        state_out.tie_force[s] = force
-        state_out.string_taut[s] = taut
+        tie_force[s] = force
+        string_taut[s] = taut
 
     return integrate_string_implicit

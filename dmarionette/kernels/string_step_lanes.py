@@ -40,7 +40,6 @@ import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
 from .string_model_arrays import string_model_arrays_type
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 
 f64 = wp.float64
 
@@ -304,8 +303,6 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
     compute_lane_spring = f.compute_lane_spring
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
     StringModelArrays = string_model_arrays_type(f64)
-    StringStateArrays = string_state_arrays_type(f64)
-    StringControlArrays = string_control_arrays_type(f64)
 
     @wp.func
     def compute_lane_system_row(
@@ -452,25 +449,26 @@ def integrate_string_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool], 
         group_real: wp.array(dtype=wp.int32),
         group_base: wp.array(dtype=wp.int32),
         model: StringModelArrays,
-        # State in (the particles' arrays one by one, as ``string_step``'s module doc says why):
+        # State in:
         particle_q: wp.array(dtype=vec3),
         particle_qd: wp.array(dtype=vec3),
         # Control:
-        control: StringControlArrays,
+        top_q: wp.array(dtype=vec3),
+        tie_q: wp.array(dtype=vec3),
+        tie_qd: wp.array(dtype=vec3),
         dt: f64,
-        # State out (first the laned scratch: pivot inverses, only if built with ``keep``, C', d'; the state last):
+        # State out (first the laned scratch: pivot inverses, only if built with ``keep``, C', d'):
         lane_inverse: wp.array(dtype=lmat),
         lane_c: wp.array(dtype=lmat),
         lane_d: wp.array(dtype=lvec),
         particle_dv: wp.array(dtype=vec3),
         particle_q_out: wp.array(dtype=vec3),
         particle_qd_out: wp.array(dtype=vec3),
-        state_out: StringStateArrays,
+        tie_force: wp.array(dtype=vec3),
+        string_taut: wp.array(dtype=wp.int32),
     ):
         strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
                                                             model.string_start)
-        top_q, tie_q, tie_qd = control.top_q, control.tie_q, control.tie_qd
-        tie_force, string_taut = state_out.tie_force, state_out.string_taut
         last = n - 1
         particle_mass = model.particle_mass
         gravity = model.gravity

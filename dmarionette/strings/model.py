@@ -182,8 +182,8 @@ class StringState:
             eq. 2, ``f_body``; zero for untied strings), shape ``(S,)`` of vec3.
         string_taut: 1 where the string is taut after the step (paper §3.2), shape ``(S,)``.
         arrays: the above as one kernel argument, a ``StringStateArrays``
-            (``kernels/string_state_arrays``) holding these same arrays (rebuilt when one of them
-            is replaced).
+            (``kernels/string_state_arrays``) holding these same arrays (rebuilt when one of them,
+            or its ``.grad``, is replaced).
     """
 
     def __init__(self, model: StringModel, q: np.ndarray, qd: np.ndarray):
@@ -223,8 +223,8 @@ class StringControl:
         tie_q: position of each tied string's body point at the end of the step [m], ``(S,)``.
         tie_qd: velocity of each tied string's body point [m/s], ``(S,)``.
         arrays: the above as one kernel argument, a ``StringControlArrays``
-            (``kernels/string_state_arrays``) holding these same arrays (rebuilt when one of them
-            is replaced).
+            (``kernels/string_state_arrays``) holding these same arrays (rebuilt when one of them,
+            or its ``.grad``, is replaced).
     """
 
     def __init__(self, top_q: wp.array, tie_q: wp.array, tie_qd: wp.array):

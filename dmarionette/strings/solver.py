@@ -269,15 +269,15 @@ class SolverStringImplicit:
         )
 
     def _step_inputs(self, state_in, control, h) -> list:
-        """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in's
-        particles (as arrays: ``kernels/string_step``'s module doc), the control and the step."""
-        return [self.model.arrays, state_in.particle_q, state_in.particle_qd, control.arrays, h]
+        """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in,
+        the control (as arrays, not their structs: ``kernels/string_step``'s module doc) and the step."""
+        return [self.model.arrays, state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q,
+                control.tie_qd, h]
 
     @staticmethod
     def _step_outputs(state_out) -> list:
-        """The one-launch steps' state out: its particles (as arrays), then its ``StringStateArrays``
-        (for its ties' forces and taut flags)."""
-        return [state_out.particle_q, state_out.particle_qd, state_out.arrays]
+        """The one-launch steps' state out (as arrays, as :meth:`_step_inputs`)."""
+        return [state_out.particle_q, state_out.particle_qd, state_out.tie_force, state_out.string_taut]
 
     @property
     def lanes(self) -> bool:
