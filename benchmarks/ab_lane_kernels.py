@@ -10,8 +10,9 @@ does), the laned step with ``keep`` (a taped step's) and the plain laned step
 ``string_step_adjoint_lanes`` are read with ``git show`` into a temporary folder and imported from
 there (the rest, the solver and its launch code included, is this tree's; the revision's adjoint
 gets as many laned scratch arrays as its signature names; a revision from before the kernels took
-the string model as one ``StringModelArrays`` argument gets that struct's fields its signature
-names in its place, ``_launch_expanding``). Each sample replays the two versions'
+the string model as one ``StringModelArrays`` argument, or the state and control as
+``StringStateArrays`` and ``StringControlArrays``, gets those structs' fields its signature names
+in their place, ``_launch_expanding``). Each sample replays the two versions'
 graphs back to back (which one first alternates), so that a change of the machine's load between
 samples cancels in their ratio; printed: the median of the ratios (this tree / the revision) and
 its quartiles, and each version's median and least time per launch (µs). ``--clock cpu``: the
@@ -64,22 +65,33 @@ def _revision_modules(rev: str):
     return rev_string_step_lanes, rev_string_step_adjoint_lanes
 
 
+def _fields(value, labels: list[str]) -> list[str]:
+    """The fields of the struct ``value`` that a kernel's next arguments ``labels`` name, in their
+    order (``x``; ``x_out``: of a state out; ``x_grad``, ``x_out_grad``: of a gradients' struct), up
+    to the first that names none or one already taken."""
+    fields = []
+    for label in labels:
+        name = label if label in value._cls.vars else label.removesuffix("_grad").removesuffix("_out")
+        if name not in value._cls.vars or name in fields:
+            break
+        fields.append(name)
+    return fields
+
+
 def _launch_expanding(launch):
-    """``wp.launch`` that, for a kernel taking the string model's constants one by one (a revision
-    before ``kernels/string_model_arrays``), passes a ``StringModelArrays`` argument's fields the
-    kernel names in its place, in the kernel's order (of the model gradients' struct, the fields
-    its ``<name>_grad`` arguments name)."""
+    """``wp.launch`` that, for a kernel of a revision that takes one by one what this tree's takes
+    as a struct (the string model's constants before ``kernels/string_model_arrays``, the state and
+    control before ``kernels/string_state_arrays``), passes a struct argument's fields the kernel
+    names in its place, in the kernel's order (``_fields``)."""
 
     def expanding(kernel, dim, inputs=(), outputs=(), **kwargs):
         labels = [a.label for a in kernel.adj.args]
-        if "model" in labels:
-            return launch(kernel, dim, inputs=inputs, outputs=outputs, **kwargs)
+        types = {a.label: a.type for a in kernel.adj.args}
         flat = []
         for value in [*inputs, *outputs]:
-            if hasattr(value, "_cls") and hasattr(value, "string_start"):  # a StringModelArrays
-                fields = [name.removesuffix("_grad") for name in itertools.takewhile(
-                    lambda name: hasattr(value, name.removesuffix("_grad")), labels[len(flat):])]
-                flat += [getattr(value, name) for name in fields]
+            label = labels[len(flat)] if len(flat) < len(labels) else None
+            if hasattr(value, "_cls") and not (label and types[label] is value._cls):  # a struct it takes apart
+                flat += [getattr(value, name) for name in _fields(value, labels[len(flat):])]
             else:
                 flat.append(value)
         return launch(kernel, dim, inputs=flat, **kwargs)  # (Warp reads inputs and outputs as one list)

@@ -53,7 +53,6 @@ from dmarionette.kernels.bar_feedback import eval_bar_feedback_kernel
 from dmarionette.kernels.string_body_coupling import (apply_string_forces_to_anchors_kernel,
                                                       eval_string_response_kernel, eval_tie_path)
 from dmarionette.marionette.solver import MarionetteControl, MarionetteState, SolverMarionette
-from dmarionette.marionette.workspace import StringStepOutput
 from dmarionette.strings.rollout import upload_values
 
 __all__ = ["MarionetteConstantsTangent", "MarionetteControlTangent", "MarionetteTangent", "MarionetteTangentState"]
@@ -223,9 +222,7 @@ class MarionetteTangent:
         q_dot, qd_dot = tangent_in.particle_q, tangent_in.particle_qd
         for j in range(m.substeps):
             previous = state_in.strings if j == 0 else sv.string_state_after(state_out, j - 1, workspace=ws)
-            particles = sv.string_state_after(state_out, j, workspace=ws)
-            nxt = StringStepOutput(particles.particle_q, particles.particle_qd, state_out.tie_force[j],
-                                   state_out.string_taut[j])
+            nxt = sv.string_step_outputs(state_out, workspace=ws)[j]
             q_out, qd_out = ((tangent_out.particle_q, tangent_out.particle_qd) if j == m.substeps - 1
                              else self.particles[j % 2])
             self.strings.step(previous, nxt, controls[j], m.string_dt, q_dot, qd_dot, q_out, qd_out,

@@ -13,6 +13,7 @@ import functools
 import warp as wp
 
 from .string_model_arrays import string_model_arrays_type
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 from .string_tie import compute_tie_force
 
 
@@ -43,60 +44,55 @@ def integrate_string_kernels(scalar):
     vec3 = wp.types.vector(3, scalar)
     compute_string_outputs = string_output_function(scalar)
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
+    StringControlArrays = string_control_arrays_type(scalar)
 
     @wp.kernel(module="unique")
     def integrate_string_particles(
         # Model:
         model: StringModelArrays,
         # State in:
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         particle_dv: wp.array(dtype=vec3),
         # Control:
-        top_q: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: scalar,
         # State out:
-        particle_q_out: wp.array(dtype=vec3),
-        particle_qd_out: wp.array(dtype=vec3),
+        state_out: StringStateArrays,
     ):
         p = wp.tid()
         s = model.particle_string[p]
         if p == model.string_start[s]:
             # The top particle follows its attach point; its velocity is the one that
             # moves it there in one backward-Euler step.
-            target = top_q[s]
-            particle_qd_out[p] = (target - particle_q[p]) / dt
-            particle_q_out[p] = target
+            target = control.top_q[s]
+            state_out.particle_qd[p] = (target - state_in.particle_q[p]) / dt
+            state_out.particle_q[p] = target
         else:
-            v = particle_qd[p] + particle_dv[p]
-            particle_qd_out[p] = v
-            particle_q_out[p] = particle_q[p] + dt * v
+            v = state_in.particle_qd[p] + particle_dv[p]
+            state_out.particle_qd[p] = v
+            state_out.particle_q[p] = state_in.particle_q[p] + dt * v
 
     @wp.kernel(module="unique")
     def eval_string_tie_force(
         # Model:
         model: StringModelArrays,
-        # State in:
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
         # Control:
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
-        # State out:
-        tie_force: wp.array(dtype=vec3),
-        string_taut: wp.array(dtype=wp.int32),
+        control: StringControlArrays,
+        # State in and out (its particles read, its ties' forces and taut flags written):
+        state: StringStateArrays,
     ):
         s = wp.tid()
         first = model.string_start[s]
         last = model.string_start[s + 1] - 1
-        x = particle_q[last]
-        v = particle_qd[last]
+        x = state.particle_q[last]
+        v = state.particle_qd[last]
         tied = model.string_tied[s]
         # Paper eq. 2, the force on the body (0 for a cut tie: ``tied`` is 1 or 0), and §3.2's taut flag.
-        force, taut = compute_string_outputs(particle_q[first], x, v, tie_q[s], tie_qd[s],
+        force, taut = compute_string_outputs(state.particle_q[first], x, v, control.tie_q[s], control.tie_qd[s],
                                              tied * model.string_tie_stiffness[s], tied * model.string_tie_damping[s],
                                              model.string_taut_distance[s])
-        tie_force[s] = force
-        string_taut[s] = taut
+        state.tie_force[s] = force
+        state.string_taut[s] = taut
 
     return integrate_string_particles, eval_string_tie_force

@@ -35,6 +35,7 @@ from typing import Any
 import warp as wp
 
 from .string_model_arrays import string_model_arrays_type
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 
 MAX_ACTIVE_SET_PASSES = 8  # re-solves per chain and step at most (each activates >= 1 segment)
 
@@ -78,6 +79,8 @@ def solve_string_system_kernels(scalar):
     thomas = thomas_row_functions(scalar)
     compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
+    StringControlArrays = string_control_arrays_type(scalar)
 
     @wp.func
     def compute_back_substitution(
@@ -237,11 +240,10 @@ def solve_string_system_kernels(scalar):
         # Model:
         model: StringModelArrays,
         # State in:
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         segment_jacobian_active: wp.array(dtype=mat33),
         # Control:
-        top_q: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: scalar,
         # State in and out (segments activated, their blocks added):
         segment_active: wp.array(dtype=wp.int32),
@@ -261,7 +263,8 @@ def solve_string_system_kernels(scalar):
         )
         for _pass in range(MAX_ACTIVE_SET_PASSES):
             added = compute_segment_activation(
-                string_start, s, model.string_rest_length[s], particle_q, particle_qd, top_q, dt,
+                string_start, s, model.string_rest_length[s], state_in.particle_q, state_in.particle_qd,
+                control.top_q, dt,
                 segment_jacobian_active, particle_dv, segment_active, system_diag, system_upper, system_rhs,
             )
             if added == 0:

@@ -31,6 +31,15 @@ from particle to particle). The tension-only springs (``StringEffects.tension_on
 five passes, on a tape or not: their active-set solve re-solves a chain after adding blocks to
 ``A``, which needs ``A`` stored. Both schedules call the same ``@wp.func``\\ s in the same order,
 so they agree bit for bit (``tests/strings/test_string_step_schedules.py``).
+
+Arguments: the model as its ``StringModelArrays``, but the state in, the control and the state out
+as arrays one by one, not as the ``StringStateArrays``/``StringControlArrays`` the other step
+kernels take (``string_state_arrays``). Warp (1.19) compiles a CPU kernel whose 1D array arguments
+are all contiguous with their strides known (``sizeof`` the element; codegen's
+``cpu_linear_contiguous``), and a struct's arrays keep their strides at run time: with the structs,
+the laned keep step (``string_step_lanes``, the same arguments) was 4-8 % slower with the particles'
+arrays in them and 2-5 % slower (some replays 20-60 %) with only the control and the ties' outputs
+in them (``benchmarks/ab_lane_kernels.py``, against e8888c7), so the one-launch steps keep arrays.
 """
 
 import functools

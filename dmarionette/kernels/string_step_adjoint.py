@@ -45,6 +45,7 @@ import warp as wp
 
 from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
 from .string_spring import string_spring_adjoint_functions
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 
 __all__ = ["string_step_adjoint_kernel"]
 
@@ -58,6 +59,8 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     TENSION_ONLY = tension_only
     vec3 = wp.types.vector(3, scalar)
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
+    StringControlArrays = string_control_arrays_type(scalar)
     StringConstants = string_constants_type(scalar)
     compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
@@ -293,43 +296,38 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # Model:
         model: StringModelArrays,
         # State in (the step's start, then what the forward, built with ``keep``, wrote):
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         pivot_inverse: wp.array(dtype=mat33),
         scratch_c: wp.array(dtype=mat33),
         particle_dv: wp.array(dtype=vec3),
-        particle_q_out: wp.array(dtype=vec3),
-        particle_qd_out: wp.array(dtype=vec3),
+        state_out: StringStateArrays,
         segment_forced: wp.array(dtype=wp.int32),
         # Control:
-        top_q: wp.array(dtype=vec3),
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: scalar,
         # State out (scratch: the solve's forward substitution):
         solve_bar: wp.array(dtype=vec3),
-        # Adjoint in and out (read, then consumed: zeroed):
-        particle_q_out_grad: wp.array(dtype=vec3),
-        particle_qd_out_grad: wp.array(dtype=vec3),
-        tie_force_grad: wp.array(dtype=vec3),
-        # Adjoint out (accumulated; ``model_grad``: the model's, its arrays' ``.grad`` as a ``StringModelArrays``):
-        particle_q_grad: wp.array(dtype=vec3),
-        particle_qd_grad: wp.array(dtype=vec3),
-        top_q_grad: wp.array(dtype=vec3),
-        tie_q_grad: wp.array(dtype=vec3),
-        tie_qd_grad: wp.array(dtype=vec3),
+        # Adjoint in and out (the state out's gradients; read, then consumed: zeroed):
+        state_out_grad: StringStateArrays,
+        # Adjoint out (accumulated: the state in's, the control's and the model's, each its arrays' ``.grad``):
+        state_in_grad: StringStateArrays,
+        control_grad: StringControlArrays,
         model_grad: StringModelArrays,
     ):
         s = wp.tid()
+        particle_q, particle_qd = state_in.particle_q, state_in.particle_qd
+        particle_q_out, particle_qd_out = state_out.particle_q, state_out.particle_qd
+        particle_q_out_grad, particle_qd_out_grad = state_out_grad.particle_q, state_out_grad.particle_qd
+        particle_q_grad, particle_qd_grad = state_in_grad.particle_q, state_in_grad.particle_qd
         start = model.string_start[s]
         last = model.string_start[s + 1] - 1
         zero = scalar(0.0)
         h2 = dt * dt
         particle_mass = model.particle_mass
         constants = compute_string_constants(model, s)
-        tie_x = tie_q[s]
-        tie_v = tie_qd[s]
-        top = top_q[s]
+        tie_x = control.tie_q[s]
+        tie_v = control.tie_qd[s]
+        top = control.top_q[s]
         top_dx = top - particle_q[start]
         top_dv = top_dx / dt - particle_qd[start]
         g_upper = zero  # the friction's part of A_{j,j+1}: h D_j,j+1 = -h k_f I
@@ -337,8 +335,8 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             g_upper = -dt * constants.friction
 
         # 1. The outputs: the tie force (eq. 2 on the new state) and the top particle.
-        force_bar = tie_force_grad[s]
-        tie_force_grad[s] = vec3(zero)
+        force_bar = state_out_grad.tie_force[s]
+        state_out_grad.tie_force[s] = vec3(zero)
         tie_stiffness_bar = -wp.dot(tie_x - particle_q_out[last], force_bar)
         tie_damping_bar = -wp.dot(tie_v - particle_qd_out[last], force_bar)
         tie_x_bar = -constants.tie_stiffness * force_bar
@@ -433,9 +431,9 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         top_bar = top_bar + top_dx_bar
         particle_q_grad[start] = particle_q_grad[start] - top_dx_bar
 
-        top_q_grad[s] = top_q_grad[s] + top_bar
-        tie_q_grad[s] = tie_q_grad[s] + tie_x_bar
-        tie_qd_grad[s] = tie_qd_grad[s] + tie_v_bar
+        control_grad.top_q[s] = control_grad.top_q[s] + top_bar
+        control_grad.tie_q[s] = control_grad.tie_q[s] + tie_x_bar
+        control_grad.tie_qd[s] = control_grad.tie_qd[s] + tie_v_bar
         model_grad.string_stiffness[s] = model_grad.string_stiffness[s] + stiffness_bar
         model_grad.string_rest_length[s] = model_grad.string_rest_length[s] + rest_bar
         model_grad.string_internal_friction[s] = model_grad.string_internal_friction[s] + friction_bar

@@ -34,6 +34,7 @@ import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
 from .string_model_arrays import string_model_arrays_type
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 
 __all__ = ["lane_parts_type", "string_step_adjoint_lanes_kernel"]
@@ -68,6 +69,8 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     lneg, vadd, vsub, lsum3, lscale, lmul_vec = f.lneg, f.vadd, f.vsub, f.lsum3, f.lscale, f.lmul_vec
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
     StringModelArrays = string_model_arrays_type(f64)
+    StringStateArrays = string_state_arrays_type(f64)
+    StringControlArrays = string_control_arrays_type(f64)
 
     # --- accumulation into the gradients, real lanes only ---------------------------------------
 
@@ -367,37 +370,32 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         group_base: wp.array(dtype=wp.int32),
         model: StringModelArrays,
         # State in (the step's start, then what the laned step, built with ``keep``, wrote):
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         lane_inverse: wp.array(dtype=lmat),
         lane_c: wp.array(dtype=lmat),
         particle_dv: wp.array(dtype=vec3),
-        particle_q_out: wp.array(dtype=vec3),
-        particle_qd_out: wp.array(dtype=vec3),
+        state_out: StringStateArrays,
         # Control:
-        top_q: wp.array(dtype=vec3),
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: f64,
         # State out (laned scratch: forward substitution, gradient terms, spring parts):
         lane_bar: wp.array(dtype=lvec),
         lane_x_bar: wp.array(dtype=lvec),
         lane_r: wp.array(dtype=lvec),
         lane_parts: wp.array(dtype=lparts),
-        # Adjoint in and out (read, then consumed: zeroed):
-        particle_q_out_grad: wp.array(dtype=vec3),
-        particle_qd_out_grad: wp.array(dtype=vec3),
-        tie_force_grad: wp.array(dtype=vec3),
-        # Adjoint out (accumulated; ``model_grad``: the model's, its arrays' ``.grad`` as a ``StringModelArrays``):
-        particle_q_grad: wp.array(dtype=vec3),
-        particle_qd_grad: wp.array(dtype=vec3),
-        top_q_grad: wp.array(dtype=vec3),
-        tie_q_grad: wp.array(dtype=vec3),
-        tie_qd_grad: wp.array(dtype=vec3),
+        # Adjoint in and out (the state out's gradients; read, then consumed: zeroed):
+        state_out_grad: StringStateArrays,
+        # Adjoint out (accumulated: the state in's, the control's and the model's, each its arrays' ``.grad``):
+        state_in_grad: StringStateArrays,
+        control_grad: StringControlArrays,
         model_grad: StringModelArrays,
     ):
         strings, real, base, starts, n = compute_lane_group(wp.tid(), group_string, group_real, group_base,
                                                             model.string_start)
+        particle_q, particle_qd = state_in.particle_q, state_in.particle_qd
+        particle_q_out, particle_qd_out = state_out.particle_q, state_out.particle_qd
+        particle_q_out_grad, particle_qd_out_grad = state_out_grad.particle_q, state_out_grad.particle_qd
+        particle_q_grad, particle_qd_grad = state_in_grad.particle_q, state_in_grad.particle_qd
         last = n - 1
         zero = lane(f64(0.0))
         zv = lvec()
@@ -410,9 +408,9 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
          tie_stiffness_k, tie_damping_k) = gather_string_constants(strings, model)
         tie_stiffness = lmul(tied, tie_stiffness_k)
         tie_damping = lmul(tied, tie_damping_k)
-        tie_x = gather_string3(tie_q, strings)
-        tie_v = gather_string3(tie_qd, strings)
-        top = gather_string3(top_q, strings)
+        tie_x = gather_string3(control.tie_q, strings)
+        tie_v = gather_string3(control.tie_qd, strings)
+        top = gather_string3(control.top_q, strings)
         q0 = gather_particle3(particle_q, starts, 0)
         top_dx = vsub(top, q0)
         top_dv = vsub(vdiv(top_dx, hl), gather_particle3(particle_qd, starts, 0))
@@ -421,8 +419,8 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             g_upper = lmul(lneg(hl), friction)
 
         # 1. The outputs: the tie force (eq. 2 on the new state) and the top particle.
-        force_bar = gather_string3(tie_force_grad, strings)
-        scatter3(tie_force_grad, strings, 0, real, zv)
+        force_bar = gather_string3(state_out_grad.tie_force, strings)
+        scatter3(state_out_grad.tie_force, strings, 0, real, zv)
         tie_stiffness_bar = lneg(ldot(vsub(tie_x, gather_particle3(particle_q_out, starts, last)), force_bar))
         tie_damping_bar = lneg(ldot(vsub(tie_v, gather_particle3(particle_qd_out, starts, last)), force_bar))
         tie_x_bar = lscale(lneg(tie_stiffness), force_bar)
@@ -518,9 +516,9 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         top_bar = vadd(top_bar, top_dx_bar)
         scatter_sub3(particle_q_grad, starts, 0, real, top_dx_bar)
 
-        scatter_add3(top_q_grad, strings, 0, real, top_bar)
-        scatter_add3(tie_q_grad, strings, 0, real, tie_x_bar)
-        scatter_add3(tie_qd_grad, strings, 0, real, tie_v_bar)
+        scatter_add3(control_grad.top_q, strings, 0, real, top_bar)
+        scatter_add3(control_grad.tie_q, strings, 0, real, tie_x_bar)
+        scatter_add3(control_grad.tie_qd, strings, 0, real, tie_v_bar)
         scatter_add(model_grad.string_stiffness, strings, 0, real, stiffness_bar)
         scatter_add(model_grad.string_rest_length, strings, 0, real, rest_bar)
         scatter_add(model_grad.string_internal_friction, strings, 0, real, friction_bar)

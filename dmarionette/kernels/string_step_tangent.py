@@ -134,6 +134,7 @@ import warp as wp
 from .lane_ops import native_lane_memory, native_lane_ops
 from .string_model_arrays import string_constants_function, string_model_arrays_type
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 from .string_step_lanes import lane_step_functions, lane_types
 from .tangent_directions import tangent_directions
 
@@ -195,6 +196,8 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     SEGMENTS = segments
     vec3 = wp.types.vector(3, scalar)
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
+    StringControlArrays = string_control_arrays_type(scalar)
     compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)
@@ -220,19 +223,15 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # Model:
         model: StringModelArrays,
         # State in (the step's start, then what the forward, built with ``keep``, wrote):
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         pivot_inverse: wp.array(dtype=FM),
         scratch_c: wp.array(dtype=FM),
         string_factor_row: wp.array(dtype=wp.int32),
         string_factor_lane: wp.array(dtype=wp.int32),
         particle_dv: wp.array(dtype=vec3),
-        particle_q_out: wp.array(dtype=vec3),
-        particle_qd_out: wp.array(dtype=vec3),
+        state_out: StringStateArrays,
         # Control:
-        top_q: wp.array(dtype=vec3),
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: scalar,
         # Tangent in (leading axis: the direction):
         particle_q_dot: wp.array2d(dtype=vec3),
@@ -261,11 +260,11 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         constants = compute_string_constants(model, s)
         stiffness, rest_length = constants.stiffness, constants.rest_length
         tied, tie_stiffness, tie_damping = constants.tied, constants.tie_stiffness, constants.tie_damping
-        tie_x = tie_q[s]
-        tie_v = tie_qd[s]
-        top = top_q[s]
-        top_dx = top - particle_q[start]
-        top_dv = top_dx / dt - particle_qd[start]
+        tie_x = control.tie_q[s]
+        tie_v = control.tie_qd[s]
+        top = control.top_q[s]
+        top_dx = top - state_in.particle_q[start]
+        top_dv = top_dx / dt - state_in.particle_qd[start]
         g_upper = zero  # the friction's part of A_{p,p+1}: h D = -h k_f I
         inv_dt = scalar(1.0) / dt  # (a product per direction, not a division: not the forward's rounding)
         if wp.static(FRICTION):
@@ -288,13 +287,13 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
         # the spring force on p change sign exactly with the segment's ends).
         if wp.static(SEGMENTS):  # SEGMENT_LANES segments at a time
             for p0 in range(start + 1, last, SEGMENT_LANES):
-                store_segments(p0, wp.min(SEGMENT_LANES, last - p0), particle_q, particle_qd, particle_dv, stiffness,
-                               rest_length, dt, segment_parts, segment_e, segment_c)
+                store_segments(p0, wp.min(SEGMENT_LANES, last - p0), state_in.particle_q, state_in.particle_qd, particle_dv,
+                               stiffness, rest_length, dt, segment_parts, segment_e, segment_c)
         tie_stiffness_k = model.string_tie_stiffness[s]
         tie_damping_k = model.string_tie_damping[s]
-        x_last = particle_q_out[last]
-        v_last = particle_qd_out[last]
-        v0_top = particle_qd[start]
+        x_last = state_out.particle_q[last]
+        v_last = state_out.particle_qd[last]
+        v0_top = state_in.particle_qd[start]
 
         # One group of directions at a time (the string's constants' tangents read once per group):
         # the forward sweep, row by row, every row's r = b' - A' dv and its forward substitution
@@ -320,12 +319,12 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
             for p in range(start + 1, last + 1):
                 j = p - start
                 is_last = p == last
-                x = particle_q[p]
-                v = particle_qd[p]
+                x = state_in.particle_q[p]
+                v = state_in.particle_qd[p]
                 dv = particle_dv[p]
                 r = TV(zero)
                 if j == 1:  # the top segment; top_dx' = top' - x0_top'
-                    u_t, l_t, ratio_t, alpha_t, beta_t = compute_spring_parts(particle_q[start], x, stiffness,
+                    u_t, l_t, ratio_t, alpha_t, beta_t = compute_spring_parts(state_in.particle_q[start], x, stiffness,
                                                                               rest_length)
                     x_top_dot = load3(particle_q_dot, k, directions, start)
                     top_dx_dot = vsub(sload3(top_q_dot, k, directions, s), x_top_dot)
@@ -361,7 +360,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
                         u_b_dot, alpha_b_dot, beta_b_dot, f_b_dot = compute_spring_tangent(
                             u_b, parts[1, 0], parts[1, 1], parts[1, 2], stiffness, rest_length,
                             vsub(x_dot, x_next_dot), stiffness_dot, rest_dot)
-                        z_b = (v - particle_qd[p + 1]) + (dv - particle_dv[p + 1])
+                        z_b = (v - state_in.particle_qd[p + 1]) + (dv - particle_dv[p + 1])
                         c_b = vadd(vadd(k_tangent_product(u_b, parts[2, 0], u_b_dot, alpha_b_dot, beta_b_dot, h2 * z_b),
                                         w_part), vscl(dt, f_b_dot))
                         if wp.static(FRICTION):

@@ -54,6 +54,7 @@ import functools
 import warp as wp
 
 from .string_model_arrays import string_model_arrays_type
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 from .lane_ops import native_lane_ops
 
@@ -101,6 +102,8 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     neg, vadd, vsub, scale, lsum3, mul_vec = f.lneg, f.vadd, f.vsub, f.lscale, f.lsum3, f.lmul_vec
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
     StringModelArrays = string_model_arrays_type(f64)
+    StringStateArrays = string_state_arrays_type(f64)
+    StringControlArrays = string_control_arrays_type(f64)
     tgather3, tgather, tscatter3 = gather_particle3, gather_particle, f.scatter3
     cgather = _constant_gather(lanes)
 
@@ -162,20 +165,16 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         # Model:
         model: StringModelArrays,
         # State in (the step's start, then what the laned forward, built with ``keep``, wrote):
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         lane_inverse: wp.array(dtype=lmat),
         lane_c: wp.array(dtype=lmat),
         group_string: wp.array(dtype=ivec),
         group_real: wp.array(dtype=wp.int32),
         group_base: wp.array(dtype=wp.int32),
         particle_dv: wp.array(dtype=vec3),
-        particle_q_out: wp.array(dtype=vec3),
-        particle_qd_out: wp.array(dtype=vec3),
+        state_out: StringStateArrays,
         # Control:
-        top_q: wp.array(dtype=vec3),
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: f64,
         # Tangent in (the direction's row of each tangent array, any stride):
         particle_q_dot: wp.array(dtype=vec3),
@@ -204,11 +203,11 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
          tie_stiffness_k, tie_damping_k) = gather_string_constants(strings, model)
         tie_stiffness = mul(tied, tie_stiffness_k)
         tie_damping = mul(tied, tie_damping_k)
-        tie_x = gather_string3(tie_q, strings)
-        tie_v = gather_string3(tie_qd, strings)
-        top = gather_string3(top_q, strings)
-        x_top = gather_particle3(particle_q, starts, 0)
-        v0_top = gather_particle3(particle_qd, starts, 0)
+        tie_x = gather_string3(control.tie_q, strings)
+        tie_v = gather_string3(control.tie_qd, strings)
+        top = gather_string3(control.top_q, strings)
+        x_top = gather_particle3(state_in.particle_q, starts, 0)
+        v0_top = gather_particle3(state_in.particle_qd, starts, 0)
         top_dx = vsub(top, x_top)
         top_dv = lvec()
         for i in range(3):
@@ -248,8 +247,8 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         # The forward sweep (``string_step_tangent``'s, one direction): row j's r = b' - A' dv, its
         # forward substitution y = inv_j (r - A_{j,j-1} y_prev), y kept in lane_y (the group's rows); the
         # segment (j, j + 1)'s parts and its c computed at row j (+c), carried to row j + 1 (-c).
-        x = gather_particle3(particle_q, starts, 1)
-        v = gather_particle3(particle_qd, starts, 1)
+        x = gather_particle3(state_in.particle_q, starts, 1)
+        v = gather_particle3(state_in.particle_qd, starts, 1)
         dv = gather_particle3(particle_dv, starts, 1)
         x_dot = tgather3(particle_q_dot, starts, 1)
         v_dot = tgather3(particle_qd_dot, starts, 1)
@@ -288,8 +287,8 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             alpha_b = zero
             beta_b = zero
             if not is_last:
-                x_next = gather_particle3(particle_q, starts, j + 1)
-                v_next = gather_particle3(particle_qd, starts, j + 1)
+                x_next = gather_particle3(state_in.particle_q, starts, j + 1)
+                v_next = gather_particle3(state_in.particle_qd, starts, j + 1)
                 dv_next = gather_particle3(particle_dv, starts, j + 1)
                 x_next_dot = tgather3(particle_q_dot, starts, j + 1)
                 v_next_dot = tgather3(particle_qd_dot, starts, j + 1)
@@ -356,8 +355,8 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
             tscatter3(particle_q_out_dot, starts, j, real, vadd(tgather3(particle_q_dot, starts, j), scale(h, v1_dot)))
         tscatter3(particle_q_out_dot, starts, 0, real, top_dot)
         tscatter3(particle_qd_out_dot, starts, 0, real, scale(inv_dt, vsub(top_dot, x_top_dot)))
-        x_last = gather_particle3(particle_q_out, starts, last)
-        v_last = gather_particle3(particle_qd_out, starts, last)
+        x_last = gather_particle3(state_out.particle_q, starts, last)
+        v_last = gather_particle3(state_out.particle_qd, starts, last)
         # F' = -k_t' (x_tie - x1) - k_t (x_tie' - x1') - k_dt' (v_tie - v1) - k_dt (v_tie' - v1')
         tscatter3(tie_force_dot, strings, 0, real, vsub(vsub(vsub(
             scale(neg(tie_stiffness_dot), vsub(tie_x, x_last)),

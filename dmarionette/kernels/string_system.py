@@ -36,6 +36,7 @@ import functools
 import warp as wp
 
 from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
+from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
 from .string_terms import string_terms
 
 
@@ -47,13 +48,15 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
     t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
+    StringControlArrays = string_control_arrays_type(scalar)
 
     @wp.kernel(module="unique")
     def eval_string_spring(
         # Model:
         model: StringModelArrays,
         # State in:
-        particle_q: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         segment_forced: wp.array(dtype=wp.int32),
         # State out:
         segment_force: wp.array(dtype=vec3),
@@ -74,8 +77,8 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
             segment_jacobian_active[p] = mat33(scalar(0.0))
             segment_active[p] = 0
             return
-        f, k, taut = t.compute_string_spring(particle_q[p], particle_q[p + 1], model.string_stiffness[s],
-                                             model.string_rest_length[s])
+        f, k, taut = t.compute_string_spring(state_in.particle_q[p], state_in.particle_q[p + 1],
+                                             model.string_stiffness[s], model.string_rest_length[s])
         segment_force[p] = f
         if wp.static(not tension_only):
             segment_jacobian[p] = k  # the printed spring is always active
@@ -234,6 +237,8 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
     vec3, mat33 = t.vec3, t.mat33
     compute_string_system_row = string_system_row_function(scalar, effects)
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
+    StringControlArrays = string_control_arrays_type(scalar)
     compute_string_constants = string_constants_function(scalar)
 
     @wp.kernel(module="unique")
@@ -241,14 +246,11 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         # Model:
         model: StringModelArrays,
         # State in:
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
+        state_in: StringStateArrays,
         segment_force: wp.array(dtype=vec3),
         segment_jacobian: wp.array(dtype=mat33),
         # Control:
-        top_q: wp.array(dtype=vec3),
-        tie_q: wp.array(dtype=vec3),
-        tie_qd: wp.array(dtype=vec3),
+        control: StringControlArrays,
         dt: scalar,
         # State out:
         system_diag: wp.array(dtype=mat33),
@@ -272,16 +274,17 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
         f_next = vec3(zero)
         k_next = mat33(zero)
         if not is_last:
-            v_next = particle_qd[p + 1]
+            v_next = state_in.particle_qd[p + 1]
             f_next = segment_force[p]
             k_next = segment_jacobian[p]
         # Motion of the kinematic top particle over the step (used when j == 1).
-        top_dx = top_q[s] - particle_q[start]
-        top_dv = top_dx / dt - particle_qd[start]
+        top_dx = control.top_q[s] - state_in.particle_q[start]
+        top_dv = top_dx / dt - state_in.particle_qd[start]
         diag, upper, rhs = compute_string_system_row(
-            j, is_last, particle_q[p], particle_qd[p], particle_qd[p - 1], v_next, model.particle_mass[p],
+            j, is_last, state_in.particle_q[p], state_in.particle_qd[p], state_in.particle_qd[p - 1], v_next,
+            model.particle_mass[p],
             segment_force[p - 1], segment_jacobian[p - 1], f_next, k_next, top_dx, top_dv,
-            compute_string_constants(model, s), tie_q[s], tie_qd[s], dt,
+            compute_string_constants(model, s), control.tie_q[s], control.tie_qd[s], dt,
         )
         system_diag[p] = diag
         system_upper[p] = upper

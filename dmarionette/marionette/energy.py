@@ -71,6 +71,7 @@ import warp as wp
 
 from dmarionette.kernels.bar_feedback import bar_reaction_function
 from dmarionette.kernels.string_model_arrays import string_model_arrays_type
+from dmarionette.kernels.string_state_arrays import string_state_arrays_type
 from dmarionette.rotations import quat_to_matrix
 from dmarionette.strings.model import StringModel, string_energy
 
@@ -92,6 +93,7 @@ _CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in 
 def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
     vec3 = wp.types.vector(3, scalar)
     StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
     # The force of the state itself, as the feedback's exact reaction.
     compute_top_force = bar_reaction_function(scalar, internal_friction, tension_only)
 
@@ -99,11 +101,9 @@ def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
     def eval_bar_work(
         # Model:
         model: StringModelArrays,
-        # State in:
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
-        particle_q_next: wp.array(dtype=vec3),
-        particle_qd_next: wp.array(dtype=vec3),
+        # State in (the step's start and its end):
+        state_in: StringStateArrays,
+        state_out: StringStateArrays,
         # State out (accumulated):
         bar_work: wp.array(dtype=wp.float64),
     ):
@@ -113,10 +113,11 @@ def _eval_bar_work_kernel(scalar, internal_friction: bool, tension_only: bool):
         k = model.string_stiffness[s]
         d = model.string_rest_length[s]
         c = model.string_internal_friction[s]
-        r0 = compute_top_force(particle_q[a], particle_q[a + 1], particle_qd[a], particle_qd[a + 1], k, d, c)
-        r1 = compute_top_force(particle_q_next[a], particle_q_next[a + 1], particle_qd_next[a],
-                               particle_qd_next[a + 1], k, d, c)
-        dx = particle_q_next[a] - particle_q[a]
+        r0 = compute_top_force(state_in.particle_q[a], state_in.particle_q[a + 1], state_in.particle_qd[a],
+                               state_in.particle_qd[a + 1], k, d, c)
+        r1 = compute_top_force(state_out.particle_q[a], state_out.particle_q[a + 1], state_out.particle_qd[a],
+                               state_out.particle_qd[a + 1], k, d, c)
+        dx = state_out.particle_q[a] - state_in.particle_q[a]
         w = -scalar(0.5) * wp.dot(r0 + r1, dx)
         bar_work[s] = bar_work[s] + wp.float64(w)
 
@@ -155,8 +156,7 @@ class BarWorkMeter:
         self.solver.step(state_in, state_out, control, dt, tape=tape, workspace=workspace)
         m = self.model
         wp.launch(self._kernel, dim=m.string_count,
-                  inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, state_out.particle_q,
-                          state_out.particle_qd],
+                  inputs=[m.arrays, state_in.arrays, state_out.arrays],
                   outputs=[self.bar_work], device=m.device)
 
     def __getattr__(self, name):

@@ -426,6 +426,24 @@ class SolverMarionette:
         ws.control_views[key] = (control, views)
         return views
 
+    def string_step_outputs(self, state_out: MarionetteState, *,
+                            workspace: MarionetteWorkspace | None = None) -> list[StringStepOutput]:
+        """Where the n string steps into ``state_out`` write (float64 strings): each its string
+        state's particles (:meth:`string_state_after`) and its rows of ``state_out``'s tie force and
+        taut flags; cached in ``state_out`` for the last workspace it was stepped with (so that each
+        one's ``StringStateArrays`` is built once, not per string step)."""
+        ws = workspace or self.workspace
+        cached = getattr(state_out, "_string_step_outputs", None)
+        if cached is not None and cached[0] is ws:
+            return cached[1]
+        views = []
+        for j in range(self.model.substeps):
+            particles = self.string_state_after(state_out, j, workspace=ws)
+            views.append(StringStepOutput(particles.particle_q, particles.particle_qd, state_out.tie_force[j],
+                                          state_out.string_taut[j]))
+        state_out._string_step_outputs = (ws, views)
+        return views
+
     def step(self, state_in: MarionetteState, state_out: MarionetteState, control: MarionetteControl,
              dt: float | None = None, *, tape: wp.Tape | None = None,
              workspace: MarionetteWorkspace | None = None) -> None:
@@ -467,8 +485,7 @@ class SolverMarionette:
         controls = self.string_controls(control, workspace=ws)
         if ws.narrow is None:
             # The tie force and taut flags go straight into this string step's rows of state_out.
-            nxt = StringStepOutput(particles.particle_q, particles.particle_qd, state_out.tie_force[j],
-                                   state_out.string_taut[j])
+            nxt = self.string_step_outputs(state_out, workspace=ws)[j]
             m.string_solver.step(previous, nxt, controls[j], m.string_dt, tape=tape, workspace=string_ws)
         else:
             nxt = particles

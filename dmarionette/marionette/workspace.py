@@ -19,6 +19,7 @@ from dmarionette.articulation.solver import (
     ArticulationState,
     ArticulationWorkspace,
 )
+from dmarionette.kernels.string_state_arrays import STATE_FIELDS, string_state_arrays_type, struct_of_arrays
 from dmarionette.strings.model import StringState
 from dmarionette.strings.solver import StringWorkspace
 
@@ -35,12 +36,20 @@ class StringStepOutput:
         particle_q, particle_qd: [m], [m/s], ``(P,)`` of vec3.
         tie_force: eq. 2 force of each tie on its body point [N], ``(S,)``.
         string_taut: taut flags, ``(S,)``.
+        arrays: the above as one kernel argument, a ``StringStateArrays`` (as ``StringState.arrays``).
     """
 
     particle_q: wp.array
     particle_qd: wp.array
     tie_force: wp.array
     string_taut: wp.array
+    _arrays: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    @property
+    def arrays(self):
+        """This output's arrays as a ``StringStateArrays`` (class doc)."""
+        self._arrays = struct_of_arrays(string_state_arrays_type, self, STATE_FIELDS, self._arrays)
+        return self._arrays[1]
 
 
 @dataclasses.dataclass

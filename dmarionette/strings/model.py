@@ -31,6 +31,9 @@ import numpy as np
 import warp as wp
 
 from dmarionette.kernels.string_model_arrays import string_model_arrays
+from dmarionette.kernels.string_state_arrays import (
+    CONTROL_FIELDS, STATE_FIELDS, string_control_arrays_type, string_state_arrays_type, struct_of_arrays,
+)
 from dmarionette.scene.strings import StringEffects, StringSpec
 
 __all__ = [
@@ -178,6 +181,9 @@ class StringState:
         tie_force: force of each string's tie on its body point after the step [N] (paper
             eq. 2, ``f_body``; zero for untied strings), shape ``(S,)`` of vec3.
         string_taut: 1 where the string is taut after the step (paper §3.2), shape ``(S,)``.
+        arrays: the above as one kernel argument, a ``StringStateArrays``
+            (``kernels/string_state_arrays``) holding these same arrays (rebuilt when one of them,
+            or its ``.grad``, is replaced).
     """
 
     def __init__(self, model: StringModel, q: np.ndarray, qd: np.ndarray):
@@ -192,6 +198,13 @@ class StringState:
             self.particle_qd = wp.array(qd, dtype=model.vec3, requires_grad=model.requires_grad)
             self.tie_force = wp.zeros(model.string_count, dtype=model.vec3, requires_grad=model.requires_grad)
             self.string_taut = wp.zeros(model.string_count, dtype=wp.int32)
+        self._arrays = None
+
+    @property
+    def arrays(self):
+        """This state's arrays as a ``StringStateArrays`` (class doc)."""
+        self._arrays = struct_of_arrays(string_state_arrays_type, self, STATE_FIELDS, self._arrays)
+        return self._arrays[1]
 
     def assign(self, other: StringState) -> None:
         """Copies ``other`` into this state (same model)."""
@@ -209,12 +222,22 @@ class StringControl:
             point on the bar) [m], shape ``(S,)`` of vec3.
         tie_q: position of each tied string's body point at the end of the step [m], ``(S,)``.
         tie_qd: velocity of each tied string's body point [m/s], ``(S,)``.
+        arrays: the above as one kernel argument, a ``StringControlArrays``
+            (``kernels/string_state_arrays``) holding these same arrays (rebuilt when one of them,
+            or its ``.grad``, is replaced).
     """
 
     def __init__(self, top_q: wp.array, tie_q: wp.array, tie_qd: wp.array):
         self.top_q = top_q
         self.tie_q = tie_q
         self.tie_qd = tie_qd
+        self._arrays = None
+
+    @property
+    def arrays(self):
+        """This control's arrays as a ``StringControlArrays`` (class doc)."""
+        self._arrays = struct_of_arrays(string_control_arrays_type, self, CONTROL_FIELDS, self._arrays)
+        return self._arrays[1]
 
     @classmethod
     def from_numpy(cls, model: StringModel, top_q, tie_q, tie_qd) -> StringControl:

@@ -48,6 +48,9 @@ import warp as wp
 from dmarionette.kernels.string_integrate import integrate_string_kernels
 from dmarionette.kernels.string_model_arrays import DIFFERENTIABLE_FIELDS, string_model_arrays_type
 from dmarionette.kernels.string_solve import copy_particle_dv, solve_string_system_kernels
+from dmarionette.kernels.string_state_arrays import (
+    CONTROL_FIELDS, STATE_GRAD_FIELDS, string_control_arrays_type, string_state_arrays_type, struct_of,
+)
 from dmarionette.kernels.string_step import integrate_string_implicit_kernel
 from dmarionette.kernels.string_step_lanes import LANES, integrate_string_lanes_kernel, lane_groups, lane_types
 from dmarionette.kernels.string_step_adjoint import string_step_adjoint_kernel
@@ -260,17 +263,21 @@ class SolverStringImplicit:
             self._integrate_implicit_keep if keep else self._integrate_implicit,
             dim=m.string_count,
             inputs=self._step_inputs(state_in, control, h),
-            outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv, state_out.particle_q,
-                     state_out.particle_qd, state_out.tie_force, state_out.string_taut],
+            outputs=[ws.scratch_inverse, ws.scratch_c, ws.scratch_d, ws.particle_dv, *self._step_outputs(state_out)],
             device=m.device,
             record_tape=False,
         )
 
     def _step_inputs(self, state_in, control, h) -> list:
         """The one-launch steps' inputs (scalar and laned kernels alike): the model, the state in,
-        the control and the step."""
-        return [self.model.arrays, state_in.particle_q, state_in.particle_qd,
-                control.top_q, control.tie_q, control.tie_qd, h]
+        the control (as arrays, not their structs: ``kernels/string_step``'s module doc) and the step."""
+        return [self.model.arrays, state_in.particle_q, state_in.particle_qd, control.top_q, control.tie_q,
+                control.tie_qd, h]
+
+    @staticmethod
+    def _step_outputs(state_out) -> list:
+        """The one-launch steps' state out (as arrays, as :meth:`_step_inputs`)."""
+        return [state_out.particle_q, state_out.particle_qd, state_out.tie_force, state_out.string_taut]
 
     @property
     def lanes(self) -> bool:
@@ -317,8 +324,7 @@ class SolverStringImplicit:
             self._integrate_lanes_keep if keep else self._integrate_lanes,
             dim=groups[1].shape[0],
             inputs=[*groups, *self._step_inputs(state_in, control, h)],
-            outputs=[lane_inverse, lane_c, lane_d, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
-                     state_out.tie_force, state_out.string_taut],
+            outputs=[lane_inverse, lane_c, lane_d, ws.particle_dv, *self._step_outputs(state_out)],
             device=m.device,
             record_tape=False,
         )
@@ -396,13 +402,9 @@ class SolverStringImplicit:
             wp.launch(
                 self._integrate_implicit_adjoint,
                 dim=m.string_count,
-                inputs=[
-                    m.arrays, state_in.particle_q, state_in.particle_qd,
-                    ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
-                    forced, control.top_q, control.tie_q, control.tie_qd, h,
-                ],
-                outputs=[ws.scratch_rhs_bar, *[self._grad(a) for a in outputs],
-                         *[self._grad(a) for a in inputs], self._model_grad(params)],
+                inputs=[m.arrays, state_in.arrays, ws.scratch_inverse, ws.scratch_c, ws.particle_dv, state_out.arrays,
+                        forced, control.arrays, h],
+                outputs=[ws.scratch_rhs_bar, *self._step_grads(state_in, state_out, control, params)],
                 device=m.device,
                 record_tape=False,
             )
@@ -421,6 +423,21 @@ class SolverStringImplicit:
                 setattr(arrays, name, grad)
             self._model_grad_cache = cached = (grads, arrays)
         return cached[1]
+
+    def _step_grads(self, state_in, state_out, control, params: list[wp.array]) -> list:
+        """The step adjoints' gradients: of the state out (read and consumed), of the state in, the
+        control and the model (accumulated), each a struct (:meth:`_grad_arrays`, :meth:`_model_grad`)."""
+        return [self._grad_arrays(state_out, string_state_arrays_type, STATE_GRAD_FIELDS),
+                self._grad_arrays(state_in, string_state_arrays_type, STATE_GRAD_FIELDS),
+                self._grad_arrays(control, string_control_arrays_type, CONTROL_FIELDS), self._model_grad(params)]
+
+    def _grad_arrays(self, owner, struct_type, fields):
+        """The gradients of ``owner``'s arrays ``fields`` (each its ``.grad`` or a sink, :meth:`_grad`)
+        as a struct of the same field names (``struct_type``: ``string_state_arrays_type`` or
+        ``string_control_arrays_type``); cached on ``owner``, rebuilt only when one of them changed."""
+        grads = [self._grad(getattr(owner, name)) for name in fields]
+        owner._grad_arrays = struct_of(struct_type, fields, grads, getattr(owner, "_grad_arrays", None))
+        return owner._grad_arrays[1]
 
     def _adjoint_arrays(self, state_in, state_out, control) -> tuple[list, list, list]:
         """The step adjoints' differentiable arrays: the constants, the inputs and the outputs
@@ -442,13 +459,9 @@ class SolverStringImplicit:
             wp.launch(
                 self._integrate_lanes_adjoint,
                 dim=groups[1].shape[0],
-                inputs=[
-                    *groups, m.arrays, state_in.particle_q, state_in.particle_qd,
-                    ws.lane_inverse, ws.lane_c, ws.particle_dv, state_out.particle_q, state_out.particle_qd,
-                    control.top_q, control.tie_q, control.tie_qd, h,
-                ],
-                outputs=[*adjoint_scratch, *[self._grad(a) for a in outputs],
-                         *[self._grad(a) for a in inputs], self._model_grad(params)],
+                inputs=[*groups, m.arrays, state_in.arrays, ws.lane_inverse, ws.lane_c, ws.particle_dv,
+                        state_out.arrays, control.arrays, h],
+                outputs=[*adjoint_scratch, *self._step_grads(state_in, state_out, control, params)],
                 device=m.device,
                 record_tape=False,
             )
@@ -475,7 +488,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_spring,
             dim=m.particle_count,
-            inputs=[m.arrays, state_in.particle_q, forced],
+            inputs=[m.arrays, state_in.arrays, forced],
             outputs=[ws.segment_force, ws.segment_jacobian, ws.segment_jacobian_active, ws.segment_active],
             device=m.device,
             record_tape=record,
@@ -487,10 +500,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_system,
             dim=m.particle_count,
-            inputs=[
-                m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_force, ws.segment_jacobian,
-                control.top_q, control.tie_q, control.tie_qd, h,
-            ],
+            inputs=[m.arrays, state_in.arrays, ws.segment_force, ws.segment_jacobian, control.arrays, h],
             outputs=[ws.system_diag, ws.system_upper, ws.system_rhs],
             device=m.device,
             record_tape=record,
@@ -503,7 +513,7 @@ class SolverStringImplicit:
         wp.launch(
             self._solve_active,
             dim=m.string_count,
-            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.segment_jacobian_active, control.top_q, h],
+            inputs=[m.arrays, state_in.arrays, ws.segment_jacobian_active, control.arrays, h],
             outputs=[ws.segment_active, ws.system_diag, ws.system_upper, ws.system_rhs,
                      ws.scratch_c, ws.scratch_d, ws.particle_dv],
             device=m.device,
@@ -546,8 +556,8 @@ class SolverStringImplicit:
         wp.launch(
             self._integrate,
             dim=m.particle_count,
-            inputs=[m.arrays, state_in.particle_q, state_in.particle_qd, ws.particle_dv, control.top_q, h],
-            outputs=[state_out.particle_q, state_out.particle_qd],
+            inputs=[m.arrays, state_in.arrays, ws.particle_dv, control.arrays, h],
+            outputs=[state_out.arrays],
             device=m.device,
             record_tape=record,
         )
@@ -557,8 +567,7 @@ class SolverStringImplicit:
         wp.launch(
             self._eval_tie,
             dim=m.string_count,
-            inputs=[m.arrays, state_out.particle_q, state_out.particle_qd, control.tie_q, control.tie_qd],
-            outputs=[state_out.tie_force, state_out.string_taut],
+            inputs=[m.arrays, control.arrays, state_out.arrays],
             device=m.device,
             record_tape=record,
         )
