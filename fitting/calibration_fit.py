@@ -274,6 +274,39 @@ STAGE_ATOL = 1e-2
 #: The stages before the last fit only the session's first seconds [s]: enough to find the basin,
 #: and the shortest windows (most rollouts' overhead) then stay cheap on long sessions.
 STAGE_SECONDS = 2.0
+#: A constant (no ``--bounds``) whose log moved more than this from its start [log units: a factor
+#: 1e4] ran off: along a direction the fit's windows hardly inform, the Levenberg-Marquardt steps
+#: can carry it to 0 or infinity, where its derivative vanishes (``exp`` of the log underflows) and
+#: no later stage can bring it back. Measured: a 1 s swaying session with ``k_d`` of one hand string
+#: at 4.32 N s/m; the one-step windows ran it to 0, the 1/3 s windows kept it there (reduced chi^2
+#: 1.04, exit 4); restarted, it is fitted (5.44 +- 0.53, chi^2 0.96, exit 0).
+RUNAWAY_LOG = float(np.log(1e4))
+
+
+def ran_off(problem, theta: np.ndarray) -> list[int]:
+    """Indices of the unbounded constants of ``theta`` that moved more than :data:`RUNAWAY_LOG`
+    from the problem's start (or to a non-finite value)."""
+    low, high = (np.asarray(b, dtype=np.float64) for b in problem.log_bounds)
+    start = np.asarray(problem.theta_start, dtype=np.float64)
+    n = min(len(theta), len(start), len(low))
+    moved = np.abs(np.asarray(theta[:n], dtype=np.float64) - start[:n])
+    return [i for i in range(n) if np.isinf(low[i]) and np.isinf(high[i]) and not moved[i] <= RUNAWAY_LOG]
+
+
+def restart_runaways(problem, theta: np.ndarray) -> tuple[np.ndarray, list[str], int]:
+    """Between stages: the constants that ran off (:func:`ran_off`) back at their start, if that
+    lowers the next stage's sum of squares (one rollout each way, on the windows in use); returns
+    the next stage's start, the labels restarted (empty when ``theta`` is kept) and the rollouts
+    run."""
+    runaway = ran_off(problem, theta)
+    if not runaway:
+        return theta, [], 0
+    restarted = np.array(theta, dtype=np.float64)
+    restarted[runaway] = np.asarray(problem.theta_start, dtype=np.float64)[runaway]
+    losses = [float(np.sum(np.square(problem.host_residuals(t)))) for t in (theta, restarted)]
+    if not losses[1] < losses[0] and np.isfinite(losses[0]):
+        return theta, [], 2
+    return restarted, [problem.labels[i] for i in runaway], 2
 
 
 def window_steps_for(data: CalibrationData, window: float | None, solver: str) -> int | None:
@@ -449,6 +482,9 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         problem.use_windows(steps, prefix)
         n = len(problem.theta_start)  # the initial states are unknowns of the last stage only, from 0
         theta = np.concatenate([theta[:n], np.zeros(max(0, n - len(theta)))])
+        restarted, restart_rollouts = [], 0
+        if index > 0:
+            theta, restarted, restart_rollouts = restart_runaways(problem, theta)
 
         def run(theta_start, atol=1e-3 if last else STAGE_ATOL):
             return fit_problem(problem, solver=solver, max_steps=max_steps, rows=rows, theta_start=theta_start,
@@ -458,7 +494,8 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
         theta = fit["theta"]
         stages.append({"window_steps": steps, "puppet_steps": min(prefix or data.puppet_steps, data.puppet_steps),
                        "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
-                       "forward_passes": fit["forward_passes"], "seconds": fit["seconds"]})
+                       "forward_passes": fit["forward_passes"] + restart_rollouts, "seconds": fit["seconds"],
+                       "restarted": restarted})
     fit = {**fit, "steps": sum(st["steps"] for st in stages),
            "forward_passes": sum(st["forward_passes"] for st in stages),
            "backward_passes": fit["backward_passes"], "seconds": sum(st["seconds"] for st in stages)}
@@ -486,8 +523,11 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
     # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
     judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
     states = getattr(problem, "initial_state", None)
+    judged_count = len(problem.labels) if states is None else states.offset  # not the nuisance states
+    runaway = {problem.labels[i]: (float(problem.values(problem.theta_start)[i]), float(problem.values(theta)[i]))
+               for i in ran_off(problem, theta) if i < judged_count}
     verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],
-                        fit["message"], at_bound=at_bound, robust=loss == "huber",
+                        fit["message"], at_bound=at_bound, ran_off=runaway, robust=loss == "huber",
                         series=_time_series(problem, plain), nuisance=0 if states is None else states.count)
     shown = len(problem.labels) if states is None else states.offset  # the initial states: a summary only
     validation = None

@@ -73,6 +73,10 @@ def format_table(result: CalibrationResult) -> str:
     lines.append(f"solver {result.solver}, {shooting}: {result.solver_steps} steps, {result.message}; "
                  f"{result.cost['forward_passes']} forward and {result.cost['backward_passes']} backward rollouts, "
                  f"{result.cost['seconds']:.1f} s")
+    for number, stage in enumerate(result.cost.get("stages") or [], 1):
+        if stage.get("restarted"):
+            lines.append(f"stage {number}: started {', '.join(stage['restarted'])} again from the start values (they "
+                         "had run off, more than a factor 1e4, in the stage before)")
     lines.append(f"uncertainty: Jacobian by {'forward differences' if result.jacobian['method'] == 'fd' else 'reverse mode'}"
                  f" ({result.jacobian['rows']} residuals, {result.jacobian['forward_passes']} forward and "
                  f"{result.jacobian['backward_passes']} backward rollouts), cond(J^T J) = {u.condition_number:.3g}")

@@ -68,6 +68,9 @@ class Verdict:
             ``components`` (label -> weight, those above 0.1).
         at_bound: labels of the constants the solver left at a bound (``--bounds``): the data pull
             them further; their intervals describe the constrained fit only.
+        ran_off: label -> ``(start, fitted)`` of the constants that ended more than a factor 1e4
+            from their start (``calibration_fit.RUNAWAY_LOG``): the search left the range the
+            session informs, so an infinite interval there may be the solver's, not the data's.
         converged: ``solver_converged and explains_data``.
         warnings: plain sentences, one per problem.
         exit_code: :data:`EXIT_CODES`.
@@ -90,6 +93,7 @@ class Verdict:
     warnings: list[str]
     exit_code: int
     validation: dict | None = None
+    ran_off: dict = dataclasses.field(default_factory=dict)
     whiteness: dict = dataclasses.field(default_factory=dict)
     structured: list = dataclasses.field(default_factory=list)
 
@@ -101,6 +105,7 @@ class Verdict:
 def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noise: Mapping[str, float],
               labels: Sequence[str], uncertainty: GaussNewtonUncertainty, solver_converged: bool,
               solver_message: str, at_bound: Sequence[str] = (), robust: bool = False,
+              ran_off: Mapping[str, tuple[float, float]] | None = None,
               series: Mapping[str, Sequence[np.ndarray]] | None = None, nuisance: int = 0) -> Verdict:
     """Judges a fit from its scaled residuals ``(m,)`` at the optimum.
 
@@ -112,6 +117,8 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
         uncertainty: at the optimum.
         solver_converged, solver_message: the solver's own result.
         at_bound: labels of constants at a bound.
+        ran_off: label -> ``(start, fitted)`` of constants that ran off (a warning; the exit code
+            is decided as without it).
         robust: (``--loss huber``) the residuals' scale per target from their median absolute
             value, ``1.4826 median |r_c|`` (the standard deviation for Gaussian noise, unmoved by a
             few gross outliers), instead of their RMS: ``chi2_c`` is its square times
@@ -173,6 +180,12 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
     if at_bound:
         warnings.append(f"at a bound (--bounds): {', '.join(at_bound)}: the data pull them beyond it; their values "
                         "and intervals describe the constrained fit, not the data alone")
+    ran_off = dict(ran_off or {})
+    if ran_off:
+        moved = ", ".join(f"{label} {a:.3g} -> {b:.3g}" for label, (a, b) in ran_off.items())
+        warnings.append(f"ran off: {moved} (more than a factor 1e4 from the start): the search left the range "
+                        "the session informs, so a missing interval there may be the solver's, not the data's. "
+                        "Fit again from other start values (--start) or keep them in range (--bounds)")
     if not solver_converged or not explains:
         code = EXIT_NOT_EXPLAINED
     elif unidentifiable:
@@ -181,6 +194,6 @@ def judge_fit(residuals: np.ndarray, targets: Mapping[str, tuple[int, int]], noi
         code = EXIT_OK
     return Verdict(solver_converged=bool(solver_converged), reduced_chi2=chi2, noise_ratio=ratio,
                    explains_data=explains, unidentifiable=unidentifiable, null_directions=directions,
-                   at_bound=list(at_bound),
+                   at_bound=list(at_bound), ran_off=ran_off,
                    converged=bool(solver_converged and explains), warnings=warnings, exit_code=code,
                    whiteness=whiteness, structured=structured)
