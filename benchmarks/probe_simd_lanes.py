@@ -45,58 +45,70 @@ wp.config.log_level = wp.LOG_WARNING
 
 from dmarionette.kernels.lane_ops import lane_fma  # noqa: E402 (moved to the package)
 from dmarionette.kernels.string_solve import thomas_row_functions  # noqa: E402
+from dmarionette.kernels.string_step_lanes import lane_types  # noqa: E402
 
 from bench_support import graph_cost  # noqa: E402
 
 mat33d, vec3d = wp.mat33d, wp.vec3d
 
 
-# --- the scalar reference: one chain per thread -------------------------------------------------
+# --- one kernel for every formulation: block Thomas of a chain, or of K chains in lockstep ------
 
-@functools.cache
-def scalar_kernel():
-    thomas = thomas_row_functions(wp.float64)
-    compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
+def chain_kernel(name: str, block, vec, compute_first_row, compute_row, compute_mul_vec):
+    """The block Thomas loop of ``string_solve.compute_block_thomas`` (``C'``, ``d'`` written to
+    scratch and read back) over the rows of chain (or lane group) ``tid``, rows ``tid * row_count
+    ...``, on blocks of type ``block`` and vectors ``vec``. ``compute_first_row`` and
+    ``compute_row`` are the row steps (``string_solve.thomas_row_functions``' signatures and
+    results), ``compute_mul_vec(C', x)`` the back substitution's product."""
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def solve_chains_scalar(
+    @wp.kernel(module="unique", enable_backward=False, name=name)
+    def solve_chains(
         # Model:
         row_count: int,
         # State in:
-        system_diag: wp.array(dtype=mat33d),
-        system_upper: wp.array(dtype=mat33d),
-        system_rhs: wp.array(dtype=vec3d),
+        system_diag: wp.array(dtype=block),
+        system_upper: wp.array(dtype=block),
+        system_rhs: wp.array(dtype=vec),
         # State out:
-        scratch_c: wp.array(dtype=mat33d),
-        scratch_d: wp.array(dtype=vec3d),
-        solution: wp.array(dtype=vec3d),
+        scratch_c: wp.array(dtype=block),
+        scratch_d: wp.array(dtype=vec),
+        solution: wp.array(dtype=vec),
     ):
-        """Block Thomas of chain ``tid`` (rows ``tid * row_count ...``), as ``compute_block_thomas``."""
         start = wp.tid() * row_count
         last = start + row_count - 1
-        inv, c, d = compute_thomas_first_row(system_diag[start], system_upper[start], system_rhs[start])
+        inv, c, d = compute_first_row(system_diag[start], system_upper[start], system_rhs[start])
         scratch_c[start] = c
         scratch_d[start] = d
         for p in range(start + 1, last + 1):
-            inv, c, d = compute_thomas_row(system_diag[p], system_upper[p], system_rhs[p], system_upper[p - 1],
-                                           scratch_c[p - 1], scratch_d[p - 1])
+            inv, c, d = compute_row(system_diag[p], system_upper[p], system_rhs[p], system_upper[p - 1],
+                                    scratch_c[p - 1], scratch_d[p - 1])
             scratch_c[p] = c
             scratch_d[p] = d
         solution[last] = scratch_d[last]
         for i in range(row_count - 1):
             p = last - 1 - i
-            solution[p] = scratch_d[p] - scratch_c[p] * solution[p + 1]
+            solution[p] = scratch_d[p] - compute_mul_vec(scratch_c[p], solution[p + 1])
 
-    return solve_chains_scalar
+    return solve_chains
+
+
+# --- the scalar reference: one chain per thread -------------------------------------------------
+
+@wp.func
+def compute_mat_vec(a: mat33d, v: vec3d):
+    """``a v`` (Warp's ``mat33 * vec3``)."""
+    return a * v
+
+
+@functools.cache
+def scalar_kernel():
+    """One chain per thread, ``mat33d`` blocks, the project's own row steps."""
+    thomas = thomas_row_functions(wp.float64)
+    return chain_kernel("solve_chains_scalar", mat33d, vec3d, thomas.compute_thomas_first_row,
+                        thomas.compute_thomas_row, compute_mat_vec)
 
 
 # --- K chains per thread in lockstep: lane vectors -----------------------------------------------
-
-@functools.cache
-def lane_types(lanes: int):
-    """``(lane block 9 x K, lane vector 3 x K)`` float64 matrix types."""
-    return wp.types.matrix((9, lanes), wp.float64), wp.types.matrix((3, lanes), wp.float64)
-
 
 STYLES = ("vector", "fma", "loops")
 
@@ -116,8 +128,7 @@ def lane_kernel(lanes: int, style: str):
       the lanes that Warp unrolls (constant trip count): whether LLVM's SLP vectorizer packs
       them.
     """
-    block, vec = lane_types(lanes)
-    lane = wp.types.vector(lanes, wp.float64)
+    lane, _, vec, block = lane_types(lanes)
     FUSED, LOOPS, LANES = style == "fma", style == "loops", lanes
     fma = lane_fma(lanes)
 
@@ -223,36 +234,19 @@ def lane_kernel(lanes: int, style: str):
             r[e] = lane_scale(b[e], rcp)
         return r
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def solve_chains_lanes(
-        # Model:
-        row_count: int,
-        # State in:
-        system_diag: wp.array(dtype=block),
-        system_upper: wp.array(dtype=block),
-        system_rhs: wp.array(dtype=vec),
-        # State out:
-        scratch_c: wp.array(dtype=block),
-        scratch_d: wp.array(dtype=vec),
-        solution: wp.array(dtype=vec),
-    ):
-        """Block Thomas of the ``K`` chains of lane group ``tid``, the scalar kernel's loop."""
-        start = wp.tid() * row_count
-        last = start + row_count - 1
-        inv = lane_inverse(system_diag[start])
-        scratch_c[start] = lane_mul(inv, system_upper[start])
-        scratch_d[start] = lane_mul_vec(inv, system_rhs[start])
-        for p in range(start + 1, last + 1):
-            upper_prev = system_upper[p - 1]
-            inv = lane_inverse(system_diag[p] - lane_tmul(upper_prev, scratch_c[p - 1]))
-            scratch_c[p] = lane_mul(inv, system_upper[p])
-            scratch_d[p] = lane_mul_vec(inv, system_rhs[p] - lane_tmul_vec(upper_prev, scratch_d[p - 1]))
-        solution[last] = scratch_d[last]
-        for i in range(row_count - 1):
-            p = last - 1 - i
-            solution[p] = scratch_d[p] - lane_mul_vec(scratch_c[p], solution[p + 1])
+    @wp.func
+    def lane_first_row(diag: block, upper: block, rhs: vec):
+        """``compute_thomas_first_row`` on lanes."""
+        inv = lane_inverse(diag)
+        return inv, lane_mul(inv, upper), lane_mul_vec(inv, rhs)
 
-    return solve_chains_lanes
+    @wp.func
+    def lane_row(diag: block, upper: block, rhs: vec, upper_prev: block, c_prev: block, d_prev: vec):
+        """``compute_thomas_row`` on lanes (``L_j = A_{j-1,j}^T`` by transposed products)."""
+        inv = lane_inverse(diag - lane_tmul(upper_prev, c_prev))
+        return inv, lane_mul(inv, upper), lane_mul_vec(inv, rhs - lane_tmul_vec(upper_prev, d_prev))
+
+    return chain_kernel("solve_chains_lanes", block, vec, lane_first_row, lane_row, lane_mul_vec)
 
 
 # --- systems, layouts, checks -------------------------------------------------------------------
@@ -332,7 +326,7 @@ def make_solves(chains: int, rows: int, lane_counts, seed: int = 19):
     solves = [Solve("scalar", scalar_kernel(), chains, rows,
                     (diag.reshape(-1, 3, 3), upper.reshape(-1, 3, 3), rhs.reshape(-1, 3)), mat33d, vec3d, chains, 0)]
     for k in lane_counts:
-        block, vec = lane_types(k)
+        _, _, vec, block = lane_types(k)
         inputs = (to_lanes(diag, k, np.eye(3)), to_lanes(upper, k, 0.0), to_lanes(rhs, k, 0.0))
         for style in STYLES:
             solves.append(Solve(f"lanes {k} {style}", lane_kernel(k, style), -(-chains // k), rows,
