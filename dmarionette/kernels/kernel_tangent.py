@@ -221,7 +221,8 @@ def tangent_kernel(kernel, tangent_names=TANGENT_NAMES, unroll: int = 0) -> Tang
     if unroll:
         variants[int(unroll)] = (k, t, source)
     ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
-    arrays = [a for a in t.params if a in t.arrays]
+    ins += [f for f in t.fields if f in t.active_fields]
+    arrays = [a for a in t.params if a in t.arrays] + list(t.fields)
     result = TangentKernel(k, t.params, arrays, t.arguments, ins, list(t.outputs), source, int(unroll), variant)
     _CACHE[key] = result
     return result
