@@ -53,6 +53,18 @@ def array_of(args: dict, name: str) -> wp.array:
     raise KeyError(name)
 
 
+def struct_value(struct_type, **fields):
+    """A ``struct_type`` value holding ``fields``, its other array fields empty arrays (Warp's tape
+    mirrors every array field of a struct argument with its gradient, so none may be unset)."""
+    value = struct_type()
+    for name, var in struct_type.vars.items():
+        if name in fields:
+            setattr(value, name, fields[name])
+        elif isinstance(var.type, wp.array):
+            setattr(value, name, wp.zeros(0, dtype=var.type.dtype, device="cpu"))
+    return value
+
+
 def copy_args(args: dict, make) -> dict:
     """``args`` with each array, also a struct argument's array field (a new struct), replaced by
     ``make(name, array)`` (``name``: the argument's or the field's)."""
