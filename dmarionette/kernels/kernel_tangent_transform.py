@@ -6,7 +6,9 @@ Free names (a closure's cells, module globals, attribute chains on non-module ob
 to the objects they name, which the generated module holds as globals ``_glb<n>``
 (:class:`TangentBuilder`); Python scalar constants are written in as literals. Activity is
 flow-insensitive: a fixed point over all assignments, starting from the kernel's array parameters
-named in ``tangent_names`` (a function's: the active arguments); a value that is active somewhere
+named in ``tangent_names`` and the array fields of its struct parameters so named that it reads
+(``model.string_stiffness[s]``: the tangent array ``tan_string_stiffness``, named by the field; a
+function's: the active arguments); a value that is active somewhere
 but assigned a constant elsewhere gets the tangent ``y - y``, zero of its type (finite ``y``).
 
 Emission: ``wp.tid()`` gains a leading direction index ``_dir``; control flow is kept as it is
@@ -152,7 +154,7 @@ class TangentTransform:
         self._resolve(scope)
         self.arrays = {n for n, a in self.annotation.items() if isinstance(a, wp.array)}
         # A struct parameter's array fields, by field name: (parameter, array type) (:meth:`_struct_fields`).
-        self.fields = self._struct_fields() if kernel else {}
+        self.fields = self._struct_fields(tangent_names) if kernel else {}
         if kernel:
             self.active_arrays = {n for n in self.arrays if n in tangent_names}
             self.active_fields = self._read_fields() & set(tangent_names)
@@ -257,21 +259,21 @@ class TangentTransform:
                 out.append(name)
         return out
 
-    def _struct_fields(self) -> dict:
+    def _struct_fields(self, tangent_names) -> dict:
         """Field name -> (struct parameter, array type) of the struct parameters' array fields; a field
-        name that is also another parameter's or another struct's field raises (a tangent is named by
-        its field)."""
+        named in ``tangent_names`` that is also another parameter's or another struct's field raises (a
+        tangent is named by its field)."""
         fields: dict = {}
         for n in self.params:
             a = self.annotation[n]
             if not _is_struct(a):
                 continue
             for f, var in a.vars.items():
-                if not isinstance(var.type, wp.array):
+                if not isinstance(var.type, wp.array) or f in fields or f in self.params:
+                    if f in tangent_names and isinstance(var.type, wp.array):
+                        raise TangentError(f"kernel_tangent: {self.where}: the array field {n}.{f} has the name "
+                                           f"of another parameter or field (a field's tangent is named by the field)")
                     continue
-                if f in fields or f in self.params:
-                    raise TangentError(f"kernel_tangent: {self.where}: the array field {n}.{f} has the name of "
-                                       f"another parameter or field (a field's tangent is named by the field)")
                 fields[f] = (n, var.type)
         return fields
 
