@@ -11,11 +11,12 @@ each array's ``.grad`` (Warp's tape mirrors a struct argument's array fields wit
 gradients, ``wp.Tape.get_adjoint``).
 
 Who takes it: every string step kernel (the one-launch steps, the five passes, the adjoints and
-tangents), the bar feedback (``bar_feedback.eval_bar_feedback``, as ``model``) and the coupling's
-linear model of the strings (``string_body_coupling.eval_string_response``, as ``strings``; the
-coupling's anchors take the marionette's float64 copy of the ties' ``k`` instead). The last two
-have tangents made by ``kernel_tangent``, which gives the fields they read tangents named by the
-fields (``string_stiffness``, ...).
+tangents), the bar work meter (``marionette/energy.py``), the bar feedback
+(``bar_feedback.eval_bar_feedback``, as ``model``) and the coupling's linear model of the strings
+(``string_body_coupling.eval_string_response``, as ``strings``; the coupling's anchors take the
+marionette's float64 copy of the ties' ``k`` instead). The last two have tangents made by
+``kernel_tangent``, which gives the fields they read tangents named by the fields
+(``string_stiffness``, ...).
 
 The kernels are built per float type by factories, so the struct is too
 (:func:`string_model_arrays_type`, one per ``wp.float32``/``wp.float64``), with
