@@ -256,8 +256,7 @@ class MarionetteTangent:
             self._response.launch(
                 (tw.world_count, len(m.spring_string)), P,
                 [m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp, wp.int32(m.strings_per_world),
-                 s.string_start, s.string_stiffness, s.string_rest_length, s.string_tie_stiffness,
-                 s.string_taut_distance, s.string_internal_friction, tw.body_pos, tw.body_rot, tw.body_w, tw.body_v,
+                 s.arrays, tw.body_pos, tw.body_rot, tw.body_w, tw.body_v,
                  state_in.strings.particle_q, state_in.tie_force, hi, tw.body_wrench, tw.body_stiffness],
                 {**{k: tb[k] for k in ("body_pos", "body_rot", "body_w", "body_v", "body_wrench", "body_stiffness")},
                  "particle_q": tangent_in.particle_q, "tie_force": tangent_in.tie_force,
@@ -293,9 +292,8 @@ class MarionetteTangent:
         weight = wp.vec3d(*(m.puppet_mass * np.asarray(m.scene.gravity)))
         self._feedback.launch(
             s.string_count, self.direction_count,
-            [s.string_start, m.string_bar_wp, s.string_stiffness, s.string_rest_length, s.string_internal_friction,
-             wp.float64(m.scene.feedback_stiffness), wp.float64(m.scene.feedback_damping), weight,
-             strings.particle_q, strings.particle_qd, strings.string_taut, control.bar_q[j], control.bar_qd[j],
+            [s.arrays, m.string_bar_wp, wp.float64(m.scene.feedback_stiffness), wp.float64(m.scene.feedback_damping),
+             weight, strings.arrays, control.bar_q[j], control.bar_qd[j],
              state_out.bar_feedback[j], state_out.bar_reaction[j]],
             {"particle_q": q_dot, "particle_qd": qd_dot, "bar_q": tc.bar_q[:, j], "bar_qd": tc.bar_qd[:, j],
              "bar_feedback": tangent_out.bar_feedback[:, j], "bar_reaction": tangent_out.bar_reaction[:, j],

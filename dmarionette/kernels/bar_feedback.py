@@ -12,7 +12,10 @@
 - **exact reaction**: the force the string exerts on its top particle, i.e. on the bar's
   attach point: the first segment's spring force plus its internal friction.
 
-One thread per string, atomically summed per bar, so the kernel is differentiable. The
+One thread per string, atomically summed per bar, so the kernel is differentiable. It takes
+the strings' constants and state as the string steps do, a ``StringModelArrays`` and a
+``StringStateArrays`` (``model``, ``state_in``); its tangent (``kernel_tangent``) takes the
+tangents of the fields it reads by their names (``particle_q``, ``string_stiffness``, ...). The
 exact reaction is :func:`bar_reaction_function`'s ``compute_bar_reaction``, also the force
 of the bar work meter (``marionette/energy.py``).
 """
@@ -21,6 +24,8 @@ import functools
 
 import warp as wp
 
+from .string_model_arrays import string_model_arrays_type
+from .string_state_arrays import string_state_arrays_type
 from .string_terms import string_terms
 
 
@@ -68,23 +73,20 @@ def _eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: boo
     vec3 = wp.types.vector(3, scalar)
     bar_vec3 = vec3 if bar_scalar is scalar else wp.types.vector(3, bar_scalar)
     compute_bar_reaction = bar_reaction_function(scalar, internal_friction, tension_only)
+    StringModelArrays = string_model_arrays_type(scalar)
+    StringStateArrays = string_state_arrays_type(scalar)
     WIDEN = bar_scalar is not scalar
 
     @wp.kernel(module="unique")
     def eval_bar_feedback(
         # Model:
-        string_start: wp.array(dtype=wp.int32),
+        model: StringModelArrays,
         string_bar: wp.array(dtype=wp.int32),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
         feedback_stiffness: bar_scalar,
         feedback_damping: bar_scalar,
         puppet_weight: bar_vec3,
         # State in:
-        particle_q: wp.array(dtype=vec3),
-        particle_qd: wp.array(dtype=vec3),
-        string_taut: wp.array(dtype=wp.int32),
+        state_in: StringStateArrays,
         # Control:
         bar_q: wp.array(dtype=bar_vec3),
         bar_qd: wp.array(dtype=bar_vec3),
@@ -96,25 +98,26 @@ def _eval_bar_feedback_kernel(scalar, internal_friction: bool, tension_only: boo
         bar = string_bar[s]
         if bar < 0:
             return
-        first = string_start[s]
-        last = string_start[s + 1] - 1
-        if string_taut[s] == 1:
+        first = model.string_start[s]
+        last = model.string_start[s + 1] - 1
+        if state_in.string_taut[s] == 1:
             if wp.static(WIDEN):
                 f = (
-                    -feedback_stiffness * (bar_q[bar] - bar_vec3(particle_q[last]))
+                    -feedback_stiffness * (bar_q[bar] - bar_vec3(state_in.particle_q[last]))
                     + puppet_weight
-                    - feedback_damping * (bar_qd[bar] - bar_vec3(particle_qd[last]))
+                    - feedback_damping * (bar_qd[bar] - bar_vec3(state_in.particle_qd[last]))
                 )
             else:
                 f = (
-                    -feedback_stiffness * (bar_q[bar] - particle_q[last])
+                    -feedback_stiffness * (bar_q[bar] - state_in.particle_q[last])
                     + puppet_weight
-                    - feedback_damping * (bar_qd[bar] - particle_qd[last])
+                    - feedback_damping * (bar_qd[bar] - state_in.particle_qd[last])
                 )
             wp.atomic_add(bar_feedback, bar, f)
-        reaction = compute_bar_reaction(particle_q[first], particle_q[first + 1], particle_qd[first],
-                                        particle_qd[first + 1], string_stiffness[s], string_rest_length[s],
-                                        string_internal_friction[s])
+        reaction = compute_bar_reaction(state_in.particle_q[first], state_in.particle_q[first + 1],
+                                        state_in.particle_qd[first], state_in.particle_qd[first + 1],
+                                        model.string_stiffness[s], model.string_rest_length[s],
+                                        model.string_internal_friction[s])
         if wp.static(WIDEN):
             wp.atomic_add(bar_reaction, bar, bar_vec3(reaction))
         else:

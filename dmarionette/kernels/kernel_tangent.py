@@ -25,7 +25,11 @@ of statements (:class:`~dmarionette.kernels.kernel_tangent_transform.TangentTran
 
 Tangent kernel signature: the primal kernel's parameters in their groups, with a ``Tangent
 in`` group after the input groups holding ``tan_<name>`` for every array parameter named in
-``tangent_names`` (default :data:`TANGENT_NAMES`) that the kernel reads, and a last group
+``tangent_names`` (default :data:`TANGENT_NAMES`), then for every array field of a struct
+parameter that the kernel reads (``model.string_stiffness[s]``) and whose field name is in
+``tangent_names`` (a struct's tangents are named by their fields, as the arrays' were before
+they went into the struct: ``string_stiffness``, ``particle_q``; a field named like another
+parameter or field raises, as does a write into a struct's field), and a last group
 ``Tangent out`` holding ``tan_<name>`` for every array it writes (plain writes and
 ``wp.atomic_add``); :meth:`TangentKernel.launch` takes the tangent arrays by name (the primal's
 arguments in signature order or by name) and checks the names it is given. Each tangent
@@ -34,8 +38,8 @@ dtype). The tangent kernel also writes the primal outputs (the direction-0 threa
 only), so one launch gives the pass and its P directional derivatives; an output that the
 primal accumulates (``wp.atomic_add``) is accumulated in its tangent too, so the caller
 initialises it as it initialises the primal. Everything else is constant (tangent 0):
-scalar parameters, structs (contact constants, surfaces), integer arrays, and arrays not
-named.
+scalar parameters, structs' scalar fields and unnamed array fields (contact constants, surfaces),
+integer arrays, and arrays not named.
 
 Rules (:mod:`kernel_tangent_rules`): each the derivative of the formula the primal evaluates,
 ties broken as Warp 1.19's adjoints break them, so that the tangent agrees with the tape's
@@ -221,7 +225,8 @@ def tangent_kernel(kernel, tangent_names=TANGENT_NAMES, unroll: int = 0) -> Tang
     if unroll:
         variants[int(unroll)] = (k, t, source)
     ins = [a for a in t.params if a in t.active_arrays and a not in t.outputs]
-    arrays = [a for a in t.params if a in t.arrays]
+    ins += [f for f in t.fields if f in t.active_fields]
+    arrays = [a for a in t.params if a in t.arrays] + list(t.fields)
     result = TangentKernel(k, t.params, arrays, t.arguments, ins, list(t.outputs), source, int(unroll), variant)
     _CACHE[key] = result
     return result

@@ -6,7 +6,9 @@ Free names (a closure's cells, module globals, attribute chains on non-module ob
 to the objects they name, which the generated module holds as globals ``_glb<n>``
 (:class:`TangentBuilder`); Python scalar constants are written in as literals. Activity is
 flow-insensitive: a fixed point over all assignments, starting from the kernel's array parameters
-named in ``tangent_names`` (a function's: the active arguments); a value that is active somewhere
+named in ``tangent_names`` and the array fields of its struct parameters so named that it reads
+(``model.string_stiffness[s]``: the tangent array ``tan_string_stiffness``, named by the field; a
+function's: the active arguments); a value that is active somewhere
 but assigned a constant elsewhere gets the tangent ``y - y``, zero of its type (finite ``y``).
 
 Emission: ``wp.tid()`` gains a leading direction index ``_dir``; control flow is kept as it is
@@ -151,13 +153,17 @@ class TangentTransform:
             self.annotation[a.arg] = eval(ann, scope) if isinstance(ann, str) else ann  # noqa: S307 (the source's own)
         self._resolve(scope)
         self.arrays = {n for n, a in self.annotation.items() if isinstance(a, wp.array)}
+        # A struct parameter's array fields, by field name: (parameter, array type) (:meth:`_struct_fields`).
+        self.fields = self._struct_fields(tangent_names) if kernel else {}
         if kernel:
             self.active_arrays = {n for n in self.arrays if n in tangent_names}
+            self.active_fields = self._read_fields() & set(tangent_names)
             self.active = set()
         else:
             if self.arrays:
                 raise TangentError(f"kernel_tangent: {self.where}: a function taking arrays")
             self.active_arrays = set()
+            self.active_fields = set()
             self.active = {self.params[i] for i in active_params}
         self.outputs = self._outputs() if kernel else []
         self.out_mask: tuple = ()
@@ -216,10 +222,14 @@ class TangentTransform:
         """The type of parameter ``name`` (an array type: with ``lead`` more leading dimensions)."""
         a = self.annotation[name]
         if isinstance(a, wp.array):
-            return f"wp.array{a.ndim + lead}d(dtype={self._type_source(a.dtype)})"
+            return self.array_source(a, lead)
         if lead:
             raise TangentError(f"kernel_tangent: {self.where}: a tangent of the non-array {name}")
         return self._type_source(a)
+
+    def array_source(self, a, lead: int = 0) -> str:
+        """The source of the array type ``a`` with ``lead`` more leading dimensions."""
+        return f"wp.array{a.ndim + lead}d(dtype={self._type_source(a.dtype)})"
 
     def _type_source(self, t) -> str:
         for n in ("float64", "float32", "int32", "vec3d", "quatd", "mat33d"):
@@ -248,6 +258,36 @@ class TangentTransform:
             if name in self.arrays and name not in out:
                 out.append(name)
         return out
+
+    def _struct_fields(self, tangent_names) -> dict:
+        """Field name -> (struct parameter, array type) of the struct parameters' array fields; a field
+        named in ``tangent_names`` that is also another parameter's or another struct's field raises (a
+        tangent is named by its field)."""
+        fields: dict = {}
+        for n in self.params:
+            a = self.annotation[n]
+            if not _is_struct(a):
+                continue
+            for f, var in a.vars.items():
+                if not isinstance(var.type, wp.array) or f in fields or f in self.params:
+                    if f in tangent_names and isinstance(var.type, wp.array):
+                        raise TangentError(f"kernel_tangent: {self.where}: the array field {n}.{f} has the name "
+                                           f"of another parameter or field (a field's tangent is named by the field)")
+                    continue
+                fields[f] = (n, var.type)
+        return fields
+
+    def field_of(self, node: ast.AST) -> str | None:
+        """The field name where ``node`` is a struct parameter's array field (``model.string_stiffness``)."""
+        if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.attr in self.fields
+                and self.fields[node.attr][0] == node.value.id):
+            return node.attr
+        return None
+
+    def _read_fields(self) -> set:
+        """The struct parameters' array fields the kernel reads (an element read ``p.f[i]``)."""
+        return {f for n in ast.walk(self.fn) if isinstance(n, ast.Subscript) and isinstance(n.ctx, ast.Load)
+                and (f := self.field_of(n.value)) is not None}
 
     # ------------------------------------------------------------ activity
     def _analyse(self) -> None:
@@ -295,6 +335,8 @@ class TangentTransform:
         if isinstance(node, ast.Subscript):
             if isinstance(node.value, ast.Name) and node.value.id in self.arrays:
                 return node.value.id in self.active_arrays
+            if self.field_of(node.value) is not None:
+                return self.field_of(node.value) in self.active_fields
             return self.is_active(node.value)
         if isinstance(node, ast.BinOp):
             return self.is_active(node.left) or self.is_active(node.right)
@@ -376,6 +418,11 @@ class TangentTransform:
                 return _src(node), None
             idx = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
             return _src(node), f"{self.tan_array(node.value.id)}[{', '.join([self.direction()] + [_src(i) for i in idx])}]"
+        if isinstance(node, ast.Subscript) and (field := self.field_of(node.value)) is not None:
+            if field not in self.active_fields:
+                return _src(node), None
+            idx = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
+            return _src(node), f"{self.tan_array(field)}[{', '.join([self.direction()] + [_src(i) for i in idx])}]"
         if isinstance(node, ast.Attribute):
             return _src(node), None
         prim, tan = self.lower(node, indent)
@@ -391,8 +438,8 @@ class TangentTransform:
         """(primal expression with its operands reduced to atoms, tangent expression or None)."""
         if not self.is_active(node):
             return _src(node), None
-        if isinstance(node, (ast.Name, ast.Constant)) or (isinstance(node, ast.Subscript) and isinstance(
-                node.value, ast.Name) and node.value.id in self.arrays):
+        if isinstance(node, (ast.Name, ast.Constant)) or (isinstance(node, ast.Subscript) and (isinstance(
+                node.value, ast.Name) and node.value.id in self.arrays or self.field_of(node.value) is not None)):
             return self.atom(node, indent)
         if isinstance(node, ast.Subscript):
             if self.is_active(node.slice):
@@ -593,6 +640,7 @@ class TangentTransform:
         order ``tools/lint_kernels.py`` asks for); :attr:`arguments` records the order."""
         self.statements(self.fn.body, 1)
         tan_in = [n for n in self.params if n in self.active_arrays and n not in self.outputs]
+        tan_in += [f for f in self.fields if f in self.active_fields]  # a struct's fields read with tangents
         inputs = [n for n in self.params if groups.get(n) in _INPUT_GROUPS]
         outputs = [n for n in self.params if n not in inputs]
         order = [(groups.get(n), n) for n in inputs] + [("Tangent in", self.tan_array(n)) for n in tan_in]
@@ -605,7 +653,10 @@ class TangentTransform:
                 head.append(f"    # {g}:")
             group = g
             tangent_of = n[len(TANGENT_PREFIX):] if n.startswith(TANGENT_PREFIX) and n not in self.params else None
-            ann = self.annotation_source(tangent_of, 1) if tangent_of is not None else self.annotation_source(n)
+            if tangent_of in self.fields:
+                ann = self.array_source(self.fields[tangent_of][1], 1)
+            else:
+                ann = self.annotation_source(tangent_of, 1) if tangent_of is not None else self.annotation_source(n)
             head.append(f"    {n}: {ann},")
         head.append("):")
         return "\n".join(head + self.lines) + "\n"
@@ -629,6 +680,11 @@ def parameter_groups(pyfunc) -> dict:
         elif ":" in text and group is not None:
             groups[text.split(":")[0].strip()] = group
     return groups
+
+
+def _is_struct(t) -> bool:
+    """A ``wp.struct`` type."""
+    return hasattr(t, "vars") and hasattr(t, "cls")
 
 
 def _is_project(obj) -> bool:

@@ -81,6 +81,7 @@ import warp as wp
 
 from .articulation_forces import compute_point_state
 from .articulation_math import compute_point_inertia, compute_point_wrench, spatial6, spatial66
+from .string_model_arrays import string_model_arrays_type
 from .string_spring import string_spring_functions
 from .string_tie import compute_tie_anchor
 
@@ -93,6 +94,7 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
     (the mean of the previous step's tie forces is unrolled, as in
     :func:`apply_string_forces_to_anchors_kernel`, so that the reverse pass replays it)."""
     vec3 = wp.types.vector(3, scalar)
+    StringModelArrays = string_model_arrays_type(scalar)  # the strings' constants (string_model_arrays)
     spring = string_spring_functions(wp.float64)  # the strings' values are widened as they are read
     FRICTION = bool(internal_friction)
     n = int(substeps)
@@ -104,12 +106,7 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         spring_point: wp.array(dtype=wp.vec3d),
         spring_string: wp.array(dtype=wp.int32),
         strings_per_world: wp.int32,
-        string_start: wp.array(dtype=wp.int32),
-        string_stiffness: wp.array(dtype=scalar),
-        string_rest_length: wp.array(dtype=scalar),
-        string_tie_stiffness: wp.array(dtype=scalar),
-        string_taut_distance: wp.array(dtype=scalar),
-        string_internal_friction: wp.array(dtype=scalar),
+        strings: StringModelArrays,
         # State in:
         body_pos: wp.array2d(dtype=wp.vec3d),
         body_rot: wp.array2d(dtype=wp.quatd),
@@ -138,9 +135,9 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         b = spring_body[i]
         s = w * strings_per_world + spring_string[i]  # the strings of world w follow those of the worlds before
         x, v = compute_point_state(body_pos[w, b], body_rot[w, b], body_w[w, b], body_v[w, b], spring_point[i])
-        first = string_start[s]
-        last = string_start[s + 1] - 1
-        k = wp.float64(string_tie_stiffness[s])
+        first = strings.string_start[s]
+        last = strings.string_start[s + 1] - 1
+        k = wp.float64(strings.string_tie_stiffness[s])
         # The string's pull: the mean of the tie forces of the previous puppet step. (The
         # momentary tie force k (x_last - x_t) carries the light end particle's transients:
         # after the bars' 5 m/s jerks, newtons' worth while the string is slack, +4.8 J. The pull
@@ -159,23 +156,23 @@ def eval_string_response_kernel(scalar, internal_friction: bool, substeps: int):
         if length > zero:
             u = along / length
             uu = wp.outer(u, u)
-            tension = spring.compute_string_tension(segment, wp.float64(string_stiffness[s]),
-                                                    wp.float64(string_rest_length[s]))
+            tension = spring.compute_string_tension(segment, wp.float64(strings.string_stiffness[s]),
+                                                    wp.float64(strings.string_rest_length[s]))
             stiffness = (tension / length) * (eye - uu)
             # Along the string: the tie and the whole string in series, ramped in from the §3.2
             # taut distance to the rest length (a continuous switch: a step in it would turn
             # rounding into a different path).
             span = wp.length(wp.vec3d(particle_q[last]) - wp.vec3d(particle_q[first]))
-            taut = wp.float64(string_taut_distance[s])
-            rest = wp.float64(string_rest_length[s]) * wp.float64(last - first)
+            taut = wp.float64(strings.string_taut_distance[s])
+            rest = wp.float64(strings.string_rest_length[s]) * wp.float64(last - first)
             ramp = wp.clamp((span - taut) / wp.max(rest - taut, wp.float64(1e-9)), zero, wp.float64(1.0))
-            whole = wp.float64(string_stiffness[s]) / wp.float64(last - first)
+            whole = wp.float64(strings.string_stiffness[s]) / wp.float64(last - first)
             stiffness = stiffness + (ramp * k * whole / (k + whole)) * uu
         damping = wp.float64(0.0)
         if wp.static(FRICTION):
             # The whole string's friction in series with the tie, whose spring over one step acts
             # like a damper k h: 1 / c = 1 / c_string + 1 / (k h) (a cut tie transmits nothing).
-            whole_friction = wp.float64(string_internal_friction[s]) / wp.float64(last - first)
+            whole_friction = wp.float64(strings.string_internal_friction[s]) / wp.float64(last - first)
             damping = whole_friction * (k * h) / (whole_friction + k * h)
         f = force - h * (stiffness * v)
         wp.atomic_add(body_wrench, w, b, compute_point_wrench(x, f))

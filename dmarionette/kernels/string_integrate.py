@@ -12,8 +12,7 @@ import functools
 
 import warp as wp
 
-from .string_model_arrays import string_model_arrays_type
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
+from .string_state_arrays import string_arrays_types
 from .string_tie import compute_tie_force
 
 
@@ -43,9 +42,7 @@ def integrate_string_kernels(scalar):
     """Builds ``(integrate_string_particles, eval_string_tie_force)`` for a float type."""
     vec3 = wp.types.vector(3, scalar)
     compute_string_outputs = string_output_function(scalar)
-    StringModelArrays = string_model_arrays_type(scalar)
-    StringStateArrays = string_state_arrays_type(scalar)
-    StringControlArrays = string_control_arrays_type(scalar)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(scalar)
 
     @wp.kernel(module="unique")
     def integrate_string_particles(

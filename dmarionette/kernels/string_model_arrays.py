@@ -10,6 +10,14 @@ uploaded into one of them in place is seen by every launch, and a taped launch's
 each array's ``.grad`` (Warp's tape mirrors a struct argument's array fields with their
 gradients, ``wp.Tape.get_adjoint``).
 
+Who takes it: every string step kernel (the one-launch steps, the five passes, the adjoints and
+tangents), the bar work meter (``marionette/energy.py``), the bar feedback
+(``bar_feedback.eval_bar_feedback``, as ``model``) and the coupling's linear model of the strings
+(``string_body_coupling.eval_string_response``, as ``strings``; the coupling's anchors take the
+marionette's float64 copy of the ties' ``k`` instead). The last two have tangents made by
+``kernel_tangent``, which gives the fields they read tangents named by the fields
+(``string_stiffness``, ...).
+
 The kernels are built per float type by factories, so the struct is too
 (:func:`string_model_arrays_type`, one per ``wp.float32``/``wp.float64``), with
 :func:`string_constants_function`'s ``compute_string_constants``, the one place a kernel reads a

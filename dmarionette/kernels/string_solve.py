@@ -34,8 +34,7 @@ from typing import Any
 
 import warp as wp
 
-from .string_model_arrays import string_model_arrays_type
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
+from .string_state_arrays import string_arrays_types
 
 MAX_ACTIVE_SET_PASSES = 8  # re-solves per chain and step at most (each activates >= 1 segment)
 
@@ -78,9 +77,7 @@ def solve_string_system_kernels(scalar):
     mat33 = wp.types.matrix((3, 3), scalar)
     thomas = thomas_row_functions(scalar)
     compute_thomas_first_row, compute_thomas_row = thomas.compute_thomas_first_row, thomas.compute_thomas_row
-    StringModelArrays = string_model_arrays_type(scalar)
-    StringStateArrays = string_state_arrays_type(scalar)
-    StringControlArrays = string_control_arrays_type(scalar)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(scalar)
 
     @wp.func
     def compute_back_substitution(

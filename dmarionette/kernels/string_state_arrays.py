@@ -12,23 +12,34 @@ them in place is seen by every launch. A struct value holds its arrays' pointers
 gradients', as a captured graph does: the objects rebuild it when one of their arrays, or its
 ``.grad``, is another object than the one it was built from (:func:`struct_of_arrays`).
 
-Per float type (:func:`string_state_arrays_type`, :func:`string_control_arrays_type`), as the
-kernels are.
+Per float type (:func:`string_state_arrays_type`, :func:`string_control_arrays_type`; the three
+argument types of a step's kernels at once, :func:`string_arrays_types`), as the kernels are.
 
 Who takes them: the step adjoints and tangents (scalar and laned; the adjoints' gradients as
-structs of the same types), the five taped passes and the bar work meter. Not the one-launch plain
+structs of the same types), the five taped passes, the bar work meter and the bar feedback
+(``bar_feedback.eval_bar_feedback``, a state as ``state_in``; its tangent, made by
+``kernel_tangent``, takes the tangents of the fields it reads by their names, ``particle_q`` and
+``particle_qd``). Not the coupling's ``eval_string_response``: it reads one array of the state
+(``particle_q``) and the marionette's ``tie_force`` of another shape, a name the struct's field
+would clash with in its tangent. Not the one-launch plain
 steps (``string_step``, ``string_step_lanes``): Warp specialises a CPU kernel's strides only for
 top-level 1D arrays, and the structs made those steps slower (``string_step``'s module doc). Cost on
 the host: a taped pass's backward launch gets a new mirror struct per struct argument from Warp's
 tape (``wp.Tape.get_adjoint``), about 10 µs each: the five passes' taped backward (the reference
-path, ``SolverStringImplicit.hand_adjoint = False``) is about 20 % slower for three short strings.
+path, ``SolverStringImplicit.hand_adjoint = False``) is about 20 % slower for three short strings;
+the bar feedback's two structs, once per string step, made the uncaptured taped backward of a
+1 s ``hanging`` rollout about 7 % slower (0.39-0.42 s -> 0.41-0.46 s, ``benchmarks/bench_gradients.py
+--seconds 1``, its "no capture" row), the captured one (the default: the mirrors are made once, at
+capture) not measurably (0.032-0.033 s -> 0.031-0.032 s).
 """
 
 import functools
 
 import warp as wp
 
-__all__ = ["CONTROL_FIELDS", "STATE_FIELDS", "STATE_GRAD_FIELDS", "string_control_arrays_type",
+from .string_model_arrays import string_model_arrays_type
+
+__all__ = ["CONTROL_FIELDS", "STATE_FIELDS", "STATE_GRAD_FIELDS", "string_arrays_types", "string_control_arrays_type",
            "string_state_arrays_type", "struct_of", "struct_of_arrays"]
 
 # The fields of each struct (in the kernels' old argument order).
@@ -72,6 +83,13 @@ def string_control_arrays_type(scalar):
         tie_qd: wp.array(dtype=vec3)
 
     return StringControlArrays
+
+
+def string_arrays_types(scalar):
+    """``(StringModelArrays, StringStateArrays, StringControlArrays)`` for the float type ``scalar``: the
+    three argument types of a string step's kernels (``string_model_arrays_type``,
+    :func:`string_state_arrays_type`, :func:`string_control_arrays_type`)."""
+    return string_model_arrays_type(scalar), string_state_arrays_type(scalar), string_control_arrays_type(scalar)
 
 
 def struct_of(struct_type, fields, arrays, cached):

@@ -43,9 +43,9 @@ import functools
 
 import warp as wp
 
-from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
+from .string_model_arrays import string_constants_function, string_constants_type
 from .string_spring import string_spring_adjoint_functions
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
+from .string_state_arrays import string_arrays_types
 
 __all__ = ["string_step_adjoint_kernel"]
 
@@ -58,9 +58,7 @@ def string_step_adjoint_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     GRAVITY, FRICTION, AIR, GROUND, GROUND_FRICTION = effects
     TENSION_ONLY = tension_only
     vec3 = wp.types.vector(3, scalar)
-    StringModelArrays = string_model_arrays_type(scalar)
-    StringStateArrays = string_state_arrays_type(scalar)
-    StringControlArrays = string_control_arrays_type(scalar)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(scalar)
     StringConstants = string_constants_type(scalar)
     compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)

@@ -33,8 +33,7 @@ import functools
 import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
-from .string_model_arrays import string_model_arrays_type
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
+from .string_state_arrays import string_arrays_types
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 
 __all__ = ["lane_parts_type", "string_step_adjoint_lanes_kernel"]
@@ -68,9 +67,7 @@ def string_step_adjoint_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
         f.gather_string3, f.gather_particle, f.gather_particle3, f.scatter3)
     lneg, vadd, vsub, lsum3, lscale, lmul_vec = f.lneg, f.vadd, f.vsub, f.lsum3, f.lscale, f.lmul_vec
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
-    StringModelArrays = string_model_arrays_type(f64)
-    StringStateArrays = string_state_arrays_type(f64)
-    StringControlArrays = string_control_arrays_type(f64)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(f64)
 
     # --- accumulation into the gradients, real lanes only ---------------------------------------
 

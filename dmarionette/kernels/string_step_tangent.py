@@ -132,9 +132,9 @@ import numpy as np
 import warp as wp
 
 from .lane_ops import native_lane_memory, native_lane_ops
-from .string_model_arrays import string_constants_function, string_model_arrays_type
+from .string_model_arrays import string_constants_function
 from .string_spring import string_spring_adjoint_functions, string_spring_tangent_functions
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
+from .string_state_arrays import string_arrays_types
 from .string_step_lanes import lane_step_functions, lane_types
 from .tangent_directions import tangent_directions
 
@@ -195,9 +195,7 @@ def string_step_tangent_kernel(scalar, effects: tuple[bool, bool, bool, bool, bo
     MAPS = maps
     SEGMENTS = segments
     vec3 = wp.types.vector(3, scalar)
-    StringModelArrays = string_model_arrays_type(scalar)
-    StringStateArrays = string_state_arrays_type(scalar)
-    StringControlArrays = string_control_arrays_type(scalar)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(scalar)
     compute_string_constants = string_constants_function(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     factor = _factor_load(scalar, factor_lanes)

@@ -53,8 +53,7 @@ import functools
 
 import warp as wp
 
-from .string_model_arrays import string_model_arrays_type
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
+from .string_state_arrays import string_arrays_types
 from .string_step_lanes import LANES, lane_step_functions, lane_types
 from .lane_ops import native_lane_ops
 
@@ -101,9 +100,7 @@ def string_step_tangent_lanes_kernel(effects: tuple[bool, bool, bool, bool, bool
     gather_string3, gather_particle3, gather_particle = f.gather_string3, f.gather_particle3, f.gather_particle
     neg, vadd, vsub, scale, lsum3, mul_vec = f.lneg, f.vadd, f.vsub, f.lscale, f.lsum3, f.lmul_vec
     compute_lane_group, gather_string_constants = f.compute_lane_group, f.gather_string_constants
-    StringModelArrays = string_model_arrays_type(f64)
-    StringStateArrays = string_state_arrays_type(f64)
-    StringControlArrays = string_control_arrays_type(f64)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(f64)
     tgather3, tgather, tscatter3 = gather_particle3, gather_particle, f.scatter3
     cgather = _constant_gather(lanes)
 

@@ -35,8 +35,8 @@ import functools
 
 import warp as wp
 
-from .string_model_arrays import string_constants_function, string_constants_type, string_model_arrays_type
-from .string_state_arrays import string_control_arrays_type, string_state_arrays_type
+from .string_model_arrays import string_constants_function, string_constants_type
+from .string_state_arrays import string_arrays_types
 from .string_terms import string_terms
 
 
@@ -47,9 +47,7 @@ def eval_string_spring_kernel(scalar, tension_only: bool = False):
     ``string_spring``; the printed spring is always active)."""
     t = string_terms(scalar, tension_only)
     vec3, mat33 = t.vec3, t.mat33
-    StringModelArrays = string_model_arrays_type(scalar)
-    StringStateArrays = string_state_arrays_type(scalar)
-    StringControlArrays = string_control_arrays_type(scalar)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(scalar)
 
     @wp.kernel(module="unique")
     def eval_string_spring(
@@ -236,9 +234,7 @@ def eval_string_system_kernel(scalar, effects: tuple[bool, bool, bool, bool, boo
     t = string_terms(scalar)
     vec3, mat33 = t.vec3, t.mat33
     compute_string_system_row = string_system_row_function(scalar, effects)
-    StringModelArrays = string_model_arrays_type(scalar)
-    StringStateArrays = string_state_arrays_type(scalar)
-    StringControlArrays = string_control_arrays_type(scalar)
+    StringModelArrays, StringStateArrays, StringControlArrays = string_arrays_types(scalar)
     compute_string_constants = string_constants_function(scalar)
 
     @wp.kernel(module="unique")

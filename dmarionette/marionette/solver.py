@@ -534,10 +534,7 @@ class SolverMarionette:
             return
         wp.launch(self._response, dim=(tw.world_count, len(m.spring_string)),
                   inputs=[m.puppet.spring_body, m.puppet.spring_point, m.spring_string_wp,
-                          wp.int32(m.strings_per_world), s.string_start,
-                          s.string_stiffness, s.string_rest_length, s.string_tie_stiffness, s.string_taut_distance,
-                          s.string_internal_friction,
-                          tw.body_pos, tw.body_rot, tw.body_w, tw.body_v,
+                          wp.int32(m.strings_per_world), s.arrays, tw.body_pos, tw.body_rot, tw.body_w, tw.body_v,
                           state_in.strings.particle_q, state_in.tie_force, h],
                   outputs=[tw.body_wrench, tw.body_stiffness], device=m.device)
 
@@ -560,10 +557,8 @@ class SolverMarionette:
         s = m.strings
         weight = wp.vec3d(*(m.puppet_mass * np.asarray(m.scene.gravity)))
         wp.launch(self._feedback, dim=s.string_count,
-                  inputs=[s.string_start, m.string_bar_wp, s.string_stiffness, s.string_rest_length,
-                          s.string_internal_friction, wp.float64(m.scene.feedback_stiffness),
-                          wp.float64(m.scene.feedback_damping), weight,
-                          strings.particle_q, strings.particle_qd, strings.string_taut,
+                  inputs=[s.arrays, m.string_bar_wp, wp.float64(m.scene.feedback_stiffness),
+                          wp.float64(m.scene.feedback_damping), weight, strings.arrays,
                           control.bar_q[j], control.bar_qd[j]],
                   outputs=[state_out.bar_feedback[j], state_out.bar_reaction[j]], device=m.device)
 

@@ -13,6 +13,7 @@ import warp as wp
 
 from dmarionette.kernels.articulation_tangent import TangentError
 from dmarionette.kernels.kernel_tangent import tangent_kernel
+from tests.support.tangents import assert_dot_product, launch_tangent
 
 
 @wp.kernel
@@ -194,3 +195,153 @@ def test_unrolled_width():
     assert [tk.width(p) for p in (1, 4, 5, 12, 16, 13, 24)] == [1, 4, 5, 6, 8, 1, 8]
     assert tangent_kernel(eval_scaled).width(16) is None
     assert "_blk, i = wp.tid()" in tk.source and "tan_out[_dir_d7, i] = " in tk.source
+
+
+# ---------------------------------------------------------------- struct arguments
+
+
+@wp.struct
+class PullModel:
+    """Constants of ``eval_pull``: an array field with a tangent name (``string_stiffness``), one
+    without (``string_taut_distance``), an integer array and a scalar."""
+
+    string_start: wp.array(dtype=wp.int32)
+    string_stiffness: wp.array(dtype=wp.float64)
+    string_taut_distance: wp.array(dtype=wp.float64)
+    scale: wp.float64
+
+
+@wp.struct
+class PullState:
+    """The state ``eval_pull`` reads: ``particle_q`` (read, a tangent name) and ``particle_qd`` (a
+    tangent name, but not read: no tangent)."""
+
+    particle_q: wp.array(dtype=wp.vec3d)
+    particle_qd: wp.array(dtype=wp.vec3d)
+
+
+@wp.kernel
+def eval_pull(
+    # Model:
+    model: PullModel,
+    # State in:
+    state_in: PullState,
+    # State out:
+    out: wp.array(dtype=wp.vec3d),
+    total: wp.array(dtype=wp.vec3d),
+):
+    s = wp.tid()
+    first = model.string_start[s]
+    last = model.string_start[s + 1] - 1
+    d = state_in.particle_q[last] - state_in.particle_q[first]
+    f = model.scale * model.string_stiffness[s] * (wp.length(d) - model.string_taut_distance[s]) * d
+    out[s] = f
+    wp.atomic_add(total, 0, wp.float64(0.5) * f)
+
+
+@wp.kernel
+def eval_pull_arrays(
+    # Model:
+    string_start: wp.array(dtype=wp.int32),
+    string_stiffness: wp.array(dtype=wp.float64),
+    string_taut_distance: wp.array(dtype=wp.float64),
+    scale: wp.float64,
+    # State in:
+    particle_q: wp.array(dtype=wp.vec3d),
+    # State out:
+    out: wp.array(dtype=wp.vec3d),
+    total: wp.array(dtype=wp.vec3d),
+):
+    s = wp.tid()
+    first = string_start[s]
+    last = string_start[s + 1] - 1
+    d = particle_q[last] - particle_q[first]
+    f = scale * string_stiffness[s] * (wp.length(d) - string_taut_distance[s]) * d
+    out[s] = f
+    wp.atomic_add(total, 0, wp.float64(0.5) * f)
+
+
+def _pull_args(rng) -> tuple[dict, dict]:
+    """(struct arguments of ``eval_pull``, the same arrays one by one for ``eval_pull_arrays``)."""
+    arr = lambda a, d: wp.array(np.asarray(a), dtype=d, device="cpu")  # noqa: E731
+    flat = {"string_start": arr([0, 3, 7, 9], wp.int32), "string_stiffness": arr(rng.uniform(1.0, 2.0, 3), wp.float64),
+            "string_taut_distance": arr(rng.uniform(0.1, 0.5, 3), wp.float64), "scale": wp.float64(0.75),
+            "particle_q": arr(rng.standard_normal((9, 3)), wp.vec3d),
+            "particle_qd": arr(rng.standard_normal((9, 3)), wp.vec3d),
+            "out": wp.zeros(3, dtype=wp.vec3d, device="cpu"), "total": wp.zeros(1, dtype=wp.vec3d, device="cpu")}
+    model, state = PullModel(), PullState()
+    for name in ("string_start", "string_stiffness", "string_taut_distance", "scale"):
+        setattr(model, name, flat[name])
+    for name in ("particle_q", "particle_qd"):
+        setattr(state, name, flat[name])
+    flat.pop("particle_qd")  # eval_pull_arrays takes only what it reads
+    return {"model": model, "state_in": state, "out": flat["out"], "total": flat["total"]}, flat
+
+
+@pytest.mark.parametrize("P, unroll", [(3, 0), (6, 3), (5, 8)])
+def test_struct_arguments_match_the_arrays_one_by_one(P, unroll):
+    """A kernel taking its arrays in structs: the array fields it reads whose names are tangent names get
+    tangents, named by their fields (``string_stiffness``, ``particle_q``), in the order of the kernel
+    taking the same arrays one by one; the rest are constants (``string_taut_distance``, the integer
+    layout, the scalar; ``particle_qd``, not read, has none). Primal outputs and tangents equal that
+    kernel's bit for bit in both layouts (the same statements on the same values)."""
+    rng = np.random.default_rng(7 + P)
+    args, flat = _pull_args(rng)
+    structs, arrays = tangent_kernel(eval_pull, unroll=unroll), tangent_kernel(eval_pull_arrays, unroll=unroll)
+    assert structs.tangent_inputs == arrays.tangent_inputs == ["string_stiffness", "particle_q"]
+    assert structs.tangent_outputs == arrays.tangent_outputs == ["out", "total"]
+    v = {"string_stiffness": rng.standard_normal((P, 3, 1)), "particle_q": rng.standard_normal((P, 9, 3))}
+    prim_s, tan_s = launch_tangent(eval_pull, 3, args, v, P, unroll)
+    prim_a, tan_a = launch_tangent(eval_pull_arrays, 3, flat, v, P, unroll)
+    for name in ("out", "total"):
+        assert np.abs(tan_a[name]).max() > 0.0, f"tangent {name} is zero (nothing compared)"
+        np.testing.assert_array_equal(prim_s[name], prim_a[name], err_msg=f"primal {name}")
+        np.testing.assert_array_equal(tan_s[name], tan_a[name], err_msg=f"tangent {name}")
+
+
+@pytest.mark.parametrize("P", [1, 4])
+def test_struct_arguments_dot_product(P):
+    """The dot-product identity against Warp's tape on the struct kernel (the tape reaches the struct's
+    array fields' gradients)."""
+    rng = np.random.default_rng(11 + P)
+    args, _flat = _pull_args(rng)
+    assert_dot_product(eval_pull, 3, args, P, rng)
+
+
+def test_struct_fields_as_constants():
+    """With no tangent names, a struct's array fields are constants: no tangent inputs, a zero tangent."""
+    tk = tangent_kernel(eval_pull, frozenset())
+    assert tk.tangent_inputs == [] and tk.tangent_outputs == ["out", "total"]
+    assert "tan_out[_dir, s] = " in tk.source and "tan_particle_q" not in tk.source
+
+
+@wp.kernel
+def eval_struct_write(
+    # State in:
+    model: PullModel,
+    # State out:
+    state_out: PullState,
+):
+    i = wp.tid()
+    state_out.particle_q[i] = model.string_stiffness[i] * state_out.particle_qd[i]
+
+
+@wp.kernel
+def eval_field_clash(
+    # State in:
+    model: PullModel,
+    string_stiffness: wp.array(dtype=wp.float64),
+    # State out:
+    out: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()
+    out[i] = model.string_stiffness[i] * string_stiffness[i]
+
+
+@pytest.mark.parametrize("kernel, construct", [(eval_struct_write, "assignment target"),
+                                               (eval_field_clash, "the name of another parameter")])
+def test_struct_constructs_raise(kernel, construct):
+    """A write into a struct's array field (its tangent would be lost) and a field named like another
+    parameter (tangents are named by field) raise, naming the construct."""
+    with pytest.raises(TangentError, match=construct):
+        tangent_kernel(kernel)

@@ -23,12 +23,14 @@ import pytest
 import warp as wp
 
 from dmarionette.kernels.articulation_math import spatial6, spatial66
+from dmarionette.kernels.string_model_arrays import string_model_arrays_type
 from dmarionette.kernels.string_body_coupling import (
     apply_string_forces_to_anchors_kernel,
     eval_string_response_kernel,
     eval_tie_path,
 )
-from tests.support.tangents import assert_central_differences, assert_dot_product, central_difference_study
+from tests.support.tangents import (assert_central_differences, assert_dot_product, central_difference_study,
+                                   struct_value)
 
 WORLDS, PER_WORLD, BODIES, N = 2, 2, 3, 3
 REST = 0.25
@@ -76,15 +78,16 @@ def _bodies(rng):
 def _response_case(friction: bool, rng):
     start, q, _qd, taut = _strings(rng)
     kernel = eval_string_response_kernel(wp.float64, friction, N)
+    strings = struct_value(string_model_arrays_type(wp.float64), string_start=_arr(start, wp.int32),
+                           string_stiffness=_arr(rng.uniform(500.0, 2000.0, 4), wp.float64),
+                           string_rest_length=_arr([REST] * 4, wp.float64),
+                           string_tie_stiffness=_arr(rng.uniform(100.0, 1000.0, 4), wp.float64),
+                           string_taut_distance=_arr(taut, wp.float64),
+                           string_internal_friction=_arr(rng.uniform(0.5, 2.0, 4), wp.float64))
     args = {
         "spring_body": _arr([0, 2], wp.int32), "spring_point": _arr(0.05 * rng.standard_normal((2, 3)), wp.vec3d),
         "spring_string": _arr([0, 1], wp.int32), "strings_per_world": wp.int32(PER_WORLD),
-        "string_start": _arr(start, wp.int32),
-        "string_stiffness": _arr(rng.uniform(500.0, 2000.0, 4), wp.float64),
-        "string_rest_length": _arr([REST] * 4, wp.float64),
-        "string_tie_stiffness": _arr(rng.uniform(100.0, 1000.0, 4), wp.float64),
-        "string_taut_distance": _arr(taut, wp.float64),
-        "string_internal_friction": _arr(rng.uniform(0.5, 2.0, 4), wp.float64),
+        "strings": strings,
         **_bodies(rng),
         "particle_q": _arr(q, wp.vec3d),
         "tie_force": _arr(rng.standard_normal((N, 4, 3)), wp.vec3d),

@@ -17,7 +17,9 @@ import pytest
 import warp as wp
 
 from dmarionette.kernels.bar_feedback import eval_bar_feedback_kernel
-from tests.support.tangents import assert_dot_product, dot_product_check
+from dmarionette.kernels.string_model_arrays import string_model_arrays_type
+from dmarionette.kernels.string_state_arrays import string_state_arrays_type
+from tests.support.tangents import assert_dot_product, dot_product_check, struct_value
 
 REST = 0.25
 
@@ -32,13 +34,16 @@ def _case(rng, friction, tension_only, scalar=wp.float64, bar_scalar=None):
     q[start[3]:start[4]] = [[0.5, 1.5 - REST * k, 0.0] for k in range(4)]  # segments exactly at rest length
     arr = lambda a, d: wp.array(np.asarray(a), dtype=d, device="cpu")  # noqa: E731
     kernel = eval_bar_feedback_kernel(scalar, friction, tension_only, bar_scalar)
-    args = {"string_start": arr(start, wp.int32), "string_bar": arr([0, 1, -1, 1], wp.int32),
-            "string_stiffness": arr(rng.uniform(500, 2000, 4), scalar),
-            "string_rest_length": arr([REST] * 4, scalar),
-            "string_internal_friction": arr(rng.uniform(0.5, 2.0, 4), scalar),
+    model = struct_value(string_model_arrays_type(scalar), string_start=arr(start, wp.int32),
+                         string_stiffness=arr(rng.uniform(500, 2000, 4), scalar),
+                         string_rest_length=arr([REST] * 4, scalar),
+                         string_internal_friction=arr(rng.uniform(0.5, 2.0, 4), scalar))
+    state = struct_value(string_state_arrays_type(scalar), particle_q=arr(q, vec),
+                         particle_qd=arr(rng.standard_normal(q.shape), vec),
+                         string_taut=arr([1, 0, 1, 1], wp.int32))
+    args = {"model": model, "string_bar": arr([0, 1, -1, 1], wp.int32),
             "feedback_stiffness": bs(300.0), "feedback_damping": bs(2.0), "puppet_weight": bar_vec(0.0, -9.81, 0.0),
-            "particle_q": arr(q, vec), "particle_qd": arr(rng.standard_normal(q.shape), vec),
-            "string_taut": arr([1, 0, 1, 1], wp.int32),
+            "state_in": state,
             "bar_q": arr(rng.standard_normal((2, 3)), bar_vec), "bar_qd": arr(rng.standard_normal((2, 3)), bar_vec),
             "bar_feedback": wp.zeros(2, dtype=bar_vec, device="cpu"),
             "bar_reaction": wp.zeros(2, dtype=bar_vec, device="cpu")}

@@ -37,14 +37,59 @@ def _numpy(a: wp.array) -> np.ndarray:
     return n.reshape(*a.shape, _components(a.dtype))
 
 
+def _is_struct(value) -> bool:
+    """A ``wp.struct`` value."""
+    return hasattr(value, "_cls") and hasattr(value._cls, "vars")
+
+
+def array_of(args: dict, name: str) -> wp.array:
+    """The array ``name`` of ``args``: an argument, or an array field of a struct argument (a tangent is
+    named by its field, ``kernels/kernel_tangent``)."""
+    if name in args:
+        return args[name]
+    for value in args.values():
+        if _is_struct(value) and name in value._cls.vars:
+            return getattr(value, name)
+    raise KeyError(name)
+
+
+def struct_value(struct_type, **fields):
+    """A ``struct_type`` value holding ``fields``, its other array fields empty arrays (Warp's tape
+    mirrors every array field of a struct argument with its gradient, so none may be unset)."""
+    value = struct_type()
+    for name, var in struct_type.vars.items():
+        if name in fields:
+            setattr(value, name, fields[name])
+        elif isinstance(var.type, wp.array):
+            setattr(value, name, wp.zeros(0, dtype=var.type.dtype, device="cpu"))
+    return value
+
+
+def copy_args(args: dict, make) -> dict:
+    """``args`` with each array, also a struct argument's array field (a new struct), replaced by
+    ``make(name, array)`` (``name``: the argument's or the field's)."""
+    out = {}
+    for n, v in args.items():
+        if isinstance(v, wp.array):
+            out[n] = make(n, v)
+        elif _is_struct(v):
+            out[n] = v._cls()
+            for f in v._cls.vars:
+                x = getattr(v, f)
+                setattr(out[n], f, make(f, x) if isinstance(x, wp.array) else x)
+        else:
+            out[n] = v
+    return out
+
+
 def launch_tangent(kernel, dim, args: dict, tangents: dict, P: int, unroll: int = 0) -> tuple[dict, dict]:
     """Runs the tangent kernel of ``kernel`` on copies of ``args`` (name -> value; outputs hold their
     initial values) with the input tangents ``tangents`` (name -> numpy ``(P, *shape, comps)``; the
     output tangents start at zero; ``unroll``: the layout, :func:`tangent_kernel`'s). Returns (primal
     outputs, output tangents) as numpy arrays."""
     tk = tangent_kernel(kernel, unroll=unroll)
-    values = {n: (wp.clone(v) if isinstance(v, wp.array) else v) for n, v in args.items()}
-    tan = {n: _as_array(tangents[n], args[n].dtype) for n in tk.tangent_inputs}
+    values = copy_args(args, lambda _n, a: wp.clone(a))
+    tan = {n: _as_array(tangents[n], array_of(args, n).dtype) for n in tk.tangent_inputs}
     for n in tk.tangent_outputs:
         a = args[n]
         tan[n] = _as_array(np.zeros((P, *a.shape, _components(a.dtype))), a.dtype)
@@ -59,14 +104,13 @@ def dot_product_check(kernel, dim, args: dict, P: int, rng) -> list[tuple[float,
     unrolled layout (``UNROLL``: the P directions in one block) gives the same primal and tangents bit
     for bit (the same statements on the same values; ``tests/kernels/test_kernel_tangent``)."""
     tk = tangent_kernel(kernel)
-    v = {n: _random_like(args[n], rng, (P,)) for n in tk.tangent_inputs}
+    v = {n: _random_like(array_of(args, n), rng, (P,)) for n in tk.tangent_inputs}
     prim, jv = launch_tangent(kernel, dim, args, v, P)
     prim_u, jv_u = launch_tangent(kernel, dim, args, v, P, UNROLL)
     for n in tk.tangent_outputs:
         np.testing.assert_array_equal(prim_u[n], prim[n], err_msg=f"{kernel.key}: unrolled primal output {n}")
         np.testing.assert_array_equal(jv_u[n], jv[n], err_msg=f"{kernel.key}: unrolled tangent of {n}")
-    taped = {n: (wp.clone(a, requires_grad=a.dtype not in (wp.int32, wp.int64)) if isinstance(a, wp.array) else a)
-             for n, a in args.items()}
+    taped = copy_args(args, lambda _n, a: wp.clone(a, requires_grad=a.dtype not in (wp.int32, wp.int64)))
     tape = wp.Tape()
     with tape:
         wp.launch(kernel, dim=dim, inputs=[taped[n] for n in tk.params], device="cpu")
@@ -74,7 +118,7 @@ def dot_product_check(kernel, dim, args: dict, P: int, rng) -> list[tuple[float,
         np.testing.assert_array_equal(prim[n], _numpy(taped[n]), err_msg=f"{kernel.key}: primal output {n}")
     u = {n: _random_like(args[n], rng) for n in tk.tangent_outputs}
     tape.backward(grads={taped[n]: _as_array(u[n], args[n].dtype) for n in tk.tangent_outputs})
-    jtu = {n: _numpy(taped[n].grad) for n in tk.tangent_inputs}
+    jtu = {n: _numpy(array_of(taped, n).grad) for n in tk.tangent_inputs}
     out = []
     for p in range(P):
         terms = np.concatenate([(u[n] * jv[n][p]).ravel() for n in tk.tangent_outputs])
@@ -93,18 +137,12 @@ def central_difference_study(kernel, dim, args: dict, rng, steps=(1e-2, 1e-3, 1e
     """Tangent (one random direction, scaled per input by ``scale``) against central differences of the
     primal kernel at each step: returns ``[(step, max abs error, max abs tangent)]``."""
     tk = tangent_kernel(kernel)
-    v = {n: _random_like(args[n], rng, (1,)) for n in tk.tangent_inputs}
+    v = {n: _random_like(array_of(args, n), rng, (1,)) for n in tk.tangent_inputs}
     _, jv = launch_tangent(kernel, dim, args, v, 1)
 
     def run(eps):
-        vals = {}
-        for n, a in args.items():
-            if n in tk.tangent_inputs:
-                vals[n] = _as_array(_numpy(a) + eps * v[n][0], a.dtype)
-            elif isinstance(a, wp.array):
-                vals[n] = wp.clone(a)
-            else:
-                vals[n] = a
+        vals = copy_args(args, lambda n, a: (_as_array(_numpy(a) + eps * v[n][0], a.dtype) if n in tk.tangent_inputs
+                                             else wp.clone(a)))
         wp.launch(kernel, dim=dim, inputs=[vals[n] for n in tk.params], device="cpu")
         return {n: _numpy(vals[n]) for n in tk.tangent_outputs}
 
