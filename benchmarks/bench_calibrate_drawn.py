@@ -45,7 +45,10 @@ def draw(seed: int) -> tuple[str, float, dict]:
 
 
 def chi2_survival(x: float, dof: int) -> float:
-    """``P(X > x)`` for chi-squared with an even number ``dof`` of degrees of freedom (closed form)."""
+    """``P(X > x)`` for chi-squared with an even number ``dof`` of degrees of freedom (closed form);
+    NaN for a distance that is not a finite non-negative number."""
+    if not (math.isfinite(x) and x >= 0.0):
+        return float("nan")
     half = x / 2.0
     return math.exp(-half) * sum(half ** j / math.factorial(j) for j in range(dof // 2))
 
@@ -70,7 +73,8 @@ def one(seed: int, folder: Path, level: int) -> dict:
     z = np.abs(result.fitted - true) / se
     error = np.log(result.fitted) - np.log(true)
     covariance = np.asarray(result.uncertainty.covariance)
-    distance = float(error @ np.linalg.solve(covariance, error)) if np.all(np.isfinite(covariance)) else float("inf")
+    judged = np.all(np.isfinite(se)) and np.all(np.isfinite(covariance))  # not where a constant is unidentifiable
+    distance = float(error @ np.linalg.solve(covariance, error)) if judged else float("nan")
     return {"seed": seed, "motion": motion, "seconds_long": duration, "exit_code": result.verdict.exit_code,
             "steps": result.solver_steps, "seconds": round(seconds, 1),
             "restarted": [label for st in result.cost["stages"] for label in st.get("restarted", [])],
@@ -100,7 +104,8 @@ def main() -> None:
               f"{', '.join(r['restarted']) or '-'} | {r['max_error_in_se']} | {r['mahalanobis']} ({r['p']}) |")
     ok = [r for r in rows if r["exit_code"] == 0]
     print(f"\n{len(ok)} of {len(rows)} exit 0; of those, the largest error {max((r['max_error_in_se'] for r in ok), default=0)} "
-          f"standard errors; joint p below 0.05 in {sum(r['p'] < 0.05 for r in ok)} (expected {0.05 * len(ok):.1f})")
+          f"standard errors; joint p below 0.05 in {sum(r['p'] < 0.05 for r in ok)} (expected {0.05 * len(ok):.1f}); "
+          f"exit codes {sorted(set(r['exit_code'] for r in rows))}")
 
 
 if __name__ == "__main__":

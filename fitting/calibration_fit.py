@@ -309,6 +309,22 @@ def restart_runaways(problem, theta: np.ndarray) -> tuple[np.ndarray, list[str],
     return restarted, [problem.labels[i] for i in runaway], 2
 
 
+def retry_runaways(problem, theta: np.ndarray, run_fit, judged: int) -> tuple[np.ndarray, dict | None, list[str], int]:
+    """After the last stage: the constants among the first ``judged`` that ended run off
+    (:func:`ran_off`) back at their start and the stage fitted again (``run_fit(theta_start)``); the
+    lower sum of squares wins. Returns the theta kept, the retry's fit (None when none ran), the
+    labels restarted and the two comparison rollouts' count."""
+    runaway = [i for i in ran_off(problem, theta) if i < judged]
+    if not runaway:
+        return theta, None, [], 0
+    start = np.array(theta, dtype=np.float64)
+    start[runaway] = np.asarray(problem.theta_start, dtype=np.float64)[runaway]
+    retry = run_fit(start)
+    losses = [float(np.sum(np.square(problem.host_residuals(t)))) for t in (theta, retry["theta"])]
+    kept = bool(losses[1] < losses[0] or not np.isfinite(losses[0]))
+    return (retry["theta"] if kept else theta), {**retry, "kept": kept}, [problem.labels[i] for i in runaway], 2
+
+
 def window_steps_for(data: CalibrationData, window: float | None, solver: str) -> int | None:
     """Puppet steps per window for ``window`` seconds (None or 0: one rollout)."""
     from .calibration_windows import recorded_joint_q
@@ -496,6 +512,17 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                        "steps": fit["steps"], "converged": fit["converged"], "message": fit["message"],
                        "forward_passes": fit["forward_passes"] + restart_rollouts, "seconds": fit["seconds"],
                        "restarted": restarted})
+    states = getattr(problem, "initial_state", None)
+    judged_count = len(problem.labels) if states is None else states.offset  # not the nuisance states
+    theta, retry, restarted, restart_rollouts = retry_runaways(
+        problem, theta, (lambda t: irls_fit(problem, run, t, huber_scale)) if loss == "huber" else run, judged_count)
+    if retry is not None:
+        stages.append({"window_steps": steps, "puppet_steps": data.puppet_steps, "steps": retry["steps"],
+                       "converged": retry["converged"], "message": retry["message"],
+                       "forward_passes": retry["forward_passes"] + restart_rollouts, "seconds": retry["seconds"],
+                       "restarted": restarted, "retry": True, "kept": retry["kept"]})
+        if retry["kept"]:
+            fit = retry
     fit = {**fit, "steps": sum(st["steps"] for st in stages),
            "forward_passes": sum(st["forward_passes"] for st in stages),
            "backward_passes": fit["backward_passes"], "seconds": sum(st["seconds"] for st in stages)}
@@ -522,8 +549,6 @@ def calibrate_session(path: str | Path | Sequence[str | Path], *, targets: str =
                 if np.isclose(t, lo, rtol=0, atol=1e-9) or np.isclose(t, hi, rtol=0, atol=1e-9)]
     # Huber: the plain residuals, their scale by the median (robust), not the weighted rows
     judged, judged_slices = problem.by_target(plain) if others else (plain, slices)
-    states = getattr(problem, "initial_state", None)
-    judged_count = len(problem.labels) if states is None else states.offset  # not the nuisance states
     runaway = {problem.labels[i]: (float(problem.values(problem.theta_start)[i]), float(problem.values(theta)[i]))
                for i in ran_off(problem, theta) if i < judged_count}
     verdict = judge_fit(judged, judged_slices, problem.noise, problem.labels, uncertainty, fit["converged"],

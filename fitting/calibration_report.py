@@ -74,7 +74,11 @@ def format_table(result: CalibrationResult) -> str:
                  f"{result.cost['forward_passes']} forward and {result.cost['backward_passes']} backward rollouts, "
                  f"{result.cost['seconds']:.1f} s")
     for number, stage in enumerate(result.cost.get("stages") or [], 1):
-        if stage.get("restarted"):
+        if stage.get("retry"):
+            lines.append(f"stage {number}: the last stage again with {', '.join(stage['restarted'])} from the start values "
+                         f"(they had run off, more than a factor 1e4): {'kept, a lower' if stage['kept'] else 'not kept, a higher'}"
+                         " sum of squares")
+        elif stage.get("restarted"):
             lines.append(f"stage {number}: started {', '.join(stage['restarted'])} again from the start values (they "
                          "had run off, more than a factor 1e4, in the stage before)")
     lines.append(f"uncertainty: Jacobian by {'forward differences' if result.jacobian['method'] == 'fd' else 'reverse mode'}"
