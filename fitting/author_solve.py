@@ -37,6 +37,16 @@ continuation over keyframes, and an honest verdict per keyframe.
   next keyframe moving only the knot coordinates that cannot move the earlier ones (the bar
   motion up to them does not depend on these: causality), so an earlier keyframe, once reached,
   stays reached. What is still missed: *not converged*.
+- **Restart.** When the result misses a target the pre-check does not rule out (not converged, or
+  unreachable by the analysis above, which only shows that no small change helps from where the
+  solve stopped), the whole solve and its analysis run again from the other start (the
+  quasi-static warm start, :mod:`fitting.quasi_static`, after the scene's own bar motion; the
+  scene's after the warm start), with budgets of their own; the result that misses fewer targets
+  (then: by less relative to its tolerance) is kept, and a note says which. A local solve can stop
+  in another basin than a bar motion that reaches every target: on the lead's random references,
+  with the main bar's depth knots pressed on the workspace bound on the side away from the
+  reference's (docs/authoring.md, "When the solve misses"). A solve that reaches every target never
+  restarts, so its result is unchanged.
 """
 
 from __future__ import annotations
