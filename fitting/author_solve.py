@@ -594,7 +594,7 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                 "skip": skip, "mask": res.entry_mask.copy()}
 
     skip_first, mask_first = skip, res.entry_mask.copy()  # the pre-check's leave-outs only
-    warm_used = not np.array_equal(z_start, res.bounds.z0())
+    restart = {}  # where the solve restarted: {"restart_kept": whether the result is a restart's}
     outcome = attempt(z)
     missed_first = shortfall(res.target_errors(outcome["z"]), skip_first)
     if missed_first[0] > 0 and outcome["final_status"] != "max_seconds" and (
@@ -615,18 +615,27 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         else:
             other, line, name = res.bounds.z0(), "", "the scene's own bar motion"
         if other is not None:
-            prefix[0] = "restart: "
-            again = attempt(other)
-            prefix[0] = ""
-            missed_again = shortfall(res.target_errors(again["z"]), skip_first)
-            keep = missed_again < missed_first
-            line = (f"the solve from {first} missed {missed_first[0]} targets (the largest error "
-                    f"{missed_first[1]:.3g} x its tolerance); the solve again from {name} misses {missed_again[0]} "
-                    f"({missed_again[1]:.3g} x): " + ("its result is kept" if keep else "the first result is kept")
-                    + (f" ({line})" if line else ""))
-            if keep:
-                outcome = again
-                warm_used = name == "the quasi-static warm start"
+            # From there with the file's Jacobian, then (if that misses too and it was the secant one) with
+            # forward-difference Jacobians every step: measured, each reaches random references the other misses.
+            tries = [(name, secant)] + ([(f"{name} with forward-difference Jacobians", False)] if secant else [])
+            kept, best_missed, notes, given = "the first result", missed_first, [], secant
+            for number, (label, secant) in enumerate(tries, start=1):
+                if deadline is not None and time.perf_counter() >= deadline:
+                    break
+                skip, res.entry_mask, res.active = skip_first, mask_first.copy(), ones
+                prefix[0] = "restart: " if number == 1 else f"restart {number}: "
+                again = attempt(other)
+                prefix[0] = ""
+                missed_again = shortfall(res.target_errors(again["z"]), skip_first)
+                notes.append(f"again from {label}: misses {missed_again[0]} ({missed_again[1]:.3g} x)")
+                if missed_again < best_missed:
+                    outcome, best_missed, kept = again, missed_again, label
+                if missed_again[0] == 0:
+                    break
+            secant = given
+            restart["restart_kept"] = kept != "the first result"
+            line = (f"the solve from {first} missed {missed_first[0]} targets (the largest error {missed_first[1]:.3g} "
+                    "x its tolerance); " + "; ".join(notes) + f"; kept: {kept}" + (f" ({line})" if line else ""))
         else:
             line = f"the solve missed targets; no restart from {name}: {line}"
         say(line)
@@ -634,6 +643,15 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         skip, res.entry_mask = outcome["skip"], outcome["mask"]
     z, found, conflict, best = outcome["z"], outcome["found"], outcome["conflict"], outcome["best"]
     final_status = outcome["final_status"]
+    # A target the analysis calls unreachable (a solve for it alone stopped short) that some evaluated point
+    # reached (a stage of another start, a solve for another target) is not unreachable: not converged.
+    refuted = {}
+    for k, name in list(found):
+        near = min((e[k][name] for _, e, _ in seen if name in e[k]), default=np.inf)
+        if near <= res.tolerance[res.unit(name)]:
+            refuted[(k, name)] = near
+            del found[(k, name)]
+            skip = [frozenset(skip[j] - {name}) if j == k else skip[j] for j in range(count)]
     errors = res.target_errors(z)
     res.active = ones
     peak = res.peak_force(z)
@@ -654,6 +672,10 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                 reasons.append(f"{name}: {unit(value)} from the target; a solve for this target alone came no "
                                f"nearer than {unit(best[k][name])}, where {found[(k, name)]}; left out of the "
                                "final fit")
+            elif (k, name) in refuted:
+                reasons.append(f"{name}: {unit(value)} from the target; a solve for this target alone stopped "
+                               f"short, but a point evaluated on the way reached it ({unit(refuted[(k, name)])}, "
+                               "not together with the other targets): not unreachable; left out of the final fit")
             elif value > res.tolerance[res.unit(name)]:
                 line = f"{name}: {unit(value)} from the target"
                 if (k, name) in conflict:
@@ -711,4 +733,5 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     return KeyframeSolve(y=y, z=z, verdicts=verdicts, status=status, exit_code=EXIT_CODES[status], history=history,
                          lm_status=lm_status, messages=messages, peak_force=peak,
                          seconds=time.perf_counter() - started,
-                         warm_start=None if warm is None else {**warm.summary(), "used": warm_used})
+                         warm_start=None if warm is None else {**warm.summary(), "used": bool(not np.array_equal(
+                             z_start, res.bounds.z0())), **restart})
