@@ -41,12 +41,14 @@ continuation over keyframes, and an honest verdict per keyframe.
   unreachable by the analysis above, which only shows that no small change helps from where the
   solve stopped), the whole solve and its analysis run again from the other start (the
   quasi-static warm start, :mod:`fitting.quasi_static`, after the scene's own bar motion; the
-  scene's after the warm start), with budgets of their own; the result that misses fewer targets
-  (then: by less relative to its tolerance) is kept, and a note says which. A local solve can stop
-  in another basin than a bar motion that reaches every target: on the lead's random references,
-  with the main bar's depth knots pressed on the workspace bound on the side away from the
-  reference's (docs/authoring.md, "When the solve misses"). A solve that reaches every target never
-  restarts, so its result is unchanged.
+  scene's after the warm start), with budgets of their own; with the secant Jacobian (the default)
+  and still a miss, once more from there with forward-difference Jacobians. The result that misses
+  fewer targets (then: by less relative to its tolerance) is kept, and a note says which. A target
+  the analysis calls unreachable that some evaluated point reached is *not converged* instead. A
+  local solve can stop in another basin than a bar motion that reaches every target: on the lead's
+  random references, with the main bar's depth knots pressed on the workspace bound on the side
+  away from the reference's (docs/authoring.md, "When the solve misses"). A solve that reaches every
+  target never restarts, so its result is unchanged.
 """
 
 from __future__ import annotations
@@ -603,8 +605,9 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         # rule out, and a local solve from one start can stop in the wrong basin (measured: the main bar's
         # depth knots pressed on the workspace bound on the side away from a reference that reaches every
         # target). The whole solve and its analysis again, from the other start: the quasi-static warm start
-        # after the scene's, the scene's after the warm start. The one that misses fewer targets (then: by
-        # less) is the result. A solve that reaches every target never gets here: its result is unchanged.
+        # after the scene's, the scene's after the warm start (with the secant Jacobian and still a miss, again
+        # with forward-difference Jacobians). The one that misses fewer targets (then: by less) is the result.
+        # A solve that reaches every target never gets here: its result is unchanged.
         skip, res.entry_mask, res.active = skip_first, mask_first.copy(), ones
         from_scene = np.array_equal(z_start, res.bounds.z0())
         first = ("the scene's own bar motion" if from_scene else "the quasi-static warm start" if warm is not None
