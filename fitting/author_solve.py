@@ -637,10 +637,12 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                     break
             secant = given
             restart["restart_kept"] = kept != "the first result"
+            # (no seconds in the note: a run's messages are the same on every machine; they are in warm_start)
             line = (f"the solve from {first} missed {missed_first[0]} targets (the largest error {missed_first[1]:.3g} "
-                    "x its tolerance); " + "; ".join(notes) + f"; kept: {kept}" + (f" ({line})" if line else ""))
+                    "x its tolerance); " + "; ".join(notes) + f"; kept: {kept}")
         else:
-            line = f"the solve missed targets; no restart from {name}: {line}"
+            line = (f"the solve from {first} missed {missed_first[0]} targets; no restart from {name}: it sends a "
+                    "device more than its peak force (also 1/2 and 1/4 of the way there)")
         say(line)
         messages.append(line)
         skip, res.entry_mask = outcome["skip"], outcome["mask"]
