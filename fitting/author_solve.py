@@ -37,6 +37,18 @@ continuation over keyframes, and an honest verdict per keyframe.
   next keyframe moving only the knot coordinates that cannot move the earlier ones (the bar
   motion up to them does not depend on these: causality), so an earlier keyframe, once reached,
   stays reached. What is still missed: *not converged*.
+- **Restart.** When the result misses a target the pre-check does not rule out (not converged, or
+  unreachable by the analysis above, which only shows that no small change helps from where the
+  solve stopped), the whole solve and its analysis run again from the other start (the
+  quasi-static warm start, :mod:`fitting.quasi_static`, after the scene's own bar motion; the
+  scene's after the warm start), with budgets of their own; with the secant Jacobian (the default)
+  and still a miss, once more from there with forward-difference Jacobians. The result that misses
+  fewer targets (then: by less relative to its tolerance) is kept, and a note says which. A target
+  the analysis calls unreachable that some evaluated point reached is *not converged* instead. A
+  local solve can stop in another basin than a bar motion that reaches every target: on the lead's
+  random references, with the main bar's depth knots pressed on the workspace bound on the side
+  away from the reference's (docs/authoring.md, "When the solve misses"). A solve that reaches every
+  target never restarts, so its result is unchanged.
 """
 
 from __future__ import annotations
@@ -364,19 +376,20 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     def feasible(zt) -> bool:
         return allowed is None or all(p <= allowed[n] for n, p in res.peak_force(zt).items())
 
-    warm = None
-    if warm_start == "quasi_static" and z0 is None:
+    def quasi_static_z(z_scene: np.ndarray, better: bool = True, warm=None):
+        """The quasi-static warm start (:mod:`fitting.quasi_static`), or (when it would send a device more than
+        its peak force) the first of the blends z + a (z_warm - z), a = 1/2, 1/4, that does not: a smaller move
+        pulls less. ``better``: only where it lowers the cost of ``z_scene``; ``warm``: the warm start if already
+        found. Returns (the start or None, the warm start, a line saying which)."""
         from .quasi_static import quasi_static_start
 
-        warm = quasi_static_start(problem, res, deadline=deadline, say=say)
-        cost_scene = 0.5 * float(np.sum(res.residuals(z) ** 2))
-        # The warm start, or (when it would send a device more than its peak force) the first of the
-        # blends z + a (z_warm - z), a = 1/2, 1/4, that does not: a smaller move pulls less.
+        warm = warm if warm is not None else quasi_static_start(problem, res, deadline=deadline, say=say)
+        cost_scene = 0.5 * float(np.sum(res.residuals(z_scene) ** 2))
         use, line = None, ""
         for a in WARM_BLENDS:
-            trial = warm.z if a == 1.0 else z + a * (warm.z - z)
+            trial = warm.z if a == 1.0 else z_scene + a * (warm.z - z_scene)
             cost = 0.5 * float(np.sum(res.residuals(trial) ** 2))
-            if not cost < cost_scene:
+            if better and not cost < cost_scene:
                 line = line or f"cost {cost:.4g}: no better"
                 break
             if feasible(trial):
@@ -388,6 +401,11 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
             line = line or "it sends a device more than its peak force"
         line = (f"quasi-static warm start ({warm.seconds:.1f} s): " + line + f", against {cost_scene:.4g} from the "
                 "scene's own bar motion; " + ("starting from it" if use is not None else "NOT used"))
+        return use, warm, line
+
+    warm = None
+    if warm_start == "quasi_static" and z0 is None:
+        use, warm, line = quasi_static_z(z)
         say(line)
         messages.append(line)
         if use is not None:
@@ -410,10 +428,12 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
     # the result is the best of them by the verdict's measure, which need not be where the stage stopped.
     seen: list[tuple[np.ndarray, list[dict], str]] = []
 
-    def shortfall(errors: list[dict]) -> tuple[int, float]:
-        """A point's distance from the verdict: (targets missed, the largest error / its tolerance)."""
+    def shortfall(errors: list[dict], skipped: list | None = None) -> tuple[int, float]:
+        """A point's distance from the verdict: (targets missed, the largest error / its tolerance), the
+        targets ``skipped`` (default: those left out so far) not counted."""
+        skipped = skip if skipped is None else skipped
         ratios = [v / res.tolerance[res.unit(n)] for k in range(count) for n, v in errors[k].items()
-                  if n not in skip[k]]
+                  if n not in skipped[k]]
         return sum(ratio > 1.0 for ratio in ratios), max(ratios, default=0.0)
 
     def best_seen(z_now: np.ndarray, label: str) -> np.ndarray:
@@ -436,11 +456,13 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
         return r
 
     stage_now = ["start"]
+    prefix = [""]  # the stages of a restart are named after its start
 
     def run(stage: str, active: np.ndarray, z_start: np.ndarray, target: tuple[int, str] | None = None,
             columns: np.ndarray | None = None) -> LMResult:
         """One LM stage on the ``active`` keyframes (or on the single ``target``), moving the
         coordinates ``columns`` of ``z`` (default: all)."""
+        stage = prefix[0] + stage
         stage_now[0] = stage
         res.active = active.astype(np.float64)
         on = [k for k in range(count) if active[k] > 0]
@@ -485,84 +507,157 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                     **(problem.counter() if hasattr(problem, "counter") else {})})
     say(f"{'step':>5s} {'stage':>18s} (Levenberg-Marquardt; a forward-difference Jacobian costs "
         f"{res.bounds.size} rollouts{', updated by secant steps in between' if secant else ''})")
-    result = None
-    if continuation and count > 1:
-        for k in range(1, count):
-            active = np.where(np.arange(count) < k, 1.0, 0.0)
-            result = run(f"keyframes 1-{k}", active, z)
-            z = result.x
-            if steps_left[0] <= 0 or result.status == "max_seconds":
-                break
-    if steps_left[0] > 0 and (result is None or result.status != "max_seconds"):
-        result = run("all keyframes", ones, z)
-        z = result.x
-        errors = res.target_errors(z)
-        if result.status in ("stationary", "no_progress") and steps_left[0] > 0 and not all(
-                res.reached(errors[k], skip[k], scale=0.5) for k in range(count)):
-            # Stuck short of its goal (half the tolerances): where a hard contact starts or ends between
-            # z and a probe 1e-6 away, the rollout jumps (measured on examples/keyframes_ball_kick.toml:
-            # 1 mm and 0.8 deg at the end for 50 nm of a knot) and that difference over 1e-6 is no slope.
-            # Go on with differences over a step that spans such jumps; the better point is kept.
-            res.fd_step = FD_STEP_COARSE
-            result = run("coarse differences", ones, z)
-            res.fd_step = FD_STEP
-            z = best_seen(result.x, "after coarse differences")
-    final_status = result.status if result is not None else "max_steps"
 
-    z = best_seen(z, "after the solve")
-
-    # ---- the verdict
-    errors = res.target_errors(z)
-    missed = [k for k in range(count) if not res.reached(errors[k], skip[k])]
-    best = [dict() for _ in range(count)]
-    found: dict[tuple[int, str], str] = {}  # (keyframe, target) -> why it is unreachable
-    conflict: list[int] = []
-    # The analysis of missed keyframes has a budget of its own (max_steps again, and the time left).
-    steps_left[0] = max_steps
-    if missed and final_status != "max_seconds":
-        z_all = z
-        # every missed target, the farthest (relative to its tolerance) first, solved alone from here
-        targets = sorted(((k, n) for k in missed for n, v in errors[k].items()
-                          if n not in skip[k] and v > res.tolerance[res.unit(n)]),
-                         key=lambda kn: -errors[kn[0]][kn[1]] / res.tolerance[res.unit(kn[1])])
-        for k, name in targets:
-            if steps_left[0] <= 0 or (deadline is not None and time.perf_counter() >= deadline):
-                break
-            alone = run(f"{name} @ {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all,
-                        target=(k, name))
-            best[k][name] = res.target_errors(alone.x)[k][name]
-            if res.reached({name: best[k][name]}):
-                conflict.append((k, name))
-            elif alone.status in ("stationary", "no_progress") or _crawled(alone):
-                found[(k, name)] = (
-                    "it stopped at a stationary point (no small change of the bars brings it closer)"
-                    if alone.status == "stationary" else
-                    f"it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
-                    "reach within the device limits as far as this solver can tell")
-        if conflict and not found:
-            # Targets each reached alone but not together: the keyframes in time order, each stage moving
-            # only the coordinates that cannot move the earlier keyframes (by causality: the bar motion up
-            # to them does not depend on these), so what an earlier stage reached stays reached.
-            z_order = z_all
-            for k in range(count):
-                columns = None if k == 0 else res.later_columns(z_order, k - 1)
-                if steps_left[0] <= 0 or (columns is not None and len(columns) == 0) or (
-                        deadline is not None and time.perf_counter() >= deadline):
+    def attempt(z: np.ndarray) -> dict:
+        """The solve from ``z`` and the analysis of what it misses; returns the point and what the verdict
+        needs of it."""
+        nonlocal skip
+        steps_left[0] = max_steps
+        result = None
+        if continuation and count > 1:
+            for k in range(1, count):
+                active = np.where(np.arange(count) < k, 1.0, 0.0)
+                result = run(f"keyframes 1-{k}", active, z)
+                z = result.x
+                if steps_left[0] <= 0 or result.status == "max_seconds":
                     break
-                z_order = run(f"keyframe {k + 1} in time order", np.where(np.arange(count) <= k, 1.0, 0.0), z_order,
-                              columns=columns).x
-        z_seen = best_seen(z_all, "after the analysis")  # a solve for one target may have passed by a better point
-        if found and shortfall(res.target_errors(z_seen))[0] > 0:
-            steps_left[0] = max_steps  # the final solve without them has a budget of its own too
-            for k, name in found:
-                res.leave_out(k, name)
-            skip = [frozenset(skip[k] | {n for (j, n) in found if j == k}) for k in range(count)]
-            again = run("without unreachable", ones, z_all)
-            z = best_seen(again.x, "without unreachable")
-            final_status = again.status
-        else:
-            z, found = z_seen, {}
+        if steps_left[0] > 0 and (result is None or result.status != "max_seconds"):
+            result = run("all keyframes", ones, z)
+            z = result.x
+            errors = res.target_errors(z)
+            if result.status in ("stationary", "no_progress") and steps_left[0] > 0 and not all(
+                    res.reached(errors[k], skip[k], scale=0.5) for k in range(count)):
+                # Stuck short of its goal (half the tolerances): where a hard contact starts or ends between
+                # z and a probe 1e-6 away, the rollout jumps (measured on examples/keyframes_ball_kick.toml:
+                # 1 mm and 0.8 deg at the end for 50 nm of a knot) and that difference over 1e-6 is no slope.
+                # Go on with differences over a step that spans such jumps; the better point is kept.
+                res.fd_step = FD_STEP_COARSE
+                result = run("coarse differences", ones, z)
+                res.fd_step = FD_STEP
+                z = best_seen(result.x, "after coarse differences")
+        final_status = result.status if result is not None else "max_steps"
+
+        z = best_seen(z, "after the solve")
+
+        # ---- the verdict
         errors = res.target_errors(z)
+        missed = [k for k in range(count) if not res.reached(errors[k], skip[k])]
+        best = [dict() for _ in range(count)]
+        found: dict[tuple[int, str], str] = {}  # (keyframe, target) -> why it is unreachable
+        conflict: list[int] = []
+        # The analysis of missed keyframes has a budget of its own (max_steps again, and the time left).
+        steps_left[0] = max_steps
+        if missed and final_status != "max_seconds":
+            z_all = z
+            # every missed target, the farthest (relative to its tolerance) first, solved alone from here
+            targets = sorted(((k, n) for k in missed for n, v in errors[k].items()
+                              if n not in skip[k] and v > res.tolerance[res.unit(n)]),
+                             key=lambda kn: -errors[kn[0]][kn[1]] / res.tolerance[res.unit(kn[1])])
+            for k, name in targets:
+                if steps_left[0] <= 0 or (deadline is not None and time.perf_counter() >= deadline):
+                    break
+                alone = run(f"{name} @ {k + 1} alone", np.where(np.arange(count) == k, 1.0, 0.0), z_all,
+                            target=(k, name))
+                best[k][name] = res.target_errors(alone.x)[k][name]
+                if res.reached({name: best[k][name]}):
+                    conflict.append((k, name))
+                elif alone.status in ("stationary", "no_progress") or _crawled(alone):
+                    found[(k, name)] = (
+                        "it stopped at a stationary point (no small change of the bars brings it closer)"
+                        if alone.status == "stationary" else
+                        f"it stalled ({STALL_STEPS} steps lowered the cost by less than {STALL_RTOL:.0%}): out of "
+                        "reach within the device limits as far as this solver can tell")
+            if conflict and not found:
+                # Targets each reached alone but not together: the keyframes in time order, each stage moving
+                # only the coordinates that cannot move the earlier keyframes (by causality: the bar motion up
+                # to them does not depend on these), so what an earlier stage reached stays reached.
+                z_order = z_all
+                for k in range(count):
+                    columns = None if k == 0 else res.later_columns(z_order, k - 1)
+                    if steps_left[0] <= 0 or (columns is not None and len(columns) == 0) or (
+                            deadline is not None and time.perf_counter() >= deadline):
+                        break
+                    z_order = run(f"keyframe {k + 1} in time order", np.where(np.arange(count) <= k, 1.0, 0.0),
+                                  z_order, columns=columns).x
+            # a solve for one target may have passed by a better point
+            z_seen = best_seen(z_all, "after the analysis")
+            if found and shortfall(res.target_errors(z_seen))[0] > 0:
+                steps_left[0] = max_steps  # the final solve without them has a budget of its own too
+                for k, name in found:
+                    res.leave_out(k, name)
+                skip = [frozenset(skip[k] | {n for (j, n) in found if j == k}) for k in range(count)]
+                again = run("without unreachable", ones, z_all)
+                z = best_seen(again.x, "without unreachable")
+                final_status = again.status
+            else:
+                z, found = z_seen, {}
+            errors = res.target_errors(z)
+        return {"z": z, "found": found, "conflict": conflict, "best": best, "final_status": final_status,
+                "skip": skip, "mask": res.entry_mask.copy()}
+
+    skip_first, mask_first = skip, res.entry_mask.copy()  # the pre-check's leave-outs only
+    restart = {}  # where the solve restarted: {"restart_kept": whether the result is a restart's}
+    outcome = attempt(z)
+    missed_first = shortfall(res.target_errors(outcome["z"]), skip_first)
+    if missed_first[0] > 0 and outcome["final_status"] != "max_seconds" and (
+            deadline is None or time.perf_counter() < deadline):
+        # The restart (docs/authoring.md, "When the solve misses"): targets missed that the pre-check does not
+        # rule out, and a local solve from one start can stop in the wrong basin (measured: the main bar's
+        # depth knots pressed on the workspace bound on the side away from a reference that reaches every
+        # target). The whole solve and its analysis again, from the other start: the quasi-static warm start
+        # after the scene's, the scene's after the warm start (with the secant Jacobian and still a miss, again
+        # with forward-difference Jacobians). The one that misses fewer targets (then: by less) is the result.
+        # A solve that reaches every target never gets here: its result is unchanged.
+        skip, res.entry_mask, res.active = skip_first, mask_first.copy(), ones
+        from_scene = np.array_equal(z_start, res.bounds.z0())
+        first = ("the scene's own bar motion" if from_scene else "the quasi-static warm start" if warm is not None
+                 else "the given start")
+        if from_scene:
+            other, warm, line = quasi_static_z(z_start, better=False, warm=warm)
+            name = "the quasi-static warm start"
+        else:
+            other, line, name = res.bounds.z0(), "", "the scene's own bar motion"
+        if other is not None:
+            # From there with the file's Jacobian, then (if that misses too and it was the secant one) with
+            # forward-difference Jacobians every step: measured, each reaches random references the other misses.
+            tries = [(name, secant)] + ([(f"{name} with forward-difference Jacobians", False)] if secant else [])
+            kept, best_missed, notes, given = "the first result", missed_first, [], secant
+            for number, (label, secant) in enumerate(tries, start=1):
+                if deadline is not None and time.perf_counter() >= deadline:
+                    break
+                skip, res.entry_mask, res.active = skip_first, mask_first.copy(), ones
+                prefix[0] = "restart: " if number == 1 else f"restart {number}: "
+                again = attempt(other)
+                prefix[0] = ""
+                missed_again = shortfall(res.target_errors(again["z"]), skip_first)
+                notes.append(f"again from {label}: misses {missed_again[0]} ({missed_again[1]:.3g} x)")
+                if missed_again < best_missed:
+                    outcome, best_missed, kept = again, missed_again, label
+                if missed_again[0] == 0:
+                    break
+            secant = given
+            restart["restart_kept"] = kept != "the first result"
+            # (no seconds in the note: a run's messages are the same on every machine; they are in warm_start)
+            line = (f"the solve from {first} missed {missed_first[0]} targets (the largest error {missed_first[1]:.3g} "
+                    "x its tolerance); " + "; ".join(notes) + f"; kept: {kept}")
+        else:
+            line = (f"the solve from {first} missed {missed_first[0]} targets; no restart from {name}: it sends a "
+                    "device more than its peak force (also 1/2 and 1/4 of the way there)")
+        say(line)
+        messages.append(line)
+        skip, res.entry_mask = outcome["skip"], outcome["mask"]
+    z, found, conflict, best = outcome["z"], outcome["found"], outcome["conflict"], outcome["best"]
+    final_status = outcome["final_status"]
+    # A target the analysis calls unreachable (a solve for it alone stopped short) that some evaluated point
+    # reached (a stage of another start, a solve for another target) is not unreachable: not converged.
+    refuted = {}
+    for k, name in list(found):
+        near = min((e[k][name] for _, e, _ in seen if name in e[k]), default=np.inf)
+        if near <= res.tolerance[res.unit(name)]:
+            refuted[(k, name)] = near
+            del found[(k, name)]
+            skip = [frozenset(skip[j] - {name}) if j == k else skip[j] for j in range(count)]
+    errors = res.target_errors(z)
     res.active = ones
     peak = res.peak_force(z)
     verdicts = []
@@ -582,6 +677,10 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                 reasons.append(f"{name}: {unit(value)} from the target; a solve for this target alone came no "
                                f"nearer than {unit(best[k][name])}, where {found[(k, name)]}; left out of the "
                                "final fit")
+            elif (k, name) in refuted:
+                reasons.append(f"{name}: {unit(value)} from the target; a solve for this target alone stopped "
+                               f"short, but a point evaluated on the way reached it ({unit(refuted[(k, name)])}, "
+                               "not together with the other targets): not unreachable; left out of the final fit")
             elif value > res.tolerance[res.unit(name)]:
                 line = f"{name}: {unit(value)} from the target"
                 if (k, name) in conflict:
@@ -640,4 +739,4 @@ def solve_keyframes(problem, *, max_steps: int, max_seconds: float | None = None
                          lm_status=lm_status, messages=messages, peak_force=peak,
                          seconds=time.perf_counter() - started,
                          warm_start=None if warm is None else {**warm.summary(), "used": bool(not np.array_equal(
-                             z_start, res.bounds.z0()))})
+                             z_start, res.bounds.z0())), **restart})

@@ -201,6 +201,7 @@ def test_readme_example_reaches_every_keyframe(example):
     before = max(e["max_position_error_m"] for e in summary["keyframes_before"])
     assert before > 20 * POSITION_TOLERANCE  # from far: the start is centimetres away
     assert summary["replay_gap"]["body_pos_max_abs_m"] <= 1e-9
+    assert not any(h["stage"].startswith("restart") for h in summary["history"])  # reached: no restart
 
 
 def test_example_targets_are_the_reference_motions():
