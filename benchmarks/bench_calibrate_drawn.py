@@ -1,6 +1,7 @@
 """Calibration on sessions drawn like a user's, not chosen: does "converged" mean right?
 
 Run:  python benchmarks/bench_calibrate_drawn.py [--sessions 12] [--first-seed 1] [--fast-compile]
+      python benchmarks/bench_calibrate_drawn.py --trace 20 [--fast-compile]
 
 Session ``i`` (seed ``first_seed + i``): the motion ``fitting.synthetic_scenes.MOTIONS[seed % 4]``
 (bobbing and yawing, sway, rolls and yaws, a dip to the ground), 1.0, 1.2 or 1.5 s, and per string
@@ -13,6 +14,13 @@ the largest error in standard errors, and the joint test of the errors against t
 covariance: the Mahalanobis distance ``d^T C^-1 d`` of the log-space errors (chi-squared with 12
 degrees of freedom if the intervals are right) and its p-value. A run with exit code 0 whose errors
 are far outside its intervals is the failure this measures.
+
+``--trace SEED`` looks at one session's joint test (docs/calibration.md, "Sessions drawn, not
+chosen"): the sum of squares of the last stage's residuals (scaled by the noise) at the fit and at
+the true constants, what the Jacobian at the fit predicts for their difference (``d^T J^T J d``, ``d``
+the log-space error; forward steps of 1e-6 and central steps of 1e-5 ... 1e-2), and the residuals'
+change per unit along the line from the fit to the truth at fractions 1e-3 ... 1 of it; then the
+same session recorded and fitted again with the joint limits off.
 """
 
 from __future__ import annotations
@@ -82,16 +90,65 @@ def one(seed: int, folder: Path, level: int) -> dict:
             "p": round(chi2_survival(distance, len(true)), 3), "load_average": os.getloadavg()[0]}
 
 
+def trace(seed: int, folder: Path, level: int, limits: bool = True) -> None:
+    """Prints the linearity study of session ``seed`` (``--trace``)."""
+    from dmarionette.scene.scene import load_scene
+    from fitting.calibrate import CalibrationProblem, parse_parameters
+    from fitting.calibration_data import read_calibration_data
+    from fitting.calibration_fit import calibrate_session
+    from fitting.synthetic_scenes import motion_scene_text
+    from fitting.synthetic_session import record_synthetic_session
+
+    motion, duration, truth = draw(seed)
+    text = motion_scene_text(motion, duration)
+    if not limits:
+        text = text.replace("joint_limits = true", "joint_limits = false")
+    (folder / "scene.toml").write_text(text)
+    _, path = record_synthetic_session(load_scene(folder / "scene.toml"), text, truth, duration, folder / "s.mcap",
+                                       noise_position=NOISE[0], noise_force=NOISE[1], seed=seed,
+                                       optimization_level=level)
+    result = calibrate_session(path, params="k,k_d", noise_position=NOISE[0], optimization_level=level)
+    data = read_calibration_data(path, "bodies")
+    problem = CalibrationProblem(data, parse_parameters("k,k_d", data, None), noise_position=NOISE[0],
+                                 optimization_level=level, window_steps=result.window_steps)
+    theta = np.log(result.fitted)
+    true = np.log(np.concatenate([truth["k"], truth["k_d"]]))
+    d = true - theta
+    at_fit, at_truth = problem.host_residuals(theta), problem.host_residuals(true)
+    print(f"\nseed {seed} ({motion}, {duration} s), joint limits {'on' if limits else 'off'}: exit "
+          f"{result.verdict.exit_code}; sum of squares at the fit {at_fit @ at_fit:.1f}, at the truth "
+          f"{at_truth @ at_truth:.1f} (difference {at_truth @ at_truth - at_fit @ at_fit:.1f})")
+    steps = [("forward 1e-6", None)] + [(f"central {h:g}", h) for h in (1e-5, 1e-3, 1e-2)]
+    for name, h in steps:
+        if h is None:
+            _, jac = problem.fd_jacobian(theta, central=False)
+        else:
+            points = [theta] + [theta + sign * h * np.eye(len(theta))[j] for j in range(len(theta)) for sign in (1, -1)]
+            values = problem.residuals_at(points)
+            jac = np.stack([(values[1 + 2 * j] - values[2 + 2 * j]) / (2 * h) for j in range(len(theta))], axis=1)
+        print(f"  Jacobian ({name}): predicts d^T J^T J d = {d @ (jac.T @ jac) @ d:.1f}")
+    for t in (1e-3, 1e-2, 0.1, 0.5, 1.0):
+        change = np.linalg.norm(problem.host_residuals(theta + t * d) - at_fit) / t
+        print(f"  along the line to the truth, fraction {t:g}: residuals change {change:.2f} per unit")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sessions", type=int, default=12)
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    parser.add_argument("--trace", type=int, default=None, metavar="SEED",
+                        help="the linearity study of one session's joint test instead (module doc)")
     args = parser.parse_args()
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
     level = 0 if args.fast_compile else 2
+    if args.trace is not None:
+        for limits in (True, False):
+            with tempfile.TemporaryDirectory() as folder:
+                trace(args.trace, Path(folder), level, limits)
+        return
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for seed in range(args.first_seed, args.first_seed + args.sessions):
