@@ -6,8 +6,9 @@ coordinate of a knot after t = 0 is
     value = start + a * sin(z),
 
 so it can never leave ``[start - a, start + a]`` (MINUIT's transform of a doubly bounded
-parameter, James & Roos 1975: unlike ``tanh`` its slope does not fade towards the bound, so
-a solver that steps onto the bound can step off it again). The bar *path* between knots is a linear
+parameter, James & Roos 1975: its slope fades to 0 at the bound too, but it reaches the bound at
+a finite ``z`` where ``tanh`` needs an infinite one, and past it the value turns back, so a solver
+that steps onto or past the bound can step off it again). The bar *path* between knots is a linear
 combination of the knot values with weights ``w_j(t)`` summing to one (the Hermite spline of
 :mod:`fitting.bar_spline` is linear in its values); with the first knot held at the start,
 ``path(t) - start = sum_{j >= 1} w_j(t) (p_j - start)``, so ``|path(t) - start| <= L a`` with
