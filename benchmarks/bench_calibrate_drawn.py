@@ -8,8 +8,8 @@ Session ``i`` (seed ``first_seed + i``): the motion ``fitting.synthetic_scenes.M
 ``k`` and ``k_d`` drawn log-uniformly from 0.3x-3x of the scene's 300 N/m and 3 N s/m; recorded with
 0.3 mm noise on the body coordinates and 0.02 N on the forces (``record_synthetic_session``). Each is
 calibrated as ``dmarionette calibrate SESSION --noise-position 3e-4`` does it (the bodies, ``k,k_d``,
-the default windows, from the scene's constants), in this process. Printed per session: the exit
-code, steps, seconds, the constants restarted between stages (``calibration_fit.restart_runaways``),
+the default windows, from the scene's constants; ``--targets both`` adds the bars' forces with
+``--noise-force 0.02``), in this process. Printed per session: the exit code, steps, seconds, the constants restarted between stages (``calibration_fit.restart_runaways``),
 the largest error in standard errors, and the joint test of the errors against the fit's own
 covariance: the Mahalanobis distance ``d^T C^-1 d`` of the log-space errors (chi-squared with 12
 degrees of freedom if the intervals are right) and its p-value. A run with exit code 0 whose errors
@@ -61,7 +61,7 @@ def chi2_survival(x: float, dof: int) -> float:
     return math.exp(-half) * sum(half ** j / math.factorial(j) for j in range(dof // 2))
 
 
-def one(seed: int, folder: Path, level: int) -> dict:
+def one(seed: int, folder: Path, level: int, targets: str = "bodies") -> dict:
     from dmarionette.scene.scene import load_scene
     from fitting.calibration_fit import calibrate_session
     from fitting.synthetic_scenes import motion_scene_text
@@ -74,7 +74,8 @@ def one(seed: int, folder: Path, level: int) -> dict:
     _, path = record_synthetic_session(scene, text, truth, duration, folder / f"{seed}.mcap", noise_position=NOISE[0],
                                        noise_force=NOISE[1], seed=seed, optimization_level=level)
     start = time.perf_counter()
-    result = calibrate_session(path, params="k,k_d", noise_position=NOISE[0], optimization_level=level)
+    result = calibrate_session(path, targets=targets, params="k,k_d", noise_position=NOISE[0], noise_force=NOISE[1],
+                               optimization_level=level)
     seconds = time.perf_counter() - start
     true = np.concatenate([truth["k"], truth["k_d"]])
     se = result.uncertainty.standard_error
@@ -137,6 +138,8 @@ def main() -> None:
     parser.add_argument("--sessions", type=int, default=12)
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument("--fast-compile", action="store_true", help="puppet kernels without optimisation")
+    parser.add_argument("--targets", default="bodies", choices=["bodies", "feedback", "both"],
+                        help="what the sessions are fitted to (default bodies, as --noise-position alone)")
     parser.add_argument("--trace", type=int, default=None, metavar="SEED",
                         help="the linearity study of one session's joint test instead (module doc)")
     args = parser.parse_args()
@@ -152,7 +155,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for seed in range(args.first_seed, args.first_seed + args.sessions):
-            rows.append(one(seed, Path(folder), level))
+            rows.append(one(seed, Path(folder), level, args.targets))
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     print("| seed | motion, length | exit | steps | s | restarted | largest error in s.e. | d^T C^-1 d (p) |")
     print("|---|---|---|---|---|---|---|---|")
