@@ -17,8 +17,8 @@ pytest.importorskip("jax")
 tomli_w = pytest.importorskip("tomli_w")
 
 ROOT = Path(__file__).resolve().parents[2]
-# The knot offsets of the reference (hand: x, y, z after t = 0; main: y) [m]: the lead's red-team
-# script /work/briefs/author_random.py, seed 5, inside the workspace bounds (at most 0.78 of a bound).
+# The knot offsets of the reference (hand: x, y, z after t = 0; main: y) [m]: seed 5 of
+# ``benchmarks/bench_author_drawn.py --variant small``, inside the workspace bounds (at most 0.78 of a bound).
 REFERENCE = {"hand": [[0.037, 0.033, 0.001], [-0.026, -0.035, -0.006], [-0.011, -0.036, -0.023]],
              "main": [[0.03], [0.009]]}
 
